@@ -1,0 +1,1 @@
+"""The `monoloc` command: the composition root that ties server, sim and client CLIs."""
