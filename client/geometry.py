@@ -16,9 +16,7 @@ from client.errors import InvalidInputError
 # KITTI's world is its first camera frame (x right, y down, z forward). The z-up world
 # has x forward (KITTI z), y left (-KITTI x), z up (-KITTI y). This is the one place
 # that conversion is defined.
-R_ZUP_FROM_KITTI = np.array(
-    [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=np.float64
-)
+R_ZUP_FROM_KITTI = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=np.float64)
 T_ZUP_FROM_KITTI = np.eye(4)
 T_ZUP_FROM_KITTI[:3, :3] = R_ZUP_FROM_KITTI
 
@@ -92,7 +90,11 @@ def R_world_from_cam_level(yaw_rad: float, pitch_rad: float = 0.0, roll_rad: flo
 
 
 def T_world_from_cam_planar(
-    x_m: float, y_m: float, yaw_rad: float, height_m: float = 0.0, pitch_rad: float = 0.0,
+    x_m: float,
+    y_m: float,
+    yaw_rad: float,
+    height_m: float = 0.0,
+    pitch_rad: float = 0.0,
     roll_rad: float = 0.0,
 ) -> np.ndarray:
     """A camera pose at planar position (x, y), given height above z = 0 and heading."""

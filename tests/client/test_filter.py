@@ -1,0 +1,170 @@
+import math
+
+import numpy as np
+import pytest
+
+from client.calibration import fit_measurement_model, pose_errors, retrieval_vectors
+from client.geometry import wrap_angle
+from client.measurement import Hypotheses, MeasurementModel, log_likelihood
+from client.motion import MotionConfig, predict
+from client.particle_filter import FilterConfig, ParticleFilter
+from client.resampling import effective_sample_size, systematic_resample
+
+
+def test_motion_model_drives_a_known_circle():
+    # 10 m/s, 0.2 rad/s -> radius 50 m; one full lap takes 2*pi/0.2 s.
+    rng = np.random.default_rng(0)
+    exact = MotionConfig(speed_noise_mps=(0.0, 0.0), yaw_rate_noise_radps=(0.0, 0.0))
+    particles = np.array([[0.0, 0.0, 0.0]])
+    dt = 0.001
+    steps = round(2 * math.pi / 0.2 / dt)
+    quarter = steps // 4
+    for i in range(steps):
+        particles = predict(particles, 10.0, 0.2, dt, exact, rng)
+        if i == quarter - 1:
+            # A quarter lap to the left: at (R, R) facing +Y.
+            assert np.allclose(particles[0, :2], [50.0, 50.0], atol=0.1)
+            assert particles[0, 2] == pytest.approx(math.pi / 2, abs=1e-3)
+    assert np.allclose(particles[0, :2], [0.0, 0.0], atol=0.1)
+
+
+def test_motion_noise_is_per_particle_and_bounded():
+    rng = np.random.default_rng(1)
+    cfg = MotionConfig(speed_noise_mps=(-0.5, 0.5), yaw_rate_noise_radps=(0.0, 0.0))
+    particles = np.zeros((500, 3))
+    moved = predict(particles, 10.0, 0.0, 1.0, cfg, rng)
+    assert moved[:, 0].min() >= 9.5 and moved[:, 0].max() <= 10.5
+    assert np.std(moved[:, 0]) > 0.2  # each particle drew its own noise
+
+
+def _log_normal_1d(x, mean, var):
+    return -0.5 * ((x - mean) ** 2 / var + math.log(2 * math.pi * var))
+
+
+def test_mixture_matches_hand_computed_value():
+    model = MeasurementModel(
+        mu1=[0.1, -0.2, 0.01],
+        Sigma1=np.diag([0.5, 0.4, 0.02]),
+        mu2=[0.8, 0.0, 0.0, 0.0],
+        Sigma2=np.diag([0.04, 9.0, 16.0, 0.1]),
+        outlier_log_density=None,
+    )
+    hyps = Hypotheses(
+        pose_world=np.array([[10.0, 5.0, 0.3], [11.0, 4.0, 3.1]]),
+        entry_pose_world=np.array([[9.0, 5.5, 0.25], [12.0, 3.0, -3.1]]),
+        e_vlad=np.array([0.7, 1.0]),
+    )
+    x = np.array([10.5, 4.6, 3.12])
+    total = 0.0
+    for z, entry, ev in zip(hyps.pose_world, hyps.entry_pose_world, hyps.e_vlad, strict=True):
+        d_yaw = wrap_angle(x[2] - (z[2] + 0.01))
+        log_n1 = (
+            _log_normal_1d(x[0], z[0] + 0.1, 0.5)
+            + _log_normal_1d(x[1], z[1] - 0.2, 0.4)
+            + _log_normal_1d(d_yaw, 0.0, 0.02)
+        )
+        log_c = (
+            _log_normal_1d(ev, 0.8, 0.04)
+            + _log_normal_1d(entry[0] - x[0], 0.0, 9.0)
+            + _log_normal_1d(entry[1] - x[1], 0.0, 16.0)
+            + _log_normal_1d(wrap_angle(entry[2] - x[2]), 0.0, 0.1)
+        )
+        total += math.exp(log_c + log_n1)
+    got = log_likelihood(x[None, :], hyps, model)
+    assert got.shape == (1,)
+    assert got[0] == pytest.approx(math.log(total), rel=1e-9)
+
+
+def test_systematic_resampling_follows_weights():
+    rng = np.random.default_rng(2)
+    weights = np.array([0.0, 0.5, 0.25, 0.25])
+    idx = systematic_resample(weights, rng)
+    counts = np.bincount(idx, minlength=4)
+    assert counts.tolist() == [0, 2, 1, 1]
+    assert effective_sample_size(np.full(10, 0.1)) == pytest.approx(10.0)
+
+
+def _circle_truth(n, dt, speed, yaw_rate, start):
+    poses = [np.array(start, dtype=float)]
+    for _ in range(n - 1):
+        x, y, psi = poses[-1]
+        poses.append(
+            np.array(
+                [
+                    x + speed * math.cos(psi) * dt,
+                    y + speed * math.sin(psi) * dt,
+                    wrap_angle(psi + yaw_rate * dt),
+                ]
+            )
+        )
+    return np.array(poses)
+
+
+def _hypotheses_at(truth, rng, n_good=6, n_bad=2):
+    good = truth + rng.normal(scale=[0.15, 0.15, 0.01], size=(n_good, 3))
+    bad = truth + rng.uniform(-15, 15, size=(n_bad, 3)) * [1, 1, 0.05]
+    poses = np.vstack([good, bad])
+    entries = truth + rng.normal(scale=[2.0, 2.0, 0.05], size=(len(poses), 3))
+    return Hypotheses(poses, entries, np.full(len(poses), 0.9))
+
+
+def test_filter_converges_from_wide_prior_and_tracks_without_hypotheses():
+    rng = np.random.default_rng(3)
+    dt, speed, yaw_rate = 0.1, 8.0, 0.05
+    truth = _circle_truth(80, dt, speed, yaw_rate, [100.0, -40.0, 0.7])
+    pf = ParticleFilter(FilterConfig(n_particles=2000), MeasurementModel(), rng)
+    # Wide prior: 20 m and 20 deg around a wrong guess.
+    pf.initialise(truth[0] + [12.0, -9.0, 0.2], position_std_m=20.0, yaw_std_rad=0.35)
+    errors = []
+    for k in range(1, 60):
+        est = pf.step(dt, speed + 0.05, yaw_rate, _hypotheses_at(truth[k], rng))
+        errors.append(np.linalg.norm(est.pose_world[:2] - truth[k, :2]))
+    assert np.mean(errors[-20:]) < 0.3
+    # Twenty frames of dead reckoning with no hypotheses: still close.
+    for _ in range(60, 80):
+        est = pf.step(dt, speed, yaw_rate, None)
+        assert est.n_hypotheses == 0
+    assert np.linalg.norm(est.pose_world[:2] - truth[79, :2]) < 1.0
+    assert abs(wrap_angle(est.pose_world[2] - truth[79, 2])) < math.radians(3)
+
+
+def test_filter_initialises_from_first_hypotheses_and_recovers_when_lost():
+    rng = np.random.default_rng(4)
+    pf = ParticleFilter(FilterConfig(n_particles=500, lost_after_frames=2), MeasurementModel(), rng)
+    assert pf.step(0.1, 5.0, 0.0, None) is None
+    truth = np.array([5.0, 5.0, 0.0])
+    est = pf.step(0.1, 5.0, 0.0, _hypotheses_at(truth, rng, n_bad=0))
+    assert np.linalg.norm(est.pose_world[:2] - truth[:2]) < 0.5
+    # The vehicle is "kidnapped" 200 m away: after two unlikely frames the filter re-seeds.
+    far = np.array([205.0, 5.0, 0.0])
+    for _ in range(3):
+        est = pf.step(0.0, 0.0, 0.0, _hypotheses_at(far, rng, n_bad=0))
+    assert np.linalg.norm(est.pose_world[:2] - far[:2]) < 0.5
+
+
+def test_calibration_recovers_planted_bias_and_covariance():
+    rng = np.random.default_rng(5)
+    n = 20000
+    mu1 = np.array([0.2, -0.1, 0.02])
+    A = np.array([[0.3, 0.0, 0.0], [0.1, 0.2, 0.0], [0.0, 0.0, 0.01]])
+    truth = rng.uniform(-100, 100, size=(n, 3))
+    truth[:, 2] = rng.uniform(-math.pi, math.pi, n)
+    errors = mu1 + rng.normal(size=(n, 3)) @ A.T
+    hyps = truth - errors
+    hyps[:, 2] = wrap_angle(hyps[:, 2])
+    e1 = pose_errors(truth, hyps)
+    mu2 = np.array([0.85, 0.5, -0.3, 0.01])
+    S2 = np.diag([0.1, 3.0, 2.0, 0.05])
+    r = mu2 + rng.normal(size=(n, 4)) @ S2.T
+    entry = truth.copy()
+    entry[:, :2] += r[:, 1:3]
+    entry[:, 2] = wrap_angle(entry[:, 2] + r[:, 3])
+    e2 = retrieval_vectors(r[:, 0], entry, truth)
+    model = fit_measurement_model(e1, e2)
+    assert np.allclose(model.mu1, mu1, atol=0.01)
+    assert np.allclose(model.Sigma1, A @ A.T, atol=0.01)
+    assert np.allclose(model.mu2, mu2, atol=0.05)
+    assert np.allclose(model.Sigma2, S2 @ S2.T, atol=0.2)
+    # The paper's formula is the second moment about zero: larger by mu mu^T.
+    paper = fit_measurement_model(e1, e2, unbiased=False)
+    assert np.allclose(paper.Sigma1 - model.Sigma1, np.outer(mu1, mu1), atol=0.01)

@@ -1,0 +1,50 @@
+import io
+import math
+
+import numpy as np
+import pytest
+
+from client.errors import InvalidInputError
+from client.geometry import kitti_to_zup, planar_from_T_world_from_cam
+from client.trajectory import (
+    poses_from_planar,
+    trajectory_metrics,
+    write_kitti,
+    write_trajectory_files,
+    write_tum,
+)
+
+
+def test_tum_and_kitti_round_trip_through_text():
+    planar = np.array([[1.0, 2.0, 0.3], [4.0, -1.0, -2.9]])
+    poses = poses_from_planar(planar, height_m=1.65)
+    buf = io.StringIO()
+    write_tum(buf, np.array([0.0, 0.1]), poses)
+    rows = np.loadtxt(io.StringIO(buf.getvalue()))
+    assert rows.shape == (2, 8)
+    assert np.allclose(rows[:, 1:4], poses[:, :3, 3])
+    assert np.allclose(np.linalg.norm(rows[:, 4:], axis=1), 1.0)
+    buf = io.StringIO()
+    write_kitti(buf, poses)
+    kitti = np.loadtxt(io.StringIO(buf.getvalue())).reshape(-1, 3, 4)
+    T = np.tile(np.eye(4), (2, 1, 1))
+    T[:, :3, :] = kitti
+    assert np.allclose(planar_from_T_world_from_cam(kitti_to_zup(T)), planar, atol=1e-6)
+
+
+def test_trajectory_files_are_written(tmp_path):
+    tum, kitti = write_trajectory_files(tmp_path / "out" / "run", [0.0], [[0.0, 0.0, 0.0]])
+    assert tum.read_text().count("\n") == 1 and kitti.read_text().count("\n") == 1
+
+
+def test_metrics_values_and_misses():
+    truth = np.zeros((4, 3))
+    est = np.array([[0.1, 0.0, 0.0], [0.0, 0.3, 0.0], [3.0, 4.0, math.radians(8)], [np.nan] * 3])
+    m = trajectory_metrics(est, truth)
+    assert m.n_frames == 4
+    assert m.position_rmse_m == pytest.approx(math.sqrt((0.01 + 0.09 + 25) / 3))
+    assert m.within_0_25m_2deg == pytest.approx(0.25)
+    assert m.within_0_5m_5deg == pytest.approx(0.5)
+    assert m.within_5m_10deg == pytest.approx(0.75)
+    with pytest.raises(InvalidInputError):
+        trajectory_metrics(est[:2], truth)
