@@ -1,0 +1,288 @@
+"""Per-map retrieval index (METHOD.md section 4, monoloc's binary design).
+
+A FAISS binary index over the entries' VLAD sign codes gives a Hamming shortlist; the
+shortlist is re-ranked by the exact L2 distance of the float VLADs. With a planar prior
+only entries inside the radius (and heading window) compete. Entries are added and
+removed live; a readers-writer lock lets searches run concurrently but never during an
+add or a remove (FAISS's rule).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from client.errors import InvalidInputError
+from client.geometry import wrap_angle
+from server.index.rwlock import ReadWriteLock
+
+VLAD_DIM = 2048
+CODE_BYTES = VLAD_DIM // 8
+
+
+@dataclass(frozen=True)
+class RetrievalPrior:
+    """Only entries within ``radius_m`` of (x_m, y_m), and within ``yaw_tolerance_rad`` of
+    ``yaw_rad`` when both are given, compete."""
+
+    x_m: float
+    y_m: float
+    radius_m: float
+    yaw_rad: float | None = None
+    yaw_tolerance_rad: float | None = None
+
+    def __post_init__(self) -> None:
+        values = [self.x_m, self.y_m, self.radius_m]
+        if self.yaw_rad is not None:
+            values.append(self.yaw_rad)
+        if self.yaw_tolerance_rad is not None:
+            values.append(self.yaw_tolerance_rad)
+        if not all(math.isfinite(v) for v in values) or self.radius_m <= 0:
+            raise InvalidInputError(f"invalid retrieval prior {self}")
+
+    def mask(self, poses_world: np.ndarray) -> np.ndarray:
+        """Boolean (N,) of entries (planar poses (N, 3)) inside the prior."""
+        d2 = (poses_world[:, 0] - self.x_m) ** 2 + (poses_world[:, 1] - self.y_m) ** 2
+        inside = d2 <= self.radius_m**2
+        if self.yaw_rad is not None and self.yaw_tolerance_rad is not None:
+            inside &= np.abs(wrap_angle(poses_world[:, 2] - self.yaw_rad)) <= self.yaw_tolerance_rad
+        return inside
+
+
+@dataclass(frozen=True)
+class IndexConfig:
+    """Retrieval settings. ``shortlist_size`` Hamming candidates are re-ranked exactly."""
+
+    shortlist_size: int = 100
+    ivf_min_entries: int = 50_000  # from this size on, an IVF binary index is used
+    ivf_lists_per_sqrt: float = 4.0  # nlist = this * sqrt(N)
+    ivf_nprobe: int = 32
+    prior_exact_max: int = 20_000  # up to this many candidates, re-rank all exactly
+    vector_dtype: str = "float32"  # float16 halves memory for very large maps
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """Top-k entries, best first: ids (k,) int64 and VLAD L2 distances (k,) float32."""
+
+    entry_ids: np.ndarray
+    distances: np.ndarray
+
+
+class RetrievalIndex:
+    """Live index of one map's entries. Thread-safe for concurrent search and edits."""
+
+    def __init__(self, config: IndexConfig | None = None) -> None:
+        self.config = config or IndexConfig()
+        self._lock = ReadWriteLock()
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._codes = np.zeros((0, CODE_BYTES), dtype=np.uint8)
+        self._vlads = np.zeros((0, VLAD_DIM), dtype=self.config.vector_dtype)
+        self._poses = np.zeros((0, 3), dtype=np.float64)
+        self._size = 0
+        self._row_of_id: dict[int, int] = {}
+        self._faiss = self._new_flat()
+        self._is_ivf = False
+
+    # ---- construction -------------------------------------------------------------
+    @staticmethod
+    def _new_flat():
+        import faiss
+
+        return faiss.IndexBinaryIDMap2(faiss.IndexBinaryFlat(VLAD_DIM))
+
+    def _new_ivf(self, codes: np.ndarray):
+        import faiss
+
+        nlist = max(16, int(self.config.ivf_lists_per_sqrt * math.sqrt(len(codes))))
+        quantizer = faiss.IndexBinaryFlat(VLAD_DIM)
+        ivf = faiss.IndexBinaryIVF(quantizer, VLAD_DIM, nlist)  # the wrapper keeps quantizer
+        train = codes if len(codes) <= 256 * nlist else codes[:: len(codes) // (256 * nlist)]
+        ivf.train(np.ascontiguousarray(train))
+        ivf.nprobe = self.config.ivf_nprobe
+        return ivf
+
+    def __len__(self) -> int:
+        return self._size
+
+    @property
+    def kind(self) -> str:
+        return "ivf" if self._is_ivf else "flat"
+
+    def entry_ids(self) -> np.ndarray:
+        with self._lock.read():
+            return self._ids[: self._size].copy()
+
+    def __contains__(self, entry_id: int) -> bool:
+        return int(entry_id) in self._row_of_id
+
+    # ---- edits --------------------------------------------------------------------
+    def _reserve(self, extra: int) -> None:
+        need = self._size + extra
+        if need <= len(self._ids):
+            return
+        capacity = max(need, 2 * len(self._ids), 64)
+
+        def grow(arr: np.ndarray) -> np.ndarray:
+            out = np.zeros((capacity, *arr.shape[1:]), dtype=arr.dtype)
+            out[: self._size] = arr[: self._size]
+            return out
+
+        self._ids, self._codes = grow(self._ids), grow(self._codes)
+        self._vlads, self._poses = grow(self._vlads), grow(self._poses)
+
+    def add(
+        self, entry_ids: np.ndarray, codes: np.ndarray, vlads: np.ndarray, poses_world: np.ndarray
+    ) -> None:
+        """Add entries: ids (N,) int64, codes (N, 256) uint8, VLADs (N, 2048), poses (N, 3).
+
+        Ids already present are replaced (an entry re-computed with a new vocabulary).
+        """
+        ids = np.asarray(entry_ids, dtype=np.int64).reshape(-1)
+        codes = np.ascontiguousarray(codes, dtype=np.uint8).reshape(len(ids), CODE_BYTES)
+        vlads = np.asarray(vlads, dtype=np.float32).reshape(len(ids), VLAD_DIM)
+        poses = np.asarray(poses_world, dtype=np.float64).reshape(len(ids), 3)
+        if len(np.unique(ids)) != len(ids):
+            raise InvalidInputError("duplicate entry ids in one add")
+        present = [int(i) for i in ids if int(i) in self._row_of_id]
+        if present:
+            self.remove(present)
+        with self._lock.write():
+            self._reserve(len(ids))
+            rows = slice(self._size, self._size + len(ids))
+            self._ids[rows], self._codes[rows] = ids, codes
+            self._vlads[rows], self._poses[rows] = vlads, poses
+            for offset, entry_id in enumerate(ids):
+                self._row_of_id[int(entry_id)] = self._size + offset
+            self._size += len(ids)
+            self._faiss.add_with_ids(codes, ids)
+            if not self._is_ivf and self._size >= self.config.ivf_min_entries:
+                self._rebuild_faiss()
+
+    def remove(self, entry_ids) -> int:
+        """Remove entries by id; unknown ids are ignored. Returns how many were removed."""
+        import faiss
+
+        wanted = [int(i) for i in np.asarray(entry_ids, dtype=np.int64).reshape(-1)]
+        with self._lock.write():
+            rows = [self._row_of_id.pop(i) for i in wanted if i in self._row_of_id]
+            if not rows:
+                return 0
+            # Compact: move the last live rows into the holes.
+            for row in sorted(rows, reverse=True):
+                last = self._size - 1
+                if row != last:
+                    moved_id = int(self._ids[last])
+                    self._ids[row], self._codes[row] = self._ids[last], self._codes[last]
+                    self._vlads[row], self._poses[row] = self._vlads[last], self._poses[last]
+                    self._row_of_id[moved_id] = row
+                self._size -= 1
+            self._faiss.remove_ids(faiss.IDSelectorBatch(np.asarray(wanted, dtype=np.int64)))
+            return len(rows)
+
+    def _rebuild_faiss(self) -> None:
+        codes = self._codes[: self._size]
+        ids = self._ids[: self._size]
+        if self._size >= self.config.ivf_min_entries:
+            self._faiss = self._new_ivf(codes)
+            self._is_ivf = True
+        else:
+            self._faiss = self._new_flat()
+            self._is_ivf = False
+        if self._size:
+            self._faiss.add_with_ids(np.ascontiguousarray(codes), ids)
+
+    # ---- search -------------------------------------------------------------------
+    def search(
+        self,
+        vlad_query: np.ndarray,
+        code_query: np.ndarray,
+        k: int = 10,
+        prior: RetrievalPrior | None = None,
+    ) -> SearchResult:
+        """Top-k entries by exact VLAD distance, shortlisted by Hamming distance of codes."""
+        if k < 1:
+            raise InvalidInputError(f"k must be >= 1, got {k}")
+        query = np.asarray(vlad_query, dtype=np.float32).reshape(VLAD_DIM)
+        code = np.ascontiguousarray(code_query, dtype=np.uint8).reshape(1, CODE_BYTES)
+        with self._lock.read():
+            if self._size == 0:
+                return _empty_result()
+            if prior is None:
+                rows = self._shortlist_rows(code, max(self.config.shortlist_size, k))
+            else:
+                rows = self._prior_rows(code, k, prior)
+            return self._rerank(query, rows, k)
+
+    def _shortlist_rows(self, code: np.ndarray, size: int) -> np.ndarray:
+        _, found = self._faiss.search(code, min(size, self._size))
+        ids = found[0][found[0] >= 0]
+        return np.fromiter((self._row_of_id[int(i)] for i in ids), dtype=np.int64, count=len(ids))
+
+    def _prior_rows(self, code: np.ndarray, k: int, prior: RetrievalPrior) -> np.ndarray:
+        inside = np.flatnonzero(prior.mask(self._poses[: self._size]))
+        if len(inside) <= self.config.prior_exact_max:
+            return inside
+        # Many candidates: widen the Hamming shortlist until enough fall inside the prior.
+        inside_set = np.zeros(self._size, dtype=bool)
+        inside_set[inside] = True
+        size = max(self.config.shortlist_size, k)
+        while True:
+            rows = self._shortlist_rows(code, size)
+            rows = rows[inside_set[rows]]
+            if len(rows) >= self.config.shortlist_size or size >= self._size:
+                return rows
+            size *= 4
+
+    def _rerank(self, query: np.ndarray, rows: np.ndarray, k: int) -> SearchResult:
+        if len(rows) == 0:
+            return _empty_result()
+        diff = self._vlads[rows].astype(np.float32) - query
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        order = np.argsort(dist, kind="stable")[:k]
+        return SearchResult(self._ids[rows[order]].copy(), dist[order].astype(np.float32))
+
+    # ---- snapshot (for persistence) ---------------------------------------------------
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """Copies of the live arrays: ids, codes, vlads, poses."""
+        with self._lock.read():
+            n = self._size
+            return {
+                "ids": self._ids[:n].copy(),
+                "codes": self._codes[:n].copy(),
+                "vlads": self._vlads[:n].copy(),
+                "poses": self._poses[:n].copy(),
+            }
+
+    @classmethod
+    def from_arrays(
+        cls, ids, codes, vlads, poses, config: IndexConfig | None = None, faiss_index=None
+    ) -> RetrievalIndex:
+        """Build an index from arrays; ``faiss_index`` (already holding exactly these ids)
+        skips building and, for IVF, training."""
+        index = cls(config)
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        if len(np.unique(ids)) != len(ids):
+            raise InvalidInputError("duplicate entry ids")
+        n = len(ids)
+        index._reserve(n)
+        index._ids[:n] = ids
+        index._codes[:n] = np.asarray(codes, dtype=np.uint8).reshape(n, CODE_BYTES)
+        index._vlads[:n] = np.asarray(vlads).reshape(n, VLAD_DIM)
+        index._poses[:n] = np.asarray(poses, dtype=np.float64).reshape(n, 3)
+        index._size = n
+        index._row_of_id = {int(i): row for row, i in enumerate(ids)}
+        if faiss_index is not None:
+            if faiss_index.ntotal != n:
+                raise InvalidInputError("the FAISS index does not hold the given entries")
+            faiss_index.nprobe = index.config.ivf_nprobe
+            index._faiss, index._is_ivf = faiss_index, True
+        else:
+            index._rebuild_faiss()
+        return index
+
+
+def _empty_result() -> SearchResult:
+    return SearchResult(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float32))
