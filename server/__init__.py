@@ -1,0 +1,1 @@
+"""The monoloc map server: vision core, map database, retrieval index and HTTP API."""

@@ -1,0 +1,94 @@
+"""Deployment settings of the map server, read from ``MONOLOC_*`` environment variables.
+
+Nothing is read at import time: call :func:`get_settings` (or build ``Settings(...)``
+directly in tests) where the settings are needed.
+
+Durability (``sqlite_synchronous``)
+-----------------------------------
+The SQLite database runs in WAL mode. With ``NORMAL`` (the default) a commit is
+durable against a crash of the application or the server process: the WAL is written
+before the commit returns and SQLite replays it on the next open. A power loss or an
+operating-system crash may lose the last few committed transactions (those not yet
+checkpointed/fsynced), but never corrupts the database. ``FULL`` fsyncs the WAL on
+every commit, so acknowledged commits also survive a power loss, at the price of one
+fsync per transaction (ingestion commits in batches, so the cost is moderate).
+``EXTRA`` additionally fsyncs the directory after a WAL reset.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MiB = 1024 * 1024
+GiB = 1024 * MiB
+
+
+class Settings(BaseSettings):
+    """All deployment knobs of the server (paths, database, limits, threads)."""
+
+    model_config = SettingsConfigDict(env_prefix="MONOLOC_", extra="ignore", frozen=True)
+
+    # --- storage -------------------------------------------------------------------
+    data_dir: Path = Field(
+        default=Path("data"), description="Directory holding the database and the indexes."
+    )
+    database_url: str = Field(
+        default="",
+        description="SQLAlchemy URL; empty means sqlite:///<data_dir>/monoloc.db (absolute).",
+    )
+    index_dir: Path | None = Field(
+        default=None, description="Where retrieval indexes are persisted; default data_dir/index."
+    )
+    sqlite_synchronous: Literal["NORMAL", "FULL", "EXTRA"] = Field(
+        default="NORMAL",
+        description="PRAGMA synchronous in WAL mode: NORMAL survives app crashes, FULL "
+        "also power loss (see module docstring).",
+    )
+    busy_timeout_ms: int = Field(
+        default=5000, ge=0, description="How long a writer waits for the SQLite write lock."
+    )
+
+    # --- HTTP server ---------------------------------------------------------------
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=1, le=65535)
+    max_body_bytes: int = Field(
+        default=512 * MiB, gt=0, description="Largest request body (uploads included)."
+    )
+    max_image_pixels: int = Field(
+        default=25_000_000, gt=0, description="Largest decoded image (width * height)."
+    )
+    max_archive_members: int = Field(
+        default=100_000, gt=0, description="Most files an uploaded tar/zip may contain."
+    )
+    max_archive_bytes: int = Field(
+        default=4 * GiB, gt=0, description="Largest total uncompressed size of an archive."
+    )
+    stream_max_pending_frames: int = Field(
+        default=2, ge=1, description="WebSocket frames queued per vehicle before stale drops."
+    )
+
+    # --- threads (2-core machines: do not oversubscribe) ---------------------------
+    worker_threads: int = Field(
+        default=2, ge=1, description="Threads running CPU work off the event loop."
+    )
+    cv_threads: int = Field(default=1, ge=0, description="cv2.setNumThreads value.")
+    faiss_threads: int = Field(default=1, ge=1, description="faiss.omp_set_num_threads value.")
+
+    @model_validator(mode="after")
+    def _fill_derived_paths(self) -> Settings:
+        # Settings is frozen; derived defaults are filled once, at construction.
+        if not self.database_url:
+            db_path = (self.data_dir / "monoloc.db").resolve()
+            object.__setattr__(self, "database_url", f"sqlite:///{db_path}")
+        if self.index_dir is None:
+            object.__setattr__(self, "index_dir", self.data_dir / "index")
+        return self
+
+
+def get_settings(**overrides: object) -> Settings:
+    """Read the settings from the environment now (not cached), with explicit overrides."""
+    return Settings(**overrides)

@@ -1,0 +1,7 @@
+"""The map database: SQLAlchemy models, engine/session set-up, Alembic upgrades, repositories.
+
+Modules: ``models`` (schema), ``db`` (engine with SQLite pragmas, sessions), ``migrate``
+(Alembic upgrade), ``arrays`` (numpy <-> blob), ``records`` (plain results), and the
+repositories ``maps``, ``entries``, ``jobs``, ``keys``. Nothing is imported here so that
+``import server.storage`` stays cheap.
+"""

@@ -1,0 +1,126 @@
+"""Engine and session set-up. SQLite gets its pragmas on every new connection.
+
+SQLite (the default) runs with ``journal_mode=WAL`` (readers never block the writer),
+``foreign_keys=ON`` (cascades and references enforced), ``busy_timeout`` (a writer waits
+for the lock instead of failing with "database is locked") and ``synchronous`` from the
+settings (see ``server.settings`` for the durability trade-off). Any other URL (e.g.
+``postgresql+psycopg://...``) is used as is, without pragmas.
+
+Transactions: the pysqlite driver opens a transaction at the first write statement of a
+session, so a session that reads and then writes never upgrades a read snapshot (the
+case SQLite refuses with SQLITE_BUSY regardless of the timeout); concurrent writers
+simply queue on the busy timeout. The repositories therefore do not use SAVEPOINTs
+(pysqlite does not support them without extra set-up).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError
+from sqlalchemy.orm import Session, sessionmaker
+
+from client.errors import InvalidInputError
+
+if TYPE_CHECKING:
+    from server.settings import Settings
+
+SYNCHRONOUS_LEVELS = ("OFF", "NORMAL", "FULL", "EXTRA")
+
+
+def redact_url(url: str) -> str:
+    """The URL with any password masked, for messages and logs."""
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:
+        return "<unparseable database URL>"
+
+
+def _sqlite_file(url: str) -> Path | None:
+    """The database file of a SQLite URL, None for in-memory or URI-style databases."""
+    database = make_url(url).database
+    if not database or database == ":memory:" or database.startswith("file:"):
+        return None
+    return Path(database)
+
+
+def create_engine_for_url(
+    url: str,
+    *,
+    sqlite_synchronous: str = "NORMAL",
+    busy_timeout_ms: int = 5000,
+    **engine_kwargs: Any,
+) -> Engine:
+    """Create an Engine for ``url``; SQLite connections get WAL, foreign keys, busy timeout
+    and ``synchronous``. The SQLite file's directory is created if missing."""
+    try:
+        parsed = make_url(url)
+    except Exception as exc:  # sqlalchemy raises ArgumentError with its own wording
+        raise InvalidInputError(f"invalid database URL: {exc}") from exc
+    if parsed.get_backend_name() != "sqlite":
+        try:
+            return create_engine(url, pool_pre_ping=True, **engine_kwargs)
+        except (ArgumentError, ImportError) as exc:  # unknown dialect or missing driver
+            raise InvalidInputError(f"cannot use database URL {redact_url(url)}: {exc}") from exc
+
+    synchronous = sqlite_synchronous.upper()
+    if synchronous not in SYNCHRONOUS_LEVELS:
+        raise InvalidInputError(
+            f"sqlite_synchronous must be one of {SYNCHRONOUS_LEVELS}, got {sqlite_synchronous!r}"
+        )
+    if busy_timeout_ms < 0:
+        raise InvalidInputError(f"busy_timeout_ms must be >= 0, got {busy_timeout_ms}")
+    db_file = _sqlite_file(url)
+    if db_file is not None:
+        db_file.parent.mkdir(parents=True, exist_ok=True)
+
+    connect_args = dict(engine_kwargs.pop("connect_args", {}))
+    connect_args.setdefault("check_same_thread", False)  # sessions move between threads
+    connect_args.setdefault("timeout", busy_timeout_ms / 1000.0)
+    engine = create_engine(url, connect_args=connect_args, **engine_kwargs)
+
+    @event.listens_for(engine, "connect")
+    def _set_sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+        cursor = dbapi_connection.cursor()
+        try:
+            cursor.execute(f"PRAGMA busy_timeout = {int(busy_timeout_ms)}")
+            cursor.execute("PRAGMA journal_mode = WAL").fetchall()
+            cursor.execute("PRAGMA foreign_keys = ON")
+            cursor.execute(f"PRAGMA synchronous = {synchronous}")
+        finally:
+            cursor.close()
+
+    return engine
+
+
+def create_engine_for(settings: Settings) -> Engine:
+    """Create the Engine described by ``settings`` (database URL, synchronous, busy timeout)."""
+    return create_engine_for_url(
+        settings.database_url,
+        sqlite_synchronous=settings.sqlite_synchronous,
+        busy_timeout_ms=settings.busy_timeout_ms,
+    )
+
+
+def make_session_factory(engine: Engine) -> sessionmaker[Session]:
+    """A session factory bound to ``engine``. Objects stay readable after commit."""
+    return sessionmaker(bind=engine, expire_on_commit=False)
+
+
+@contextmanager
+def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
+    """One unit of work: commit when the block succeeds, roll back if it raises."""
+    session = factory()
+    try:
+        yield session
+        session.commit()
+    except BaseException:
+        session.rollback()
+        raise
+    finally:
+        session.close()

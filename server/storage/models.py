@@ -1,0 +1,223 @@
+"""SQLAlchemy 2.x models of the map database (the schema Alembic's 0001 revision creates).
+
+Array columns are raw blobs whose dtype and shape are fixed by ``server.storage.arrays``
+(VLAD (2048,) float32, code (256,) uint8, keypoints (N, 2) float32 pixels, descriptors
+(N, 32) uint8, points (N, 3) float32 in the reference camera frame (OpenCV), pose 4x4
+float64 ``T_world_from_cam`` row-major). Timestamps are timezone-aware UTC.
+
+Deleting a map cascades in the database (``ON DELETE CASCADE``) to its runs, entries
+and entry tags; jobs keep their history with ``map_id`` set to NULL.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    CheckConstraint,
+    DateTime,
+    ForeignKey,
+    Index,
+    LargeBinary,
+    MetaData,
+    String,
+    Text,
+    TypeDecorator,
+    UniqueConstraint,
+    text,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+RUN_STATUSES = ("pending", "running", "done", "failed", "interrupted")
+JOB_STATES = ("queued", "running", "done", "failed", "interrupted")
+SOURCE_FORMATS = ("kitti", "tum", "single")
+
+NAMING_CONVENTION = {
+    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+def utc_now() -> datetime:
+    """The current time, timezone-aware UTC."""
+    return datetime.now(UTC)
+
+
+class UtcDateTime(TypeDecorator[datetime]):
+    """A DATETIME that always comes back timezone-aware UTC (SQLite stores it naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=UTC)
+        return value.astimezone(UTC)
+
+    def process_result_value(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            return value.replace(tzinfo=UTC)
+        return value.astimezone(UTC)
+
+
+def _in(column: str, values: tuple[str, ...]) -> str:
+    return f"{column} IN ({', '.join(repr(v) for v in values)})"
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+    type_annotation_map = {datetime: UtcDateTime(), dict[str, Any]: JSON()}
+
+
+class Vocabulary(Base):
+    __tablename__ = "vocabularies"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    version_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    centres: Mapped[bytes] = mapped_column(LargeBinary)  # (64, 32) float32
+    n_words: Mapped[int]
+    description: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class Map(Base):
+    __tablename__ = "maps"
+    __table_args__ = (
+        CheckConstraint("fx > 0 AND fy > 0", name="focal_positive"),
+        CheckConstraint("width_px > 0 AND height_px > 0", name="size_positive"),
+        CheckConstraint("version >= 0", name="version_nonnegative"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    fx: Mapped[float]
+    fy: Mapped[float]
+    cx: Mapped[float]
+    cy: Mapped[float]
+    width_px: Mapped[int]
+    height_px: Mapped[int]
+    vocabulary_id: Mapped[int] = mapped_column(ForeignKey("vocabularies.id"), index=True)
+    # Bumped on every entry add/remove/re-describe and vocabulary change; indexes are
+    # stamped with it so a stale index is detected.
+    version: Mapped[int] = mapped_column(default=0, server_default=text("0"))
+    calibration: Mapped[dict[str, Any] | None]
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
+
+
+class Run(Base):
+    __tablename__ = "runs"
+    __table_args__ = (
+        CheckConstraint(_in("status", RUN_STATUSES), name="status"),
+        CheckConstraint(_in("source_format", SOURCE_FORMATS), name="source_format"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("maps.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    source_format: Mapped[str] = mapped_column(String(16))
+    source_name: Mapped[str] = mapped_column(String(512), default="")
+    status: Mapped[str] = mapped_column(String(16), default="pending")
+    frames_total: Mapped[int] = mapped_column(default=0, server_default=text("0"))
+    frames_done: Mapped[int] = mapped_column(default=0, server_default=text("0"))
+    entries_added: Mapped[int] = mapped_column(default=0, server_default=text("0"))
+    frames_skipped: Mapped[int] = mapped_column(default=0, server_default=text("0"))
+    skip_reasons: Mapped[dict[str, Any]] = mapped_column(default=dict)  # reason -> count
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
+
+
+class Entry(Base):
+    __tablename__ = "entries"
+    __table_args__ = (
+        UniqueConstraint("map_id", "source_image_hash"),
+        Index("ix_entries_map_id_x_m_y_m", "map_id", "x_m", "y_m"),
+        CheckConstraint("n_points >= 0", name="n_points_nonnegative"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("maps.id", ondelete="CASCADE"))
+    run_id: Mapped[int | None] = mapped_column(
+        ForeignKey("runs.id", ondelete="SET NULL"), index=True
+    )
+    source_image_hash: Mapped[str] = mapped_column(String(64))  # sha256 hex of the image file
+    T_world_from_cam: Mapped[bytes] = mapped_column(LargeBinary)  # (4, 4) float64
+    x_m: Mapped[float]
+    y_m: Mapped[float]
+    yaw_rad: Mapped[float]
+    vocabulary_id: Mapped[int] = mapped_column(ForeignKey("vocabularies.id"), index=True)
+    # The big blobs are deferred: listing entries does not load them.
+    vlad: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)  # (2048,) float32
+    code: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)  # (256,) uint8
+    keypoints_px: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)  # (N, 2) float32
+    descriptors: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)  # (N, 32) uint8
+    points_cam: Mapped[bytes] = mapped_column(LargeBinary, deferred=True)  # (N, 3) float32
+    n_points: Mapped[int]
+    image_width_px: Mapped[int]
+    image_height_px: Mapped[int]
+    timestamp_s: Mapped[float | None]
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+    tags: Mapped[list[EntryTag]] = relationship(
+        cascade="all, delete-orphan", passive_deletes=True, order_by="EntryTag.tag"
+    )
+
+
+class EntryTag(Base):
+    __tablename__ = "entry_tags"
+
+    entry_id: Mapped[int] = mapped_column(
+        ForeignKey("entries.id", ondelete="CASCADE"), primary_key=True
+    )
+    tag: Mapped[str] = mapped_column(String(64), primary_key=True, index=True)
+
+
+class Job(Base):
+    __tablename__ = "jobs"
+    __table_args__ = (
+        CheckConstraint(_in("state", JOB_STATES), name="state"),
+        CheckConstraint("progress >= 0 AND progress <= 1", name="progress_range"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    map_id: Mapped[int | None] = mapped_column(
+        ForeignKey("maps.id", ondelete="SET NULL"), index=True
+    )
+    run_id: Mapped[int | None] = mapped_column(
+        ForeignKey("runs.id", ondelete="SET NULL"), index=True
+    )
+    state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    progress: Mapped[float] = mapped_column(default=0.0, server_default=text("0"))
+    message: Mapped[str] = mapped_column(Text, default="")
+    error: Mapped[str | None] = mapped_column(Text)
+    params: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    result: Mapped[dict[str, Any] | None]
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
+    finished_at: Mapped[datetime | None]
+
+
+class ApiKey(Base):
+    """An API key. Only ``key_hash`` (sha256 hex of the whole key) is stored: keys are
+    high-entropy random tokens, so a fast hash is enough (no password stretching needed)."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(128))
+    prefix: Mapped[str] = mapped_column(String(16), index=True)  # shown to humans
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    scopes: Mapped[str] = mapped_column(String(256))  # comma-separated
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+    revoked_at: Mapped[datetime | None]

@@ -1,0 +1,78 @@
+"""Fixtures of the storage tests: a migrated SQLite file in tmp_path and entry builders."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from client.camera import KITTI_CAM0
+from client.geometry import T_world_from_cam_planar
+from server.settings import Settings
+from server.storage.db import create_engine_for, make_session_factory, session_scope
+from server.storage.maps import create_map, get_or_create_vocabulary
+from server.storage.migrate import upgrade_database
+from server.storage.records import NewEntry
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:
+    return Settings(data_dir=tmp_path / "data")
+
+
+@pytest.fixture
+def engine(settings: Settings) -> Iterator[Engine]:
+    upgrade_database(settings.database_url)
+    engine = create_engine_for(settings)
+    yield engine
+    engine.dispose()
+
+
+@pytest.fixture
+def factory(engine: Engine) -> sessionmaker[Session]:
+    return make_session_factory(engine)
+
+
+@pytest.fixture
+def map_id(factory) -> int:
+    """A map named 'm' with a random vocabulary, committed."""
+    centres = np.random.default_rng(1).uniform(0, 255, (64, 32)).astype(np.float32)
+    with session_scope(factory) as session:
+        vocab, _ = get_or_create_vocabulary(session, centres, "test vocabulary")
+        return create_map(session, "m", KITTI_CAM0, vocab.id).id
+
+
+@pytest.fixture
+def make_entry() -> Callable[..., NewEntry]:
+    """Builder of valid entries: make_entry(name, x_m=0, y_m=0, yaw_rad=0, n=20, tags=())."""
+
+    def build(
+        name: str,
+        x_m: float = 0.0,
+        y_m: float = 0.0,
+        yaw_rad: float = 0.0,
+        n: int = 20,
+        tags: tuple[str, ...] = (),
+    ) -> NewEntry:
+        rng = np.random.default_rng(
+            int.from_bytes(hashlib.sha256(name.encode()).digest()[:4], "little")
+        )
+        return NewEntry(
+            source_image_hash=hashlib.sha256(name.encode()).hexdigest(),
+            T_world_from_cam=T_world_from_cam_planar(x_m, y_m, yaw_rad, height_m=1.6),
+            vlad=rng.normal(size=2048).astype(np.float32),
+            code=rng.integers(0, 256, 256, dtype=np.uint8),
+            keypoints_px=rng.uniform(0, 370, (n, 2)).astype(np.float32),
+            descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
+            points_cam=rng.uniform(1, 40, (n, 3)).astype(np.float32),
+            image_width_px=KITTI_CAM0.width_px,
+            image_height_px=KITTI_CAM0.height_px,
+            tags=tags,
+            timestamp_s=0.1,
+        )
+
+    return build

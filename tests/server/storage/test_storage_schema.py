@@ -1,0 +1,89 @@
+import sqlite3
+import tomllib
+from pathlib import Path
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from sqlalchemy import create_engine, inspect
+
+from server.settings import Settings, get_settings
+from server.storage.db import create_engine_for
+from server.storage.migrate import (
+    current_revision,
+    head_revision,
+    migrations_dir,
+    upgrade_database,
+)
+from server.storage.models import Base
+
+REPO = Path(__file__).resolve().parents[3]
+TABLES = {"vocabularies", "maps", "runs", "entries", "entry_tags", "jobs", "api_keys"}
+
+
+def test_upgrade_creates_exactly_the_models_schema(tmp_path):
+    url = f"sqlite:///{tmp_path / 'sub' / 'x.db'}"
+    assert current_revision(url) is None
+    upgrade_database(url)
+    upgrade_database(url)  # idempotent
+    assert current_revision(url) == head_revision() == "0001"
+    engine = create_engine(url)
+    with engine.connect() as conn:
+        assert set(inspect(conn).get_table_names()) == TABLES | {"alembic_version"}
+        context = MigrationContext.configure(
+            conn, opts={"compare_type": True, "compare_server_default": True}
+        )
+        assert compare_metadata(context, Base.metadata) == []
+        fks = {
+            (fk["referred_table"], fk["options"].get("ondelete"))
+            for fk in inspect(conn).get_foreign_keys("entries")
+        }
+        assert fks == {("maps", "CASCADE"), ("runs", "SET NULL"), ("vocabularies", None)}
+    engine.dispose()
+
+
+def test_pragmas_set_on_every_connection(tmp_path):
+    settings = Settings(data_dir=tmp_path, sqlite_synchronous="FULL", busy_timeout_ms=1234)
+    upgrade_database(settings.database_url)
+    engine = create_engine_for(settings)
+    conns = [engine.connect() for _ in range(2)]  # two pooled connections
+    try:
+        for conn in conns:
+            pragma = conn.exec_driver_sql
+            assert pragma("PRAGMA journal_mode").scalar() == "wal"
+            assert pragma("PRAGMA foreign_keys").scalar() == 1
+            assert pragma("PRAGMA busy_timeout").scalar() == 1234
+            assert pragma("PRAGMA synchronous").scalar() == 2  # FULL
+    finally:
+        for conn in conns:
+            conn.close()
+        engine.dispose()
+    # WAL is persistent: a plain sqlite3 connection sees it too.
+    raw = sqlite3.connect(tmp_path / "monoloc.db")
+    assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    raw.close()
+
+
+def test_settings_from_environment_not_cached(tmp_path, monkeypatch):
+    monkeypatch.setenv("MONOLOC_DATA_DIR", str(tmp_path / "a"))
+    first = get_settings()
+    assert first.database_url == f"sqlite:///{(tmp_path / 'a' / 'monoloc.db').resolve()}"
+    assert first.sqlite_synchronous == "NORMAL"
+    monkeypatch.setenv("MONOLOC_DATABASE_URL", "sqlite:////elsewhere/x.db")
+    monkeypatch.setenv("MONOLOC_MAX_BODY_BYTES", "1000")
+    second = get_settings()
+    assert second.database_url == "sqlite:////elsewhere/x.db"
+    assert second.max_body_bytes == 1000
+    monkeypatch.setenv("MONOLOC_SQLITE_SYNCHRONOUS", "OFF")
+    with pytest.raises(ValueError):
+        get_settings()
+
+
+def test_migrations_are_shipped_as_packages():
+    assert migrations_dir() == REPO / "migrations"
+    from setuptools import find_packages
+
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    found = find_packages(where=str(REPO), include=config["packages"]["find"]["include"])
+    assert {"migrations", "migrations.versions", "server.storage"} <= set(found)
+    assert "script.py.mako" in config["package-data"]["migrations"]
