@@ -1,0 +1,65 @@
+"""`monoloc drive`: replay a recorded run against a map server with the particle filter."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def drive(
+    run_dir: Path = typer.Argument(
+        ..., help="KITTI sequence (or dataset root with --sequence) or TUM RGB-D run folder"
+    ),
+    server: str = typer.Option("http://127.0.0.1:8000", help="map server base URL"),
+    map_ref: str = typer.Option(..., "--map", help="map id or name"),
+    key: str = typer.Option(..., envvar="MONOLOC_API_KEY", help="API key with scope localize"),
+    sequence: str | None = typer.Option(None, help="sequence NN under a KITTI dataset root"),
+    frames: str | None = typer.Option(None, help="frame range A:B (python slice semantics)"),
+    realtime: bool = typer.Option(False, help="send frames at their recorded times"),
+    no_prior: bool = typer.Option(False, help="always search the whole map"),
+    particles: int = typer.Option(1000, help="number of particles"),
+    k: int | None = typer.Option(None, help="retrieved entries per frame (server default 10)"),
+    seed: int = typer.Option(0, help="seed of the filter's random generator"),
+    out: Path = typer.Option(Path("out/drive"), help="prefix of the trajectory files"),
+) -> None:
+    """Stream a run's frames, run the filter, write TUM + KITTI trajectories, print metrics."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from client.api import MonolocClient
+    from client.drive import DriveConfig, write_outputs
+    from client.drive import drive as run_drive
+    from client.particle_filter import FilterConfig
+    from client.replay import parse_frames, read_run
+    from client.report import metrics_table
+
+    console = Console(stderr=True)
+    run = read_run(run_dir, sequence).select(parse_frames(frames))
+    for note in run.notes:
+        console.print(f"[yellow]note:[/] {note}")
+    config = DriveConfig(
+        filter=FilterConfig(n_particles=particles),
+        k=k,
+        realtime=realtime,
+        use_prior=not no_prior,
+        seed=seed,
+    )
+    with MonolocClient(server, key) as client:
+        map_id = client.find_map_id(map_ref)
+        model, calibrated = client.measurement_model(map_id)
+        if not calibrated:
+            console.print("[yellow]note:[/] map not calibrated: default measurement model")
+        with Progress(console=console) as bar:
+            task = bar.add_task(f"driving {run.name}", total=len(run))
+            result = run_drive(
+                client,
+                map_id,
+                run,
+                model,
+                config,
+                progress=lambda i, n: bar.update(task, completed=i),
+            )
+    tum, kitti = write_outputs(result, out)
+    Console().print(metrics_table(result))
+    console.print(f"trajectories: {tum}, {kitti}")

@@ -1,0 +1,202 @@
+"""Reading a recorded run the way a vehicle would replay it: frames, signals, truth.
+
+KITTI odometry (``image_0/``, ``times.txt``, ``vehicle.txt``, ``../../poses/NN.txt``) and
+TUM RGB-D (``rgb.txt``, ``groundtruth.txt``, ``vehicle.txt``). ``vehicle.txt`` holds one
+line per frame: ``t speed_mps yaw_rate_radps``. A KITTI sequence without it gets speed
+and yaw rate derived from its poses plus configurable noise, and says so.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from client.errors import InvalidInputError, NotFoundError
+from client.geometry import (
+    R_from_quaternion_xyzw,
+    kitti_to_zup,
+    planar_from_T_world_from_cam,
+    wrap_angle,
+)
+
+
+@dataclass(frozen=True)
+class SignalNoise:
+    """Noise added to speed and yaw rate derived from ground-truth poses."""
+
+    speed_std_mps: float = 0.05
+    yaw_rate_std_radps: float = 0.005
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class ReplayRun:
+    """Frames of one run, aligned: image paths (N,), timestamps (N,), signals (N, 2) of
+    (speed_mps, yaw_rate_radps), and planar ground truth (N, 3) or None."""
+
+    name: str
+    image_paths: list[Path]
+    timestamps_s: np.ndarray
+    signals: np.ndarray
+    truth_world: np.ndarray | None
+    notes: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.image_paths)
+
+    def select(self, frames: slice) -> ReplayRun:
+        idx = range(len(self))[frames]
+        truth = None if self.truth_world is None else self.truth_world[frames]
+        return ReplayRun(
+            self.name,
+            [self.image_paths[i] for i in idx],
+            self.timestamps_s[frames],
+            self.signals[frames],
+            truth,
+            self.notes,
+        )
+
+
+def parse_frames(text: str | None) -> slice:
+    """'A:B' (python slice semantics, either side optional) -> slice."""
+    if not text:
+        return slice(None)
+    try:
+        parts = [int(p) if p.strip() else None for p in text.split(":")]
+    except ValueError as exc:
+        raise InvalidInputError(f"--frames must look like A:B, got {text!r}") from exc
+    if len(parts) != 2:
+        raise InvalidInputError(f"--frames must look like A:B, got {text!r}")
+    return slice(parts[0], parts[1])
+
+
+def _load_table(path: Path, columns: int) -> np.ndarray:
+    rows = []
+    for line_no, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            values = [float(v) for v in line.split()[:columns]]
+        except ValueError as exc:
+            raise InvalidInputError(f"{path}:{line_no}: not a number: {line!r}") from exc
+        if len(values) != columns or not all(math.isfinite(v) for v in values):
+            raise InvalidInputError(f"{path}:{line_no}: expected {columns} finite numbers")
+        rows.append(values)
+    return np.array(rows, dtype=np.float64).reshape(-1, columns)
+
+
+def signals_from_truth(
+    timestamps_s: np.ndarray, truth_world: np.ndarray, noise: SignalNoise
+) -> np.ndarray:
+    """Speed and yaw rate (N, 2) by finite differences of planar poses, plus noise."""
+    rng = np.random.default_rng(noise.seed)
+    dt = np.diff(timestamps_s)
+    dt = np.where(dt > 0, dt, np.nan)
+    speed = np.linalg.norm(np.diff(truth_world[:, :2], axis=0), axis=1) / dt
+    yaw_rate = wrap_angle(np.diff(truth_world[:, 2])) / dt
+    signals = np.zeros((len(timestamps_s), 2))
+    signals[:-1, 0], signals[:-1, 1] = speed, yaw_rate
+    signals[-1] = signals[-2] if len(signals) > 1 else 0.0
+    signals = np.nan_to_num(signals)
+    signals[:, 0] += rng.normal(scale=noise.speed_std_mps, size=len(signals))
+    signals[:, 1] += rng.normal(scale=noise.yaw_rate_std_radps, size=len(signals))
+    return signals
+
+
+def _vehicle_signals(path: Path, n: int) -> np.ndarray:
+    table = _load_table(path, 3)
+    if len(table) != n:
+        raise InvalidInputError(f"{path}: {len(table)} lines for {n} frames")
+    return table[:, 1:3]
+
+
+def read_kitti_run(
+    root: Path, sequence: str | None = None, noise: SignalNoise = SignalNoise()
+) -> ReplayRun:
+    """A KITTI sequence: ``root`` is the dataset root (with ``sequence``) or the sequence."""
+    root = Path(root)
+    seq_dir = root / "sequences" / sequence if sequence else root
+    if not (seq_dir / "image_0").is_dir():
+        raise NotFoundError(f"{seq_dir / 'image_0'} does not exist")
+    images = sorted((seq_dir / "image_0").glob("*.png"))
+    if not images:
+        raise InvalidInputError(f"{seq_dir / 'image_0'} holds no PNG images")
+    times_path = seq_dir / "times.txt"
+    if not times_path.exists():
+        raise NotFoundError(f"{times_path} does not exist")
+    times = _load_table(times_path, 1)[:, 0]
+    if len(times) != len(images):
+        raise InvalidInputError(f"{times_path}: {len(times)} lines for {len(images)} images")
+    seq_name = seq_dir.name
+    poses_path = seq_dir.parent.parent / "poses" / f"{seq_name}.txt"
+    truth = None
+    if poses_path.exists():
+        rows = _load_table(poses_path, 12)
+        if len(rows) != len(images):
+            raise InvalidInputError(f"{poses_path}: {len(rows)} poses for {len(images)} images")
+        T = np.tile(np.eye(4), (len(rows), 1, 1))
+        T[:, :3, :] = rows.reshape(-1, 3, 4)
+        truth = planar_from_T_world_from_cam(kitti_to_zup(T))
+    notes = []
+    vehicle = seq_dir / "vehicle.txt"
+    if vehicle.exists():
+        signals = _vehicle_signals(vehicle, len(images))
+    elif truth is not None:
+        signals = signals_from_truth(times, truth, noise)
+        notes.append(
+            f"no vehicle.txt: speed and yaw rate derived from {poses_path.name} with noise "
+            f"{noise.speed_std_mps} m/s, {noise.yaw_rate_std_radps} rad/s"
+        )
+    else:
+        raise InvalidInputError(f"{seq_dir}: neither vehicle.txt nor ground-truth poses")
+    return ReplayRun(f"kitti:{seq_name}", images, times, signals, truth, notes)
+
+
+def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
+    """A TUM RGB-D run: rgb.txt frames, groundtruth.txt truth (nearest within max_dt_s)."""
+    root = Path(root)
+    rgb_path = root / "rgb.txt"
+    if not rgb_path.exists():
+        raise NotFoundError(f"{rgb_path} does not exist")
+    times, images = [], []
+    for line_no, line in enumerate(rgb_path.read_text().splitlines(), start=1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) < 2:
+            raise InvalidInputError(f"{rgb_path}:{line_no}: expected 'timestamp filename'")
+        times.append(float(parts[0]))
+        images.append(root / parts[1])
+    times_arr = np.array(times)
+    truth = None
+    gt_path = root / "groundtruth.txt"
+    if gt_path.exists():
+        gt = _load_table(gt_path, 8)
+        idx = np.clip(np.searchsorted(gt[:, 0], times_arr), 1, len(gt) - 1)
+        nearest = np.where(
+            np.abs(gt[idx - 1, 0] - times_arr) <= np.abs(gt[idx, 0] - times_arr), idx - 1, idx
+        )
+        if np.any(np.abs(gt[nearest, 0] - times_arr) > max_dt_s):
+            raise InvalidInputError(f"{gt_path}: no ground truth within {max_dt_s} s of a frame")
+        T = np.tile(np.eye(4), (len(times), 1, 1))
+        for i, row in enumerate(gt[nearest]):
+            T[i, :3, :3] = R_from_quaternion_xyzw(row[4:8])
+            T[i, :3, 3] = row[1:4]
+        truth = planar_from_T_world_from_cam(T)
+    vehicle = root / "vehicle.txt"
+    if not vehicle.exists():
+        raise NotFoundError(f"{vehicle} does not exist")
+    signals = _vehicle_signals(vehicle, len(images))
+    return ReplayRun(f"tum:{root.name}", images, times_arr, signals, truth, [])
+
+
+def read_run(path: Path, sequence: str | None = None) -> ReplayRun:
+    """KITTI or TUM, recognised by its files."""
+    path = Path(path)
+    if (path / "rgb.txt").exists():
+        return read_tum_run(path)
+    return read_kitti_run(path, sequence)

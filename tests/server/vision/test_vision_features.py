@@ -1,0 +1,80 @@
+import numpy as np
+import pytest
+from skimage import data
+
+from client.errors import InvalidInputError
+from server.vision.features import OrbConfig, extract_features
+
+
+def test_real_photo_gives_1000_features_with_documented_shapes():
+    features = extract_features(data.camera())
+    assert features.keypoints_px.shape == (1000, 2) and features.keypoints_px.dtype == np.float32
+    assert features.descriptors.shape == (1000, 32) and features.descriptors.dtype == np.uint8
+    height, width = data.camera().shape
+    assert np.all(features.keypoints_px >= 0)
+    assert np.all(features.keypoints_px[:, 0] < width) and np.all(
+        features.keypoints_px[:, 1] < height
+    )
+
+
+def test_max_features_is_respected_and_is_deterministic():
+    image = data.brick()
+    a = extract_features(image, OrbConfig(max_features=200))
+    b = extract_features(image, OrbConfig(max_features=200))
+    assert len(a) == 200
+    assert np.array_equal(a.descriptors, b.descriptors)
+    assert np.array_equal(a.keypoints_px, b.keypoints_px)
+
+
+def test_colour_input_equals_its_gray_conversion():
+    import cv2
+
+    rgb = data.astronaut()
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    assert np.array_equal(extract_features(rgb).descriptors, extract_features(gray).descriptors)
+
+
+def test_blur_changes_the_features():
+    image = data.camera()
+    blurred = extract_features(image)
+    raw = extract_features(image, OrbConfig(blur_ksize=1))
+    assert not np.array_equal(blurred.keypoints_px, raw.keypoints_px)
+
+
+@pytest.mark.parametrize("shape", [(0, 0), (40, 0), (240, 320)])
+def test_empty_or_flat_images_give_zero_features_with_right_shapes(shape):
+    features = extract_features(np.full(shape, 128, dtype=np.uint8))
+    assert features.keypoints_px.shape == (0, 2) and features.keypoints_px.dtype == np.float32
+    assert features.descriptors.shape == (0, 32) and features.descriptors.dtype == np.uint8
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((64, 64), dtype=np.float32),
+        np.zeros((64, 64), dtype=np.uint16),
+        np.zeros((64, 64, 4), dtype=np.uint8),
+        np.zeros((2, 64, 64, 3), dtype=np.uint8),
+        np.zeros(64, dtype=np.uint8),
+    ],
+)
+def test_wrong_dtype_or_shape_raises(image):
+    with pytest.raises(InvalidInputError):
+        extract_features(image)
+
+
+def test_invalid_config_raises():
+    with pytest.raises(InvalidInputError):
+        OrbConfig(blur_ksize=4)
+    with pytest.raises(InvalidInputError):
+        OrbConfig(max_features=0)
+
+
+def test_concurrent_calls_give_the_serial_result():
+    from concurrent.futures import ThreadPoolExecutor
+
+    images = [data.camera(), data.brick(), data.coins(), data.moon()] * 2
+    serial = [extract_features(image).descriptors for image in images]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        parallel = list(pool.map(lambda image: extract_features(image).descriptors, images))
+    assert all(np.array_equal(a, b) for a, b in zip(serial, parallel, strict=True))
