@@ -1,0 +1,114 @@
+"""Per-run work of ``sim.generate``: the measured values a run writes, and rendering a
+chunk of its frames (run in worker processes; each keeps its city and texture cache)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from client.geometry import invert_rigid
+from sim import kitti_writer as kw
+from sim.recording import apply_pose_errors, measured_signals, perturb_calibration
+
+
+@dataclass(frozen=True)
+class WrittenRun:
+    """What a run's files carry: T_written (n, 4, 4) poses in the sim world (with the
+    recording's pose errors), Tr_written (4, 4) calibration, measured signals (n,)."""
+
+    T_written: np.ndarray
+    Tr_written: np.ndarray
+    speed_mps: np.ndarray
+    yaw_rate_radps: np.ndarray
+
+
+def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
+    """Decide the measured values of a run (deterministic in its seed)."""
+    from sim.generate import true_camera_poses
+
+    rng = np.random.default_rng([plan.seed, 1])
+    errors = config.errors
+    T_true = true_camera_poses(plan, config.rig)
+    T_written = apply_pose_errors(T_true, plan.frame_times_s, errors, rng)
+    Tr_written = perturb_calibration(config.rig.T_cam_from_lidar(), errors, rng)
+    st = plan.states.sample(plan.frame_times_s)
+    speed, yaw_rate = measured_signals(st["speed_mps"], st["yaw_rate_radps"], errors, rng)
+    return WrittenRun(T_written, Tr_written, speed, yaw_rate)
+
+
+def write_run_metadata(plan, written: WrittenRun, frames: dict, config, out_dir: Path) -> None:
+    """calib.txt, times.txt, vehicle.txt and poses/NN.txt of one run."""
+    seq = kw.sequence_dir(out_dir, plan.seq_id)
+    for sub in ("image_0", "velodyne") + (("depth",) if config.write_depth else ()):
+        (seq / sub).mkdir(parents=True, exist_ok=True)
+    kw.write_calib(seq / "calib.txt", config.intrinsics().K, written.Tr_written)
+    times = plan.frame_times_s - plan.frame_times_s[0]
+    kw.write_times(seq / "times.txt", times)
+    kw.write_vehicle(seq / "vehicle.txt", times, written.speed_mps, written.yaw_rate_radps)
+    T_kitti_from_sim = invert_rigid(frames["T_simworld_from_kittiworld"])
+    kw.write_poses(
+        Path(out_dir) / "poses" / f"{plan.seq_id}.txt", T_kitti_from_sim @ written.T_written
+    )
+
+
+_STATE: dict = {}
+
+
+def _world(config, plan):
+    """City, per-variant scene and texture bank of this process (built once)."""
+    from sim.city import build_city, parked_cars
+    from sim.scene import TextureBank, concat_scenes
+
+    key = (config.seed, config.city_config())
+    if _STATE.get("key") != key:
+        _STATE.clear()
+        _STATE["key"] = key
+        _STATE["city"] = build_city(config.city_config(), config.seed)
+        _STATE["bank"] = TextureBank(max_bytes=700_000_000)
+        _STATE["scenes"] = {}
+    city = _STATE["city"]
+    if plan.car_variant not in _STATE["scenes"]:
+        _STATE["scenes"][plan.car_variant] = concat_scenes(
+            [city.static, parked_cars(city, plan.car_variant)]
+        )
+    return _STATE["scenes"][plan.car_variant], _STATE["bank"]
+
+
+def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
+    """Render and write frames [first, last) of ``plan``."""
+    import cv2
+
+    from sim.camera import CameraConfig, render
+    from sim.lidar import firing_times_s, scan
+
+    cv2.setNumThreads(1)
+    scene, bank = _world(config, plan)
+    seq = kw.sequence_dir(out_dir, plan.seq_id)
+    rig, errors = config.rig, config.errors
+    intrinsics = config.intrinsics()
+    run_rng = np.random.default_rng([plan.seed, 2])
+    cam_cfg = config.camera
+    bias = float(run_rng.normal(0.0, errors.exposure_bias_ev)) if errors.exposure_bias_ev else 0.0
+    cam_cfg = CameraConfig(
+        **{**cam_cfg.__dict__, "exposure_bias_ev": cam_cfg.exposure_bias_ev + bias}
+    )
+    if not errors.sensor_noise:
+        cam_cfg = CameraConfig(**{**cam_cfg.__dict__, "shot_noise": 0.0, "read_noise": 0.0})
+    T_v_cam, T_v_lidar = rig.T_vehicle_from_cam(), rig.T_vehicle_from_lidar()
+    for k in range(first, last):
+        t = float(plan.frame_times_s[k])
+        rng = np.random.default_rng([plan.seed, 3, k])
+        T_wv = plan.states.T_world_from_vehicle(np.array([t]))[0]
+        frame = render(scene, bank, T_wv @ T_v_cam, intrinsics, plan.lighting, rng, cam_cfg)
+        kw.write_image(seq / "image_0" / f"{k:06d}.png", frame.image)
+        if config.write_depth:
+            kw.write_depth(seq / "depth" / f"{k:06d}.png", frame.depth_m)
+        if config.write_lidar:
+            if errors.lidar_motion_distortion:
+                T_wl = plan.states.T_world_from_vehicle(firing_times_s(t, config.lidar)) @ T_v_lidar
+            else:
+                T_wl = T_wv @ T_v_lidar
+            points = scan(scene, T_wl, config.lidar, rng, bank)
+            kw.write_velodyne(seq / "velodyne" / f"{k:06d}.bin", points)

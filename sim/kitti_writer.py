@@ -1,0 +1,149 @@
+"""Writers (and small readers, for round trips in tests) of the KITTI odometry layout.
+
+<root>/sequences/NN/image_0/%06d.png   uint8 gray
+<root>/sequences/NN/velodyne/%06d.bin  float32 (x, y, z, reflectance), LiDAR frame
+<root>/sequences/NN/depth/%06d.png     optional: uint16 z-depth * 256, 0 = none
+                                       (KITTI depth-benchmark encoding)
+<root>/sequences/NN/calib.txt          P0..P3 (3x4), Tr (3x4, velodyne -> cam 0)
+<root>/sequences/NN/times.txt          one time in seconds per frame
+<root>/sequences/NN/vehicle.txt        t speed_mps yaw_rate_radps (measured)
+<root>/poses/NN.txt                    3x4 T_world_from_cam0 row-major per line
+<root>/dataset.json                    what each sequence is (see sim.generate)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from client.errors import InvalidInputError
+
+KITTI_STEREO_BASELINE_M = 0.5371657
+KITTI_COLOUR_OFFSET_M = -0.0598  # camera 2 sits ~6 cm left of camera 0 in KITTI
+
+
+def sequence_dir(root: Path, seq_id: str) -> Path:
+    return Path(root) / "sequences" / seq_id
+
+
+def projection_matrices(K: np.ndarray) -> list[np.ndarray]:
+    """P0..P3 (3, 4) like KITTI's: cam 0 = K [I | 0]; cam 1 the right gray camera; cams
+    2, 3 colour cameras (not rendered, listed for format compatibility)."""
+    out = []
+    for baseline in (
+        0.0,
+        KITTI_STEREO_BASELINE_M,
+        KITTI_COLOUR_OFFSET_M,
+        KITTI_COLOUR_OFFSET_M + KITTI_STEREO_BASELINE_M,
+    ):
+        P = np.zeros((3, 4))
+        P[:, :3] = K
+        P[0, 3] = -K[0, 0] * baseline
+        out.append(P)
+    return out
+
+
+def _row(values: np.ndarray) -> str:
+    return " ".join(f"{v + 0.0:.12e}" for v in np.asarray(values, dtype=np.float64).ravel())
+
+
+def write_calib(path: Path, K: np.ndarray, T_cam_from_lidar: np.ndarray) -> None:
+    """calib.txt: ``P0: 12 numbers`` ... ``P3:``, ``Tr: 12 numbers``."""
+    lines = [f"P{i}: {_row(P)}" for i, P in enumerate(projection_matrices(K))]
+    lines.append(f"Tr: {_row(T_cam_from_lidar[:3, :4])}")
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_calib(path: Path) -> dict[str, np.ndarray]:
+    """calib.txt -> {"P0": (3, 4), ..., "Tr": (4, 4)}."""
+    out: dict[str, np.ndarray] = {}
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        key, _, rest = line.partition(":")
+        values = np.array(rest.split(), dtype=np.float64)
+        if values.size != 12:
+            raise InvalidInputError(f"{path}:{n}: expected 12 numbers after {key!r}")
+        matrix = values.reshape(3, 4)
+        if key == "Tr":
+            matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
+        out[key] = matrix
+    return out
+
+
+def write_poses(path: Path, T_world_from_cam: np.ndarray) -> None:
+    """(n, 4, 4) poses -> one line of 12 numbers (3x4 row-major) per frame."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, np.asarray(T_world_from_cam)[:, :3, :4].reshape(-1, 12), fmt="%.9e")
+
+
+def read_poses(path: Path) -> np.ndarray:
+    """poses/NN.txt -> (n, 4, 4) T_world_from_cam0."""
+    values = np.loadtxt(path, ndmin=2)
+    if values.shape[1] != 12:
+        raise InvalidInputError(f"{path}: expected 12 numbers per line, got {values.shape[1]}")
+    T = np.tile(np.eye(4), (len(values), 1, 1))
+    T[:, :3, :4] = values.reshape(-1, 3, 4)
+    return T
+
+
+def write_times(path: Path, times_s: np.ndarray) -> None:
+    np.savetxt(path, np.asarray(times_s).reshape(-1, 1), fmt="%e")
+
+
+def write_vehicle(
+    path: Path, times_s: np.ndarray, speed_mps: np.ndarray, yaw_rate_radps: np.ndarray
+) -> None:
+    """vehicle.txt: ``t speed_mps yaw_rate_radps`` per frame."""
+    np.savetxt(
+        path, np.column_stack([times_s, speed_mps, yaw_rate_radps]), fmt=["%.6f", "%.6f", "%.7f"]
+    )
+
+
+def read_vehicle(path: Path) -> np.ndarray:
+    """vehicle.txt -> (n, 3) t, speed, yaw rate."""
+    return np.loadtxt(path, ndmin=2)
+
+
+def write_image(path: Path, image: np.ndarray) -> None:
+    import cv2
+
+    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 3]):
+        raise InvalidInputError(f"could not write {path}")
+
+
+def write_velodyne(path: Path, points: np.ndarray) -> None:
+    """(N, 4) float32 x, y, z, reflectance."""
+    np.ascontiguousarray(points, dtype=np.float32).tofile(path)
+
+
+def read_velodyne(path: Path) -> np.ndarray:
+    data = np.fromfile(path, dtype=np.float32)
+    if data.size % 4:
+        raise InvalidInputError(f"{path}: size is not a multiple of 4 floats")
+    return data.reshape(-1, 4)
+
+
+def write_depth(path: Path, depth_m: np.ndarray) -> None:
+    """z-depth as uint16 PNG, value = round(depth * 256), 0 where no surface or beyond
+    255.99 m (KITTI depth-benchmark encoding)."""
+    import cv2
+
+    d = np.where(np.isfinite(depth_m) & (depth_m < 255.99), depth_m * 256.0 + 0.5, 0.0)
+    cv2.imwrite(str(path), d.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 3])
+
+
+def read_depth(path: Path) -> np.ndarray:
+    """Depth PNG -> (H, W) float32 metres, inf where none."""
+    import cv2
+
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise InvalidInputError(f"could not read depth image {path}")
+    return np.where(raw > 0, raw.astype(np.float32) / 256.0, np.inf).astype(np.float32)
+
+
+def write_dataset_json(root: Path, info: dict) -> None:
+    (Path(root) / "dataset.json").write_text(json.dumps(info, indent=2) + "\n")
