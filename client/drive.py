@@ -13,7 +13,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -102,7 +102,11 @@ def drive(
 ) -> DriveResult:
     """Replay ``run`` over the WebSocket stream and return the filtered trajectory."""
     n = len(run)
-    pf = ParticleFilter(config.filter, model, np.random.default_rng(config.seed))
+    filter_config = config.filter
+    if run.lever_arm_m is not None and config.filter.motion.lever_arm_m == 0.0:
+        motion = replace(config.filter.motion, lever_arm_m=run.lever_arm_m)
+        filter_config = replace(config.filter, motion=motion)
+    pf = ParticleFilter(filter_config, model, np.random.default_rng(config.seed))
     estimates = np.full((n, 3), np.nan)
     n_hyps = np.zeros(n, dtype=np.int64)
     dropped = np.zeros(n, dtype=bool)

@@ -157,6 +157,15 @@ def log_likelihood(
     particles: np.ndarray, hypotheses: Hypotheses, model: MeasurementModel
 ) -> np.ndarray:
     """log p(z | x) for each particle. particles (P, 3) -> (P,). Needs >= 1 hypothesis."""
+    return log_likelihood_and_distance(particles, hypotheses, model)[0]
+
+
+def log_likelihood_and_distance(
+    particles: np.ndarray, hypotheses: Hypotheses, model: MeasurementModel
+) -> tuple[np.ndarray, float]:
+    """log p(z | x) per particle (P,), and the smallest squared Mahalanobis distance
+    (under Sigma1) between any particle and any bias-corrected hypothesis: how far the
+    whole particle set is from what this frame says (the filter's "lost" signal)."""
     if len(hypotheses) == 0:
         raise InvalidInputError("log_likelihood needs at least one hypothesis")
     # Work column by column on (P, H) arrays: with 3- and 4-vectors this beats batched
@@ -165,7 +174,9 @@ def log_likelihood(
     # Component: N(x; z_i + mu1, Sigma1), residual x - (z_i + mu1) with wrapped heading.
     centres = hypotheses.pose_world + model.mu1  # (H, 3)
     r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
-    terms = model._log_norm1 - 0.5 * _mahalanobis(r1, model._whiten1)
+    maha1 = _mahalanobis(r1, model._whiten1)
+    closest = float(maha1.min())
+    terms = model._log_norm1 - 0.5 * maha1
     # Weight: N(e_i(x); mu2, Sigma2), e_i(x) = [e_vlad, X_i - X, Y_i - Y, psi_i - psi].
     entries = hypotheses.entry_pose_world - model.mu2[1:]  # (H, 3)
     r2 = [
@@ -181,7 +192,7 @@ def log_likelihood(
     total = np.exp(terms - peak[:, None]).sum(axis=1)
     if model.outlier_log_density is not None:
         total += np.exp(model.outlier_log_density - peak)
-    return peak + np.log(total)
+    return peak + np.log(total), closest
 
 
 def _mahalanobis(residuals: list[np.ndarray], whiten: np.ndarray) -> np.ndarray:

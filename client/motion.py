@@ -18,6 +18,11 @@ class MotionConfig:
 
     speed_noise_mps: tuple[float, float] = (-0.5, 0.5)
     yaw_rate_noise_radps: tuple[float, float] = (-0.1, 0.1)
+    # How far ahead of the point whose speed is measured (e.g. the rear axle) the camera
+    # sits, along the heading. 0 is METHOD.md's model; with a lever arm l the camera also
+    # moves sideways at gamma * l, which matters in turns (a 90-degree turn with l = 1 m
+    # displaces the camera 1.4 m more than the plain model says).
+    lever_arm_m: float = 0.0
 
 
 def predict(
@@ -39,7 +44,12 @@ def predict(
     yaw_rate = yaw_rate_radps + rng.uniform(*config.yaw_rate_noise_radps, size=n)
     out = np.empty_like(particles)
     psi = particles[:, 2]
-    out[:, 0] = particles[:, 0] + speed * np.cos(psi) * dt_s
-    out[:, 1] = particles[:, 1] + speed * np.sin(psi) * dt_s
+    cos_psi, sin_psi = np.cos(psi), np.sin(psi)
+    out[:, 0] = particles[:, 0] + speed * cos_psi * dt_s
+    out[:, 1] = particles[:, 1] + speed * sin_psi * dt_s
+    if config.lever_arm_m:
+        sideways = yaw_rate * config.lever_arm_m * dt_s
+        out[:, 0] -= sideways * sin_psi
+        out[:, 1] += sideways * cos_psi
     out[:, 2] = wrap_angle(psi + yaw_rate * dt_s)
     return out

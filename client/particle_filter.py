@@ -15,7 +15,7 @@ import numpy as np
 
 from client.errors import InvalidInputError
 from client.geometry import circular_mean, wrap_angle
-from client.measurement import Hypotheses, MeasurementModel, log_likelihood
+from client.measurement import Hypotheses, MeasurementModel, log_likelihood_and_distance
 from client.motion import MotionConfig, predict
 from client.resampling import effective_sample_size, normalise_log_weights, systematic_resample
 
@@ -29,10 +29,16 @@ class FilterConfig:
     resample_ess_fraction: float = 0.5
     init_position_std_m: float = 0.5
     init_yaw_std_rad: float = math.radians(2.0)
-    # A frame is "unlikely" when even the best particle scores below this log-likelihood;
-    # it must sit above the measurement model's outlier floor to mean anything.
-    lost_log_likelihood: float = -14.0
+    # A frame is "unlikely" when no particle lies within this squared Mahalanobis distance
+    # (under Sigma1) of any of its hypotheses (chi-square, 3 dof: 40 is far beyond 1e-6).
+    # After ``lost_after_frames`` such frames in a row the filter re-seeds around the
+    # current hypotheses. Unlikely frames still update: the measurement model's outlier
+    # floor keeps one wrong frame from moving the particles.
+    lost_mahalanobis_sq: float = 25.0
     lost_after_frames: int = 3
+    # Roughening after resampling: Gaussian jitter (m, m, rad) so that a cloud that
+    # collapsed onto a few particles can still move to where the measurements are.
+    roughening_std: tuple[float, float, float] = (0.02, 0.02, math.radians(0.1))
 
 
 @dataclass(frozen=True)
@@ -123,19 +129,22 @@ class ParticleFilter:
         """Weigh the particles by the mixture; no hypotheses means no update."""
         if self.particles is None or len(hypotheses) == 0:
             return
-        log_lik = log_likelihood(self.particles, hypotheses, self.model)
-        if log_lik.max() < self.config.lost_log_likelihood:
+        log_lik, closest = log_likelihood_and_distance(self.particles, hypotheses, self.model)
+        if closest > self.config.lost_mahalanobis_sq:
             self._unlikely_frames += 1
             if self._unlikely_frames >= self.config.lost_after_frames:
                 self.initialise_from_hypotheses(hypotheses)
-            return
-        self._unlikely_frames = 0
+                return
+        else:
+            self._unlikely_frames = 0
         self.log_weights = self.log_weights + log_lik
         weights = normalise_log_weights(self.log_weights)
         ess = effective_sample_size(weights)
         if ess < self.config.resample_ess_fraction * self.config.n_particles:
             idx = systematic_resample(weights, self.rng)
-            self.particles = self.particles[idx]
+            jitter = self.rng.normal(size=self.particles.shape) * self.config.roughening_std
+            self.particles = self.particles[idx] + jitter
+            self.particles[:, 2] = wrap_angle(self.particles[:, 2])
             self.log_weights = np.zeros(self.config.n_particles)
         else:
             self.log_weights = np.log(weights)

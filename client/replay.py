@@ -43,6 +43,8 @@ class ReplayRun:
     signals: np.ndarray
     truth_world: np.ndarray | None
     notes: list[str] = field(default_factory=list)
+    # Camera ahead of the speed reference point (m), when the recording says so.
+    lever_arm_m: float | None = None
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -57,6 +59,7 @@ class ReplayRun:
             self.signals[frames],
             truth,
             self.notes,
+            self.lever_arm_m,
         )
 
 
@@ -194,9 +197,35 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
     return ReplayRun(f"tum:{root.name}", images, times_arr, signals, truth, [])
 
 
+def rig_lever_arm_m(path: Path) -> float | None:
+    """The camera's distance ahead of the speed reference point, from a ``dataset.json``
+    (monoloc's sim writes ``rig.T_vehicle_from_cam0``) at or above ``path``; None if absent."""
+    import json
+
+    for folder in [path, *path.parents][:4]:
+        meta = folder / "dataset.json"
+        if meta.exists():
+            try:
+                rig = json.loads(meta.read_text()).get("rig") or {}
+                return float(np.asarray(rig["T_vehicle_from_cam0"], dtype=float)[0, 3])
+            except (ValueError, KeyError, TypeError, IndexError):
+                return None
+    return None
+
+
 def read_run(path: Path, sequence: str | None = None) -> ReplayRun:
-    """KITTI or TUM, recognised by its files."""
+    """KITTI or TUM, recognised by its files; picks up the rig's lever arm if recorded."""
     path = Path(path)
-    if (path / "rgb.txt").exists():
-        return read_tum_run(path)
-    return read_kitti_run(path, sequence)
+    run = read_tum_run(path) if (path / "rgb.txt").exists() else read_kitti_run(path, sequence)
+    lever = rig_lever_arm_m(path)
+    if lever is not None:
+        run = ReplayRun(
+            run.name,
+            run.image_paths,
+            run.timestamps_s,
+            run.signals,
+            run.truth_world,
+            [*run.notes, f"camera {lever:.2f} m ahead of the speed reference (dataset.json rig)"],
+            lever,
+        )
+    return run
