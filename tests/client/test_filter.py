@@ -168,3 +168,19 @@ def test_calibration_recovers_planted_bias_and_covariance():
     # The paper's formula is the second moment about zero: larger by mu mu^T.
     paper = fit_measurement_model(e1, e2, unbiased=False)
     assert np.allclose(paper.Sigma1 - model.Sigma1, np.outer(mu1, mu1), atol=0.01)
+
+
+def test_lever_arm_camera_circles_on_the_larger_radius():
+    # Rear axle on a 50 m circle; a camera 1 m ahead circles at sqrt(50^2 + 1^2) about the
+    # same centre, and the plain model (lever arm 0) would put it on a 50 m circle.
+    rng = np.random.default_rng(7)
+    cfg = MotionConfig(speed_noise_mps=(0.0, 0.0), yaw_rate_noise_radps=(0.0, 0.0), lever_arm_m=1.0)
+    centre = np.array([0.0, 50.0])
+    particles = np.array([[1.0, 0.0, 0.0]])
+    # Camera at (1, 0) ahead of the axle at the origin heading +X: on radius sqrt(2501).
+    radius = math.hypot(50.0, 1.0)
+    dt = 0.001
+    for _ in range(round(math.pi / 0.2 / dt)):  # half a lap
+        particles = predict(particles, 10.0, 0.2, dt, cfg, rng)
+        assert abs(np.linalg.norm(particles[0, :2] - centre) - radius) < 0.05
+    assert np.allclose(particles[0, :2], [-1.0, 100.0], atol=0.1)
