@@ -70,6 +70,7 @@ class TrajectoryMetrics:
     """Accuracy of an estimated planar trajectory against ground truth."""
 
     n_frames: int
+    coverage: float  # share of frames with an estimate; RMSE, median and heading use those
     position_rmse_m: float
     position_median_m: float
     heading_rmse_deg: float
@@ -101,6 +102,7 @@ def trajectory_metrics(estimate_world: np.ndarray, truth_world: np.ndarray) -> T
     heading = float(math.sqrt(np.mean(np.square(yaw_deg[valid])))) if valid.any() else math.inf
     return TrajectoryMetrics(
         n_frames=len(est),
+        coverage=float(np.mean(valid)),
         position_rmse_m=rmse,
         position_median_m=float(np.median(pos_err)),
         heading_rmse_deg=heading,

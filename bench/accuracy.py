@@ -1,0 +1,156 @@
+"""Accuracy of the method on a sim city (and its night), variant by variant.
+
+Generates (or reuses) a sim dataset, builds the map in memory with the server's own
+code, calibrates the measurement model on the `train` run (a district the map and the
+query never see), and localizes the `query` run with each variant of
+monoloc.evaluation. With a `nightmap` run in the dataset, the `night` query is run twice:
+against the day map, and after adding the night entries. Prints the table next to the
+paper's numbers and the goals; writes bench/results/accuracy_<scenario>.json.
+Usage: python bench/accuracy.py [--size medium] [--frames 400] [--data bench/data]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).parent / "results"
+PAPER = {"position_rmse_m": 0.313, "note": "KITTI 00, 85 % map / 15 % test"}
+GOALS = {"position_rmse_m": 0.15, "heading_rmse_deg": 0.5, "within_0_25m_2deg": 0.90}
+
+
+def limit_threads() -> None:
+    import cv2
+    import faiss
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(1)
+    faiss.omp_set_num_threads(1)
+    threadpool_limits(1)
+
+
+def ensure_dataset(root: Path, size: str, frames: int, seed: int, runs: tuple[str, ...]):
+    from sim.generate import GenerateConfig, generate_dataset
+
+    if (root / "dataset.json").exists():
+        return json.loads((root / "dataset.json").read_text())
+    print(f"generating a {size} city into {root} ({frames} frames per run) ...", flush=True)
+    t0 = time.time()
+    generate_dataset(
+        GenerateConfig(size=size, seed=seed, runs=runs, max_frames=frames, workers=2), root
+    )
+    print(f"  done in {time.time() - t0:.0f} s", flush=True)
+    return json.loads((root / "dataset.json").read_text())
+
+
+def sequence_of(meta: dict, run: str) -> str | None:
+    for seq in meta["sequences"]:
+        if seq["run"] == run:
+            return seq["id"]
+    return None
+
+
+def print_table(rows: list[tuple[str, dict]]) -> None:
+    head = (
+        f"{'variant':<28}{'frames':>7}{'RMSE m':>8}{'median m':>10}{'head deg':>9}{'<.25m/2°':>10}"
+        f"{'<.5m/5°':>9}{'<5m/10°':>9}"
+    )
+    print(head)
+
+    def f(x, spec):
+        return format(x, spec) if x is not None else format("-", ">" + spec.split(".")[0])
+
+    for name, m in rows:
+        print(
+            f"{name:<28}{100 * m['coverage']:>6.0f}%{f(m['position_rmse_m'], '8.3f')}"
+            f"{f(m['position_median_m'], '10.3f')}{f(m['heading_rmse_deg'], '9.2f')}"
+            f"{100 * m['within_0_25m_2deg']:>9.1f}%"
+            f"{100 * m['within_0_5m_5deg']:>8.1f}%{100 * m['within_5m_10deg']:>8.1f}%"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--size", default="medium")
+    parser.add_argument("--frames", type=int, default=400)
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
+    args = parser.parse_args()
+    limit_threads()
+    from client.measurement import MeasurementModel
+    from client.replay import read_kitti_run, rig_lever_arm_m
+    from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row, stage_percentiles
+    from server.calibrate import CalibrationConfig, TrainingFrame, calibrate
+    from server.ingest.kitti import read_kitti_sequence
+    from server.vision.vocabulary import load_default_vocabulary
+
+    root = args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
+    meta = ensure_dataset(
+        root, args.size, args.frames, args.seed, ("map", "query", "train", "night", "nightmap")
+    )
+    vocab = load_default_vocabulary()
+    lever = rig_lever_arm_m(root) or 0.0
+    t0 = time.time()
+    train = read_kitti_sequence(root, sequence_of(meta, "train"))
+    frames = (
+        TrainingFrame(train.load(f).image_gray, f.T_world_from_cam, train.load(f).source)
+        for f in train.frames
+    )
+    calib = calibrate(
+        frames,
+        train.intrinsics,
+        vocab,
+        CalibrationConfig(),
+        np.random.default_rng(0),
+        source_name="train",
+    )
+    model: MeasurementModel = calib.model
+    print(f"calibrated on {calib.provenance['used']} hypotheses in {time.time() - t0:.0f} s")
+    memory = MemoryMap.empty(vocab)
+    t0 = time.time()
+    memory.add_run(read_kitti_sequence(root, sequence_of(meta, "map")))
+    print(f"map: {len(memory.refs)} entries in {time.time() - t0:.0f} s")
+    query_id = sequence_of(meta, "query")
+    query = read_kitti_sequence(root, query_id)
+    signals = read_kitti_run(root, query_id).signals
+    result = evaluate_run(memory, query, signals, model, lever_arm_m=lever)
+    rows = [(v, metrics_row(m)) for v, m in result.metrics.items()]
+    out = {
+        "scenario": "urban",
+        "size": args.size,
+        "frames_per_run": args.frames,
+        "calibration": {"model": model.to_dict(), "provenance": calib.provenance},
+        "query": dict(rows),
+        "stages_ms": stage_percentiles(result.timings_ms),
+        "paper": PAPER,
+        "goals": GOALS,
+    }
+    night_id, nightmap_id = sequence_of(meta, "night"), sequence_of(meta, "nightmap")
+    night_rows = []
+    if night_id:
+        night = read_kitti_sequence(root, night_id)
+        nsig = read_kitti_run(root, night_id).signals
+        before = evaluate_run(memory, night, nsig, model, lever_arm_m=lever, variants=("full",))
+        night_rows.append(("night, day map", metrics_row(before.metrics["full"])))
+        if nightmap_id:
+            added = memory.add_run(read_kitti_sequence(root, nightmap_id), tags=("night",))
+            after = evaluate_run(memory, night, nsig, model, lever_arm_m=lever, variants=("full",))
+            night_rows.append(
+                (f"night, +{added} night entries", metrics_row(after.metrics["full"]))
+            )
+    out["night"] = dict(night_rows)
+    print_table(rows + night_rows)
+    print(
+        f"paper (KITTI 00): RMSE {PAPER['position_rmse_m']} m; goals: RMSE <= 0.15 m, "
+        "heading <= 0.5 deg, >= 90 % within 0.25 m / 2 deg"
+    )
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "accuracy_urban.json").write_text(json.dumps(out, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
