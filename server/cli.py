@@ -11,6 +11,7 @@ from typing import Annotated
 
 import typer
 
+
 vocab_app = typer.Typer(help="Visual vocabulary: retrain the shipped 64-word default.")
 
 
@@ -72,3 +73,7 @@ def db_current(database_url: DatabaseUrlOption = None) -> None:
     current, head = current_revision(url), head_revision()
     status = "up to date" if current == head else "run `monoloc db upgrade`"
     typer.echo(f"{current or 'none'} (head {head}: {status})")
+
+
+# `monoloc map ...` and `monoloc localize` live in server/map_cli.py (ingestion helper).
+from server.map_cli import localize, map_app  # noqa: E402, F401

@@ -23,6 +23,7 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from client.camera import CameraIntrinsics
+from client.errors import NotFoundError
 from client.measurement import MeasurementModel
 from server.index.persist import IndexFileError, load_index, save_index
 from server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
@@ -110,8 +111,18 @@ class MapRegistry:
 
     # ---- loading --------------------------------------------------------------------
     def _lookup(self, ids: Sequence[int]) -> list[ReferenceEntry]:
+        """The entries that still exist (an entry deleted in the database may linger in
+        the index until ``entries_removed`` or the next version check: it is skipped)."""
         with session_scope(self._sessions) as session:
-            rows = entries_repo.get_entry_data(session, list(ids))
+            try:
+                rows = entries_repo.get_entry_data(session, list(ids))
+            except NotFoundError:
+                rows = []
+                for entry_id in ids:
+                    try:
+                        rows.extend(entries_repo.get_entry_data(session, [entry_id]))
+                    except NotFoundError:
+                        continue
         return [
             ReferenceEntry(
                 entry_id=r.id,

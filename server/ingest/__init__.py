@@ -1,0 +1,6 @@
+"""Ingestion of recordings into maps: readers (``kitti``, ``tum``), the pipeline
+(``pipeline.ingest_run``), single images (``single``), vocabularies (``vocab``) and
+the typed operations behind the CLI (``manage``, ``jobs``, ``report``).
+
+Nothing is imported here so that ``import server.ingest`` stays cheap.
+"""

@@ -1,0 +1,159 @@
+"""What the dataset readers share: the error that names file and line, frame ranges,
+the loaded-frame record the ingestion pipeline consumes, and image decoding.
+
+A reader (``kitti.read_kitti_sequence``, ``tum.read_tum_run``) validates a recording's
+metadata completely when it is opened and returns a *source*: an object with
+``format`` ("kitti" | "tum"), ``name``, ``intrinsics``, ``frames`` (a list of frame
+records, each with ``index``, ``timestamp_s``, ``image_path``, ``T_world_from_cam``),
+``read_skips`` (frames dropped at read time, reason -> count) and
+``load(frame) -> LoadedFrame``, which reads the frame's files (thread-safe).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from client.errors import InvalidInputError
+
+_RANGE_RE = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*(?::\s*(-?\d*)\s*)?$")
+
+
+class InputFileError(InvalidInputError):
+    """A dataset file is missing or malformed. The message starts with ``path:line:``
+    (line omitted when the whole file is at fault) so editors and people can jump to it."""
+
+    def __init__(self, path: Path | str, message: str, line: int | None = None) -> None:
+        self.path = Path(path)
+        self.line = line
+        where = f"{self.path}:{line}" if line is not None else f"{self.path}"
+        super().__init__(f"{where}: {message}")
+
+
+def parse_frame_range(text: str | None) -> slice | None:
+    """``"A:B"`` (or ``"A:"``, ``":B"``, ``"A:B:S"``) -> slice(A, B, S), Python semantics.
+
+    Frames are numbered from 0 as in the file names; ``0:3860`` selects frames 0..3859,
+    ``3860:`` the rest (the paper's 85 % / 15 % split of KITTI 00); negative bounds count
+    from the end. None or an empty string selects everything.
+    """
+    if text is None or not text.strip():
+        return None
+    match = _RANGE_RE.match(text)
+    if match is None:
+        raise InvalidInputError(f"invalid frame range {text!r}: expected A:B, A:, :B or A:B:S")
+    start, stop, step = (int(g) if g not in (None, "") else None for g in match.groups())
+    if step == 0:
+        raise InvalidInputError(f"invalid frame range {text!r}: step must not be 0")
+    return slice(start, stop, step)
+
+
+def format_frame_range(frames: slice | None) -> str:
+    """Inverse of :func:`parse_frame_range` (for run names and messages)."""
+    if frames is None:
+        return ":"
+    parts = ["" if v is None else str(v) for v in (frames.start, frames.stop)]
+    text = ":".join(parts)
+    return text if frames.step in (None, 1) else f"{text}:{frames.step}"
+
+
+@dataclass(frozen=True)
+class LoadedFrame:
+    """One frame read from disk: the image file's bytes (hashed for idempotency), the
+    decoded (H, W) uint8 grayscale image and the frame's 3D source (a ``LidarSource`` or
+    ``DepthSource`` of ``server.entry_builder``)."""
+
+    image_bytes: bytes
+    image_gray: np.ndarray
+    source: object
+
+
+def read_bytes(path: Path, what: str = "file") -> bytes:
+    """The file's bytes; InputFileError naming it if it cannot be read or is empty."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read {what}: {exc.strerror or exc}") from exc
+    if not data:
+        raise InputFileError(path, f"{what} is empty")
+    return data
+
+
+def decode_gray(data: bytes, path: Path) -> np.ndarray:
+    """Decode PNG/JPEG bytes to (H, W) uint8 grayscale (colour is converted with OpenCV's
+    luma weights); InputFileError naming ``path`` if the bytes are not a readable image."""
+    import cv2
+
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise InputFileError(path, "unreadable image (not a valid PNG/JPEG)")
+    if image.dtype != np.uint8:
+        if image.dtype != np.uint16:
+            raise InputFileError(path, f"unsupported image sample type {image.dtype}")
+        image = (image >> 8).astype(np.uint8)  # 16-bit intensity image: keep the top byte
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    return np.ascontiguousarray(image)
+
+
+def decode_depth(data: bytes, path: Path) -> np.ndarray:
+    """Decode a 16-bit single-channel depth PNG to (H, W) uint16 (raw units)."""
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise InputFileError(path, "unreadable depth image (not a valid PNG)")
+    if image.ndim != 2 or image.dtype != np.uint16:
+        raise InputFileError(
+            path, f"depth image must be 16-bit single-channel, got {image.dtype} {image.shape}"
+        )
+    return image
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a PNG read from its header (no decoding)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(24)
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read image: {exc.strerror or exc}") from exc
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise InputFileError(path, "not a PNG image")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if width <= 0 or height <= 0:
+        raise InputFileError(path, f"PNG header gives an empty image ({width}x{height})")
+    return width, height
+
+
+def read_number_rows(path: Path, n_columns: int, what: str) -> tuple[np.ndarray, list[int]]:
+    """Rows of ``n_columns`` finite floats from a text file (blank lines and lines starting
+    with '#' ignored). Returns ((N, n_columns) float64, the 1-based line number of each
+    row). InputFileError naming the line on a wrong count or a non-finite value."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(path, f"cannot read {what}: {exc}") from exc
+    rows, line_numbers = [], []
+    for number, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        fields = stripped.split()
+        if len(fields) != n_columns:
+            raise InputFileError(
+                path, f"{what} has {len(fields)} values, expected {n_columns}", number
+            )
+        try:
+            values = [float(f) for f in fields]
+        except ValueError as exc:
+            raise InputFileError(path, f"{what} is not numeric ({exc})", number) from exc
+        if not all(np.isfinite(values)):
+            raise InputFileError(path, f"{what} contains NaN or infinite values", number)
+        rows.append(values)
+        line_numbers.append(number)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, n_columns), line_numbers

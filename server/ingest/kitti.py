@@ -1,0 +1,297 @@
+"""Reader of KITTI odometry sequences (and of the sim's output, which has the same layout).
+
+Layout (the real dataset's)::
+
+    <root>/sequences/NN/calib.txt        "P0: 12 numbers" ... "Tr: 12 numbers"
+    <root>/sequences/NN/times.txt        one timestamp (s) per frame
+    <root>/sequences/NN/image_0/%06d.png grayscale left camera
+    <root>/sequences/NN/velodyne/%06d.bin float32 (x, y, z, reflectance) in the LiDAR frame
+    <root>/poses/NN.txt                  3x4 T_kittiworld_from_cam0 per line, row-major
+
+``root`` may be the dataset root (``sequence`` names NN; optional when there is only
+one sequence) or a sequence folder itself; then the poses are ``<seq>/poses.txt`` if
+present, else ``<seq>/../../poses/NN.txt``.
+
+Everything but the image and scan contents is validated when the sequence is opened,
+before anything is written: calib.txt (P0 a 3x4 pinhole matrix, Tr a 3x4 rigid
+transform), one finite rigid pose per line, as many timestamps as poses, and every
+image and scan file of the whole sequence present (non-empty; scans a whole number of
+16-byte points). Frame counts must agree across poses, times, image_0 and velodyne.
+Errors name the file and the line.
+
+KITTI's world is its first camera frame (x right, y down, z forward); the poses are
+converted to monoloc's z-up world by ``client.geometry.kitti_to_zup`` (the one place
+that conversion lives). ``frames`` selects a range of frame indices with Python slice
+semantics (``slice(0, 3860)``: frames 0..3859), applied after the whole sequence was
+validated.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from client.camera import CameraIntrinsics
+from client.errors import InvalidInputError
+from client.geometry import check_rigid, kitti_to_zup
+from server.ingest.common import (
+    InputFileError,
+    LoadedFrame,
+    decode_gray,
+    png_size,
+    read_bytes,
+    read_number_rows,
+)
+
+LIDAR_POINT_BYTES = 16  # float32 x, y, z, reflectance
+
+
+@dataclass(frozen=True)
+class KittiCalibration:
+    """Camera 0 intrinsics (without image size) and the LiDAR-to-camera-0 transform."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    T_cam_from_lidar: np.ndarray
+
+    def intrinsics(self, width_px: int, height_px: int) -> CameraIntrinsics:
+        return CameraIntrinsics(self.fx, self.fy, self.cx, self.cy, width_px, height_px)
+
+
+@dataclass(frozen=True)
+class KittiFrame:
+    """One frame: index (the file number), timestamp, file paths and the z-up pose (4, 4)."""
+
+    index: int
+    timestamp_s: float
+    image_path: Path
+    scan_path: Path
+    T_world_from_cam: np.ndarray = field(repr=False)
+
+
+@dataclass(frozen=True)
+class KittiSequence:
+    """A validated KITTI sequence. ``frames`` holds the selected frames only;
+    ``n_frames_total`` counts the whole sequence."""
+
+    root: Path
+    sequence: str
+    calib_path: Path
+    poses_path: Path
+    intrinsics: CameraIntrinsics
+    T_cam_from_lidar: np.ndarray = field(repr=False)
+    frames: list[KittiFrame] = field(repr=False)
+    n_frames_total: int = 0
+    format: str = "kitti"
+    read_skips: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def name(self) -> str:
+        """Where the run came from: ``<absolute sequence folder>`` (stored as the run's
+        source name so a vocabulary change can find the images again)."""
+        return str(self.root)
+
+    def load(self, frame: KittiFrame) -> LoadedFrame:
+        """Read the frame's image and scan (thread-safe; no database access)."""
+        from server.entry_builder import LidarSource
+
+        data = read_bytes(frame.image_path, "image")
+        image = decode_gray(data, frame.image_path)
+        return LoadedFrame(
+            data, image, LidarSource(read_scan(frame.scan_path), self.T_cam_from_lidar)
+        )
+
+
+def read_scan(path: Path) -> np.ndarray:
+    """A KITTI .bin scan -> (N, 4) float32 (x, y, z, reflectance), LiDAR frame."""
+    data = read_bytes(path, "LiDAR scan")
+    if len(data) % LIDAR_POINT_BYTES:
+        raise InputFileError(
+            path, f"LiDAR scan size {len(data)} bytes is not a multiple of {LIDAR_POINT_BYTES}"
+        )
+    points = np.frombuffer(data, dtype="<f4").reshape(-1, 4)
+    finite = np.all(np.isfinite(points[:, :3]), axis=1)
+    return points if finite.all() else points[finite]
+
+
+def _calib_fields(path: Path) -> dict[str, tuple[int, list[str]]]:
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(path, f"cannot read calibration: {exc}") from exc
+    fields: dict[str, tuple[int, list[str]]] = {}
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        key, sep, rest = line.partition(":")
+        if not sep:
+            raise InputFileError(path, "expected 'NAME: numbers'", number)
+        fields[key.strip()] = (number, rest.split())
+    return fields
+
+
+def _matrix_3x4(path: Path, fields: dict, key: str) -> np.ndarray:
+    if key not in fields:
+        raise InputFileError(path, f"no {key} line (KITTI calib.txt needs P0 and Tr)")
+    number, values = fields[key]
+    if len(values) != 12:
+        raise InputFileError(path, f"{key} has {len(values)} numbers, expected 12 (3x4)", number)
+    try:
+        matrix = np.array([float(v) for v in values]).reshape(3, 4)
+    except ValueError as exc:
+        raise InputFileError(path, f"{key} is not numeric ({exc})", number) from exc
+    if not np.all(np.isfinite(matrix)):
+        raise InputFileError(path, f"{key} contains NaN or infinite values", number)
+    return matrix
+
+
+def read_kitti_calibration(path: Path) -> KittiCalibration:
+    """Parse a KITTI odometry calib.txt (P0 -> intrinsics; Tr -> T_cam_from_lidar)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "calibration file is missing")
+    fields = _calib_fields(path)
+    P0 = _matrix_3x4(path, fields, "P0")
+    line_p0 = fields["P0"][0]
+    fx, fy, cx, cy = P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2]
+    pinhole = abs(P0[0, 1]) < 1e-9 and abs(P0[1, 0]) < 1e-9 and np.allclose(P0[2, :3], [0, 0, 1])
+    if not pinhole or fx <= 0 or fy <= 0:
+        raise InputFileError(
+            path, "P0 is not a pinhole camera matrix [fx 0 cx tx; 0 fy cy ty; 0 0 1 tz]", line_p0
+        )
+    Tr = np.eye(4)
+    Tr[:3] = _matrix_3x4(path, fields, "Tr")
+    try:
+        check_rigid(Tr, "Tr", tol=1e-3)
+    except InvalidInputError as exc:
+        raise InputFileError(path, f"Tr is not a rigid transform ({exc})", fields["Tr"][0]) from exc
+    return KittiCalibration(float(fx), float(fy), float(cx), float(cy), Tr)
+
+
+def read_kitti_poses(path: Path) -> np.ndarray:
+    """poses/NN.txt -> (N, 4, 4) T_kittiworld_from_cam (KITTI's world, not yet z-up)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "poses file is missing (KITTI poses/NN.txt)")
+    rows, lines = read_number_rows(path, 12, "pose")
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    for pose, number in zip(poses, lines, strict=True):
+        try:
+            check_rigid(pose, "pose", tol=1e-3)
+        except InvalidInputError as exc:
+            raise InputFileError(path, f"pose is not rigid ({exc})", number) from exc
+    if len(poses) == 0:
+        raise InputFileError(path, "no poses")
+    return poses
+
+
+def _resolve(root: Path, sequence: str | None) -> tuple[Path, str, Path]:
+    """(sequence folder, sequence name, poses file) for a dataset root or sequence folder."""
+    root = Path(root).expanduser().resolve()
+    if not root.is_dir():
+        raise InputFileError(root, "KITTI path is not a directory")
+    if (root / "calib.txt").exists() or (root / "image_0").is_dir():
+        name = root.name
+        if sequence is not None and sequence != name:
+            raise InvalidInputError(f"{root} is sequence {name}, not {sequence}")
+        local = root / "poses.txt"
+        poses = local if local.exists() else root.parent.parent / "poses" / f"{name}.txt"
+        return root, name, poses
+    sequences_dir = root / "sequences"
+    if not sequences_dir.is_dir():
+        raise InputFileError(
+            root, "neither a KITTI dataset root (sequences/) nor a sequence folder"
+        )
+    available = sorted(p.name for p in sequences_dir.iterdir() if p.is_dir())
+    if sequence is None:
+        if len(available) != 1:
+            raise InvalidInputError(
+                f"{sequences_dir} holds sequences {available}: choose one with --sequence"
+            )
+        sequence = available[0]
+    folder = sequences_dir / sequence
+    if not folder.is_dir():
+        raise InputFileError(folder, f"no such sequence (available: {available})")
+    return folder, sequence, root / "poses" / f"{sequence}.txt"
+
+
+def _check_files(folder: Path, suffix: str, n: int, counted_by: Path) -> dict[str, int]:
+    """Names %06d<suffix> for 0..n-1 must exist (and nothing beyond); returns name -> size."""
+    if not folder.is_dir():
+        raise InputFileError(folder, "folder is missing")
+    sizes = {e.name: e.stat().st_size for e in os.scandir(folder) if e.name.endswith(suffix)}
+    expected = [f"{i:06d}{suffix}" for i in range(n)]
+    missing = [name for name in expected if name not in sizes]
+    if missing:
+        raise InputFileError(
+            folder / missing[0],
+            f"is missing ({len(missing)} of {n} files missing; {counted_by} has {n} frames)",
+        )
+    if len(sizes) != n:
+        raise InputFileError(
+            folder, f"holds {len(sizes)} {suffix} files but {counted_by} has {n} frames"
+        )
+    empty = [name for name in expected if sizes[name] == 0]
+    if empty:
+        raise InputFileError(folder / empty[0], "file is empty")
+    return sizes
+
+
+def read_kitti_sequence(
+    root: Path, sequence: str | None = None, frames: slice | None = None
+) -> KittiSequence:
+    """Open and validate a KITTI odometry sequence (see the module docstring)."""
+    folder, name, poses_path = _resolve(Path(root), sequence)
+    calib_path = folder / "calib.txt"
+    calibration = read_kitti_calibration(calib_path)
+    poses = read_kitti_poses(poses_path)
+    n = len(poses)
+    times_path = folder / "times.txt"
+    if not times_path.is_file():
+        raise InputFileError(times_path, "times file is missing")
+    times, _ = read_number_rows(times_path, 1, "timestamp")
+    if len(times) != n:
+        raise InputFileError(
+            times_path, f"has {len(times)} timestamps but {poses_path} has {n} poses"
+        )
+    _check_files(folder / "image_0", ".png", n, poses_path)
+    scan_sizes = _check_files(folder / "velodyne", ".bin", n, poses_path)
+    for scan_name, size in scan_sizes.items():
+        if size % LIDAR_POINT_BYTES:
+            raise InputFileError(
+                folder / "velodyne" / scan_name,
+                f"size {size} bytes is not a multiple of {LIDAR_POINT_BYTES} (x, y, z, r float32)",
+            )
+    width, height = png_size(folder / "image_0" / "000000.png")
+    T_world_from_cam = kitti_to_zup(poses)
+    indices = range(n)[frames] if frames is not None else range(n)
+    selected = [
+        KittiFrame(
+            index=i,
+            timestamp_s=float(times[i, 0]),
+            image_path=folder / "image_0" / f"{i:06d}.png",
+            scan_path=folder / "velodyne" / f"{i:06d}.bin",
+            T_world_from_cam=T_world_from_cam[i],
+        )
+        for i in indices
+    ]
+    return KittiSequence(
+        root=folder,
+        sequence=name,
+        calib_path=calib_path,
+        poses_path=poses_path,
+        intrinsics=calibration.intrinsics(width, height),
+        T_cam_from_lidar=calibration.T_cam_from_lidar,
+        frames=selected,
+        n_frames_total=n,
+    )

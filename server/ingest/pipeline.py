@@ -1,0 +1,355 @@
+"""Ingestion of a recorded run (KITTI sequence or TUM run) into a map.
+
+Stages, for a source opened (and its metadata validated) by a reader:
+
+1. hash: the sha256 of the selected image files, ``hash_chunk`` frames at a time
+   (threads), looked up in the map; frames whose hash is already there are skipped
+   (``already_in_map``) before any other work, so a re-run adds nothing twice and an
+   interrupted run resumes where it stopped.
+2. build: decode, blur + ORB, 3D points from the LiDAR scan or depth image, VLAD
+   (``server.entry_builder.build_entry``) in a thread pool (OpenCV and numpy release the
+   GIL; OpenCV and BLAS are limited to one thread each so 2 cores are not oversubscribed).
+3. write: on the calling thread, in order, in batches of ``batch_size`` frames, each
+   batch one transaction (entries + run counters); after each commit the registry's
+   live index receives the new entries. An interruption loses at most one batch.
+
+Frames skipped, and why: ``already_in_map`` (hash present), ``too_few_points`` (fewer
+than ``BuildConfig.min_points`` keypoints with a 3D point), ``duplicate_image`` (the same
+image file twice in one run), plus the readers' own (TUM: ``no_depth``,
+``no_ground_truth``). A frame whose image, scan or depth file cannot be read or decoded
+fails the ingestion with an error naming the file (the entries of earlier frames are
+committed first and stay), unless ``skip_bad_frames`` is set: then it is skipped as
+``unreadable_image`` / ``unreadable_scan`` / ``unreadable_depth`` / ``bad_image`` (wrong
+size) and reported.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from sqlalchemy.orm import Session, sessionmaker
+
+from client.errors import InvalidInputError
+from client.geometry import planar_from_T_world_from_cam
+from server.entry_builder import BuildConfig, TooFewPointsError, build_entry
+from server.ingest.common import InputFileError, read_bytes
+from server.storage import entries as entries_repo
+from server.storage import maps as maps_repo
+from server.storage import runs as runs_repo
+from server.storage.db import session_scope
+from server.storage.records import NewEntry
+from server.vision.vocabulary import Vocabulary
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class IngestConfig:
+    """``workers`` threads build entries; ``batch_size`` frames per transaction;
+    ``skip_bad_frames``: skip (and report) unreadable frames instead of failing."""
+
+    build: BuildConfig = field(default_factory=BuildConfig)
+    workers: int = 2
+    batch_size: int = 24
+    skip_bad_frames: bool = False
+    hash_chunk: int = 256  # frames hashed and looked up in the map at a time
+
+    def __post_init__(self) -> None:
+        if self.workers < 1 or self.batch_size < 1 or self.hash_chunk < 1:
+            raise InvalidInputError(f"invalid IngestConfig {self}")
+
+
+@dataclass(frozen=True)
+class IngestSummary:
+    """What one ingestion did. ``points_*``: keypoints with a 3D point per added entry."""
+
+    run_id: int
+    map_id: int
+    frames_total: int
+    frames_done: int
+    entries_added: int
+    frames_skipped: int
+    skip_reasons: dict[str, int]
+    points_mean: float
+    points_min: int
+    elapsed_s: float
+    frames_per_s: float
+    map_version: int
+    interrupted: bool = False
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    frame: object
+    entry: NewEntry | None = None
+    skip_reason: str | None = None
+    error: InvalidInputError | None = None
+
+
+def _worker_setup() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _hash_frame(frame) -> str | InputFileError:
+    try:
+        return hashlib.sha256(read_bytes(frame.image_path, "image")).hexdigest()
+    except InputFileError as exc:
+        return exc
+
+
+def _build(
+    source,
+    frame,
+    vocabulary: Vocabulary,
+    vocabulary_id: int,
+    config: IngestConfig,
+    tags: tuple[str, ...],
+) -> _Outcome:
+    try:
+        loaded = source.load(frame)
+    except InputFileError as exc:
+        kind = "image" if exc.path == frame.image_path else getattr(source, "format", "")
+        reason = {"image": "unreadable_image", "kitti": "unreadable_scan"}.get(
+            kind, "unreadable_depth"
+        )
+        return _Outcome(frame, skip_reason=reason, error=exc)
+    try:
+        entry = build_entry(
+            loaded.image_gray,
+            hashlib.sha256(loaded.image_bytes).hexdigest(),
+            frame.T_world_from_cam,
+            loaded.source,
+            source.intrinsics,
+            vocabulary,
+            vocabulary_id,
+            config.build,
+            tags=tags,
+            timestamp_s=frame.timestamp_s,
+        )
+    except TooFewPointsError:
+        return _Outcome(frame, skip_reason="too_few_points")
+    except InvalidInputError as exc:
+        return _Outcome(
+            frame, skip_reason="bad_image", error=InputFileError(frame.image_path, str(exc))
+        )
+    return _Outcome(frame, entry=entry)
+
+
+class _Writer:
+    """Commits batches of entries and the run's counters; feeds the live index."""
+
+    def __init__(self, factory, map_id, run_id, registry, frames_total, skips) -> None:
+        self.factory, self.map_id, self.run_id, self.registry = factory, map_id, run_id, registry
+        self.frames_total = frames_total
+        self.skips: dict[str, int] = dict(skips)
+        self.frames_done = sum(skips.values())
+        self.pending: list[NewEntry] = []
+        self.points: list[int] = []
+        self.added = 0
+        self.version = 0
+
+    def skip(self, reason: str, n: int = 1) -> None:
+        if n <= 0:
+            return
+        self.skips[reason] = self.skips.get(reason, 0) + n
+        self.frames_done += n
+
+    def commit(self, status: str | None = None, error: str | None = None) -> None:
+        created = []
+        with session_scope(self.factory) as session:
+            for entry in self.pending:
+                summary, was_created = entries_repo.add_entry(
+                    session, self.map_id, entry, run_id=self.run_id
+                )
+                if was_created:
+                    created.append((summary.id, entry))
+                else:
+                    self.skips["duplicate_image"] = self.skips.get("duplicate_image", 0) + 1
+            self.version = maps_repo.get_map(session, self.map_id).version
+            runs_repo.update_run(
+                session,
+                self.run_id,
+                status=status,
+                frames_total=self.frames_total,
+                frames_done=self.frames_done,
+                entries_added=entries_repo.count_entries(session, self.map_id, run_id=self.run_id),
+                frames_skipped=sum(self.skips.values()),
+                skip_reasons=self.skips,
+                error=error,
+            )
+        self.pending = []
+        self.added += len(created)
+        self.points.extend(len(e.points_cam) for _, e in created)
+        if created and self.registry is not None:
+            entries = [e for _, e in created]
+            self.registry.entries_added(
+                self.map_id,
+                np.array([i for i, _ in created], dtype=np.int64),
+                np.stack([e.code for e in entries]),
+                np.stack([e.vlad for e in entries]),
+                planar_from_T_world_from_cam(np.stack([e.T_world_from_cam for e in entries])),
+                self.version,
+            )
+
+
+def _load_vocabulary(factory, map_id: int, source) -> tuple[Vocabulary, int]:
+    with session_scope(factory) as session:
+        record = maps_repo.get_map(session, map_id)
+        vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
+    if source.intrinsics != record.camera:
+        # Entries are built with the source's own camera (their 3D points are metric, so
+        # they stay valid); queries default to the map's camera.
+        log.warning(
+            "%s: camera %s differs from map %s's %s",
+            source.name,
+            source.intrinsics,
+            record.name,
+            record.camera,
+        )
+    return Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description), vocab.id
+
+
+def _new_frames(pool: ThreadPoolExecutor, frames: list, factory, map_id: int, writer, chunk: int):
+    """The frames whose image is not in the map yet, hashed ``chunk`` at a time (threads);
+    the others are counted as ``already_in_map``. A frame whose image cannot be read is
+    passed on: the build stage reports it in order, by the run's bad-frame policy."""
+    for lo in range(0, len(frames), chunk):
+        part = frames[lo : lo + chunk]
+        digests = list(pool.map(_hash_frame, part))
+        known = [d for d in digests if isinstance(d, str)]
+        with session_scope(factory) as session:
+            present = entries_repo.existing_hashes(session, map_id, known) if known else set()
+        for frame, digest in zip(part, digests, strict=True):
+            if isinstance(digest, str) and digest in present:
+                writer.skip("already_in_map")
+            else:
+                yield frame
+
+
+def ingest_run(
+    session_factory: sessionmaker[Session],
+    map_id: int,
+    source,
+    *,
+    run_id: int,
+    registry=None,
+    tags: tuple[str, ...] = (),
+    progress: Callable[[int, int], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    config: IngestConfig = IngestConfig(),
+) -> IngestSummary:
+    """Add the frames of ``source`` (a ``KittiSequence`` or ``TumRun``) to map ``map_id``
+    as entries of run ``run_id`` (created by the caller). Idempotent and resumable (see
+    the module docstring). ``progress(done, total)`` is called after every frame;
+    ``should_stop()`` is polled between frames (True: commit what is built, mark the run
+    interrupted, return). Raises InvalidInputError naming the file on bad input, after
+    committing the entries of the frames before it and marking the run failed.
+    """
+    from threadpoolctl import threadpool_limits
+
+    start = time.perf_counter()
+    vocabulary, vocabulary_id = _load_vocabulary(session_factory, map_id, source)
+    frames = list(source.frames)
+    read_skips = dict(getattr(source, "read_skips", {}) or {})
+    total = len(frames) + sum(read_skips.values())
+    writer = _Writer(session_factory, map_id, run_id, registry, total, read_skips)
+    with session_scope(session_factory) as session:
+        runs_repo.update_run(session, run_id, status="running", frames_total=total)
+    interrupted = False
+    try:
+        with (
+            threadpool_limits(1),
+            ThreadPoolExecutor(config.workers, initializer=_worker_setup) as pool,
+        ):
+            todo = _new_frames(pool, frames, session_factory, map_id, writer, config.hash_chunk)
+            interrupted = _build_and_write(
+                pool,
+                source,
+                todo,
+                vocabulary,
+                vocabulary_id,
+                config,
+                tuple(tags),
+                writer,
+                progress,
+                should_stop,
+            )
+        writer.commit(status="interrupted" if interrupted else "done")
+    except BaseException as exc:
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        try:
+            writer.commit(status=status, error=str(exc) or type(exc).__name__)
+        except Exception:  # the original error matters more than the bookkeeping
+            log.exception("could not record the failure of run %s", run_id)
+        raise
+    if registry is not None:
+        registry.persist(map_id)
+    elapsed = time.perf_counter() - start
+    done = writer.frames_done
+    return IngestSummary(
+        run_id=run_id,
+        map_id=map_id,
+        frames_total=total,
+        frames_done=done,
+        entries_added=writer.added,
+        frames_skipped=sum(writer.skips.values()),
+        skip_reasons=dict(writer.skips),
+        points_mean=float(np.mean(writer.points)) if writer.points else 0.0,
+        points_min=int(min(writer.points)) if writer.points else 0,
+        elapsed_s=elapsed,
+        frames_per_s=done / elapsed if elapsed > 0 else 0.0,
+        map_version=writer.version,
+        interrupted=interrupted,
+    )
+
+
+def _build_and_write(
+    pool, source, todo, vocabulary, vocabulary_id, config, tags, writer, progress, should_stop
+) -> bool:
+    """Run the build stage with a bounded window of futures; returns True if stopped."""
+    window: deque[Future] = deque()
+    max_in_flight = 2 * config.workers + 2
+    frames = iter(todo)
+    if progress is not None:
+        progress(writer.frames_done, writer.frames_total)
+
+    def refill() -> None:
+        while len(window) < max_in_flight:
+            frame = next(frames, None)
+            if frame is None:
+                return
+            window.append(
+                pool.submit(_build, source, frame, vocabulary, vocabulary_id, config, tags)
+            )
+
+    refill()
+    try:
+        while window:
+            if should_stop is not None and should_stop():
+                return True
+            outcome: _Outcome = window.popleft().result()
+            refill()
+            if outcome.error is not None and not config.skip_bad_frames:
+                raise outcome.error
+            if outcome.entry is not None:
+                writer.pending.append(outcome.entry)
+                writer.frames_done += 1
+            else:
+                writer.skip(outcome.skip_reason or "skipped")
+            if len(writer.pending) >= config.batch_size:
+                writer.commit()
+            if progress is not None:
+                progress(writer.frames_done, writer.frames_total)
+        return False
+    finally:
+        for future in window:
+            future.cancel()

@@ -1,0 +1,313 @@
+"""``monoloc map ...`` and ``monoloc localize``: parse arguments, call one typed function,
+print. Re-exported by ``server/cli.py`` (``map_app``, ``localize``).
+
+Every command works on the database of the settings (``MONOLOC_DATA_DIR`` /
+``MONOLOC_DATABASE_URL``; ``--data-dir`` overrides the data directory) and upgrades its
+schema first. Heavy imports happen inside the commands.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+map_app = typer.Typer(
+    help="Maps: create, ingest runs, vocabulary, statistics.", no_args_is_help=True
+)
+
+DataDir = Annotated[
+    Path | None,
+    typer.Option(
+        "--data-dir",
+        help="Data directory (database + indexes); default MONOLOC_DATA_DIR or ./data.",
+    ),
+]
+MapRef = Annotated[str, typer.Option("--map", "-m", help="Map name or id.")]
+
+
+def _open(ctx: typer.Context | None, data_dir: Path | None = None):
+    """(settings, session factory) with the schema upgraded."""
+    from server.settings import get_settings
+    from server.storage.db import create_engine_for, make_session_factory
+    from server.storage.migrate import upgrade_database
+
+    if data_dir is None and ctx is not None:
+        data_dir = (ctx.obj or {}).get("data_dir")
+    settings = get_settings(data_dir=data_dir) if data_dir else get_settings()
+    upgrade_database(settings.database_url)
+    return settings, make_session_factory(create_engine_for(settings))
+
+
+@map_app.callback()
+def _map(ctx: typer.Context, data_dir: DataDir = None) -> None:
+    """Map commands."""
+    ctx.obj = {"data_dir": data_dir}
+
+
+@map_app.command("create")
+def map_create(
+    ctx: typer.Context,
+    name: Annotated[str, typer.Argument(help="Map name (letters, digits, . _ -).")],
+    camera: Annotated[
+        str | None,
+        typer.Option(
+            help="kitti | freiburg1|2|3 | <calib.txt> | <KITTI sequence or TUM run folder> | "
+            "<camera.json>"
+        ),
+    ] = None,
+    fx: float | None = None,
+    fy: float | None = None,
+    cx: float | None = None,
+    cy: float | None = None,
+    width: int | None = None,
+    height: int | None = None,
+    vocabulary: Annotated[str, typer.Option(help="default | vocabulary id | hash")] = "default",
+) -> None:
+    """Create an empty map with a camera and a vocabulary."""
+    from server.ingest.manage import CameraOverrides, camera_from_spec, create_map
+
+    _, factory = _open(ctx)
+    intrinsics = camera_from_spec(camera, CameraOverrides(fx, fy, cx, cy, width, height))
+    record = create_map(factory, name, intrinsics, vocabulary)
+    typer.echo(
+        f"created map {record.name} (id {record.id}), camera {intrinsics}, "
+        f"vocabulary {record.vocabulary_hash}"
+    )
+
+
+@map_app.command("list")
+def map_list(ctx: typer.Context) -> None:
+    """List the maps."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from server.ingest.manage import list_maps
+
+    _, factory = _open(ctx)
+    table = Table("id", "name", "entries", "version", "vocabulary", "camera", "calibrated")
+    for m in list_maps(factory):
+        c = m.camera
+        table.add_row(
+            str(m.id),
+            m.name,
+            str(m.n_entries),
+            str(m.version),
+            m.vocabulary_hash,
+            f"{c.width_px}x{c.height_px} f={c.fx:.1f}",
+            "yes" if m.calibration else "no",
+        )
+    Console().print(table)
+
+
+@map_app.command("stats")
+def map_stats(
+    ctx: typer.Context, map_ref: Annotated[str, typer.Argument(help="Map name or id.")]
+) -> None:
+    """Entries, runs, tags, version, vocabulary, calibration, 3D keypoints per entry."""
+    from server.ingest.manage import map_stats as compute
+    from server.ingest.report import print_stats
+
+    _, factory = _open(ctx)
+    print_stats(compute(factory, map_ref))
+
+
+@map_app.command("ingest")
+def map_ingest(
+    ctx: typer.Context,
+    path: Annotated[Path, typer.Argument(help="KITTI dataset root or sequence; TUM run.")],
+    map_ref: MapRef,
+    fmt: Annotated[str, typer.Option("--format", help="kitti | tum")] = "kitti",
+    sequence: Annotated[str | None, typer.Option(help="KITTI sequence (NN).")] = None,
+    frames: Annotated[
+        str | None, typer.Option(help="Frame range A:B (Python slice: 0:3860 = frames 0..3859).")
+    ] = None,
+    tags: Annotated[str, typer.Option(help="Comma-separated tags, e.g. night.")] = "",
+    kind: Annotated[str, typer.Option(help="Run kind: map | offcenter | night | ...")] = "map",
+    skip_bad_frames: Annotated[
+        bool, typer.Option(help="Skip unreadable images/scans (reported) instead of failing.")
+    ] = False,
+    workers: Annotated[int, typer.Option(help="Threads building entries.")] = 2,
+    camera: Annotated[str | None, typer.Option(help="TUM: freiburg1|2|3|default.")] = None,
+    fx: float | None = None,
+    fy: float | None = None,
+    cx: float | None = None,
+    cy: float | None = None,
+    width: int | None = None,
+    height: int | None = None,
+) -> None:
+    """Ingest a KITTI sequence or a TUM RGB-D run into a map (idempotent, resumable)."""
+    from server.entry_builder import BuildConfig
+    from server.ingest.common import parse_frame_range
+    from server.ingest.manage import CameraOverrides, ingest_source, open_source
+    from server.ingest.pipeline import IngestConfig
+    from server.ingest.report import print_ingest_summary, progress_bar
+
+    _, factory = _open(ctx)
+    intrinsics = CameraOverrides(fx, fy, cx, cy, width, height).complete()
+    source = open_source(
+        fmt,
+        path,
+        sequence=sequence,
+        frames=parse_frame_range(frames),
+        camera=intrinsics,
+        tum_camera=camera,
+    )
+    config = IngestConfig(build=BuildConfig(), workers=workers, skip_bad_frames=skip_bad_frames)
+    tag_list = tuple(t.strip() for t in tags.split(",") if t.strip())
+    with progress_bar(f"ingesting {source.name}") as update:
+        summary = ingest_source(
+            factory, map_ref, source, kind=kind, tags=tag_list, config=config, progress=update
+        )
+    print_ingest_summary(summary)
+
+
+@map_app.command("vocab")
+def map_vocab(
+    ctx: typer.Context,
+    map_ref: MapRef,
+    train_from: Annotated[Path | None, typer.Option(help="Run to train a vocabulary on.")] = None,
+    fmt: Annotated[str, typer.Option("--format", help="kitti | tum")] = "kitti",
+    sequence: str | None = None,
+    frames: str | None = None,
+    vocabulary: Annotated[
+        str | None,
+        typer.Option(help="Switch to an existing vocabulary (id, hash or default) instead."),
+    ] = None,
+    max_images: int = 300,
+    seed: int = 0,
+) -> None:
+    """Train a vocabulary (k=64) from a run and/or switch the map to it (a recorded job:
+    every entry's VLAD and code is recomputed)."""
+    from server.ingest.common import parse_frame_range
+    from server.ingest.jobs import run_vocabulary_job
+    from server.ingest.manage import open_source
+    from server.ingest.report import progress_bar
+
+    _, factory = _open(ctx)
+    if (train_from is None) == (vocabulary is None):
+        raise typer.BadParameter("give exactly one of --train-from and --vocabulary")
+    source = None
+    if train_from is not None:
+        source = open_source(
+            fmt,
+            train_from,
+            sequence=sequence,
+            frames=parse_frame_range(frames),
+            tum_camera="default",
+        )
+    with progress_bar("recomputing VLADs") as update:
+        job, change = run_vocabulary_job(
+            factory,
+            map_ref,
+            source=source,
+            vocabulary=vocabulary,
+            max_images=max_images,
+            seed=seed,
+            progress=update,
+        )
+    typer.echo(
+        f"job {job.id} {job.state}: map {change.map_id} now on vocabulary "
+        f"{change.vocabulary_id}; {change.recomputed} entries recomputed "
+        f"({change.exact} from their images, {change.approximate} from stored "
+        f"descriptors); map version {change.map_version}"
+    )
+
+
+@map_app.command("add-image")
+def map_add_image(
+    ctx: typer.Context,
+    image: Annotated[Path, typer.Argument(help="PNG/JPEG reference image.")],
+    map_ref: MapRef,
+    pose: Annotated[
+        str | None,
+        typer.Option(help="T_world_from_cam (z-up world): 16 (or 12) numbers, row-major."),
+    ] = None,
+    pose_file: Annotated[Path | None, typer.Option(help="File with those numbers.")] = None,
+    depth: Annotated[Path | None, typer.Option(help="Registered 16-bit depth PNG.")] = None,
+    depth_scale: Annotated[float, typer.Option(help="Depth units per metre.")] = 5000.0,
+    lidar: Annotated[Path | None, typer.Option(help="KITTI .bin LiDAR scan.")] = None,
+    lidar_extrinsics: Annotated[
+        str | None, typer.Option(help="T_cam_from_lidar: a calib.txt (Tr) or 12/16 numbers.")
+    ] = None,
+    tags: str = "",
+) -> None:
+    """Add one reference image with its pose and a depth image or a LiDAR scan."""
+    from server.ingest.common import read_bytes
+    from server.ingest.manage import find_map
+    from server.ingest.single import (
+        add_single_image,
+        depth_source_from_file,
+        lidar_source_from_file,
+        parse_numbers,
+        read_lidar_extrinsics,
+        read_pose_file,
+        transform_from_numbers,
+    )
+
+    if (pose is None) == (pose_file is None):
+        raise typer.BadParameter("give exactly one of --pose and --pose-file")
+    if (depth is None) == (lidar is None):
+        raise typer.BadParameter("give exactly one of --depth and --lidar")
+    if lidar is not None and lidar_extrinsics is None:
+        raise typer.BadParameter("--lidar needs --lidar-extrinsics")
+    _, factory = _open(ctx)
+    T = (
+        read_pose_file(pose_file)
+        if pose_file
+        else transform_from_numbers(parse_numbers(pose, "--pose"), "--pose")
+    )
+    source = (
+        depth_source_from_file(depth, depth_scale)
+        if depth is not None
+        else lidar_source_from_file(lidar, read_lidar_extrinsics(lidar_extrinsics))
+    )
+    record = find_map(factory, map_ref)
+    tag_list = tuple(t.strip() for t in tags.split(",") if t.strip())
+    summary, created = add_single_image(
+        factory, record.id, read_bytes(image, "image"), T, source, tags=tag_list
+    )
+    verb = "added" if created else "already in the map:"
+    typer.echo(
+        f"{verb} entry {summary.id} at x={summary.x_m:.2f} y={summary.y_m:.2f} "
+        f"with {summary.n_points} 3D keypoints"
+    )
+
+
+def localize(
+    image: Annotated[Path, typer.Argument(help="Query image (PNG/JPEG).")],
+    map_ref: MapRef,
+    prior: Annotated[
+        str | None,
+        typer.Option(
+            help="x,y,radius (m) or x,y,radius,yaw_deg,tol_deg: only entries inside compete."
+        ),
+    ] = None,
+    k: Annotated[int, typer.Option(help="Entries retrieved.")] = 10,
+    json_out: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+    seed: Annotated[int, typer.Option(help="RANSAC seed.")] = 0,
+    data_dir: DataDir = None,
+) -> None:
+    """Localize one image against a map: hypotheses and per-stage timings."""
+    import numpy as np
+
+    from server.ingest.common import decode_gray, read_bytes
+    from server.ingest.manage import find_map, parse_prior
+    from server.ingest.report import print_localization
+    from server.localize import LocalizeConfig
+    from server.runtime import MapRegistry
+
+    settings, factory = _open(None, data_dir)
+    record = find_map(factory, map_ref)
+    gray = decode_gray(read_bytes(image, "image"), image)
+    registry = MapRegistry(factory, settings.index_dir)
+    result, version = registry.localize(
+        record.id,
+        gray,
+        LocalizeConfig(k=k),
+        np.random.default_rng(seed),
+        prior=parse_prior(prior),
+        k=k,
+    )
+    print_localization(record, result, version, json_out)
