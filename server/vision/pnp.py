@@ -23,7 +23,6 @@ re-selection (see :func:`_refit` for why).
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import cv2
