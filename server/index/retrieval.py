@@ -57,7 +57,8 @@ class IndexConfig:
 
     shortlist_size: int = 400
     ivf_min_entries: int = 50_000  # from this size on, an IVF binary index is used
-    ivf_lists_per_sqrt: float = 4.0  # nlist = this * sqrt(N)
+    ivf_lists_per_sqrt: float = 2.0  # nlist = this * sqrt(N)
+    ivf_train_per_list: int = 40  # training sample = this * nlist codes (k-means cost)
     ivf_nprobe: int = 32
     prior_exact_max: int = 20_000  # up to this many candidates, re-rank all exactly
     # Re-rank vectors: "float32" is exact; "int8" (per-entry scale, step ~1e-3 of the
@@ -109,7 +110,8 @@ class RetrievalIndex:
         nlist = max(16, int(self.config.ivf_lists_per_sqrt * math.sqrt(len(codes))))
         quantizer = faiss.IndexBinaryFlat(VLAD_DIM)
         ivf = faiss.IndexBinaryIVF(quantizer, VLAD_DIM, nlist)  # the wrapper keeps quantizer
-        train = codes if len(codes) <= 256 * nlist else codes[:: len(codes) // (256 * nlist)]
+        n_train = self.config.ivf_train_per_list * nlist
+        train = codes if len(codes) <= n_train else codes[:: len(codes) // n_train]
         ivf.train(np.ascontiguousarray(train))
         ivf.nprobe = self.config.ivf_nprobe
         return ivf
