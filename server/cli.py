@@ -11,6 +11,7 @@ from typing import Annotated
 
 import typer
 
+from server.api.cli import keys_app, serve  # noqa: F401  (wired by monoloc/cli.py)
 
 vocab_app = typer.Typer(help="Visual vocabulary: retrain the shipped 64-word default.")
 

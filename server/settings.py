@@ -20,7 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 MiB = 1024 * 1024
@@ -71,12 +71,42 @@ class Settings(BaseSettings):
         default=2, ge=1, description="WebSocket frames queued per vehicle before stale drops."
     )
 
+    max_stream_backlog: int = Field(
+        default=1000,
+        ge=1,
+        description="Answers (mostly 'dropped' notices) owed to one WebSocket client before "
+        "the server closes the stream as flooding.",
+    )
+    max_lidar_points: int = Field(
+        default=500_000, gt=0, description="Most points a LiDAR scan sent to the API may hold."
+    )
+
+    # --- API security (see server/api/deps.py) -------------------------------------
+    bootstrap_admin_key: SecretStr | None = Field(
+        default=None,
+        description="If set and no API key exists yet, stored as an admin key at start-up "
+        "(must look like a monoloc key: 'mlk_' + at least 32 URL-safe characters).",
+    )
+    metrics_public: bool = Field(
+        default=False,
+        description="Serve /metrics without an API key (only for a private scrape network); "
+        "otherwise it needs an admin key.",
+    )
+    localize_seed: int | None = Field(
+        default=None,
+        description="Seed of the server's RNG seed sequence (RANSAC); None draws OS entropy. "
+        "A request may pass its own seed.",
+    )
+
     # --- threads (2-core machines: do not oversubscribe) ---------------------------
     worker_threads: int = Field(
         default=2, ge=1, description="Threads running CPU work off the event loop."
     )
     cv_threads: int = Field(default=1, ge=0, description="cv2.setNumThreads value.")
     faiss_threads: int = Field(default=1, ge=1, description="faiss.omp_set_num_threads value.")
+    job_threads: int = Field(
+        default=1, ge=1, description="Jobs (ingestion, vocabulary) running at the same time."
+    )
 
     @model_validator(mode="after")
     def _fill_derived_paths(self) -> Settings:

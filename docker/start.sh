@@ -1,0 +1,22 @@
+#!/bin/sh
+# Start the monoloc map server: bring the database schema up to date, then replace this
+# shell with uvicorn (so it receives SIGTERM directly and shuts down gracefully: running
+# jobs end 'interrupted', indexes are persisted).
+#
+# Environment: MONOLOC_HOST (default 0.0.0.0), MONOLOC_PORT (8000), MONOLOC_DATA_DIR,
+# MONOLOC_DATABASE_URL and every other MONOLOC_* setting (server/settings.py);
+# MONOLOC_PYTHON picks the interpreter (default: python3 on PATH).
+# One process per data directory: the map index and the job runner live in it.
+set -eu
+
+PYTHON="${MONOLOC_PYTHON:-python3}"
+HOST="${MONOLOC_HOST:-0.0.0.0}"
+PORT="${MONOLOC_PORT:-8000}"
+
+# Multipart uploads are spooled to TMPDIR before they are unpacked: point it at a volume
+# with room for the largest upload (compose.yaml uses /data/tmp).
+if [ -n "${TMPDIR:-}" ]; then mkdir -p "$TMPDIR"; fi
+
+"$PYTHON" -m monoloc.cli db upgrade
+exec "$PYTHON" -m uvicorn --factory server.api.app:create_app_from_env \
+    --host "$HOST" --port "$PORT" --workers 1 --timeout-graceful-shutdown 30

@@ -1,0 +1,175 @@
+"""The FastAPI application: ``create_app(settings)`` builds it; its lifespan does the work.
+
+Start-up (in order): data directories; Alembic upgrade of the database; queued/running
+jobs of a previous process marked ``interrupted``; the bootstrap admin key (if
+configured and no key exists); thread counts (OpenCV ``cv_threads``, FAISS
+``faiss_threads``, BLAS 1 thread: on 2 cores an oversubscribed OpenBLAS makes small
+mat-vecs many times slower); every map's index loaded (or rebuilt) by the registry; the
+job runner. Shutdown: jobs asked to stop (they end ``interrupted``), indexes persisted,
+the engine disposed. Run one process per data directory (one uvicorn worker): the map
+registry and the job runner live in the process.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+import anyio
+import numpy as np
+from fastapi import FastAPI
+
+from server.api.deps import AppState
+from server.api.errors import install_error_handlers
+from server.api.limits import BodySizeLimitMiddleware
+from server.api.metrics import Metrics, RequestMetricsMiddleware
+from server.settings import Settings, get_settings
+
+log = logging.getLogger(__name__)
+
+API_DESCRIPTION = """
+Visual localization against a map of geo-tagged reference images.
+
+**Authentication.** Every route but `/healthz`, `/readyz` and these docs needs an API
+key: header `X-API-Key: mlk_...` (or `Authorization: Bearer mlk_...`; the WebSocket
+stream also takes `?key=`). Scopes: `localize` (vehicles), `map:write` (uploads,
+entries, calibration), `admin` (maps, keys, `/metrics`; implies every scope). No key:
+401; wrong scope: 403. `/metrics` is open only with `MONOLOC_METRICS_PUBLIC=true`.
+Create keys with `monoloc keys create --scope ... --name ...` (same data directory), or
+start the server with `MONOLOC_BOOTSTRAP_ADMIN_KEY` while no key exists yet.
+
+**Randomness.** RANSAC in `localize` uses a per-request generator seeded by the
+request's `seed` field, else by a fresh draw from the server's seed sequence
+(`MONOLOC_LOCALIZE_SEED`); the answer reports the seed, so any answer can be repeated.
+
+**Errors** are JSON: `{"error": {"code": "...", "message": "..."}}`.
+
+**Frames.** Poses are in the z-up world (metres, radians); `T_world_from_cam` is 16
+numbers, row-major.
+
+**Stream** (WebSocket, not listed below): `/v1/maps/{map_id}/stream`, `localize` scope
+(header, or `?key=` for browsers). Send binary messages: 4-byte big-endian header length,
+a UTF-8 JSON header `{"seq": 17, "t": 1.7, "prior": {"x_m": .., "y_m": .., "radius_m":
+.., "yaw_rad": .., "yaw_tolerance_rad": ..}, "k": 10}` (prior, k optional), then the
+PNG/JPEG bytes. One JSON answer per frame, in order: the localize answer plus `seq` and
+`t`, or `{"seq": 18, "dropped": true, "reason": "stale"}` when the server fell behind
+(at most `MONOLOC_STREAM_MAX_PENDING_FRAMES` frames wait; the oldest is dropped), or
+`{"seq": 19, "error": {...}}`.
+"""
+
+TAGS = [
+    {"name": "maps", "description": "Maps: camera, vocabulary, version, counts (admin)."},
+    {"name": "runs", "description": "Upload a KITTI or TUM recording; ingestion is a job."},
+    {"name": "jobs", "description": "Durable jobs: state, progress, resume."},
+    {"name": "entries", "description": "Reference images of a map (operators)."},
+    {"name": "localize", "description": "Pose hypotheses for a query frame."},
+    {"name": "stream", "description": "WebSocket stream of frames per vehicle."},
+    {"name": "calibration", "description": "Measurement-model parameters per map."},
+    {"name": "keys", "description": "API keys (admin)."},
+    {"name": "health", "description": "Liveness, readiness, Prometheus metrics."},
+]
+
+
+def _limit_threads(settings: Settings):
+    """Set OpenCV/FAISS/BLAS thread counts; returns the threadpoolctl limiter to undo."""
+    import cv2
+    import faiss
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(settings.cv_threads)
+    faiss.omp_set_num_threads(settings.faiss_threads)
+    return threadpool_limits(limits=1)
+
+
+def _start(settings: Settings, metrics: Metrics) -> AppState:
+    """Blocking start-up work (run in a thread by the lifespan)."""
+    from server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
+    from server.api.job_handlers import HANDLERS
+    from server.api.jobs import JobRunner
+    from server.runtime import MapRegistry
+    from server.storage.db import create_engine_for, make_session_factory, session_scope
+    from server.storage.jobs import mark_interrupted_jobs
+    from server.storage.migrate import upgrade_database
+
+    Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
+    clean_incoming_uploads(settings)
+    upgrade_database(settings.database_url)
+    engine = create_engine_for(settings)
+    sessions = make_session_factory(engine)
+    with session_scope(sessions) as session:
+        interrupted = mark_interrupted_jobs(session)
+    if interrupted:
+        log.warning("jobs %s were cut off by the last shutdown: marked interrupted", interrupted)
+    bootstrap_admin_key(sessions, settings)
+    assert settings.index_dir is not None
+    registry = MapRegistry(sessions, Path(settings.index_dir))
+    n_maps = registry.load_all()
+    log.info("loaded %d map(s)", n_maps)
+    runner = JobRunner(sessions, registry, settings, HANDLERS)
+    runner.start()
+    return AppState(
+        settings=settings,
+        engine=engine,
+        sessions=sessions,
+        registry=registry,
+        jobs=runner,
+        metrics=metrics,
+        cpu=anyio.CapacityLimiter(settings.worker_threads),
+        seeds=np.random.SeedSequence(settings.localize_seed),
+    )
+
+
+def _stop(state: AppState) -> None:
+    state.jobs.stop()
+    try:
+        state.registry.persist()
+    finally:
+        state.engine.dispose()
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The API for ``settings`` (default: read from the environment now)."""
+    settings = settings or get_settings()
+    metrics = Metrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        from server.api.redact import install_log_redaction
+
+        install_log_redaction()
+        limiter = _limit_threads(settings)
+        state = await anyio.to_thread.run_sync(_start, settings, metrics)
+        state.ready = True
+        app.state.monoloc = state
+        try:
+            yield
+        finally:
+            state.ready = False
+            await anyio.to_thread.run_sync(_stop, state)
+            limiter.restore_original_limits()
+
+    from server.api.routes import ROUTERS
+    from server.api.routes.metrics import metrics_router
+
+    app = FastAPI(
+        title="monoloc map server",
+        version="1",
+        description=API_DESCRIPTION,
+        openapi_tags=TAGS,
+        lifespan=lifespan,
+        form_limits={"max_files": settings.max_archive_members, "max_fields": 1000},
+    )
+    install_error_handlers(app)
+    for router in ROUTERS:
+        app.include_router(router)
+    app.include_router(metrics_router(settings.metrics_public))
+    app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    app.add_middleware(RequestMetricsMiddleware, metrics=metrics)
+    return app
+
+
+def create_app_from_env() -> FastAPI:
+    """Factory for ``uvicorn --factory server.api.app:create_app_from_env``."""
+    return create_app(get_settings())

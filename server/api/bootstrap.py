@@ -1,0 +1,72 @@
+"""Start-up chores: the bootstrap admin key and leftovers of interrupted uploads.
+
+Bootstrap: with ``MONOLOC_BOOTSTRAP_ADMIN_KEY`` set and no API key in the database, that
+key is stored (hashed) as an admin key named ``bootstrap``. Once any key exists the
+setting is ignored, so it cannot resurrect a revoked key; rotate by creating a new admin
+key and revoking ``bootstrap``. The value must look like a generated key (``mlk_`` and
+at least 32 URL-safe characters): a short human password would be a weak admin key.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from client.errors import InvalidInputError
+from server.api.archives import remove_tree
+from server.settings import Settings
+from server.storage.db import session_scope
+from server.storage.keys import KEY_PREFIX, PREFIX_CHARS, hash_api_key
+from server.storage.models import ApiKey, utc_now
+
+log = logging.getLogger(__name__)
+_BOOTSTRAP_RE = re.compile(rf"^{KEY_PREFIX}[A-Za-z0-9_-]{{32,200}}$")
+INCOMING_PREFIX = ".incoming-"
+
+
+def bootstrap_admin_key(sessions: sessionmaker[Session], settings: Settings) -> bool:
+    """Store the configured bootstrap admin key if there is no key yet; True if stored."""
+    if settings.bootstrap_admin_key is None:
+        return False
+    plaintext = settings.bootstrap_admin_key.get_secret_value().strip()
+    if not plaintext:
+        return False  # set but empty (e.g. an unset variable in compose.yaml)
+    if not _BOOTSTRAP_RE.match(plaintext):
+        raise InvalidInputError(
+            f"MONOLOC_BOOTSTRAP_ADMIN_KEY must be '{KEY_PREFIX}' followed by at least 32 "
+            'URL-safe characters (generate one with: python -c "import secrets; '
+            f"print('{KEY_PREFIX}' + secrets.token_urlsafe(32))\")"
+        )
+    with session_scope(sessions) as session:
+        if session.scalar(select(func.count(ApiKey.id))):
+            return False
+        session.add(
+            ApiKey(
+                name="bootstrap",
+                prefix=plaintext[:PREFIX_CHARS],
+                key_hash=hash_api_key(plaintext),
+                scopes="admin",
+                created_at=utc_now(),
+            )
+        )
+    log.warning("stored the bootstrap admin key (prefix %s)", plaintext[:PREFIX_CHARS])
+    return True
+
+
+def uploads_dir(settings: Settings) -> Path:
+    return Path(settings.data_dir) / "uploads"
+
+
+def clean_incoming_uploads(settings: Settings) -> int:
+    """Delete half-received uploads a crash left in ``uploads/.incoming-*``."""
+    root = uploads_dir(settings)
+    if not root.is_dir():
+        return 0
+    stale = [p for p in root.iterdir() if p.name.startswith(INCOMING_PREFIX)]
+    for path in stale:
+        remove_tree(path)
+    return len(stale)

@@ -1,0 +1,106 @@
+"""`monoloc serve` and `monoloc keys ...` (wired through server/cli.py).
+
+Both act on the database the settings name (``MONOLOC_DATA_DIR`` /
+``MONOLOC_DATABASE_URL``), upgrading its schema first, so ``monoloc keys create`` works on
+a fresh data directory before the first ``monoloc serve``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+keys_app = typer.Typer(help="API keys: create (printed once), list, revoke.", no_args_is_help=True)
+
+DataDirOption = Annotated[
+    Path | None, typer.Option(help="Data directory (default MONOLOC_DATA_DIR or ./data).")
+]
+
+
+def _settings(data_dir: Path | None, **overrides: object):
+    from server.settings import get_settings
+
+    if data_dir is not None:
+        overrides["data_dir"] = data_dir
+    return get_settings(**overrides)
+
+
+def _sessions(data_dir: Path | None):
+    from server.storage.db import create_engine_for, make_session_factory
+    from server.storage.migrate import upgrade_database
+
+    settings = _settings(data_dir)
+    upgrade_database(settings.database_url)
+    return make_session_factory(create_engine_for(settings))
+
+
+@keys_app.command("create")
+def keys_create(
+    scope: Annotated[
+        list[str], typer.Option(help="localize, map:write or admin (repeat or comma-separate).")
+    ],
+    name: Annotated[str, typer.Option(help="Who holds the key, e.g. car1.")],
+    data_dir: DataDirOption = None,
+) -> None:
+    """Create a key and print it once (only its hash is stored)."""
+    from server.storage.db import session_scope
+    from server.storage.keys import create_api_key
+
+    with session_scope(_sessions(data_dir)) as session:
+        record, plaintext = create_api_key(session, name, ",".join(scope))
+    typer.echo(plaintext)
+    typer.echo(
+        f"key {record.id} '{record.name}' scopes {','.join(sorted(record.scopes))}: "
+        "store it now, it is not shown again",
+        err=True,
+    )
+
+
+@keys_app.command("list")
+def keys_list(data_dir: DataDirOption = None) -> None:
+    """List keys (prefix, name, scopes, revoked or not); never the keys themselves."""
+    from server.storage.db import session_scope
+    from server.storage.keys import list_api_keys
+
+    with session_scope(_sessions(data_dir)) as session:
+        records = list_api_keys(session)
+    for r in records:
+        status = f"revoked {r.revoked_at:%Y-%m-%d}" if r.revoked_at else "active"
+        typer.echo(
+            f"{r.id:4d}  {r.prefix}...  {r.name:<24} {','.join(sorted(r.scopes)):<28} {status}"
+        )
+
+
+@keys_app.command("revoke")
+def keys_revoke(key_id: int, data_dir: DataDirOption = None) -> None:
+    """Revoke a key by id (see `monoloc keys list`)."""
+    from server.storage.db import session_scope
+    from server.storage.keys import revoke_api_key
+
+    with session_scope(_sessions(data_dir)) as session:
+        record = revoke_api_key(session, key_id)
+    typer.echo(f"revoked key {record.id} '{record.name}' ({record.prefix}...)")
+
+
+def serve(
+    host: Annotated[str | None, typer.Option(help="Bind address (MONOLOC_HOST).")] = None,
+    port: Annotated[int | None, typer.Option(help="Port (MONOLOC_PORT).")] = None,
+    data_dir: DataDirOption = None,
+    log_level: Annotated[str, typer.Option(help="uvicorn log level.")] = "info",
+) -> None:
+    """Run the map server (one process: the index and the jobs live in it)."""
+    import uvicorn
+
+    from server.api.app import create_app
+
+    overrides: dict[str, object] = {}
+    if host is not None:
+        overrides["host"] = host
+    if port is not None:
+        overrides["port"] = port
+    settings = _settings(data_dir, **overrides)
+    uvicorn.run(
+        create_app(settings), host=settings.host, port=settings.port, log_level=log_level, workers=1
+    )

@@ -1,0 +1,199 @@
+"""Storage records and pipeline results -> response schemas, plus the error responses
+every route documents."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from client.camera import CameraIntrinsics
+from server.api import schemas as s
+from server.api.schemas_localize import (
+    HypothesisPublic,
+    LocalizeResponse,
+    RejectedPublic,
+    RetrievedPublic,
+)
+from server.localize import LocalizationResult, PoseHypothesis
+from server.storage.records import (
+    ApiKeyRecord,
+    EntrySummary,
+    JobRecord,
+    MapRecord,
+    RunRecord,
+    VocabularyRecord,
+)
+
+# Internal job parameters that clients do not need to see.
+_PRIVATE_PARAMS = ("upload",)
+
+
+def _err(code: str, message: str) -> dict[str, Any]:
+    return {"error": {"code": code, "message": message}}
+
+
+def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` for the given error statuses, each with an example."""
+    examples = {
+        400: ("bad_request", "archive member '../etc/passwd' leaves the upload directory"),
+        401: ("unauthorized", "missing API key: send it in the X-API-Key header"),
+        403: ("forbidden", "this API key lacks the 'admin' scope this route needs"),
+        404: ("not_found", "map 7 does not exist"),
+        409: ("conflict", "a map named 'kitti-00' already exists"),
+        413: ("payload_too_large", "request body exceeds the limit of 536870912 bytes"),
+        415: ("unsupported_media_type", "image is not a PNG or JPEG image"),
+        422: ("invalid_input", "T_world_from_cam: expected 12 (3x4) or 16 (4x4) numbers"),
+        501: ("not_available", "calibration training is not available in this build"),
+    }
+    return {
+        status: {
+            "model": s.ErrorResponse,
+            "content": {"application/json": {"example": _err(*examples[status])}},
+        }
+        for status in statuses
+    }
+
+
+AUTH_ERRORS = error_responses(401, 403)
+
+
+def camera(c: CameraIntrinsics) -> s.Camera:
+    return s.Camera(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, width_px=c.width_px, height_px=c.height_px)
+
+
+def vocabulary(v: VocabularyRecord) -> s.VocabularyPublic:
+    return s.VocabularyPublic(
+        id=v.id, hash=v.version_hash, n_words=v.n_words, description=v.description
+    )
+
+
+def map_public(m: MapRecord, vocab: VocabularyRecord) -> s.MapPublic:
+    return s.MapPublic(
+        id=m.id,
+        name=m.name,
+        camera=camera(m.camera),
+        vocabulary=vocabulary(vocab),
+        version=m.version,
+        n_entries=m.n_entries,
+        calibrated=bool(m.calibration),
+        created_at=m.created_at,
+        updated_at=m.updated_at,
+    )
+
+
+def planar(pose: np.ndarray) -> s.PlanarPose:
+    return s.PlanarPose(x_m=float(pose[0]), y_m=float(pose[1]), yaw_rad=float(pose[2]))
+
+
+def entry_fields(e: EntrySummary) -> dict[str, Any]:
+    return dict(
+        id=e.id,
+        map_id=e.map_id,
+        run_id=e.run_id,
+        pose=s.PlanarPose(x_m=e.x_m, y_m=e.y_m, yaw_rad=e.yaw_rad),
+        tags=list(e.tags),
+        n_points=e.n_points,
+        image_width_px=e.image_width_px,
+        image_height_px=e.image_height_px,
+        timestamp_s=e.timestamp_s,
+        source_image_hash=e.source_image_hash,
+        vocabulary_id=e.vocabulary_id,
+        created_at=e.created_at,
+    )
+
+
+def entry_public(e: EntrySummary) -> s.EntryPublic:
+    return s.EntryPublic(**entry_fields(e))
+
+
+def entry_detail(e: EntrySummary, T_world_from_cam: np.ndarray) -> s.EntryDetail:
+    return s.EntryDetail(
+        **entry_fields(e), T_world_from_cam=np.asarray(T_world_from_cam, float).ravel().tolist()
+    )
+
+
+def run_public(r: RunRecord) -> s.RunPublic:
+    return s.RunPublic(
+        id=r.id,
+        map_id=r.map_id,
+        kind=r.kind,
+        source_format=r.source_format,
+        source_name=r.source_name,
+        status=r.status,
+        frames_total=r.frames_total,
+        frames_done=r.frames_done,
+        entries_added=r.entries_added,
+        frames_skipped=r.frames_skipped,
+        skip_reasons=r.skip_reasons,
+        error=r.error,
+        created_at=r.created_at,
+        updated_at=r.updated_at,
+    )
+
+
+def job_public(j: JobRecord) -> s.JobPublic:
+    params = {k: v for k, v in j.params.items() if k not in _PRIVATE_PARAMS}
+    return s.JobPublic(
+        id=j.id,
+        kind=j.kind,
+        map_id=j.map_id,
+        run_id=j.run_id,
+        state=j.state,
+        progress=j.progress,
+        message=j.message,
+        error=j.error,
+        params=params,
+        result=j.result,
+        created_at=j.created_at,
+        updated_at=j.updated_at,
+        finished_at=j.finished_at,
+    )
+
+
+def key_public(k: ApiKeyRecord) -> s.KeyPublic:
+    return s.KeyPublic(
+        id=k.id,
+        name=k.name,
+        prefix=k.prefix,
+        scopes=sorted(k.scopes),
+        created_at=k.created_at,
+        revoked_at=k.revoked_at,
+    )
+
+
+def hypothesis(h: PoseHypothesis) -> HypothesisPublic:
+    return HypothesisPublic(
+        entry_id=h.entry_id,
+        pose=planar(h.pose_world),
+        entry_pose=planar(h.entry_pose_world),
+        T_world_from_cam=np.asarray(h.T_world_from_cam, float).ravel().tolist(),
+        e_vlad=h.e_vlad,
+        n_inliers=h.n_inliers,
+        n_matches=h.n_matches,
+        reprojection_error_px=h.reprojection_error_px,
+    )
+
+
+def localize_response(
+    map_id: int,
+    map_version: int,
+    result: LocalizationResult,
+    timings_ms: dict[str, float],
+    seed: int,
+) -> LocalizeResponse:
+    ordered = sorted(result.hypotheses, key=lambda h: (-h.n_inliers, h.entry_id))
+    return LocalizeResponse(
+        map_id=map_id,
+        map_version=map_version,
+        hypotheses=[hypothesis(h) for h in ordered],
+        retrieved=[
+            RetrievedPublic(entry_id=int(i), distance=float(d))
+            for i, d in zip(result.retrieved_ids, result.retrieved_distances, strict=True)
+        ],
+        rejected=len(result.rejected),
+        rejected_entries=[RejectedPublic(entry_id=i, reason=r) for i, r in result.rejected],
+        n_features=result.n_features,
+        timings_ms={k: round(float(v), 3) for k, v in timings_ms.items()},
+        seed=seed,
+    )

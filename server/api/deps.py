@@ -1,0 +1,155 @@
+"""Dependencies of the routes: the app's state, a database session, the map registry,
+the settings, CPU offloading, and API-key checks by scope.
+
+API keys (documented in the OpenAPI security schemes):
+
+* HTTP: header ``X-API-Key: mlk_...``, or ``Authorization: Bearer mlk_...``.
+* WebSocket: the same headers, or the query parameter ``?key=mlk_...`` (browsers cannot
+  set headers on a WebSocket; prefer headers elsewhere: URLs end up in logs).
+
+No key, or an unknown/revoked one: 401. A valid key without the route's scope: 403.
+``admin`` grants every scope. Exempt (no key): ``/healthz``, ``/readyz``, ``/docs``,
+``/redoc`` and ``/openapi.json`` (the API description holds no data), and ``/metrics``
+only when ``MONOLOC_METRICS_PUBLIC=true`` (otherwise it needs ``admin``).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Annotated, Any, TypeVar
+
+import anyio
+import numpy as np
+from fastapi import Depends, Security
+from fastapi.security import APIKeyHeader, APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+from starlette.requests import HTTPConnection
+
+from server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
+from server.api.jobs import JobRunner
+from server.api.metrics import Metrics
+from server.runtime import MapRegistry
+from server.settings import Settings
+from server.storage.db import session_scope
+from server.storage.keys import verify_api_key
+from server.storage.records import ApiKeyRecord
+
+T = TypeVar("T")
+
+
+@dataclass
+class AppState:
+    """Everything a request may need, built by the lifespan (``app.state.monoloc``)."""
+
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    registry: MapRegistry
+    jobs: JobRunner
+    metrics: Metrics
+    cpu: anyio.CapacityLimiter
+    seeds: np.random.SeedSequence
+    ready: bool = False
+    _seed_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def next_seed(self) -> int:
+        """A fresh 63-bit seed from the server's seed sequence (thread-safe)."""
+        with self._seed_lock:
+            child = self.seeds.spawn(1)[0]
+        return int(child.generate_state(2, np.uint64)[0] >> np.uint64(1))
+
+    async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run CPU work (decode, ORB, PnP, entry building) on the bounded worker pool."""
+        return await anyio.to_thread.run_sync(fn, *args, limiter=self.cpu)
+
+
+def get_state(conn: HTTPConnection) -> AppState:
+    state = getattr(conn.app.state, "monoloc", None)
+    if state is None or not state.ready:
+        raise NotReadyError("the server is starting or stopping; retry shortly")
+    return state
+
+
+StateDep = Annotated[AppState, Depends(get_state)]
+
+
+def get_settings_dep(state: StateDep) -> Settings:
+    return state.settings
+
+
+def get_registry(state: StateDep) -> MapRegistry:
+    return state.registry
+
+
+def get_session(state: StateDep) -> Iterator[Session]:
+    """A session for one request; handlers commit explicitly (uncommitted work rolls back)."""
+    session = state.sessions()
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
+RegistryDep = Annotated[MapRegistry, Depends(get_registry)]
+SessionDep = Annotated[Session, Depends(get_session)]
+
+_header_scheme = APIKeyHeader(
+    name="X-API-Key", auto_error=False, description="An API key, e.g. `mlk_...`."
+)
+_bearer_scheme = HTTPBearer(auto_error=False, description="The API key as a bearer token.")
+_query_scheme = APIKeyQuery(
+    name="key", auto_error=False, description="WebSocket only: the API key as ?key=..."
+)
+
+
+def authenticate(state: AppState, presented: str | None, scope: str) -> ApiKeyRecord:
+    """The key record if ``presented`` is a valid key with ``scope``; 401/403 otherwise."""
+    if not presented:
+        raise UnauthorizedError(
+            "missing API key: send it in the X-API-Key header (or Authorization: Bearer)"
+        )
+    with session_scope(state.sessions) as session:
+        record = verify_api_key(session, presented)
+    if record is None:
+        raise UnauthorizedError("unknown or revoked API key")
+    if not record.has_scope(scope):
+        raise ForbiddenError(
+            f"this API key ({record.prefix}..., scopes {sorted(record.scopes)}) lacks the "
+            f"'{scope}' scope this route needs"
+        )
+    return record
+
+
+def require_scope(scope: str, *, websocket: bool = False) -> Callable[..., ApiKeyRecord]:
+    """A dependency admitting keys with ``scope`` (``websocket`` also reads ``?key=``)."""
+
+    def http_dependency(
+        state: StateDep,
+        header_key: Annotated[str | None, Security(_header_scheme)] = None,
+        bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer_scheme)] = None,
+    ) -> ApiKeyRecord:
+        return authenticate(state, header_key or (bearer.credentials if bearer else None), scope)
+
+    def ws_dependency(
+        state: StateDep,
+        header_key: Annotated[str | None, Security(_header_scheme)] = None,
+        bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer_scheme)] = None,
+        query_key: Annotated[str | None, Security(_query_scheme)] = None,
+    ) -> ApiKeyRecord:
+        presented = header_key or (bearer.credentials if bearer else None) or query_key
+        return authenticate(state, presented, scope)
+
+    dependency = ws_dependency if websocket else http_dependency
+    dependency.__name__ = f"require_{scope.replace(':', '_')}"
+    dependency.required_scope = scope  # read by the scope-matrix test and the docs
+    return dependency
+
+
+LocalizeKey = Annotated[ApiKeyRecord, Depends(require_scope("localize"))]
+MapWriteKey = Annotated[ApiKeyRecord, Depends(require_scope("map:write"))]
+AdminKey = Annotated[ApiKeyRecord, Depends(require_scope("admin"))]
+StreamKey = Annotated[ApiKeyRecord, Depends(require_scope("localize", websocket=True))]

@@ -1,0 +1,27 @@
+"""One router per resource, all under /v1 (health and metrics at the root)."""
+
+from __future__ import annotations
+
+from server.api.routes import (
+    calibration,
+    entries,
+    health,
+    jobs,
+    keys,
+    localize,
+    maps,
+    runs,
+    stream,
+)
+
+ROUTERS = [
+    maps.router,
+    runs.router,
+    jobs.router,
+    entries.router,
+    localize.router,
+    stream.router,
+    calibration.router,
+    keys.router,
+    health.router,
+]

@@ -1,0 +1,168 @@
+"""Entries (map:write): add one reference image with its pose and 3D source, list with
+filters, get, delete, re-tag. Adds and deletes reach the live index right after their
+database commit, so the next query sees them."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, File, Form, Query, Response, UploadFile, status
+
+from client.errors import InvalidInputError
+from server.api import convert
+from server.api.convert import AUTH_ERRORS, error_responses
+from server.api.deps import MapWriteKey, RegistryDep, SessionDep, StateDep
+from server.api.entry_upload import NewEntryForm, add_entry_from_form
+from server.api.schemas import EntryCreated, EntryDetail, EntryList, EntryPublic, TagsUpdate
+from server.storage import entries as entries_repo
+from server.storage import maps as maps_repo
+from server.storage.entry_checks import normalise_tags
+from server.storage.records import Area
+
+router = APIRouter(prefix="/v1/maps/{map_id}/entries", tags=["entries"])
+
+
+@router.post(
+    "",
+    response_model=EntryCreated,
+    status_code=status.HTTP_201_CREATED,
+    responses={
+        200: {
+            "description": "The same image was already in the map (nothing added).",
+            "model": EntryCreated,
+        },
+        **AUTH_ERRORS,
+        **error_responses(404, 413, 415, 422),
+    },
+    summary="Add one reference image",
+)
+async def add_entry(
+    map_id: int,
+    response: Response,
+    state: StateDep,
+    _key: MapWriteKey,
+    image: Annotated[UploadFile, File(description="PNG or JPEG, the map camera's size.")],
+    T_world_from_cam: Annotated[
+        str,
+        Form(
+            description="16 numbers, row-major, as a JSON "
+            "array or comma/space separated (z-up world)."
+        ),
+    ],
+    depth: Annotated[
+        UploadFile | None,
+        File(description="16-bit depth PNG registered to the image; needs depth_scale."),
+    ] = None,
+    depth_scale: Annotated[
+        float | None, Form(description="Raw depth units per metre (TUM: 5000).")
+    ] = None,
+    lidar: Annotated[
+        UploadFile | None,
+        File(description="LiDAR scan, KITTI .bin (float32 x, y, z, r); needs T_cam_from_lidar."),
+    ] = None,
+    T_cam_from_lidar: Annotated[str | None, Form(description="16 numbers, row-major.")] = None,
+    tags: Annotated[str | None, Form(description="Comma-separated, e.g. night,off-center.")] = None,
+    timestamp_s: Annotated[float | None, Form()] = None,
+) -> EntryCreated:
+    """Builds the entry (ORB keypoints with a 3D point from the depth image or the
+    projected LiDAR scan, VLAD) and stores it. The same image twice is stored once
+    (200 with created false)."""
+    form = NewEntryForm(
+        image=await image.read(),
+        T_world_from_cam=T_world_from_cam,
+        depth=await depth.read() if depth is not None else None,
+        depth_scale=depth_scale,
+        lidar=await lidar.read() if lidar is not None else None,
+        T_cam_from_lidar=T_cam_from_lidar,
+        tags=tuple(normalise_tags(t for t in (tags or "").split(",") if t.strip())),
+        timestamp_s=timestamp_s,
+    )
+    created = await add_entry_from_form(state, map_id, form)
+    if not created.created:
+        response.status_code = status.HTTP_200_OK
+    return created
+
+
+@router.get(
+    "",
+    response_model=EntryList,
+    responses={**AUTH_ERRORS, **error_responses(404, 422)},
+    summary="List entries",
+)
+def list_entries(
+    map_id: int,
+    session: SessionDep,
+    _key: MapWriteKey,
+    tag: str | None = None,
+    run_id: int | None = None,
+    x_m: Annotated[float | None, Query(description="Area centre x; with y_m, radius_m.")] = None,
+    y_m: float | None = None,
+    radius_m: Annotated[float | None, Query(gt=0)] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> EntryList:
+    """Entries in id order, filtered by tag, run and/or a disc (x_m, y_m, radius_m)."""
+    maps_repo.get_map(session, map_id)
+    area_values = (x_m, y_m, radius_m)
+    if any(v is not None for v in area_values) and None in area_values:
+        raise InvalidInputError("an area filter needs x_m, y_m and radius_m together")
+    area = Area(x_m, y_m, radius_m) if x_m is not None else None  # type: ignore[arg-type]
+    filters = dict(tag=tag, run_id=run_id, area=area)
+    items = entries_repo.list_entries(session, map_id, limit=limit, offset=offset, **filters)
+    return EntryList(
+        items=[convert.entry_public(e) for e in items],
+        total=entries_repo.count_entries(session, map_id, **filters),
+        limit=limit,
+        offset=offset,
+    )
+
+
+@router.get(
+    "/{entry_id}",
+    response_model=EntryDetail,
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="Get an entry",
+)
+def get_entry(map_id: int, entry_id: int, session: SessionDep, _key: MapWriteKey) -> EntryDetail:
+    """The entry with its full pose T_world_from_cam."""
+    summary = entries_repo.get_entry(session, entry_id, map_id=map_id)
+    (data,) = entries_repo.get_entry_data(session, [entry_id])
+    return convert.entry_detail(summary, np.asarray(data.T_world_from_cam))
+
+
+@router.delete(
+    "/{entry_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="Delete an entry",
+)
+def delete_entry(
+    map_id: int, entry_id: int, session: SessionDep, registry: RegistryDep, _key: MapWriteKey
+) -> Response:
+    """Removes the entry; the next query no longer retrieves it."""
+    version = entries_repo.delete_entry(session, entry_id, map_id=map_id)
+    session.commit()
+    registry.entries_removed(map_id, [entry_id], version)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.patch(
+    "/{entry_id}",
+    response_model=EntryPublic,
+    responses={**AUTH_ERRORS, **error_responses(404, 422)},
+    summary="Re-tag an entry",
+)
+def retag_entry(
+    map_id: int,
+    entry_id: int,
+    body: TagsUpdate,
+    session: SessionDep,
+    registry: RegistryDep,
+    _key: MapWriteKey,
+) -> EntryPublic:
+    """Replaces the entry's tags (lower-cased, duplicates dropped)."""
+    summary = entries_repo.set_entry_tags(session, entry_id, body.tags, map_id=map_id)
+    session.commit()
+    registry.entry_retagged(map_id, entry_id)
+    return convert.entry_public(summary)

@@ -1,0 +1,72 @@
+"""Jobs (map:write): list, get (state, progress, result), resume, cancel."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query
+
+from server.api import convert
+from server.api.convert import AUTH_ERRORS, error_responses
+from server.api.deps import MapWriteKey, SessionDep, StateDep
+from server.api.schemas import JobList, JobPublic
+from server.storage import jobs as jobs_repo
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+JobState = Literal["queued", "running", "done", "failed", "interrupted"]
+
+
+@router.get(
+    "",
+    response_model=JobList,
+    responses={**AUTH_ERRORS, **error_responses(422)},
+    summary="List jobs",
+)
+def list_jobs(
+    session: SessionDep,
+    _key: MapWriteKey,
+    map_id: int | None = None,
+    state: Annotated[list[JobState] | None, Query()] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> JobList:
+    """Newest first, optionally of one map and/or in the given states."""
+    jobs = jobs_repo.list_jobs(session, map_id=map_id, states=state, limit=limit, offset=offset)
+    return JobList(items=[convert.job_public(j) for j in jobs])
+
+
+@router.get(
+    "/{job_id}",
+    response_model=JobPublic,
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="Get a job",
+)
+def get_job(job_id: int, session: SessionDep, _key: MapWriteKey) -> JobPublic:
+    """State (queued, running, done, failed, interrupted), progress 0..1, message, error
+    and, when done, the result (an ingestion's summary: entries added, skips and why)."""
+    return convert.job_public(jobs_repo.get_job(session, job_id))
+
+
+@router.post(
+    "/{job_id}/resume",
+    response_model=JobPublic,
+    responses={**AUTH_ERRORS, **error_responses(404, 409)},
+    summary="Resume a job",
+)
+def resume_job(job_id: int, state: StateDep, _key: MapWriteKey) -> JobPublic:
+    """Re-queue an interrupted or failed job (409 otherwise). Ingestion skips the frames
+    already in the map, so nothing is added twice."""
+    return convert.job_public(state.jobs.resume(job_id))
+
+
+@router.post(
+    "/{job_id}/cancel",
+    response_model=JobPublic,
+    responses={**AUTH_ERRORS, **error_responses(404, 409)},
+    summary="Cancel a job",
+)
+def cancel_job(job_id: int, state: StateDep, _key: MapWriteKey) -> JobPublic:
+    """Stop a queued or running job: it ends 'interrupted' (what it committed stays) and
+    may be resumed later."""
+    return convert.job_public(state.jobs.cancel(job_id))

@@ -1,0 +1,46 @@
+"""API keys (admin): create (the key is in this answer only), list, revoke."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, status
+
+from server.api import convert
+from server.api.convert import AUTH_ERRORS, error_responses
+from server.api.deps import AdminKey, SessionDep
+from server.api.schemas import KeyCreate, KeyCreated, KeyList, KeyPublic
+from server.storage import keys as keys_repo
+
+router = APIRouter(prefix="/v1/keys", tags=["keys"])
+
+
+@router.post(
+    "",
+    response_model=KeyCreated,
+    status_code=status.HTTP_201_CREATED,
+    responses={**AUTH_ERRORS, **error_responses(422)},
+    summary="Create an API key",
+)
+def create_key(body: KeyCreate, session: SessionDep, _key: AdminKey) -> KeyCreated:
+    """Only a hash is stored: copy ``key`` from this answer, it is not shown again."""
+    record, plaintext = keys_repo.create_api_key(session, body.name, body.scopes)
+    session.commit()
+    return KeyCreated(**convert.key_public(record).model_dump(), key=plaintext)
+
+
+@router.get("", response_model=KeyList, responses=AUTH_ERRORS, summary="List API keys")
+def list_keys(session: SessionDep, _key: AdminKey, include_revoked: bool = True) -> KeyList:
+    keys = keys_repo.list_api_keys(session, include_revoked=include_revoked)
+    return KeyList(items=[convert.key_public(k) for k in keys])
+
+
+@router.delete(
+    "/{key_id}",
+    response_model=KeyPublic,
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="Revoke an API key",
+)
+def revoke_key(key_id: int, session: SessionDep, _key: AdminKey) -> KeyPublic:
+    """Takes effect on the next request (idempotent)."""
+    record = keys_repo.revoke_api_key(session, key_id)
+    session.commit()
+    return convert.key_public(record)

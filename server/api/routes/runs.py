@@ -1,0 +1,208 @@
+"""Mapping runs (map:write): upload a KITTI sequence or a TUM RGB-D run, as one archive
+(tar, tar.gz/bz2/xz, zip) or as a multipart set of files whose names are their paths
+inside the run (``sequences/00/image_0/000000.png``); list and get runs.
+
+The upload is unpacked into ``uploads/.incoming-<random>`` with the archive limits, then
+opened and validated by the reader (calibration, poses, file counts: 422 naming the
+file). Only then are the run and its ingestion job stored, and the directory renamed to
+``uploads/<job id>``: a rejected upload leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import anyio
+from fastapi import APIRouter, File, Form, UploadFile, status
+
+from client.errors import InvalidInputError
+from server.api import convert
+from server.api.archives import (
+    ArchiveLimits,
+    Unpacked,
+    dataset_root,
+    remove_tree,
+    save_file_set,
+    unpack_archive,
+)
+from server.api.bootstrap import INCOMING_PREFIX, uploads_dir
+from server.api.convert import AUTH_ERRORS, error_responses
+from server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
+from server.api.job_handlers import open_source
+from server.api.schemas import RunPublic, UploadAccepted
+from server.storage import jobs as jobs_repo
+from server.storage import maps as maps_repo
+from server.storage import runs as runs_repo
+from server.storage.db import session_scope
+from server.storage.entry_checks import normalise_tags
+from server.storage.records import JobRecord, RunRecord
+
+router = APIRouter(prefix="/v1/maps/{map_id}/runs", tags=["runs"])
+
+
+def _unpack(
+    state: AppState, staging: Path, archive: UploadFile | None, files: list[UploadFile] | None
+) -> Unpacked:
+    limits = ArchiveLimits(state.settings.max_archive_members, state.settings.max_archive_bytes)
+    if archive is not None:
+        return unpack_archive(archive.file, staging, limits, archive.filename or "archive")
+    assert files is not None
+    return save_file_set([(f.filename or "", f.file) for f in files], staging, limits, "upload")
+
+
+def _validate(staging: Path, fmt: str, sequence: str | None, frames: str | None) -> int:
+    try:
+        source = open_source(fmt, dataset_root(staging), sequence, frames)
+    except InvalidInputError as exc:
+        message = str(exc).replace(str(staging.resolve()) + "/", "").replace(str(staging), "")
+        raise InvalidInputError(f"the uploaded {fmt} run is not usable: {message}") from exc
+    n = len(source.frames)
+    if n == 0:
+        raise InvalidInputError(f"the uploaded {fmt} run has no frames to ingest")
+    return n + sum(getattr(source, "read_skips", {}).values())
+
+
+@dataclass(frozen=True)
+class _Upload:
+    map_id: int
+    format: str
+    sequence: str | None
+    frames: str | None
+    kind: str
+    tags: list[str]
+    source_name: str
+    train_vocabulary: bool = False
+
+
+def _store(
+    state: AppState, up: _Upload, archive: UploadFile | None, files: list[UploadFile] | None
+) -> tuple[JobRecord, RunRecord, Unpacked]:
+    """Unpack, validate, then record the run and its job (blocking; runs in a thread)."""
+    with session_scope(state.sessions) as session:
+        maps_repo.get_map(session, up.map_id)
+    staging = uploads_dir(state.settings) / f"{INCOMING_PREFIX}{uuid.uuid4().hex}"
+    final: Path | None = None
+    try:
+        unpacked = _unpack(state, staging, archive, files)
+        n_frames = _validate(staging, up.format, up.sequence, up.frames)
+        with session_scope(state.sessions) as session:
+            run = runs_repo.create_run(
+                session,
+                up.map_id,
+                kind=up.kind,
+                source_format=up.format,
+                source_name=up.source_name,
+                frames_total=n_frames,
+            )
+            params = {
+                "format": up.format,
+                "sequence": up.sequence,
+                "frames": up.frames,
+                "tags": up.tags,
+                "upload": True,
+                "source_name": up.source_name,
+                "train_vocabulary": up.train_vocabulary,
+            }
+            job = jobs_repo.create_job(
+                session, "ingest", map_id=up.map_id, run_id=run.id, params=params, message="queued"
+            )
+            final = uploads_dir(state.settings) / str(job.id)
+            staging.rename(final)
+    except BaseException:
+        remove_tree(staging)
+        if final is not None:
+            remove_tree(final)  # renamed, but the transaction did not commit
+        raise
+    return job, run, unpacked
+
+
+@router.post(
+    "",
+    response_model=UploadAccepted,
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422)},
+    summary="Upload a mapping run (ingested by a job)",
+)
+async def upload_run(
+    map_id: int,
+    state: StateDep,
+    _key: MapWriteKey,
+    format: Annotated[Literal["kitti", "tum"], Form(description="Layout of the run.")],
+    archive: Annotated[UploadFile | None, File(description="tar/zip of the run.")] = None,
+    files: Annotated[
+        list[UploadFile] | None,
+        File(description="Or: the run's files, each named by its relative path."),
+    ] = None,
+    sequence: Annotated[
+        str | None, Form(description="KITTI sequence (e.g. 00) if the upload holds several.")
+    ] = None,
+    frames: Annotated[
+        str | None,
+        Form(
+            description="Frame range A:B (Python slice), "
+            "e.g. 0:3860 for the mapping 85 % of KITTI 00."
+        ),
+    ] = None,
+    kind: Annotated[str, Form(description="map, offcenter, night, ...")] = "map",
+    train_vocabulary: Annotated[
+        bool,
+        Form(
+            description="First train the map's vocabulary (k = 64) on this run and switch "
+            "the map to it (for a map's first run)."
+        ),
+    ] = False,
+    tags: Annotated[
+        str | None, Form(description="Comma-separated tags for every entry, e.g. night,off-center.")
+    ] = None,
+) -> UploadAccepted:
+    """Stores the upload and queues its ingestion; follow the job at /v1/jobs/{id}."""
+    if (archive is None) == (not files):
+        raise InvalidInputError("send either 'archive' (one tar/zip) or 'files', not both")
+    runs_repo.check_kind(kind, "run")
+    request = _Upload(
+        map_id,
+        format,
+        sequence,
+        frames,
+        kind,
+        normalise_tags(t for t in (tags or "").split(",") if t.strip()),
+        (archive.filename if archive is not None else "files") or "upload",
+        train_vocabulary,
+    )
+    job, run, unpacked = await anyio.to_thread.run_sync(_store, state, request, archive, files)
+    state.jobs.submit(job.id)
+    return UploadAccepted(
+        job=convert.job_public(job),
+        run=convert.run_public(run),
+        n_files=unpacked.n_files,
+        total_bytes=unpacked.total_bytes,
+    )
+
+
+@router.get(
+    "",
+    response_model=list[RunPublic],
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="List a map's runs",
+)
+def list_runs(map_id: int, session: SessionDep, _key: MapWriteKey) -> list[RunPublic]:
+    maps_repo.get_map(session, map_id)
+    return [convert.run_public(r) for r in runs_repo.list_runs(session, map_id)]
+
+
+@router.get(
+    "/{run_id}",
+    response_model=RunPublic,
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="Get a run",
+)
+def get_run(map_id: int, run_id: int, session: SessionDep, _key: MapWriteKey) -> RunPublic:
+    run = runs_repo.get_run(session, run_id)
+    if run.map_id != map_id:
+        from client.errors import NotFoundError
+
+        raise NotFoundError(f"run {run_id} does not exist in map {map_id}")
+    return convert.run_public(run)

@@ -1,0 +1,357 @@
+"""Request and response bodies of the API (pydantic v2), each with an OpenAPI example.
+
+Naming follows the FastAPI template: ``XCreate`` / ``XUpdate`` in, ``XPublic`` out.
+Poses are in the z-up world (METHOD.md section 9): metres and radians; a 4x4
+``T_world_from_cam`` travels as 16 numbers, row-major.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from server.storage.keys import SCOPES
+
+Scope = Literal["localize", "map:write", "admin"]
+assert set(SCOPES) == {"localize", "map:write", "admin"}
+
+_T_EXAMPLE = [0.0, 0.0, 1.0, 12.5, -1.0, 0.0, 0.0, 3.2, 0.0, -1.0, 0.0, 1.65, 0.0, 0.0, 0.0, 1.0]
+_TIME = "2024-05-01T12:00:00Z"
+
+
+def _example(**values: Any) -> ConfigDict:
+    return ConfigDict(json_schema_extra={"examples": [values]})
+
+
+class ErrorDetail(BaseModel):
+    code: str
+    message: str
+
+
+class ErrorResponse(BaseModel):
+    model_config = _example(error={"code": "not_found", "message": "map 7 does not exist"})
+    error: ErrorDetail
+
+
+class Camera(BaseModel):
+    """Pinhole intrinsics in pixels of the map's camera."""
+
+    model_config = _example(
+        fx=718.856, fy=718.856, cx=607.1928, cy=185.2157, width_px=1241, height_px=376
+    )
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    width_px: int = Field(gt=0, le=100_000)
+    height_px: int = Field(gt=0, le=100_000)
+
+
+class MapCreate(BaseModel):
+    model_config = _example(
+        name="kitti-00",
+        camera=Camera.model_config["json_schema_extra"]["examples"][0],
+        vocabulary="default",
+    )
+    name: str = Field(description="1-64 letters, digits, '.', '_' or '-'.")
+    camera: Camera
+    vocabulary: str = Field(
+        default="default",
+        description="'default' (the shipped 64-word vocabulary) or the hash of a vocabulary "
+        "already stored (e.g. trained for another map). For a vocabulary trained on this "
+        "map's own data, upload its first run with train_vocabulary=true.",
+    )
+
+
+class VocabularyPublic(BaseModel):
+    id: int
+    hash: str
+    n_words: int
+    description: str
+
+
+class PlanarPose(BaseModel):
+    """(X, Y, psi): position on the ground plane and heading of the optical axis."""
+
+    model_config = _example(x_m=12.5, y_m=3.2, yaw_rad=0.0)
+    x_m: float
+    y_m: float
+    yaw_rad: float
+
+
+_MAP_EXAMPLE = dict(
+    id=1,
+    name="kitti-00",
+    camera=Camera.model_config["json_schema_extra"]["examples"][0],
+    vocabulary={"id": 1, "hash": "3f9a0c", "n_words": 64, "description": "default"},
+    version=4012,
+    n_entries=3860,
+    calibrated=False,
+    created_at=_TIME,
+    updated_at=_TIME,
+)
+
+
+class MapPublic(BaseModel):
+    model_config = _example(**_MAP_EXAMPLE)
+    id: int
+    name: str
+    camera: Camera
+    vocabulary: VocabularyPublic
+    version: int = Field(description="Bumped by every entry add/remove and vocabulary change.")
+    n_entries: int
+    calibrated: bool = Field(description="Whether the measurement model was calibrated.")
+    created_at: datetime
+    updated_at: datetime
+
+
+class MapDetail(MapPublic):
+    model_config = _example(
+        **_MAP_EXAMPLE, n_runs=2, tag_counts={"night": 120}, index_loaded=True, indexed_entries=3860
+    )
+    n_runs: int
+    tag_counts: dict[str, int]
+    index_loaded: bool
+    indexed_entries: int | None
+
+
+class MapList(BaseModel):
+    model_config = _example(items=[_MAP_EXAMPLE])
+    items: list[MapPublic]
+
+
+_ENTRY_EXAMPLE = dict(
+    id=42,
+    map_id=1,
+    run_id=1,
+    pose={"x_m": 12.5, "y_m": 3.2, "yaw_rad": 0.0},
+    tags=["night"],
+    n_points=612,
+    image_width_px=1241,
+    image_height_px=376,
+    timestamp_s=4.2,
+    source_image_hash="9b1c...",
+    vocabulary_id=1,
+    created_at=_TIME,
+)
+
+
+class EntryPublic(BaseModel):
+    model_config = _example(**_ENTRY_EXAMPLE)
+    id: int
+    map_id: int
+    run_id: int | None
+    pose: PlanarPose
+    tags: list[str]
+    n_points: int = Field(description="Keypoints with a 3D point.")
+    image_width_px: int
+    image_height_px: int
+    timestamp_s: float | None
+    source_image_hash: str
+    vocabulary_id: int
+    created_at: datetime
+
+
+class EntryDetail(EntryPublic):
+    model_config = _example(**_ENTRY_EXAMPLE, T_world_from_cam=_T_EXAMPLE)
+    T_world_from_cam: list[float] = Field(
+        min_length=16, max_length=16, description="4x4 row-major."
+    )
+
+
+class EntryCreated(BaseModel):
+    model_config = _example(
+        entry=_ENTRY_EXAMPLE | {"T_world_from_cam": _T_EXAMPLE}, created=True, map_version=4013
+    )
+    entry: EntryDetail
+    created: bool = Field(description="False if the same image was already in the map.")
+    map_version: int
+
+
+class EntryList(BaseModel):
+    model_config = _example(items=[_ENTRY_EXAMPLE], total=1, limit=100, offset=0)
+    items: list[EntryPublic]
+    total: int
+    limit: int
+    offset: int
+
+
+class TagsUpdate(BaseModel):
+    model_config = _example(tags=["night", "off-center"])
+    tags: list[str] = Field(max_length=64)
+
+
+_RUN_EXAMPLE = dict(
+    id=1,
+    map_id=1,
+    kind="map",
+    source_format="kitti",
+    source_name="00.tar",
+    status="running",
+    frames_total=3861,
+    frames_done=1200,
+    entries_added=1190,
+    frames_skipped=10,
+    skip_reasons={"too_few_points": 10},
+    error=None,
+    created_at=_TIME,
+    updated_at=_TIME,
+)
+
+
+class RunPublic(BaseModel):
+    model_config = _example(**_RUN_EXAMPLE)
+    id: int
+    map_id: int
+    kind: str
+    source_format: str
+    source_name: str
+    status: str
+    frames_total: int
+    frames_done: int
+    entries_added: int
+    frames_skipped: int
+    skip_reasons: dict[str, int]
+    error: str | None
+    created_at: datetime
+    updated_at: datetime
+
+
+_JOB_EXAMPLE = dict(
+    id=3,
+    kind="ingest",
+    map_id=1,
+    run_id=1,
+    state="running",
+    progress=0.31,
+    message="frame 1200 of 3861",
+    error=None,
+    params={"format": "kitti", "sequence": "00"},
+    result=None,
+    created_at=_TIME,
+    updated_at=_TIME,
+    finished_at=None,
+)
+
+
+class JobPublic(BaseModel):
+    model_config = _example(**_JOB_EXAMPLE)
+    id: int
+    kind: str
+    map_id: int | None
+    run_id: int | None
+    state: Literal["queued", "running", "done", "failed", "interrupted"]
+    progress: float = Field(ge=0, le=1)
+    message: str
+    error: str | None
+    params: dict[str, Any]
+    result: dict[str, Any] | None
+    created_at: datetime
+    updated_at: datetime
+    finished_at: datetime | None
+
+
+class JobList(BaseModel):
+    model_config = _example(items=[_JOB_EXAMPLE])
+    items: list[JobPublic]
+
+
+class UploadAccepted(BaseModel):
+    model_config = _example(
+        job=_JOB_EXAMPLE | {"state": "queued", "progress": 0.0},
+        run=_RUN_EXAMPLE | {"status": "pending"},
+        n_files=7724,
+        total_bytes=1_950_000_000,
+    )
+    job: JobPublic
+    run: RunPublic
+    n_files: int
+    total_bytes: int
+
+
+class VocabularyJobCreate(BaseModel):
+    model_config = _example(vocabulary="default")
+    vocabulary: str = Field(
+        description="'default' or the hash of a stored vocabulary. To train a map's own "
+        "vocabulary, upload a run with train_vocabulary=true."
+    )
+
+
+class CalibrationUpdate(BaseModel):
+    """Measurement-model parameters (METHOD.md section 7) and their provenance."""
+
+    model_config = _example(
+        mu1=[0.02, -0.01, 0.001],
+        Sigma1=[[0.04, 0, 0], [0, 0.04, 0], [0, 0, 0.0007]],
+        mu2=[0.9, 0.0, 0.0, 0.0],
+        Sigma2=[[0.06, 0, 0, 0], [0, 64, 0, 0], [0, 0, 64, 0], [0, 0, 0, 0.27]],
+        outlier_log_density=-16.0,
+        provenance={"training_run": "kitti-05", "method": "ML, unbiased covariance"},
+    )
+    mu1: list[float] = Field(min_length=3, max_length=3)
+    Sigma1: list[list[float]] = Field(min_length=3, max_length=3)
+    mu2: list[float] = Field(min_length=4, max_length=4)
+    Sigma2: list[list[float]] = Field(min_length=4, max_length=4)
+    outlier_log_density: float | None = -16.0
+    provenance: dict[str, Any] = Field(default_factory=dict)
+
+
+class CalibrationPublic(CalibrationUpdate):
+    model_config = _example(
+        **CalibrationUpdate.model_config["json_schema_extra"]["examples"][0],
+        calibrated=True,
+        source="put",
+        updated_at=_TIME,
+    )
+    calibrated: bool = Field(description="False: these are the documented defaults.")
+    source: str
+    updated_at: datetime | None = None
+
+
+class KeyCreate(BaseModel):
+    model_config = _example(name="car1", scopes=["localize"])
+    name: str = Field(min_length=1, max_length=128)
+    scopes: list[Scope] = Field(min_length=1)
+
+
+class KeyPublic(BaseModel):
+    model_config = _example(
+        id=2,
+        name="car1",
+        prefix="mlk_3kq9XaB1",
+        scopes=["localize"],
+        created_at=_TIME,
+        revoked_at=None,
+    )
+    id: int
+    name: str
+    prefix: str
+    scopes: list[str]
+    created_at: datetime
+    revoked_at: datetime | None
+
+
+class KeyCreated(KeyPublic):
+    model_config = _example(
+        id=2,
+        name="car1",
+        prefix="mlk_3kq9XaB1",
+        scopes=["localize"],
+        created_at=_TIME,
+        revoked_at=None,
+        key="mlk_3kq9XaB1Jm0c0lH9bXgk2s7QJX1FyFQw8mN5tq8aEo4",
+    )
+    key: str = Field(description="The key itself; shown only in this answer.")
+
+
+class KeyList(BaseModel):
+    model_config = _example(items=[KeyPublic.model_config["json_schema_extra"]["examples"][0]])
+    items: list[KeyPublic]
+
+
+class HealthStatus(BaseModel):
+    model_config = _example(status="ok", maps_loaded=2)
+    status: str
+    maps_loaded: int | None = None

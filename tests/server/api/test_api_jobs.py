@@ -1,0 +1,133 @@
+"""Durable jobs: an ingestion cut off by a shutdown is reported 'interrupted' (also after
+a crash that left it 'running'), keeps its upload, and resumes without duplicates;
+vocabulary training with an upload and a vocabulary change as a job."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from api_helpers import (
+    MAP_FRAMES,
+    camera_of,
+    create_keys,
+    frame_png,
+    ground_truth,
+    make_settings,
+    open_client,
+    tar_sequence,
+    wait_job,
+)
+
+from client.geometry import planar_from_T_world_from_cam
+
+
+def _upload(client, keys, dataset, **data):
+    map_id = client.post(
+        "/v1/maps", json={"name": "m", "camera": camera_of(dataset)}, headers=keys.header("admin")
+    ).json()["id"]
+    r = client.post(
+        f"/v1/maps/{map_id}/runs",
+        headers=keys.header("write"),
+        files={"archive": ("m.tar.gz", tar_sequence(dataset), "application/gzip")},
+        data={"format": "kitti", **data},
+    )
+    assert r.status_code == 202, r.text
+    return map_id, r.json()["job"]["id"]
+
+
+def test_interrupted_ingestion_resumes_without_duplicates(sim_dataset, tmp_path, monkeypatch):
+    import server.ingest.pipeline as pipeline
+
+    build = pipeline.build_entry
+
+    def slow_build(*args, **kwargs):  # ingestion slow enough to be cut off mid-run
+        time.sleep(0.15)
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "build_entry", slow_build)
+    settings = make_settings(tmp_path / "data")
+    with open_client(settings) as client:
+        keys = create_keys(client)
+        map_id, job_id = _upload(client, keys, sim_dataset)
+        deadline = time.monotonic() + 30
+        while (
+            client.get(f"/v1/jobs/{job_id}", headers=keys.header("write")).json()["progress"] == 0.0
+        ):
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+    # Shutdown asked the job to stop: it committed what it had and is 'interrupted'.
+    from server.storage import jobs as jobs_repo
+    from server.storage.db import create_engine_for, make_session_factory, session_scope
+
+    engine = create_engine_for(settings)
+    with session_scope(make_session_factory(engine)) as session:
+        job = jobs_repo.get_job(session, job_id)
+        assert job.state == "interrupted", job
+        jobs_repo.update_job(session, job_id, state="running")  # as if the process crashed
+    engine.dispose()
+    assert (tmp_path / "data" / "uploads" / str(job_id)).is_dir()
+
+    monkeypatch.setattr(pipeline, "build_entry", build)
+    with open_client(settings) as client:
+        h = keys.header("write")
+        job = client.get(f"/v1/jobs/{job_id}", headers=h).json()
+        assert job["state"] == "interrupted" and "interrupted" in job["message"]
+        partial = client.get(f"/v1/maps/{map_id}", headers=keys.header("admin")).json()
+        assert partial["n_entries"] < MAP_FRAMES
+        assert client.post(f"/v1/jobs/{job_id}/cancel", headers=h).status_code == 409
+        r = client.post(f"/v1/jobs/{job_id}/resume", headers=h)
+        assert r.status_code == 200 and r.json()["state"] == "queued"
+        job = wait_job(client, job_id, h)
+        assert job["state"] == "done", job
+        assert client.post(f"/v1/jobs/{job_id}/resume", headers=h).status_code == 409
+        final = client.get(f"/v1/maps/{map_id}", headers=keys.header("admin")).json()
+        run = client.get(f"/v1/maps/{map_id}/runs/{job['run_id']}", headers=h).json()
+        listed = client.get(f"/v1/jobs?map_id={map_id}&state=done", headers=h).json()["items"]
+    skipped = job["result"]["skip_reasons"]
+    assert final["n_entries"] + skipped.get("too_few_points", 0) == MAP_FRAMES
+    assert job["result"]["entries_added"] == final["n_entries"] - partial["n_entries"]
+    assert skipped.get("already_in_map", 0) == partial["n_entries"]
+    assert run["status"] == "done" and run["entries_added"] == final["n_entries"]
+    assert [j["id"] for j in listed] == [job_id] and "upload" not in listed[0]["params"]
+    assert not (tmp_path / "data" / "uploads" / str(job_id)).exists()
+
+
+def test_trained_vocabulary_then_change_back(sim_dataset, tmp_path):
+    with open_client(make_settings(tmp_path / "data")) as client:
+        keys = create_keys(client)
+        map_id, job_id = _upload(client, keys, sim_dataset, train_vocabulary="true")
+        job = wait_job(client, job_id, keys.header("write"))
+        assert job["state"] == "done", job
+        trained = client.get(f"/v1/maps/{map_id}", headers=keys.header("admin")).json()
+        assert trained["vocabulary"]["hash"] == job["result"]["vocabulary"]["vocabulary_hash"]
+        assert f"m.tar.gz (job {job_id})" in trained["vocabulary"]["description"]
+        assert str(tmp_path) not in trained["vocabulary"]["description"]
+
+        r = client.post(
+            f"/v1/maps/{map_id}/localize",
+            headers=keys.header("localize"),
+            files={"image": ("q.png", frame_png(sim_dataset, "01", 8), "image/png")},
+        )
+        best = r.json()["hypotheses"][0]
+        truth = planar_from_T_world_from_cam(ground_truth(sim_dataset, "01", 8))
+        assert np.hypot(best["pose"]["x_m"] - truth[0], best["pose"]["y_m"] - truth[1]) < 0.3
+
+        r = client.post(
+            f"/v1/maps/{map_id}/vocabulary/jobs",
+            headers=keys.header("admin"),
+            json={"vocabulary": "default"},
+        )
+        assert r.status_code == 202, r.text
+        job = wait_job(client, r.json()["id"], keys.header("write"))
+        assert job["state"] == "done", job
+        assert job["result"]["recomputed"] == trained["n_entries"]
+        back = client.get(f"/v1/maps/{map_id}", headers=keys.header("admin")).json()
+        assert back["vocabulary"]["hash"] != trained["vocabulary"]["hash"]
+        assert back["version"] > trained["version"]
+        r = client.post(
+            f"/v1/maps/{map_id}/vocabulary/jobs",
+            headers=keys.header("admin"),
+            json={"vocabulary": "nope"},
+        )
+        assert r.status_code == 404

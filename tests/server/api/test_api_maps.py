@@ -1,0 +1,150 @@
+"""Maps and calibration routes, the vehicle client against the app, and the OpenAPI
+description (examples on every route)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from api_helpers import frame_png
+
+from client.api import MonolocClient
+from client.measurement import MeasurementModel
+
+CAMERA = dict(fx=300.0, fy=300.0, cx=159.5, cy=119.5, width_px=320, height_px=240)
+CALIBRATION = dict(
+    mu1=[0.02, -0.01, 0.001],
+    Sigma1=[[0.04, 0.01, 0.0], [0.01, 0.05, 0.0], [0.0, 0.0, 0.0007]],
+    mu2=[0.8, 0.1, -0.1, 0.0],
+    Sigma2=np.diag([0.05, 49.0, 49.0, 0.3]).tolist(),
+    provenance={"training_run": "sim-train", "method": "ML"},
+)
+
+
+def test_map_lifecycle(fresh):
+    client, keys = fresh
+    admin = keys.header("admin")
+    r = client.post("/v1/maps", json={"name": "city-1", "camera": CAMERA}, headers=admin)
+    assert r.status_code == 201, r.text
+    created = r.json()
+    assert created["version"] == 0 and created["n_entries"] == 0 and not created["calibrated"]
+    assert created["vocabulary"]["n_words"] == 64 and created["index_loaded"]
+    map_id = created["id"]
+    refusals = [
+        ({"name": "city-1", "camera": CAMERA}, 409),
+        ({"name": "bad name!", "camera": CAMERA}, 422),
+        ({"name": "c2", "camera": {**CAMERA, "fx": -1}}, 422),
+        ({"name": "c3", "camera": CAMERA, "vocabulary": "0123abcd"}, 404),
+        ({"name": "c4"}, 422),
+    ]
+    for body, status in refusals:
+        r = client.post("/v1/maps", json=body, headers=admin)
+        assert r.status_code == status, (body, r.text)
+        assert set(r.json()["error"]) >= {"code", "message"}
+    same_vocab = client.post(
+        "/v1/maps",
+        headers=admin,
+        json={"name": "city-2", "camera": CAMERA, "vocabulary": created["vocabulary"]["hash"]},
+    )
+    assert same_vocab.json()["vocabulary"]["id"] == created["vocabulary"]["id"]
+
+    listed = client.get("/v1/maps", headers=keys.header("localize")).json()["items"]
+    assert [m["name"] for m in listed] == ["city-1", "city-2"]
+    got = client.get(f"/v1/maps/{map_id}", headers=keys.header("localize")).json()
+    assert got["camera"] == CAMERA and got["n_runs"] == 0 and got["tag_counts"] == {}
+
+    index_file = client.app.state.monoloc.registry.index_path(map_id)
+    assert index_file.exists()
+    assert client.delete(f"/v1/maps/{map_id}", headers=admin).status_code == 204
+    assert not index_file.exists()
+    assert client.get(f"/v1/maps/{map_id}", headers=admin).status_code == 404
+    assert client.delete(f"/v1/maps/{map_id}", headers=admin).status_code == 404
+    assert client.get("/v1/maps/99", headers=admin).json()["error"]["code"] == "not_found"
+
+
+def test_calibration_defaults_put_and_delete(fresh):
+    client, keys = fresh
+    map_id = client.post(
+        "/v1/maps", json={"name": "c", "camera": CAMERA}, headers=keys.header("admin")
+    ).json()["id"]
+    url, w = f"/v1/maps/{map_id}/calibration", keys.header("write")
+    default = client.get(url, headers=keys.header("localize")).json()
+    reference = MeasurementModel().to_dict()
+    assert default["calibrated"] is False and default["source"] == "defaults"
+    assert np.allclose(default["Sigma1"], reference["Sigma1"])
+
+    put = client.put(url, headers=w, json=CALIBRATION)
+    assert put.status_code == 200, put.text
+    got = client.get(url, headers=keys.header("localize")).json()
+    assert got["calibrated"] and got["source"] == "put" and got["updated_at"]
+    assert got["provenance"] == CALIBRATION["provenance"]
+    assert np.allclose(got["Sigma2"], CALIBRATION["Sigma2"]) and got["mu1"] == CALIBRATION["mu1"]
+    assert client.get(f"/v1/maps/{map_id}", headers=w | keys.header("admin")).json()["calibrated"]
+
+    not_pd = dict(CALIBRATION, Sigma1=[[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    asymmetric = dict(CALIBRATION, Sigma1=[[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    short = dict(CALIBRATION, mu2=[0.0, 1.0])
+    for body in (not_pd, asymmetric, short):
+        assert client.put(url, headers=w, json=body).status_code == 422
+    assert client.get(url, headers=w | keys.header("admin")).json()["mu1"] == CALIBRATION["mu1"]
+
+    assert client.post(f"{url}/jobs", headers=w, json={"run_id": 1}).status_code == 501
+    assert client.delete(url, headers=w).json()["calibrated"] is False
+    assert client.put("/v1/maps/77/calibration", headers=w, json=CALIBRATION).status_code == 404
+
+
+def test_vehicle_client_reads_calibration_and_localizes(sim_dataset, map_copy, client_on_copy):
+    client, m = client_on_copy, map_copy
+    client.put(f"/v1/maps/{m.map_id}/calibration", headers=m.keys.header("write"), json=CALIBRATION)
+    vehicle = MonolocClient("http://testserver", m.keys.localize, transport=client._transport)
+    assert vehicle.find_map_id("street") == m.map_id
+    model, calibrated = vehicle.measurement_model(m.map_id)
+    assert calibrated and np.allclose(model.mu2, CALIBRATION["mu2"])
+    answer = vehicle.localize(m.map_id, frame_png(sim_dataset, "01", 9), k=5)
+    assert len(answer.hypotheses) >= 1 and answer.map_version == m.job["result"]["map_version"]
+    assert all(math.isfinite(v) for v in answer.timings_ms.values())
+
+
+def _has_example(node) -> bool:
+    if isinstance(node, dict):
+        if "example" in node or "examples" in node:
+            return True
+        return any(_has_example(v) for v in node.values())
+    if isinstance(node, list):
+        return any(_has_example(v) for v in node)
+    return False
+
+
+def test_openapi_has_an_example_on_every_route_and_documents_the_key(fresh):
+    client, _ = fresh
+    spec = client.get("/openapi.json").json()
+    schemas = spec["components"]["schemas"]
+
+    def resolve(node):
+        if isinstance(node, dict):
+            if "$ref" in node:
+                return resolve(schemas[node["$ref"].rsplit("/", 1)[1]])
+            return {k: resolve(v) for k, v in node.items() if k != "ValidationError"}
+        if isinstance(node, list):
+            return [resolve(v) for v in node]
+        return node
+
+    operations = [
+        (path, method, op) for path, item in spec["paths"].items() for method, op in item.items()
+    ]
+    assert len(operations) >= 28
+    for path, method, op in operations:
+        success = {k: v for k, v in op["responses"].items() if k.startswith("2")}
+        documented = _has_example(resolve(op.get("requestBody", {}))) or _has_example(
+            resolve(success)
+        )
+        assert documented or set(success) == {"204"}, (method, path)
+        assert _has_example(resolve(op["responses"].get("401", {}))) or path in (
+            "/healthz",
+            "/readyz",
+        ), (method, path)
+        assert op.get("summary"), (method, path)
+    assert "/v1/maps/{map_id}/stream" in spec["info"]["description"]
+    schemes = spec["components"]["securitySchemes"]
+    assert schemes["APIKeyHeader"]["name"] == "X-API-Key"
+    assert "X-API-Key" in spec["info"]["description"]

@@ -1,0 +1,138 @@
+"""The scope matrix, enumerated from app.routes: every route but the documented exempt
+ones answers 401 without a key (or with an unknown one) and 403 with a key lacking its
+scope, and lets a key with the scope through (whatever it answers then)."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from api_helpers import ADMIN_KEY, TestClient, make_settings, open_client
+from fastapi.routing import APIRoute, APIWebSocketRoute
+from starlette.testclient import WebSocketDenialResponse
+
+EXEMPT = {"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"}
+WRONG_KEYS = {"localize": ["write"], "map:write": ["localize"], "admin": ["localize", "write"]}
+
+
+def _required_scope(path: str, dependant) -> str:
+    scopes = set()
+    stack = list(dependant.dependencies)
+    while stack:
+        dep = stack.pop()
+        scope = getattr(dep.call, "required_scope", None)
+        if scope is not None:
+            scopes.add(scope)
+        stack.extend(dep.dependencies)
+    assert len(scopes) == 1, f"{path} must require exactly one scope, found {scopes}"
+    return scopes.pop()
+
+
+def _flat_routes(app):
+    """(path, route, dependant, methods) of every route; FastAPI >= 0.16x keeps included
+    routers as lazy contexts in app.routes, older versions as plain routes."""
+    for route in app.routes:
+        contexts = getattr(route, "effective_route_contexts", None)
+        if contexts is None:
+            yield (
+                route.path,
+                route,
+                getattr(route, "dependant", None),
+                getattr(route, "methods", None),
+            )
+            continue
+        for ctx in contexts():
+            original = ctx.original_route
+            yield (
+                ctx.path or original.path,
+                original,
+                ctx.dependant or original.dependant,
+                ctx.methods or getattr(original, "methods", None),
+            )
+
+
+def _routes(app):
+    for path, route, dependant, methods in _flat_routes(app):
+        if path in EXEMPT:
+            continue
+        assert isinstance(route, APIRoute | APIWebSocketRoute), path
+        concrete = re.sub(r"\{[^}]+\}", "999999", path)  # ids that do not exist
+        for method in sorted(methods) if isinstance(route, APIRoute) else ["WS"]:
+            yield method, concrete, _required_scope(path, dependant)
+
+
+def _status(client: TestClient, method: str, path: str, headers: dict) -> int:
+    if method == "WS":
+        try:
+            with client.websocket_connect(path, headers=headers):
+                return 101
+        except WebSocketDenialResponse as denial:
+            return denial.status_code
+    return client.request(method, path, headers=headers).status_code
+
+
+def test_every_route_checks_its_scope(fresh):
+    client, keys = fresh
+    checked = 0
+    for method, path, scope in _routes(client.app):
+        for headers in ({}, {"X-API-Key": "mlk_" + "x" * 43}, {"Authorization": "Bearer nope"}):
+            assert _status(client, method, path, headers) == 401, (method, path, headers)
+        for wrong in WRONG_KEYS[scope]:
+            assert _status(client, method, path, keys.header(wrong)) == 403, (method, path, wrong)
+        right = "admin" if scope == "admin" else {"localize": "localize"}.get(scope, "write")
+        for key in {right, "admin"}:
+            status = _status(client, method, path, keys.header(key))
+            assert status not in (401, 403), (method, path, key, status)
+        checked += 1
+    assert checked >= 25  # every resource is in the matrix
+
+
+def test_exempt_routes_need_no_key(fresh):
+    client, _ = fresh
+    for path in ("/healthz", "/readyz", "/openapi.json", "/docs"):
+        assert client.get(path).status_code == 200, path
+
+
+def test_bearer_header_and_websocket_query_key_are_accepted(fresh):
+    client, keys = fresh
+    bearer = {"Authorization": f"Bearer {keys.localize}"}
+    assert client.get("/v1/maps", headers=bearer).status_code == 200
+    # The map does not exist: the key passed, the map check answers 404.
+    with pytest.raises(WebSocketDenialResponse) as denial:
+        with client.websocket_connect(f"/v1/maps/999999/stream?key={keys.localize}"):
+            pass
+    assert denial.value.status_code == 404
+
+
+def test_revoked_key_is_refused(fresh):
+    client, keys = fresh
+    listed = client.get("/v1/keys", headers=keys.header("admin")).json()["items"]
+    (car,) = [k for k in listed if k["name"] == "localize"]
+    assert "key" not in car and car["prefix"] == keys.localize[:12]
+    assert client.delete(f"/v1/keys/{car['id']}", headers=keys.header("admin")).status_code == 200
+    assert client.get("/v1/maps", headers=keys.header("localize")).status_code == 401
+
+
+def test_metrics_can_be_made_public(tmp_path):
+    with open_client(make_settings(tmp_path / "d", metrics_public=True)) as client:
+        assert client.get("/metrics").status_code == 200
+    with open_client(make_settings(tmp_path / "e")) as client:
+        assert client.get("/metrics").status_code == 401
+        assert client.get("/metrics", headers={"X-API-Key": ADMIN_KEY}).status_code == 200
+
+
+def test_bootstrap_key_is_used_only_on_an_empty_key_table(tmp_path):
+    from server.storage.db import create_engine_for, make_session_factory, session_scope
+    from server.storage.keys import list_api_keys
+
+    settings = make_settings(tmp_path / "d")
+    for _ in range(2):
+        with open_client(settings) as client:
+            assert client.get("/v1/keys", headers={"X-API-Key": ADMIN_KEY}).status_code == 200
+    engine = create_engine_for(settings)
+    with session_scope(make_session_factory(engine)) as session:
+        assert [k.name for k in list_api_keys(session)] == ["bootstrap"]
+    engine.dispose()
+    with pytest.raises(Exception, match="MONOLOC_BOOTSTRAP_ADMIN_KEY"):
+        with open_client(make_settings(tmp_path / "bad", bootstrap_admin_key="short")):
+            pass
