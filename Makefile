@@ -22,9 +22,19 @@ lint: install
 test: install lint
 	$(PY) -m pytest -q
 
+demo: install
+	$(VENV)/bin/monoloc demo
+
+# Benchmarks: slow test suites, then every bench script (each prints its figures beside a
+# baseline and writes bench/results/*.json), then bench/REPORT.md from those results.
+BENCHES := vision filter sim ingest localize retrieval speed accuracy accuracy_indoor
+
 bench: install
 	$(PY) -m pytest -q -m slow
-	@for b in bench/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+	@for b in $(BENCHES); do \
+	  if [ -f bench/$$b.py ]; then echo "== bench/$$b.py"; $(PY) -P bench/$$b.py || exit 1; fi; \
+	done
+	$(PY) -P bench/report.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
