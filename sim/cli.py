@@ -14,15 +14,18 @@ app = typer.Typer(
 @app.command()
 def generate(
     out: Path = typer.Option(..., "--out", help="dataset root to write"),
-    scenario: str = typer.Option("urban", help="urban (KITTI layout) | indoor (not yet)"),
+    scenario: str = typer.Option(
+        "urban", help="urban (KITTI layout) | indoor (TUM RGB-D layout, 1:10 car in a room)"
+    ),
     size: str = typer.Option("small", help="small | medium | large"),
     seed: int = typer.Option(0, help="seed: same seed, same bytes"),
-    runs: str = typer.Option(
-        "map,query,train,night,offcenter",
-        help="comma-separated runs, one sequence each, in this order",
+    runs: str | None = typer.Option(
+        None,
+        help="comma-separated runs, one sequence each, in this order (default urban: "
+        "map,query,train,night,offcenter; indoor: map,query,train,offcenter)",
     ),
     frames: int | None = typer.Option(None, help="at most this many frames per run"),
-    scale: float = typer.Option(1.0, help="image scale (1 = KITTI 1241x376)"),
+    scale: float = typer.Option(1.0, help="image scale (1 = KITTI 1241x376 / D435 640x480)"),
     query_lighting: str = typer.Option("day", help="lighting of the query run: day|dusk|night"),
     depth: bool = typer.Option(
         False,
@@ -31,7 +34,8 @@ def generate(
     no_errors: bool = typer.Option(False, help="exact geometry: no recording errors"),
     workers: int = typer.Option(1, help="worker processes (runs are rendered in chunks)"),
 ) -> None:
-    """Generate a city and drive its runs; writes the KITTI odometry layout + dataset.json."""
+    """Generate a city (KITTI odometry layout) or rooms with a race track (TUM RGB-D
+    layout, one folder per run), drive the runs, and write dataset.json."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
@@ -42,7 +46,7 @@ def generate(
         scenario=scenario,
         size=size,
         seed=seed,
-        runs=tuple(r.strip() for r in runs.split(",") if r.strip()),
+        runs=tuple(r.strip() for r in (runs or _default_runs(scenario)).split(",") if r.strip()),
         max_frames=frames,
         image_scale=scale,
         write_depth=depth,
@@ -73,6 +77,12 @@ def generate(
             f"route {s.length_m:7.1f} m"
         )
     console.print(f"wrote {out} ({frames_per_second_note(summary)})")
+
+
+def _default_runs(scenario: str) -> str:
+    return (
+        "map,query,train,offcenter" if scenario == "indoor" else "map,query,train,night,offcenter"
+    )
 
 
 @app.command()

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +37,9 @@ from sim.recording import RecordingErrors
 from sim.routes import lane_path, offset_path, plan_route, wandering_offset
 from sim.vehicle import SensorRig, VehicleConfig, VehicleStates, drive
 
+if TYPE_CHECKING:
+    from sim.indoor_plan import IndoorConfig
+
 RUN_KINDS = ("map", "query", "train", "night", "offcenter")
 SCENARIOS = ("urban", "indoor")
 FRAME_PERIOD_S = 0.1
@@ -45,7 +49,13 @@ CHUNK_FRAMES = 25
 @dataclass(frozen=True)
 class GenerateConfig:
     """What to generate. ``max_frames`` caps each run; ``image_scale`` resizes the camera
-    (scaled intrinsics) for quick tests; ``write_depth`` adds sequences/NN/depth/."""
+    (scaled intrinsics) for quick tests; ``write_depth`` adds sequences/NN/depth/.
+
+    Scenario ``indoor`` (TUM RGB-D layout, ``sim.indoor_generate``) uses scenario, size,
+    seed, runs (from map, query, train, offcenter; the default means all four),
+    max_frames, image_scale, workers and ``indoor`` (default: the size preset;
+    ``errors=RecordingErrors.none()`` also turns every indoor error off); the
+    outdoor-only fields are ignored."""
 
     scenario: str = "urban"
     size: str = "small"
@@ -65,6 +75,7 @@ class GenerateConfig:
     query_max_offset_m: float = 1.5
     offcenter_steer_rad: float = 0.05
     workers: int = 1
+    indoor: IndoorConfig | None = None
 
     def city_config(self) -> CityConfig:
         return self.city or CityConfig.preset(self.size)
@@ -75,22 +86,27 @@ class GenerateConfig:
         return KITTI_CAM0.scaled(self.image_scale)
 
     def validate(self) -> None:
-        if self.scenario == "indoor":
-            raise InvalidInputError(
-                "scenario 'indoor' (TUM RGB-D layout, 1:10 car) is not implemented yet; "
-                "use --scenario urban"
-            )
         if self.scenario not in SCENARIOS:
-            raise InvalidInputError(f"unknown scenario {self.scenario!r}; use urban")
-        bad = [r for r in self.runs if r not in RUN_KINDS]
-        if bad or not self.runs or len(set(self.runs)) != len(self.runs):
+            raise InvalidInputError(f"unknown scenario {self.scenario!r}; use one of {SCENARIOS}")
+        kinds, runs = RUN_KINDS, self.runs
+        if self.scenario == "indoor":
+            from sim.indoor_plan import INDOOR_RUN_KINDS, indoor_runs
+
+            kinds, runs = INDOOR_RUN_KINDS, indoor_runs(self.runs)
+        bad = [r for r in runs if r not in kinds]
+        if bad or not runs or len(set(runs)) != len(runs):
             raise InvalidInputError(
-                f"runs must be distinct names from {RUN_KINDS}, got {self.runs}"
+                f"{self.scenario} runs must be distinct names from {kinds}, got {runs}"
             )
         if self.max_frames is not None and self.max_frames < 1:
             raise InvalidInputError(f"max_frames must be >= 1, got {self.max_frames}")
         if not 0.05 <= self.image_scale <= 1.0:
             raise InvalidInputError(f"image_scale must be in [0.05, 1], got {self.image_scale}")
+        if self.scenario == "indoor":
+            from sim.indoor import room_configs
+
+            room_configs(self.size) if self.indoor is None else None
+            return
         CityConfig.preset(self.size) if self.city is None else None
         Lighting.preset(self.query_lighting)
 
@@ -212,6 +228,10 @@ def generate_dataset(
     from sim.generate_run import prepare_run_files, render_chunk, write_run_metadata
 
     config.validate()
+    if config.scenario == "indoor":
+        from sim.indoor_generate import generate_indoor_dataset
+
+        return generate_indoor_dataset(config, out_dir, progress)
     start = time.perf_counter()
     out_dir = Path(out_dir)
     city = build_city(config.city_config(), config.seed)

@@ -30,6 +30,10 @@ def write_preview(dataset: Path, out: Path, per_run: int = 4) -> Path:
         sequences = info["sequences"]
     except (ValueError, KeyError) as exc:
         raise InvalidInputError(f"{info_path}: not a valid dataset.json ({exc})") from exc
+    if info.get("format") == "tum-rgbd":
+        from sim.indoor_preview import write_indoor_preview
+
+        return write_indoor_preview(dataset, info, out, per_run)
     n = len(sequences)
     fig = plt.figure(figsize=(4 + 3.2 * per_run, max(4.0, 1.1 * n + 1)), dpi=110)
     grid = fig.add_gridspec(n, per_run + 2)

@@ -1,10 +1,8 @@
 import hashlib
 
 import numpy as np
-import pytest
 
 from client.camera import KITTI_CAM0
-from client.errors import InvalidInputError
 from client.geometry import invert_rigid
 from sim import kitti_writer as kw
 from sim.generate import GenerateConfig, generate_dataset
@@ -128,8 +126,3 @@ def test_same_seed_gives_same_bytes(tmp_path, tiny_config):
     generate_dataset(GenerateConfig(**{**config.__dict__, "seed": 6}), tmp_path / "c")
     assert digest(tmp_path / "a") == digest(tmp_path / "b")
     assert digest(tmp_path / "a") != digest(tmp_path / "c")
-
-
-def test_indoor_is_not_implemented_yet(tmp_path):
-    with pytest.raises(InvalidInputError, match="not implemented yet"):
-        generate_dataset(GenerateConfig(scenario="indoor"), tmp_path)

@@ -1,0 +1,199 @@
+"""Sensors of the indoor car: a RealSense-D435-like RGB-D camera on a 1:10 car, motion
+capture, and the errors their recordings carry.
+
+Depth noise follows active stereo: the disparity ``d = f_d * b / z`` carries a subpixel
+error, so the depth error grows with z squared (``sigma_z = z^2 sigma_d / (f_d b)``,
+about 1 % at 2 m for the defaults, as D435 data sheets and measurements report). The
+error is spatially correlated (stereo matching works on windows). Depth is missing
+(0 in the PNG) closer than the minimum range, beyond the maximum range, in blobs at far
+range and on dark surfaces, and along depth discontinuities (stereo edge invalidation).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from client.camera import CameraIntrinsics
+from client.geometry import R_world_from_cam_level
+
+# RealSense D435 colour stream at 640x480 (depth registered to it).
+D435_COLOR = CameraIntrinsics(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width_px=640, height_px=480)
+TUM_DEPTH_SCALE_PER_M = 5000.0
+
+
+@dataclass(frozen=True)
+class IndoorRig:
+    """Camera mount on the 1:10 car (vehicle frame: ground below the rear axle, x
+    forward, y left, z up). Negative pitch tilts the optical axis down."""
+
+    camera_ahead_of_rear_axle_m: float = 0.22
+    camera_height_m: float = 0.17
+    camera_pitch_rad: float = -0.05
+
+    def T_vehicle_from_cam(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = R_world_from_cam_level(0.0, self.camera_pitch_rad)
+        T[:3, 3] = [self.camera_ahead_of_rear_axle_m, 0.0, self.camera_height_m]
+        return T
+
+
+@dataclass(frozen=True)
+class DepthNoiseConfig:
+    """D435-like depth errors; ``enabled`` False writes the exact depth.
+
+    depth_focal_px, baseline_m: the stereo pair (D435 depth imager at 640x480);
+    disparity_std_px: subpixel matching error; correlation_px: size of its spatial
+    correlation; min/max_depth_m: valid range; far_dropout_*: fraction of pixels lost at
+    far range (from start to full at 2x start); dark_level / dark_dropout: image values
+    below dark_level lose depth with that probability; edge_dropout: probability of
+    losing depth across a discontinuity larger than edge_ratio."""
+
+    enabled: bool = True
+    depth_focal_px: float = 385.0
+    baseline_m: float = 0.05
+    disparity_std_px: float = 0.1
+    correlation_px: float = 6.0
+    min_depth_m: float = 0.2
+    max_depth_m: float = 10.0
+    far_dropout_start_m: float = 5.0
+    far_dropout_max: float = 0.5
+    dark_level: int = 18
+    dark_dropout: float = 0.6
+    edge_ratio: float = 1.06
+    edge_dropout: float = 0.6
+
+    def sigma_m(self, depth_m: np.ndarray) -> np.ndarray:
+        """Standard deviation (m) of the depth error at ``depth_m``."""
+        return (
+            np.asarray(depth_m) ** 2
+            * self.disparity_std_px
+            / (self.depth_focal_px * self.baseline_m)
+        )
+
+
+def _blobs(rng: np.random.Generator, shape: tuple[int, int], cell_px: float) -> np.ndarray:
+    """(H, W) float32 uniform-ish values in [0, 1], spatially correlated over ``cell_px``."""
+    import cv2
+
+    h, w = shape
+    gh, gw = max(2, int(h / cell_px) + 2), max(2, int(w / cell_px) + 2)
+    grid = rng.random((gh, gw), dtype=np.float32)
+    return cv2.resize(grid, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def noisy_depth(
+    depth_m: np.ndarray,
+    image: np.ndarray | None,
+    config: DepthNoiseConfig,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """The depth a D435 reports: (H, W) float32 metres, 0 where missing.
+
+    ``depth_m`` (H, W) exact z-depth (inf where nothing was hit); ``image`` (H, W) uint8
+    the registered camera image (for dark-surface dropout) or None."""
+    import cv2
+
+    z = np.where(np.isfinite(depth_m), depth_m, 0.0).astype(np.float32)
+    if not config.enabled:
+        return z
+    h, w = z.shape
+    valid = z > 0
+    # Disparity error: part smooth (window matching), part per pixel.
+    smooth = _blobs(rng, (h, w), config.correlation_px) - 0.5
+    smooth /= max(float(smooth.std()), 1e-6)
+    white = rng.standard_normal((h, w), dtype=np.float32)
+    err_px = config.disparity_std_px * (0.8 * smooth + 0.6 * white)
+    fb = config.depth_focal_px * config.baseline_m
+    disparity = np.where(valid, fb / np.maximum(z, 1e-6), 0.0) + err_px
+    out = np.where(valid & (disparity > 0), fb / np.maximum(disparity, 1e-6), 0.0)
+    out = out.astype(np.float32)
+    lost = ~valid | (z < config.min_depth_m) | (z > config.max_depth_m)
+    p_far = (
+        np.clip((z - config.far_dropout_start_m) / config.far_dropout_start_m, 0.0, 1.0)
+        * config.far_dropout_max
+    )
+    lost |= _blobs(rng, (h, w), 12.0) < p_far
+    if image is not None and config.dark_dropout > 0:
+        dark = cv2.blur(image, (5, 5)) < config.dark_level
+        lost |= dark & (_blobs(rng, (h, w), 8.0) < config.dark_dropout)
+    if config.edge_dropout > 0:
+        zf = np.where(valid, z, 1e4).astype(np.float32)
+        kernel = np.ones((3, 3), np.uint8)
+        ratio = cv2.dilate(zf, kernel) / np.maximum(cv2.erode(zf, kernel), 1e-6)
+        edge = ratio > config.edge_ratio
+        lost |= edge & (rng.random((h, w), dtype=np.float32) < config.edge_dropout)
+    out[lost] = 0.0
+    return out
+
+
+@dataclass(frozen=True)
+class IndoorErrors:
+    """Errors of an indoor recording; ``IndoorErrors.none()`` makes everything exact.
+
+    mocap_*: white noise of the motion-capture poses (position m, rotation rad);
+    depth_time_offset_max_s: the depth stream's stamps differ from the colour stream's
+    by a per-run offset up to this (the depth image is rendered at its own stamp);
+    stamp_jitter_s: per-frame jitter of both streams; speed_* / yaw_rate_*: wheel
+    encoder and gyro (scale, bias, white noise); exposure_bias_ev: std of a run's
+    exposure offset; sensor_noise: camera shot/read noise; depth: the depth model."""
+
+    mocap_position_noise_m: float = 0.001
+    mocap_rotation_noise_rad: float = math.radians(0.05)
+    depth_time_offset_max_s: float = 0.008
+    stamp_jitter_s: float = 0.0005
+    speed_scale_error: float = 0.01
+    speed_bias_mps: float = 0.005
+    speed_noise_mps: float = 0.02
+    yaw_rate_bias_radps: float = 0.003
+    yaw_rate_noise_radps: float = 0.01
+    exposure_bias_ev: float = 0.2
+    sensor_noise: bool = True
+    depth: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
+
+    @classmethod
+    def none(cls) -> IndoorErrors:
+        return cls(
+            mocap_position_noise_m=0.0,
+            mocap_rotation_noise_rad=0.0,
+            depth_time_offset_max_s=0.0,
+            stamp_jitter_s=0.0,
+            speed_scale_error=0.0,
+            speed_bias_mps=0.0,
+            speed_noise_mps=0.0,
+            yaw_rate_bias_radps=0.0,
+            yaw_rate_noise_radps=0.0,
+            exposure_bias_ev=0.0,
+            sensor_noise=False,
+            depth=DepthNoiseConfig(enabled=False),
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def mocap_noise(
+    T_world_from_cam: np.ndarray, errors: IndoorErrors, rng: np.random.Generator
+) -> np.ndarray:
+    """(n, 4, 4) poses with motion-capture noise: small random rotations about the
+    camera centre and position jitter (white, per sample)."""
+    out = np.array(T_world_from_cam, dtype=np.float64, copy=True)
+    n = len(out)
+    if errors.mocap_rotation_noise_rad > 0:
+        rotvec = rng.standard_normal((n, 3)) * errors.mocap_rotation_noise_rad
+        for i in range(n):
+            out[i, :3, :3] = _rodrigues(rotvec[i]) @ out[i, :3, :3]
+    if errors.mocap_position_noise_m > 0:
+        out[:, :3, 3] += rng.standard_normal((n, 3)) * errors.mocap_position_noise_m
+    return out
+
+
+def _rodrigues(rotvec: np.ndarray) -> np.ndarray:
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = rotvec / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K

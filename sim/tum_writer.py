@@ -1,0 +1,171 @@
+"""Writers (and small readers, for round trips in tests and the preview) of the TUM RGB-D
+layout, one folder per run::
+
+    <root>/<run>/rgb/<t>.png        8-bit colour PNG (the sim renders monochrome: three
+                                    identical channels)
+    <root>/<run>/depth/<t>.png      uint16 z-depth * 5000 (0.2 mm), 0 = no depth,
+                                    registered to the rgb image
+    <root>/<run>/rgb.txt            "timestamp filename" after TUM's three '#' lines
+    <root>/<run>/depth.txt          same for depth
+    <root>/<run>/groundtruth.txt    "timestamp tx ty tz qx qy qz qw": T_world_from_cam
+                                    (OpenCV camera axes) at the motion capture's stamps
+    <root>/<run>/vehicle.txt        "t speed_mps yaw_rate_radps" at the rgb stamps
+    <root>/<run>/camera.json        fx, fy, cx, cy, width, height, depth_scale_per_m
+    <root>/dataset.json             what each run is (see sim.indoor_generate)
+
+Timestamps are seconds on one clock (as TUM's, Unix-like), written with 6 decimals;
+an image's file name is its stamp exactly as listed.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from client.camera import CameraIntrinsics
+from client.errors import InvalidInputError
+from client.geometry import R_from_quaternion_xyzw, quaternion_xyzw_from_R
+
+DEPTH_SCALE_PER_M = 5000.0
+
+
+def stamp_text(t_s: float) -> str:
+    return f"{t_s:.6f}"
+
+
+def write_file_list(path: Path, what: str, source: str, stamps_s, rel_paths) -> None:
+    """rgb.txt / depth.txt with TUM's header (``what``: 'color images' | 'depth maps')."""
+    lines = [f"# {what}", f"# file: '{source}'", "# timestamp filename"]
+    lines += [f"{stamp_text(t)} {p}" for t, p in zip(stamps_s, rel_paths, strict=True)]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
+    """rgb.txt / depth.txt -> (stamps (N,), relative paths)."""
+    stamps, files = [], []
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise InvalidInputError(f"{path}:{n}: expected 'timestamp filename'")
+        stamps.append(float(parts[0]))
+        files.append(parts[1])
+    return np.array(stamps), files
+
+
+def write_ground_truth(path: Path, source: str, stamps_s, T_world_from_cam) -> None:
+    """groundtruth.txt: one ``t tx ty tz qx qy qz qw`` line per (4, 4) pose."""
+    lines = ["# ground truth trajectory", f"# file: '{source}'", "# timestamp tx ty tz qx qy qz qw"]
+    for t, T in zip(stamps_s, T_world_from_cam, strict=True):
+        q = quaternion_xyzw_from_R(T[:3, :3])
+        x, y, z = T[:3, 3]
+        lines.append(
+            f"{stamp_text(t)} {x:.6f} {y:.6f} {z:.6f} {q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}"
+        )
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_ground_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """groundtruth.txt -> (stamps (N,), T_world_from_cam (N, 4, 4))."""
+    rows = np.loadtxt(path, comments="#", ndmin=2)
+    if rows.shape[1] != 8:
+        raise InvalidInputError(f"{path}: expected 8 numbers per line, got {rows.shape[1]}")
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    for i, row in enumerate(rows):
+        T[i, :3, :3] = R_from_quaternion_xyzw(row[4:8])
+        T[i, :3, 3] = row[1:4]
+    return rows[:, 0], T
+
+
+def pose_at(stamps_s: np.ndarray, T_world_from_cam: np.ndarray, t_s: float) -> np.ndarray:
+    """(4, 4) pose at ``t_s`` interpolated between the bracketing samples (position
+    linearly, rotation by slerp); raises outside the samples."""
+    k = int(np.searchsorted(stamps_s, t_s, side="right"))
+    if k == 0 or (k == len(stamps_s) and t_s > stamps_s[-1]):
+        raise InvalidInputError(f"time {t_s:.6f} is outside the ground truth")
+    if k == len(stamps_s):
+        return T_world_from_cam[-1].copy()
+    a = (t_s - stamps_s[k - 1]) / (stamps_s[k] - stamps_s[k - 1])
+    q0 = quaternion_xyzw_from_R(T_world_from_cam[k - 1, :3, :3])
+    q1 = quaternion_xyzw_from_R(T_world_from_cam[k, :3, :3])
+    if np.dot(q0, q1) < 0:
+        q1 = -q1
+    angle = np.arccos(np.clip(np.dot(q0, q1), -1.0, 1.0))
+    if angle < 1e-9:
+        q = q0
+    else:
+        q = (np.sin((1 - a) * angle) * q0 + np.sin(a * angle) * q1) / np.sin(angle)
+    T = np.eye(4)
+    T[:3, :3] = R_from_quaternion_xyzw(q)
+    T[:3, 3] = (1 - a) * T_world_from_cam[k - 1, :3, 3] + a * T_world_from_cam[k, :3, 3]
+    return T
+
+
+def write_vehicle(path: Path, stamps_s, speed_mps, yaw_rate_radps) -> None:
+    """vehicle.txt: ``t speed_mps yaw_rate_radps`` per rgb frame."""
+    lines = [
+        f"{stamp_text(t)} {v:.6f} {w:.7f}"
+        for t, v, w in zip(stamps_s, speed_mps, yaw_rate_radps, strict=True)
+    ]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_vehicle(path: Path) -> np.ndarray:
+    """vehicle.txt -> (n, 3) t, speed, yaw rate."""
+    return np.loadtxt(path, ndmin=2)
+
+
+def write_camera_json(path: Path, intrinsics: CameraIntrinsics, extra: dict) -> None:
+    k = intrinsics
+    info = {
+        "fx": k.fx,
+        "fy": k.fy,
+        "cx": k.cx,
+        "cy": k.cy,
+        "width": k.width_px,
+        "height": k.height_px,
+        "depth_scale_per_m": DEPTH_SCALE_PER_M,
+        **extra,
+    }
+    Path(path).write_text(json.dumps(info, indent=2) + "\n")
+
+
+def encode_depth(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) metres (0, negative or non-finite: none) -> uint16 at 5000 per metre; depths
+    beyond 13.107 m cannot be encoded and are written as 0."""
+    d = np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m * DEPTH_SCALE_PER_M + 0.5, 0.0)
+    return np.where(d < 65535.5, d, 0.0).astype(np.uint16)
+
+
+def write_depth(path: Path, depth_m: np.ndarray) -> None:
+    import cv2
+
+    if not cv2.imwrite(str(path), encode_depth(depth_m), [cv2.IMWRITE_PNG_COMPRESSION, 3]):
+        raise InvalidInputError(f"could not write {path}")
+
+
+def read_depth(path: Path) -> np.ndarray:
+    """Depth PNG -> (H, W) float32 metres, 0 where there is no depth."""
+    import cv2
+
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+        raise InvalidInputError(f"{path}: not a 16-bit single-channel depth PNG")
+    return raw.astype(np.float32) / DEPTH_SCALE_PER_M
+
+
+def write_rgb(path: Path, image: np.ndarray) -> None:
+    """(H, W) uint8 gray -> 3-channel PNG (identical channels; OpenCV's gray conversion
+    gives the rendered image back exactly)."""
+    import cv2
+
+    bgr = np.repeat(image[:, :, None], 3, axis=2) if image.ndim == 2 else image
+    if not cv2.imwrite(str(path), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 3]):
+        raise InvalidInputError(f"could not write {path}")
+
+
+def write_dataset_json(root: Path, info: dict) -> None:
+    (Path(root) / "dataset.json").write_text(json.dumps(info, indent=2) + "\n")
