@@ -1,22 +1,27 @@
 """Maximum-likelihood calibration of the measurement model (METHOD.md section 7).
 
 From a training run that is not the test run: build a temporary map from every other
-frame, query it with the remaining frames, and for each query take its k closest map
-entries by planar pose distance (the paper's choice), run matching + PnP against each
-(section 6 steps 3-5) and collect
+frame (``map_every``), query it with the remaining frames, and for each query take its k
+closest map entries by planar pose distance (the paper's choice), run matching + PnP
+against each (section 6 steps 3-5) and collect
 
     e_i   = z_q - z_i                                   (truth minus hypothesis)
     r_i   = [e_vlad_i, X_i - X_q, Y_i - Y_q, psi_i - psi_q]
 
 then fit (mu1, Sigma1) to e and (mu2, Sigma2) to r with client.calibration (monoloc's
 default is the unbiased covariance about the mean). Hypotheses farther than
-``gate_position_m`` from the truth are PnP failures, not noise: they are counted and left
-out of Sigma1 (the measurement model's outlier floor stands for them), and reported.
+``gate_position_m`` / ``gate_yaw_rad`` from the truth are PnP failures, not noise: they
+are counted and left out of both fits (the measurement model's outlier floor stands for
+them), and reported.
+
+Pure apart from the frames it is handed: no database, no files. Query frames are kept
+as features + VLAD (not images), so a long training run fits in memory.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+import math
+from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +38,7 @@ from server.entry_builder import (
     TooFewPointsError,
     build_entry,
 )
+from server.storage.records import NewEntry
 from server.vision.features import extract_features
 from server.vision.hypothesis import compose_hypothesis
 from server.vision.matching import MatchConfig, match_against_references
@@ -40,11 +46,19 @@ from server.vision.pnp import PnpConfig, estimate_relative_pose
 from server.vision.vlad import compute_vlad
 from server.vision.vocabulary import Vocabulary
 
+MIN_GOOD_HYPOTHESES = 10
+ERROR_CONVENTION = "e = truth - hypothesis, (X m, Y m, psi rad), psi wrapped to (-pi, pi]"
+
 
 @dataclass(frozen=True)
 class CalibrationConfig:
+    """k: map entries per query (closest by pose); map_every: frames 0, m, 2m, ... build
+    the temporary map, the others query it; gates: hypotheses farther from the truth are
+    counted as outliers and left out of the fit; unbiased: covariance about the mean with
+    N - 1 (monoloc) instead of the paper's mean(e e^T)."""
+
     k: int = 10
-    map_every: int = 2  # frames 0, 2, 4, ... build the map; the others query it
+    map_every: int = 2
     gate_position_m: float = 3.0
     gate_yaw_rad: float = 0.2
     unbiased: bool = True
@@ -52,10 +66,35 @@ class CalibrationConfig:
     match: MatchConfig = field(default_factory=MatchConfig)
     pnp: PnpConfig = field(default_factory=PnpConfig)
 
+    def __post_init__(self) -> None:
+        if self.k < 1 or self.map_every < 2:
+            raise InvalidInputError(
+                f"calibration needs k >= 1 and map_every >= 2, got k={self.k}, "
+                f"map_every={self.map_every}"
+            )
+        if not (self.gate_position_m > 0 and self.gate_yaw_rad > 0):
+            raise InvalidInputError(f"calibration gates must be positive, got {self}")
+
+    @property
+    def min_frames(self) -> int:
+        """The shortest run that yields k map frames and at least one query frame."""
+        return self.map_every * (self.k - 1) + 2
+
+
+def check_run_length(n_frames: int, config: CalibrationConfig, what: str) -> None:
+    """InvalidInputError naming ``what`` when a run of ``n_frames`` is too short."""
+    if n_frames < config.min_frames:
+        raise InvalidInputError(
+            f"{what} is too short to calibrate: {n_frames} frames; with k = {config.k} it "
+            f"needs at least {config.min_frames} (k map entries, one every "
+            f"{config.map_every} frames, queried by the frames between them)"
+        )
+
 
 @dataclass(frozen=True)
 class TrainingFrame:
-    """One frame of a training run: grayscale image, true pose, 3D source."""
+    """One frame of a training run: (H, W) uint8 grayscale image, true T_world_from_cam
+    (4, 4) in the z-up world, and its 3D source (LiDAR scan or depth image)."""
 
     image_gray: np.ndarray
     T_world_from_cam: np.ndarray
@@ -64,8 +103,103 @@ class TrainingFrame:
 
 @dataclass(frozen=True)
 class CalibrationResult:
+    """The fitted model and how it was obtained (JSON-ready ``provenance``)."""
+
     model: MeasurementModel
     provenance: dict
+
+
+@dataclass(frozen=True)
+class _Query:
+    keypoints_px: np.ndarray  # (N, 2) float32
+    descriptors: np.ndarray  # (N, 32) uint8
+    vlad: np.ndarray  # (2048,) float32
+    truth_world: np.ndarray  # (3,) planar (X, Y, psi)
+
+
+@dataclass
+class _Samples:
+    truth: list = field(default_factory=list)
+    hypothesis: list = field(default_factory=list)
+    e_vlad: list = field(default_factory=list)
+    entry_pose: list = field(default_factory=list)
+    n_hypotheses: int = 0
+    n_gated: int = 0
+    n_queries_with_hypotheses: int = 0
+
+
+def _split_run(frames, intrinsics, vocabulary, config, tick):
+    """Pass 1: map entries from every ``map_every``-th frame, features of the others."""
+    entries: list[NewEntry] = []
+    queries: list[_Query] = []
+    n_frames = n_skipped = 0
+    for i, frame in enumerate(frames):
+        n_frames += 1
+        if i % config.map_every == 0:
+            try:
+                entries.append(
+                    build_entry(
+                        frame.image_gray,
+                        f"calibration-{i}",
+                        frame.T_world_from_cam,
+                        frame.source,
+                        intrinsics,
+                        vocabulary,
+                        None,
+                        config.build,
+                    )
+                )
+            except TooFewPointsError:
+                n_skipped += 1
+        else:
+            features = extract_features(frame.image_gray, config.build.orb)
+            queries.append(
+                _Query(
+                    features.keypoints_px,
+                    features.descriptors,
+                    compute_vlad(features.descriptors, vocabulary),
+                    planar_from_T_world_from_cam(np.asarray(frame.T_world_from_cam)),
+                )
+            )
+        tick()
+    return entries, queries, n_frames, n_skipped
+
+
+def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples) -> None:
+    """Pass 2 for one query: its k closest entries by position, matching, PnP, errors."""
+    truth = query.truth_world
+    dist_m = np.hypot(entry_pose[:, 0] - truth[0], entry_pose[:, 1] - truth[1])
+    nearest = np.argsort(dist_m, kind="stable")[: config.k]
+    refs = [entries[j] for j in nearest]
+    matches = match_against_references(
+        query.descriptors, [r.descriptors for r in refs], config.match
+    )
+    found = False
+    for j, ref, pairs in zip(nearest, refs, matches, strict=True):
+        rel = estimate_relative_pose(
+            query.keypoints_px[pairs[:, 0]],
+            ref.points_cam[pairs[:, 1]],
+            intrinsics,
+            config.pnp,
+            rng,
+        )
+        if not rel.accepted:
+            continue
+        samples.n_hypotheses += 1
+        found = True
+        z = planar_from_T_world_from_cam(
+            compose_hypothesis(ref.T_world_from_cam, rel.T_ref_from_query)
+        )
+        e = truth - z
+        e[2] = wrap_angle(e[2])
+        if np.hypot(e[0], e[1]) > config.gate_position_m or abs(e[2]) > config.gate_yaw_rad:
+            samples.n_gated += 1
+            continue
+        samples.truth.append(truth)
+        samples.hypothesis.append(z)
+        samples.e_vlad.append(float(np.linalg.norm(ref.vlad - query.vlad)))
+        samples.entry_pose.append(entry_pose[j])
+    samples.n_queries_with_hypotheses += int(found)
 
 
 def calibrate(
@@ -78,94 +212,85 @@ def calibrate(
     n_frames: int | None = None,
     source_name: str = "",
 ) -> CalibrationResult:
-    """Fit the measurement model on a training run (see the module docstring)."""
-    map_entries, queries = [], []
-    for i, frame in enumerate(frames):
-        if i % config.map_every == 0:
-            try:
-                entry = build_entry(
-                    frame.image_gray,
-                    f"calib-{i}",
-                    frame.T_world_from_cam,
-                    frame.source,
-                    intrinsics,
-                    vocabulary,
-                    None,
-                    config.build,
-                )
-            except TooFewPointsError:
-                continue
-            map_entries.append(entry)
-        else:
-            queries.append((frame.image_gray, np.asarray(frame.T_world_from_cam)))
-        if progress and n_frames:
-            progress(i + 1, 2 * n_frames)
-    if len(map_entries) < config.k or not queries:
+    """Fit the measurement model on a training run (see the module docstring).
+
+    ``progress(done, total)`` is called after every frame of each pass (total = frames +
+    query frames); an exception it raises (a stop request) ends the calibration.
+    ``n_frames`` (default: ``len(frames)`` when it has one) sizes the progress total.
+    Raises InvalidInputError when the run is too short or yields too few good hypotheses.
+    """
+    if n_frames is None and isinstance(frames, Sized):
+        n_frames = len(frames)
+    n = n_frames or 0
+    ticker = _Ticker(progress, n + n - math.ceil(n / config.map_every))
+    entries, queries, seen, skipped = _split_run(
+        frames, intrinsics, vocabulary, config, ticker.tick
+    )
+    what = source_name or "the training run"
+    if len(entries) < config.k or not queries:
         raise InvalidInputError(
-            f"calibration needs at least {config.k} map frames and some query frames; "
-            f"got {len(map_entries)} and {len(queries)}"
+            f"calibration of {what} needs at least {config.k} map frames with 3D points and "
+            f"some query frames (at least {config.min_frames} frames); got {len(entries)} map "
+            f"frames ({skipped} without enough 3D points) and {len(queries)} query frames "
+            f"from {seen} frames"
         )
-    entry_planar = np.array([planar_from_T_world_from_cam(e.T_world_from_cam) for e in map_entries])
-    errors, retrieval, n_hyp, n_gated = [], [], 0, 0
-    for qi, (image, T_true) in enumerate(queries):
-        truth = planar_from_T_world_from_cam(T_true)
-        features = extract_features(image, config.build.orb)
-        vlad_q = compute_vlad(features.descriptors, vocabulary)
-        dist = np.hypot(entry_planar[:, 0] - truth[0], entry_planar[:, 1] - truth[1])
-        nearest = np.argsort(dist)[: config.k]
-        refs = [map_entries[j] for j in nearest]
-        matches = match_against_references(
-            features.descriptors, [r.descriptors for r in refs], config.match
-        )
-        for j, ref, pairs in zip(nearest, refs, matches, strict=True):
-            rel = estimate_relative_pose(
-                features.keypoints_px[pairs[:, 0]],
-                ref.points_cam[pairs[:, 1]],
-                intrinsics,
-                config.pnp,
-                rng,
-            )
-            if not rel.accepted:
-                continue
-            n_hyp += 1
-            z = planar_from_T_world_from_cam(
-                compose_hypothesis(ref.T_world_from_cam, rel.T_ref_from_query)
-            )
-            e = truth - z
-            e[2] = wrap_angle(e[2])
-            if np.hypot(e[0], e[1]) > config.gate_position_m or abs(e[2]) > config.gate_yaw_rad:
-                n_gated += 1
-                continue
-            errors.append((truth, z))
-            e_vlad = float(np.linalg.norm(ref.vlad - vlad_q))
-            retrieval.append((e_vlad, entry_planar[j], truth))
-        if progress and n_frames:
-            progress(n_frames + qi + 1, 2 * n_frames)
-    if len(errors) < 10:
+    ticker.total = seen + len(queries)
+    entry_pose = np.array([planar_from_T_world_from_cam(e.T_world_from_cam) for e in entries])
+    samples = _Samples()
+    for query in queries:
+        _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
+        ticker.tick()
+    used = len(samples.truth)
+    if used < MIN_GOOD_HYPOTHESES:
         raise InvalidInputError(
-            f"calibration found only {len(errors)} good hypotheses; the training run is too "
-            "short or does not match its own frames"
+            f"calibration of {what} found only {used} good hypotheses ({samples.n_hypotheses} "
+            f"accepted by PnP, {samples.n_gated} beyond the gates) from {len(queries)} query "
+            f"frames; it needs {MIN_GOOD_HYPOTHESES}: the run is too short or its images do "
+            "not match each other"
         )
-    truth_arr = np.array([t for t, _ in errors])
-    hyp_arr = np.array([z for _, z in errors])
-    r_vlad = np.array([r[0] for r in retrieval])
-    r_entry = np.array([r[1] for r in retrieval])
-    r_truth = np.array([r[2] for r in retrieval])
+    truth = np.array(samples.truth)
     model = fit_measurement_model(
-        pose_errors(truth_arr, hyp_arr),
-        retrieval_vectors(r_vlad, r_entry, r_truth),
+        pose_errors(truth, np.array(samples.hypothesis)),
+        retrieval_vectors(np.array(samples.e_vlad), np.array(samples.entry_pose), truth),
         unbiased=config.unbiased,
         source="calibrated",
     )
-    provenance = {
-        "source": source_name,
-        "map_frames": len(map_entries),
+    counts = {
+        "frames": seen,
+        "map_frames": len(entries),
+        "map_frames_skipped": skipped,
         "query_frames": len(queries),
-        "hypotheses": n_hyp,
-        "used": len(errors),
-        "gated_outliers": n_gated,
-        "k": config.k,
-        "covariance": "unbiased about the mean" if config.unbiased else "paper: mean(e e^T)",
-        "vocabulary": vocabulary.version,
     }
-    return CalibrationResult(model, provenance)
+    return CalibrationResult(model, _provenance(source_name, counts, samples, config, vocabulary))
+
+
+class _Ticker:
+    """Counts finished frames and reports ``progress(done, total)``."""
+
+    def __init__(self, progress: Callable[[int, int], None] | None, total: int) -> None:
+        self.progress, self.total, self.done = progress, total, 0
+
+    def tick(self) -> None:
+        self.done += 1
+        if self.progress is not None:
+            self.progress(self.done, max(self.total, self.done))
+
+
+def _provenance(source_name, counts, samples: _Samples, config, vocabulary) -> dict:
+    return {
+        "source": source_name,
+        **counts,
+        "queries_with_hypotheses": samples.n_queries_with_hypotheses,
+        "hypotheses": samples.n_hypotheses,
+        "used": len(samples.truth),
+        "gated_outliers": samples.n_gated,
+        "k": config.k,
+        "map_every": config.map_every,
+        "gate_position_m": config.gate_position_m,
+        "gate_yaw_rad": config.gate_yaw_rad,
+        "covariance": "unbiased about the mean (N - 1)"
+        if config.unbiased
+        else "paper: mean(e e^T) about zero",
+        "error_convention": ERROR_CONVENTION,
+        "vocabulary_hash": vocabulary.version,
+    }

@@ -14,7 +14,7 @@ from typing import Annotated
 import typer
 
 map_app = typer.Typer(
-    help="Maps: create, ingest runs, vocabulary, statistics.", no_args_is_help=True
+    help="Maps: create, ingest runs, vocabulary, calibration, statistics.", no_args_is_help=True
 )
 
 DataDir = Annotated[
@@ -213,6 +213,43 @@ def map_vocab(
         f"({change.exact} from their images, {change.approximate} from stored "
         f"descriptors); map version {change.map_version}"
     )
+
+
+@map_app.command("calibrate")
+def map_calibrate(
+    ctx: typer.Context,
+    map_ref: MapRef,
+    run: Annotated[
+        Path, typer.Option("--run", help="Training run (not the test run): KITTI or TUM.")
+    ],
+    fmt: Annotated[str, typer.Option("--format", help="kitti | tum")] = "kitti",
+    sequence: Annotated[str | None, typer.Option(help="KITTI sequence (NN).")] = None,
+    frames: Annotated[str | None, typer.Option(help="Frame range A:B (Python slice).")] = None,
+    k: Annotated[int, typer.Option(help="Map entries per query, closest by pose.")] = 10,
+    seed: Annotated[int, typer.Option(help="RANSAC seed.")] = 0,
+    camera: Annotated[str | None, typer.Option(help="TUM: freiburg1|2|3|default.")] = None,
+) -> None:
+    """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
+    store it with its provenance (a recorded job; the run is not added to the map)."""
+    from server.calibrate import CalibrationConfig
+    from server.calibrate_jobs import describe_calibration, run_calibration_job
+    from server.ingest.common import parse_frame_range
+    from server.ingest.manage import open_source
+    from server.ingest.report import progress_bar
+
+    _, factory = _open(ctx)
+    config = CalibrationConfig(k=k)
+    source = open_source(
+        fmt, run, sequence=sequence, frames=parse_frame_range(frames), tum_camera=camera
+    )
+    params = {"format": fmt, "path": str(run), "sequence": sequence, "frames": frames}
+    with progress_bar(f"calibrating on {source.name}") as update:
+        job, calibration = run_calibration_job(
+            factory, map_ref, source, params=params, config=config, seed=seed, progress=update
+        )
+    typer.echo(f"job {job.id} {job.state}: map {job.map_id} calibrated")
+    for line in describe_calibration(calibration):
+        typer.echo(line)
 
 
 @map_app.command("add-image")

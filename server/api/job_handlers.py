@@ -1,8 +1,10 @@
 """The job kinds the server runs: ``ingest`` (a mapping run uploaded as files,
-optionally training the map's vocabulary on it first) and ``vocabulary`` (switch a map
-to another vocabulary; every VLAD is recomputed). Each handler reads its parameters from
-the job row, so a resumed job does what the first attempt meant to do; both are
-idempotent (entries by image hash, VLADs by vocabulary id).
+optionally training the map's vocabulary on it first), ``vocabulary`` (switch a map
+to another vocabulary; every VLAD is recomputed) and ``calibrate`` (fit the map's
+measurement model on an uploaded training run, METHOD.md section 7). Each handler reads
+its parameters from the job row, so a resumed job does what the first attempt meant to
+do; all are idempotent (entries by image hash, VLADs by vocabulary id, a calibration
+replaces the previous one and is seeded).
 
 Uploaded images are deleted when their job is done, so a later vocabulary change
 recomputes the VLADs of API-uploaded entries from their stored descriptors (counted as
@@ -141,4 +143,50 @@ def run_vocabulary(ctx: JobContext) -> dict[str, Any]:
     return asdict(change)
 
 
-HANDLERS: dict[str, JobHandler] = {"ingest": run_ingest, "vocabulary": run_vocabulary}
+def run_calibration(ctx: JobContext) -> dict[str, Any]:
+    """Fit the measurement model on the uploaded training run (its own intrinsics, the
+    map's vocabulary) and store it on the map; the run is not added to the map. A stop
+    request ends the job ``interrupted``; resuming it calibrates again from the start."""
+    from server.calibrate import CalibrationConfig
+    from server.calibrate_jobs import calibrate_map, job_result
+
+    job = ctx.job
+    if job.map_id is None:
+        raise ConflictError(f"the map of job {job.id} was deleted")
+    upload = ctx.upload_dir()
+    if upload is None:
+        raise ConflictError(
+            f"job {job.id} was started by `monoloc map calibrate` (no upload): run it again"
+        )
+    if not upload.is_dir():
+        raise ConflictError(f"the upload of job {job.id} is gone; upload the run again")
+    params = job.params
+    source = open_source(
+        params["format"], dataset_root(upload), params.get("sequence"), params.get("frames")
+    )
+
+    def progress(done: int, total: int) -> None:
+        if ctx.should_stop():
+            raise JobInterruptedError(
+                f"stopped at frame {done} of {total}; resume to calibrate again"
+            )
+        ctx.progress(done / max(total, 1), f"frame {done} of {total}", force=done == total)
+
+    calibration = calibrate_map(
+        ctx.sessions,
+        job.map_id,
+        source,
+        config=CalibrationConfig(k=int(params.get("k", CalibrationConfig.k))),
+        seed=int(params.get("seed", 0)),
+        job_id=job.id,
+        source_name=params.get("source_name") or "upload",
+        progress=progress,
+    )
+    return job_result(calibration)
+
+
+HANDLERS: dict[str, JobHandler] = {
+    "ingest": run_ingest,
+    "vocabulary": run_vocabulary,
+    "calibrate": run_calibration,
+}

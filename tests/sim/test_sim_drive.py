@@ -120,3 +120,17 @@ def test_day_frames_have_enough_orb_features(city_and_plans):
         counts.append(len(orb.detect(cv2.GaussianBlur(frame.image, (5, 5), 0), None)))
     assert plan.lighting == Lighting.preset("day", np.random.default_rng([0, 0, 1]))
     assert np.mean(counts) >= 500, counts
+
+
+def test_nightmap_run_drives_the_map_lane_at_night():
+    config = GenerateConfig(seed=0, runs=("map", "nightmap"))
+    city = build_city(config.city_config(), config.seed)
+    plans = {p.kind: p for p in plan_runs(city, config)}
+    map_xy = true_camera_poses(plans["map"], config.rig)[:, :2, 3]
+    night_xy = true_camera_poses(plans["nightmap"], config.rig)[:, :2, 3]
+    nearest = np.linalg.norm(night_xy[:, None] - map_xy[None], axis=2).min(axis=1)
+    assert np.percentile(nearest, 95) < 1.0  # the lane centre, like the map
+    assert plans["nightmap"].lighting.name == "night" and plans["map"].lighting.name == "day"
+    # Adding the kind did not change the seeds of the others.
+    reference = {p.kind: p for p in plan_runs(city, CONFIG)}["map"]
+    assert np.array_equal(plans["map"].frame_times_s, reference.frame_times_s)

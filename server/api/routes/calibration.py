@@ -1,6 +1,8 @@
 """Measurement-model calibration per map (METHOD.md section 7): get (localize: the
-vehicle downloads it), put and delete (map:write), and the place where calibration
-training jobs start (map:write; answers 501 until the training handler is installed).
+vehicle downloads it), put and delete (map:write), and calibration jobs (map:write): a
+training run uploaded like a mapping run (``server.api.uploads``: one tar/zip archive or
+a multipart file set, KITTI or TUM) is fitted by a ``calibrate`` job, which stores the
+parameters with their provenance. The training run is not added to the map.
 
 An uncalibrated map answers ``client.measurement.MeasurementModel``'s documented
 defaults with ``"calibrated": false`` and ``"source": "defaults"``.
@@ -9,32 +11,62 @@ defaults with ``"calibrated": false`` and ``"source": "defaults"``.
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Response, status
+import anyio
+from fastapi import APIRouter, File, Form, UploadFile, status
 from pydantic import BaseModel, ConfigDict
+from sqlalchemy.orm import Session
 
 from client.measurement import MeasurementModel
 from server.api import convert
+from server.api.archives import Unpacked
 from server.api.convert import AUTH_ERRORS, error_responses
-from server.api.deps import LocalizeKey, MapWriteKey, SessionDep, StateDep
-from server.api.errors import NotAvailableError
+from server.api.deps import AppState, LocalizeKey, MapWriteKey, SessionDep, StateDep
 from server.api.schemas import CalibrationPublic, CalibrationUpdate, JobPublic
+from server.api.uploads import RunUpload, check_upload_parts, store_upload, upload_name
+from server.calibrate import CalibrationConfig, check_run_length
+from server.calibrate_jobs import JOB_KIND
 from server.storage import jobs as jobs_repo
 from server.storage import maps as maps_repo
-from server.storage import runs as runs_repo
+from server.storage.records import JobRecord
 
 router = APIRouter(prefix="/v1/maps/{map_id}/calibration", tags=["calibration"])
 
-CALIBRATION_JOB_KIND = "calibrate"
 
+class CalibrationJobAccepted(BaseModel):
+    """The queued calibration job and what the upload held."""
 
-class CalibrationJobCreate(BaseModel):
-    """Which run of the map to train on; ``options`` go to the training handler."""
-
-    model_config = ConfigDict(json_schema_extra={"examples": [{"run_id": 2, "options": {}}]})
-    run_id: int
-    options: dict[str, Any] = {}
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "job": {
+                        "id": 9,
+                        "kind": "calibrate",
+                        "map_id": 1,
+                        "run_id": None,
+                        "state": "queued",
+                        "progress": 0.0,
+                        "message": "queued",
+                        "error": None,
+                        "params": {"format": "kitti", "sequence": "05", "k": 10, "seed": 0},
+                        "result": None,
+                        "created_at": "2024-05-01T12:00:00Z",
+                        "updated_at": "2024-05-01T12:00:00Z",
+                        "finished_at": None,
+                    },
+                    "n_frames": 2761,
+                    "n_files": 5524,
+                    "total_bytes": 1_400_000_000,
+                }
+            ]
+        }
+    )
+    job: JobPublic
+    n_frames: int
+    n_files: int
+    total_bytes: int
 
 
 def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
@@ -98,39 +130,78 @@ def delete_calibration(map_id: int, session: SessionDep, _key: MapWriteKey) -> C
     return _public(record.calibration)
 
 
+def _store_job(
+    state: AppState,
+    up: RunUpload,
+    config: CalibrationConfig,
+    seed: int,
+    archive: UploadFile | None,
+    files: list[UploadFile] | None,
+) -> tuple[JobRecord, int, Unpacked]:
+    """Unpack and validate the training run, refuse a too short one, record the job."""
+
+    def record(session: Session, source) -> tuple[JobRecord, int]:
+        n_frames = len(source.frames)
+        check_run_length(n_frames, config, f"the uploaded {up.format} run")
+        params = {
+            "format": up.format,
+            "sequence": up.sequence,
+            "frames": up.frames,
+            "k": config.k,
+            "seed": seed,
+            "upload": True,
+            "source_name": up.source_name,
+        }
+        job = jobs_repo.create_job(
+            session, JOB_KIND, map_id=up.map_id, params=params, message="queued"
+        )
+        return job, n_frames
+
+    return store_upload(state, up, archive, files, record)
+
+
 @router.post(
     "/jobs",
-    response_model=JobPublic,
+    response_model=CalibrationJobAccepted,
     status_code=status.HTTP_202_ACCEPTED,
-    responses={**AUTH_ERRORS, **error_responses(404, 422, 501)},
-    summary="Train the calibration from a run (job)",
+    responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422)},
+    summary="Calibrate from an uploaded training run (job)",
 )
-def calibration_job(
+async def calibration_job(
     map_id: int,
-    body: CalibrationJobCreate,
-    session: SessionDep,
     state: StateDep,
     _key: MapWriteKey,
-    response: Response,
-) -> JobPublic:
-    """Maximum-likelihood mu1, Sigma1, mu2, Sigma2 from a training run (METHOD.md s. 7),
-    as a job. 501 while this build has no training handler (job kind 'calibrate')."""
-    if CALIBRATION_JOB_KIND not in state.jobs.handlers:
-        raise NotAvailableError(
-            "calibration training is not available in this build yet; PUT the parameters instead"
-        )
-    maps_repo.get_map(session, map_id)
-    if runs_repo.get_run(session, body.run_id).map_id != map_id:
-        from client.errors import InvalidInputError
-
-        raise InvalidInputError(f"run {body.run_id} is not a run of map {map_id}")
-    job = jobs_repo.create_job(
-        session,
-        CALIBRATION_JOB_KIND,
-        map_id=map_id,
-        run_id=body.run_id,
-        params={"run_id": body.run_id, "options": body.options},
+    format: Annotated[Literal["kitti", "tum"], Form(description="Layout of the run.")],
+    archive: Annotated[UploadFile | None, File(description="tar/zip of the run.")] = None,
+    files: Annotated[
+        list[UploadFile] | None,
+        File(description="Or: the run's files, each named by its relative path."),
+    ] = None,
+    sequence: Annotated[
+        str | None, Form(description="KITTI sequence (e.g. 05) if the upload holds several.")
+    ] = None,
+    frames: Annotated[str | None, Form(description="Frame range A:B (Python slice).")] = None,
+    k: Annotated[
+        int, Form(ge=1, le=100, description="Map entries per query, closest by pose.")
+    ] = CalibrationConfig.k,
+    seed: Annotated[int, Form(ge=0, description="RANSAC seed (a re-run repeats it).")] = 0,
+) -> CalibrationJobAccepted:
+    """Maximum-likelihood mu1, Sigma1, mu2, Sigma2 from a training run that is not the
+    test run (METHOD.md s. 7): a temporary map of every other frame, queried by the
+    others against their k closest entries by pose, with the run's own camera and the
+    map's vocabulary. Follow the job at /v1/jobs/{id}; when it is done,
+    GET /v1/maps/{map_id}/calibration returns the parameters with ``calibrated: true``
+    and their provenance. A run shorter than 2 (k - 1) + 2 frames is refused (422)."""
+    check_upload_parts(archive, files)
+    config = CalibrationConfig(k=k)
+    up = RunUpload(map_id, format, sequence, frames, upload_name(archive))
+    job, n_frames, unpacked = await anyio.to_thread.run_sync(
+        _store_job, state, up, config, seed, archive, files
     )
-    session.commit()
     state.jobs.submit(job.id)
-    return convert.job_public(job)
+    return CalibrationJobAccepted(
+        job=convert.job_public(job),
+        n_frames=n_frames,
+        n_files=unpacked.n_files,
+        total_bytes=unpacked.total_bytes,
+    )

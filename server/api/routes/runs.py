@@ -5,118 +5,77 @@ inside the run (``sequences/00/image_0/000000.png``); list and get runs.
 The upload is unpacked into ``uploads/.incoming-<random>`` with the archive limits, then
 opened and validated by the reader (calibration, poses, file counts: 422 naming the
 file). Only then are the run and its ingestion job stored, and the directory renamed to
-``uploads/<job id>``: a rejected upload leaves nothing behind.
+``uploads/<job id>``: a rejected upload leaves nothing behind (``server.api.uploads``,
+shared with the calibration route).
 """
 
 from __future__ import annotations
 
-import uuid
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Annotated, Literal
 
 import anyio
 from fastapi import APIRouter, File, Form, UploadFile, status
+from sqlalchemy.orm import Session
 
-from client.errors import InvalidInputError
 from server.api import convert
-from server.api.archives import (
-    ArchiveLimits,
-    Unpacked,
-    dataset_root,
-    remove_tree,
-    save_file_set,
-    unpack_archive,
-)
-from server.api.bootstrap import INCOMING_PREFIX, uploads_dir
+from server.api.archives import Unpacked
 from server.api.convert import AUTH_ERRORS, error_responses
 from server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
-from server.api.job_handlers import open_source
 from server.api.schemas import RunPublic, UploadAccepted
+from server.api.uploads import RunUpload, check_upload_parts, store_upload, upload_name
 from server.storage import jobs as jobs_repo
 from server.storage import maps as maps_repo
 from server.storage import runs as runs_repo
-from server.storage.db import session_scope
 from server.storage.entry_checks import normalise_tags
 from server.storage.records import JobRecord, RunRecord
 
 router = APIRouter(prefix="/v1/maps/{map_id}/runs", tags=["runs"])
 
 
-def _unpack(
-    state: AppState, staging: Path, archive: UploadFile | None, files: list[UploadFile] | None
-) -> Unpacked:
-    limits = ArchiveLimits(state.settings.max_archive_members, state.settings.max_archive_bytes)
-    if archive is not None:
-        return unpack_archive(archive.file, staging, limits, archive.filename or "archive")
-    assert files is not None
-    return save_file_set([(f.filename or "", f.file) for f in files], staging, limits, "upload")
-
-
-def _validate(staging: Path, fmt: str, sequence: str | None, frames: str | None) -> int:
-    try:
-        source = open_source(fmt, dataset_root(staging), sequence, frames)
-    except InvalidInputError as exc:
-        message = str(exc).replace(str(staging.resolve()) + "/", "").replace(str(staging), "")
-        raise InvalidInputError(f"the uploaded {fmt} run is not usable: {message}") from exc
-    n = len(source.frames)
-    if n == 0:
-        raise InvalidInputError(f"the uploaded {fmt} run has no frames to ingest")
-    return n + sum(getattr(source, "read_skips", {}).values())
-
-
 @dataclass(frozen=True)
-class _Upload:
-    map_id: int
-    format: str
-    sequence: str | None
-    frames: str | None
+class _Ingest:
+    """What an ingestion job needs besides the upload itself."""
+
     kind: str
     tags: list[str]
-    source_name: str
     train_vocabulary: bool = False
 
 
 def _store(
-    state: AppState, up: _Upload, archive: UploadFile | None, files: list[UploadFile] | None
+    state: AppState,
+    up: RunUpload,
+    ingest: _Ingest,
+    archive: UploadFile | None,
+    files: list[UploadFile] | None,
 ) -> tuple[JobRecord, RunRecord, Unpacked]:
     """Unpack, validate, then record the run and its job (blocking; runs in a thread)."""
-    with session_scope(state.sessions) as session:
-        maps_repo.get_map(session, up.map_id)
-    staging = uploads_dir(state.settings) / f"{INCOMING_PREFIX}{uuid.uuid4().hex}"
-    final: Path | None = None
-    try:
-        unpacked = _unpack(state, staging, archive, files)
-        n_frames = _validate(staging, up.format, up.sequence, up.frames)
-        with session_scope(state.sessions) as session:
-            run = runs_repo.create_run(
-                session,
-                up.map_id,
-                kind=up.kind,
-                source_format=up.format,
-                source_name=up.source_name,
-                frames_total=n_frames,
-            )
-            params = {
-                "format": up.format,
-                "sequence": up.sequence,
-                "frames": up.frames,
-                "tags": up.tags,
-                "upload": True,
-                "source_name": up.source_name,
-                "train_vocabulary": up.train_vocabulary,
-            }
-            job = jobs_repo.create_job(
-                session, "ingest", map_id=up.map_id, run_id=run.id, params=params, message="queued"
-            )
-            final = uploads_dir(state.settings) / str(job.id)
-            staging.rename(final)
-    except BaseException:
-        remove_tree(staging)
-        if final is not None:
-            remove_tree(final)  # renamed, but the transaction did not commit
-        raise
-    return job, run, unpacked
+
+    def record(session: Session, source) -> tuple[JobRecord, RunRecord]:
+        n_frames = len(source.frames) + sum(getattr(source, "read_skips", {}).values())
+        run = runs_repo.create_run(
+            session,
+            up.map_id,
+            kind=ingest.kind,
+            source_format=up.format,
+            source_name=up.source_name,
+            frames_total=n_frames,
+        )
+        params = {
+            "format": up.format,
+            "sequence": up.sequence,
+            "frames": up.frames,
+            "tags": ingest.tags,
+            "upload": True,
+            "source_name": up.source_name,
+            "train_vocabulary": ingest.train_vocabulary,
+        }
+        job = jobs_repo.create_job(
+            session, "ingest", map_id=up.map_id, run_id=run.id, params=params, message="queued"
+        )
+        return job, run
+
+    return store_upload(state, up, archive, files, record)
 
 
 @router.post(
@@ -159,20 +118,13 @@ async def upload_run(
     ] = None,
 ) -> UploadAccepted:
     """Stores the upload and queues its ingestion; follow the job at /v1/jobs/{id}."""
-    if (archive is None) == (not files):
-        raise InvalidInputError("send either 'archive' (one tar/zip) or 'files', not both")
+    check_upload_parts(archive, files)
     runs_repo.check_kind(kind, "run")
-    request = _Upload(
-        map_id,
-        format,
-        sequence,
-        frames,
-        kind,
-        normalise_tags(t for t in (tags or "").split(",") if t.strip()),
-        (archive.filename if archive is not None else "files") or "upload",
-        train_vocabulary,
+    up = RunUpload(map_id, format, sequence, frames, upload_name(archive))
+    ingest = _Ingest(
+        kind, normalise_tags(t for t in (tags or "").split(",") if t.strip()), train_vocabulary
     )
-    job, run, unpacked = await anyio.to_thread.run_sync(_store, state, request, archive, files)
+    job, run, unpacked = await anyio.to_thread.run_sync(_store, state, up, ingest, archive, files)
     state.jobs.submit(job.id)
     return UploadAccepted(
         job=convert.job_public(job),

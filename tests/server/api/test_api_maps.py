@@ -88,7 +88,8 @@ def test_calibration_defaults_put_and_delete(fresh):
         assert client.put(url, headers=w, json=body).status_code == 422
     assert client.get(url, headers=w | keys.header("admin")).json()["mu1"] == CALIBRATION["mu1"]
 
-    assert client.post(f"{url}/jobs", headers=w, json={"run_id": 1}).status_code == 501
+    # Calibration jobs take an uploaded training run (test_api_calibration_job.py).
+    assert client.post(f"{url}/jobs", headers=w, json={"run_id": 1}).status_code == 422
     assert client.delete(url, headers=w).json()["calibrated"] is False
     assert client.put("/v1/maps/77/calibration", headers=w, json=CALIBRATION).status_code == 404
 

@@ -1,0 +1,117 @@
+"""Uploaded recordings (a KITTI sequence or a TUM RGB-D run), shared by the routes that
+turn one into a job: mapping runs (``routes/runs.py``, ingestion) and training runs
+(``routes/calibration.py``, calibration).
+
+An upload is one archive (tar, tar.gz/bz2/xz, zip) or a multipart set of files whose
+names are their paths inside the run. It is unpacked into ``uploads/.incoming-<random>``
+with the archive limits, then opened and validated by the reader (422 naming the file,
+without the server's paths). Only then does the caller record its rows (a run, a job)
+in one transaction, and the directory is renamed ``uploads/<job id>``: a rejected upload
+leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from fastapi import UploadFile
+from sqlalchemy.orm import Session
+
+from client.errors import InvalidInputError
+from server.api.archives import (
+    ArchiveLimits,
+    Unpacked,
+    dataset_root,
+    remove_tree,
+    save_file_set,
+    unpack_archive,
+)
+from server.api.bootstrap import INCOMING_PREFIX, uploads_dir
+from server.api.deps import AppState
+from server.api.job_handlers import open_source
+from server.storage import maps as maps_repo
+from server.storage.db import session_scope
+from server.storage.records import JobRecord
+
+T = TypeVar("T")
+
+# What a caller records for a validated upload: (session, source) -> (its job, anything).
+RecordRows = Callable[[Session, Any], tuple[JobRecord, T]]
+
+
+@dataclass(frozen=True)
+class RunUpload:
+    """Which map, how to read the upload, and the name it is known by (never a server
+    path: the archive's file name, or ``files``)."""
+
+    map_id: int
+    format: str
+    sequence: str | None
+    frames: str | None
+    source_name: str
+
+
+def check_upload_parts(archive: UploadFile | None, files: list[UploadFile] | None) -> None:
+    """Exactly one of ``archive`` and ``files`` (InvalidInputError otherwise)."""
+    if (archive is None) == (not files):
+        raise InvalidInputError("send either 'archive' (one tar/zip) or 'files', not both")
+
+
+def upload_name(archive: UploadFile | None) -> str:
+    return (archive.filename if archive is not None else "files") or "upload"
+
+
+def unpack_upload(
+    state: AppState, staging: Path, archive: UploadFile | None, files: list[UploadFile] | None
+) -> Unpacked:
+    """Write the archive's members (or the file set) under ``staging``, with the limits."""
+    limits = ArchiveLimits(state.settings.max_archive_members, state.settings.max_archive_bytes)
+    if archive is not None:
+        return unpack_archive(archive.file, staging, limits, archive.filename or "archive")
+    assert files is not None
+    return save_file_set([(f.filename or "", f.file) for f in files], staging, limits, "upload")
+
+
+def open_uploaded_run(staging: Path, fmt: str, sequence: str | None, frames: str | None):
+    """The reader's validated view of the unpacked run (a KittiSequence or a TumRun);
+    InvalidInputError without the staging path if it is unusable or has no frames."""
+    try:
+        source = open_source(fmt, dataset_root(staging), sequence, frames)
+    except InvalidInputError as exc:
+        message = str(exc).replace(str(staging.resolve()) + "/", "").replace(str(staging), "")
+        raise InvalidInputError(f"the uploaded {fmt} run is not usable: {message}") from exc
+    if len(source.frames) == 0:
+        raise InvalidInputError(f"the uploaded {fmt} run has no frames to use")
+    return source
+
+
+def store_upload(
+    state: AppState,
+    up: RunUpload,
+    archive: UploadFile | None,
+    files: list[UploadFile] | None,
+    record: RecordRows[T],
+) -> tuple[JobRecord, T, Unpacked]:
+    """Unpack and validate the upload, let ``record`` store its rows, move the files to
+    ``uploads/<job id>``. Blocking: run it in a thread. Nothing stays on any error."""
+    with session_scope(state.sessions) as session:
+        maps_repo.get_map(session, up.map_id)
+    staging = uploads_dir(state.settings) / f"{INCOMING_PREFIX}{uuid.uuid4().hex}"
+    final: Path | None = None
+    try:
+        unpacked = unpack_upload(state, staging, archive, files)
+        source = open_uploaded_run(staging, up.format, up.sequence, up.frames)
+        with session_scope(state.sessions) as session:
+            job, extra = record(session, source)
+            final = uploads_dir(state.settings) / str(job.id)
+            staging.rename(final)
+    except BaseException:
+        remove_tree(staging)
+        if final is not None:
+            remove_tree(final)  # renamed, but the transaction did not commit
+        raise
+    return job, extra, unpacked

@@ -1,0 +1,194 @@
+"""Calibration of a map from a training run, at the edges of ``server.calibrate``: read
+the run's frames, fit the measurement model, store it (with its provenance) on the map.
+
+The HTTP job handler (``server.api.job_handlers.run_calibration``) and ``monoloc map
+calibrate`` (:func:`run_calibration_job`, recorded as a job row like the CLI's
+vocabulary job) both end in :func:`calibrate_map`. The training run is never added to
+the map: its temporary map lives in memory only. Calibrating again replaces the stored
+parameters, so an interrupted calibration is resumed by running it again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+from sqlalchemy.orm import Session, sessionmaker
+
+from client.errors import ConflictError
+from server.calibrate import CalibrationConfig, TrainingFrame, calibrate, check_run_length
+from server.storage import jobs as jobs_repo
+from server.storage import maps as maps_repo
+from server.storage.db import session_scope
+from server.storage.records import JobRecord
+
+JOB_KIND = "calibrate"
+
+
+def training_frames(source) -> Iterator[TrainingFrame]:
+    """The frames of a KittiSequence / TumRun as TrainingFrames, read one at a time."""
+    for frame in source.frames:
+        loaded = source.load(frame)
+        yield TrainingFrame(loaded.image_gray, frame.T_world_from_cam, loaded.source)
+
+
+def _map_vocabulary(session_factory: sessionmaker[Session], map_id: int):
+    from server.vision.vocabulary import Vocabulary
+
+    with session_scope(session_factory) as session:
+        record = maps_repo.get_map(session, map_id)
+        vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
+    return Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
+
+
+def calibrate_map(
+    session_factory: sessionmaker[Session],
+    map_id: int,
+    source,
+    *,
+    config: CalibrationConfig = CalibrationConfig(),
+    seed: int = 0,
+    job_id: int | None = None,
+    source_name: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Fit the measurement model on ``source`` (a KittiSequence or TumRun, read with its
+    own intrinsics) with the map's vocabulary, store it on map ``map_id`` and return the
+    stored calibration (mu1, Sigma1, mu2, Sigma2, outlier floor, source, provenance).
+
+    RANSAC draws from ``np.random.default_rng(seed)``, so a re-run gives the same model.
+    ConflictError if the map's vocabulary changed meanwhile (e_vlad statistics depend on
+    it); InvalidInputError if the run is too short or matches itself too poorly.
+    """
+    name = source_name or source.name
+    check_run_length(len(source.frames), config, name)
+    vocabulary = _map_vocabulary(session_factory, map_id)
+    result = calibrate(
+        training_frames(source),
+        source.intrinsics,
+        vocabulary,
+        config,
+        np.random.default_rng(seed),
+        progress=progress,
+        n_frames=len(source.frames),
+        source_name=name,
+    )
+    now = datetime.now(UTC).isoformat()
+    provenance = {
+        **result.provenance,
+        "format": getattr(source, "format", ""),
+        "intrinsics": dataclasses.asdict(source.intrinsics),
+        "seed": seed,
+        "job_id": job_id,
+        "created_at": now,
+    }
+    calibration = {**result.model.to_dict(), "provenance": provenance, "updated_at": now}
+    with session_scope(session_factory) as session:
+        record = maps_repo.get_map(session, map_id)
+        if record.vocabulary_hash != vocabulary.version:
+            raise ConflictError(
+                f"map {map_id} switched from vocabulary {vocabulary.version} to "
+                f"{record.vocabulary_hash} during calibration; calibrate again"
+            )
+        return maps_repo.set_calibration(session, map_id, calibration).calibration
+
+
+def describe_calibration(calibration: dict[str, Any]) -> list[str]:
+    """Human-readable lines: biases and standard deviations in cm and deg, provenance."""
+    mu1, mu2 = np.asarray(calibration["mu1"]), np.asarray(calibration["mu2"])
+    std1 = np.sqrt(np.diag(np.asarray(calibration["Sigma1"])))
+    std2 = np.sqrt(np.diag(np.asarray(calibration["Sigma2"])))
+    deg = math.degrees
+    lines = [
+        "pose error e = truth - hypothesis:",
+        f"  mu1    X {100 * mu1[0]:+.1f} cm, Y {100 * mu1[1]:+.1f} cm, psi {deg(mu1[2]):+.2f} deg",
+        f"  std1   X {100 * std1[0]:.1f} cm, Y {100 * std1[1]:.1f} cm, psi {deg(std1[2]):.2f} deg",
+        "retrieval vector [e_vlad, X_i - X, Y_i - Y, psi_i - psi]:",
+        f"  mu2    e_vlad {mu2[0]:.3f}, X {mu2[1]:+.2f} m, Y {mu2[2]:+.2f} m, "
+        f"psi {deg(mu2[3]):+.2f} deg",
+        f"  std2   e_vlad {std2[0]:.3f}, X {std2[1]:.2f} m, Y {std2[2]:.2f} m, "
+        f"psi {deg(std2[3]):.2f} deg",
+        f"outlier log density: {calibration.get('outlier_log_density')}",
+        "provenance:",
+    ]
+    for key, value in (calibration.get("provenance") or {}).items():
+        lines.append(f"  {key}: {value}")
+    return lines
+
+
+def _update(factory, job_id: int, **fields) -> JobRecord:
+    with session_scope(factory) as session:
+        return jobs_repo.update_job(session, job_id, **fields)
+
+
+def run_calibration_job(
+    session_factory: sessionmaker[Session],
+    map_ref: str | int,
+    source,
+    *,
+    params: dict[str, Any] | None = None,
+    config: CalibrationConfig = CalibrationConfig(),
+    seed: int = 0,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[JobRecord, dict[str, Any]]:
+    """:func:`calibrate_map` recorded as a job (state, progress, error, result) for the
+    CLI. ``params`` describe the run for the job row (format, path, frames, ...)."""
+    from server.ingest.manage import find_map
+
+    record = find_map(session_factory, map_ref)
+    job_params = {
+        **(params or {}),
+        "source_name": source.name,
+        "k": config.k,
+        "seed": seed,
+        "upload": False,
+    }
+    with session_scope(session_factory) as session:
+        job = jobs_repo.create_job(
+            session, JOB_KIND, map_id=record.id, params=job_params, message="queued"
+        )
+    _update(session_factory, job.id, state="running", message="calibrating")
+    last = [0.0]
+
+    def report(done: int, total: int) -> None:
+        if progress is not None:
+            progress(done, total)
+        now = time.monotonic()
+        if now - last[0] > 0.5 or done == total:
+            last[0] = now
+            _update(
+                session_factory,
+                job.id,
+                progress=done / max(total, 1),
+                message=f"frame {done} of {total}",
+            )
+
+    try:
+        calibration = calibrate_map(
+            session_factory,
+            record.id,
+            source,
+            config=config,
+            seed=seed,
+            job_id=job.id,
+            progress=report,
+        )
+    except BaseException as exc:
+        state = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        _update(session_factory, job.id, state=state, error=str(exc) or type(exc).__name__)
+        raise
+    job = _update(
+        session_factory, job.id, state="done", message="done", result=job_result(calibration)
+    )
+    return job, calibration
+
+
+def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
+    """What a calibration job records as its result: the model and its provenance."""
+    keys = ("mu1", "Sigma1", "mu2", "Sigma2", "outlier_log_density", "provenance")
+    return {key: calibration.get(key) for key in keys}

@@ -1,0 +1,199 @@
+"""Calibration of the measurement model (METHOD.md section 7) on tiny sim `train` runs
+at full KITTI resolution (30 frames: a temporary map of 15 entries, 15 queries).
+
+- With the sim's realistic recording errors: finite, positive-definite covariances and
+  sane position errors.
+- With exact geometry (every recording error off, no LiDAR range noise) and the nearest
+  entries only: a small Sigma1; and a constant offset planted in the truth of the query
+  frames (+0.5 m in X, +0.02 rad in heading) comes out in mu1 with its sign, which pins
+  the convention e = truth - hypothesis.
+- ``monoloc map calibrate`` on a local database: progress, parameters in cm/deg,
+  provenance, a job row; a too-short run fails with one clear message and a failed job.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from client.errors import InvalidInputError
+from server.calibrate import CalibrationConfig, TrainingFrame, calibrate
+
+N_FRAMES = 30
+OFFSET_X_M = 0.5
+OFFSET_YAW_RAD = 0.02
+
+
+def _generate(root: Path, exact: bool) -> Path:
+    from sim.generate import GenerateConfig, generate_dataset
+    from sim.lidar import LidarConfig
+    from sim.recording import RecordingErrors
+
+    config = GenerateConfig(
+        size="small",
+        runs=("train",),
+        max_frames=N_FRAMES,
+        lidar=LidarConfig(azimuth_steps=1000, range_noise_m=0.0 if exact else 0.02),
+        errors=RecordingErrors.none() if exact else RecordingErrors(),
+        seed=0,
+    )
+    generate_dataset(config, root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def noisy_run(tmp_path_factory) -> Path:
+    return _generate(tmp_path_factory.mktemp("train_noisy"), exact=False)
+
+
+@pytest.fixture(scope="module")
+def exact_run(tmp_path_factory) -> Path:
+    return _generate(tmp_path_factory.mktemp("train_exact"), exact=True)
+
+
+def _frames(root: Path, offset_x_m: float = 0.0, offset_yaw_rad: float = 0.0) -> list:
+    """TrainingFrames of sequence 00; the query frames' (odd frames') truth is moved by
+    +offset_x_m along world X and turned by +offset_yaw_rad about world z."""
+    from server.ingest.kitti import read_kitti_sequence
+
+    source = read_kitti_sequence(root)
+    c, s = math.cos(offset_yaw_rad), math.sin(offset_yaw_rad)
+    R_turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    frames = []
+    for i, frame in enumerate(source.frames):
+        loaded = source.load(frame)
+        T = np.array(frame.T_world_from_cam, dtype=np.float64)
+        if i % 2 == 1:
+            T[:3, :3] = R_turn @ T[:3, :3]
+            T[0, 3] += offset_x_m
+        frames.append(TrainingFrame(loaded.image_gray, T, loaded.source))
+    return frames
+
+
+def _calibrate(root: Path, config: CalibrationConfig, progress=None, **offsets):
+    from server.ingest.kitti import read_kitti_sequence
+    from server.vision.vocabulary import load_default_vocabulary
+
+    intrinsics = read_kitti_sequence(root).intrinsics
+    return calibrate(
+        _frames(root, **offsets),
+        intrinsics,
+        load_default_vocabulary(),
+        config,
+        np.random.default_rng(0),
+        progress=progress,
+        source_name="sim train",
+    )
+
+
+def _position_std_m(Sigma: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.diag(Sigma)[:2])
+
+
+def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
+    calls = []
+    result = _calibrate(noisy_run, CalibrationConfig(), progress=lambda d, t: calls.append((d, t)))
+    model, prov = result.model, result.provenance
+    for cov in (model.Sigma1, model.Sigma2):
+        assert np.all(np.isfinite(cov)) and np.allclose(cov, cov.T)
+        assert np.linalg.eigvalsh(cov).min() > 0.0
+    std_m = _position_std_m(model.Sigma1)
+    assert np.all((std_m > 0.01) & (std_m < 1.0)), std_m
+    assert math.degrees(math.sqrt(model.Sigma1[2, 2])) < 5.0
+    assert np.hypot(*model.mu1[:2]) < 0.2, model.mu1
+    assert 0.0 < model.mu2[0] < 2.0  # e_vlad: a distance between unit vectors
+    assert prov["frames"] == N_FRAMES and prov["query_frames"] == N_FRAMES // 2
+    assert prov["map_frames"] + prov["map_frames_skipped"] == N_FRAMES // 2
+    assert prov["used"] == prov["hypotheses"] - prov["gated_outliers"] >= 10
+    assert prov["k"] == 10 and prov["source"] == "sim train" and "unbiased" in prov["covariance"]
+    done = [d for d, _ in calls]
+    assert done == sorted(done) and calls[-1][0] == calls[-1][1] == N_FRAMES + N_FRAMES // 2
+
+
+def test_exact_geometry_gives_a_small_sigma1(exact_run):
+    model = _calibrate(exact_run, CalibrationConfig(k=3)).model
+    assert np.all(_position_std_m(model.Sigma1) < 0.05), model.Sigma1
+    assert np.hypot(*model.mu1[:2]) < 0.02 and abs(model.mu1[2]) < math.radians(0.1)
+
+
+def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
+    """e = truth - hypothesis: truth moved by +0.5 m in X -> mu1_x = +0.5, and so on."""
+    config = CalibrationConfig(k=3)
+    planted = _calibrate(exact_run, config, offset_x_m=OFFSET_X_M, offset_yaw_rad=OFFSET_YAW_RAD)
+    mu1 = planted.model.mu1
+    assert mu1[0] == pytest.approx(OFFSET_X_M, abs=0.02), mu1
+    assert abs(mu1[1]) < 0.02, mu1
+    assert mu1[2] == pytest.approx(OFFSET_YAW_RAD, abs=0.002), mu1
+    assert np.all(_position_std_m(planted.model.Sigma1) < 0.05)
+    # The paper's second moment about zero keeps the planted bias inside Sigma1.
+    paper = _calibrate(
+        exact_run,
+        CalibrationConfig(k=3, unbiased=False),
+        offset_x_m=OFFSET_X_M,
+        offset_yaw_rad=OFFSET_YAW_RAD,
+    ).model
+    n, floor = planted.provenance["used"], 0.01**2
+    expected = (planted.model.Sigma1[0, 0] - floor) * (n - 1) / n + mu1[0] ** 2 + floor
+    assert paper.Sigma1[0, 0] == pytest.approx(expected, rel=1e-6)
+    assert np.allclose(paper.mu1, mu1)
+
+
+def test_too_short_a_run_is_refused(noisy_run):
+    from server.ingest.kitti import read_kitti_sequence
+    from server.vision.vocabulary import load_default_vocabulary
+
+    with pytest.raises(InvalidInputError, match="at least 10 map frames .* got 6 map frames"):
+        calibrate(
+            _frames(noisy_run)[:12],
+            read_kitti_sequence(noisy_run).intrinsics,
+            load_default_vocabulary(),
+            CalibrationConfig(),
+            np.random.default_rng(0),
+        )
+    with pytest.raises(InvalidInputError):
+        CalibrationConfig(k=0)
+    assert CalibrationConfig(k=10).min_frames == 20
+
+
+def test_map_calibrate_cli(noisy_run, tmp_path):
+    from typer.testing import CliRunner
+
+    from monoloc import cli
+    from server.settings import Settings
+    from server.storage import jobs as jobs_repo
+    from server.storage import maps as maps_repo
+    from server.storage.db import create_engine_for, make_session_factory, session_scope
+
+    cli._register()
+    env = {"MONOLOC_DATA_DIR": str(tmp_path / "data")}
+    runner = CliRunner()
+    result = runner.invoke(cli.app, ["map", "create", "street", "--camera", "kitti"], env=env)
+    assert result.exit_code == 0, result.output
+    args = ["map", "calibrate", "--map", "street", "--run", str(noisy_run), "--format", "kitti"]
+    result = runner.invoke(cli.app, args, env=env, catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    out = result.output
+    assert "job 1 done: map 1 calibrated" in out
+    assert "std1   X" in out and " cm" in out and " deg" in out
+    assert "used:" in out and "gated_outliers:" in out and "vocabulary_hash:" in out
+
+    short = runner.invoke(cli.app, [*args, "--frames", "0:10"], env=env)
+    assert isinstance(short.exception, InvalidInputError)
+    assert "too short to calibrate: 10 frames" in str(short.exception)
+
+    engine = create_engine_for(Settings(data_dir=tmp_path / "data"))
+    with session_scope(make_session_factory(engine)) as session:
+        record = maps_repo.find_map(session, "street")
+        jobs = {j.id: j for j in jobs_repo.list_jobs(session, map_id=record.id)}
+    engine.dispose()
+    assert record.n_entries == 0  # the training run is not part of the map
+    calibration = record.calibration
+    assert calibration["provenance"]["job_id"] == 1 and calibration["source"] == "calibrated"
+    assert calibration["provenance"]["vocabulary_hash"] == record.vocabulary_hash
+    assert f"{100 * calibration['mu1'][0]:+.1f} cm" in out
+    assert jobs[1].kind == "calibrate" and jobs[1].state == "done"
+    assert jobs[1].result["provenance"] == calibration["provenance"]
+    assert jobs[2].state == "failed" and "too short" in jobs[2].error
