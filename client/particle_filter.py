@@ -35,6 +35,9 @@ class FilterConfig:
     # current hypotheses. Unlikely frames still update: the measurement model's outlier
     # floor keeps one wrong frame from moving the particles.
     lost_mahalanobis_sq: float = 25.0
+    # The reported pose is the main mode: particles within this radius of the weighted
+    # median position (the covariance, used for the retrieval prior, covers all of them).
+    mode_radius_m: float = 3.0
     lost_after_frames: int = 3
     # Roughening after resampling: Gaussian jitter (m, m, rad) so that a cloud that
     # collapsed onto a few particles can still move to where the measurements are.
@@ -66,6 +69,28 @@ def weighted_estimate(particles: np.ndarray, weights: np.ndarray) -> tuple[np.nd
     residuals[:, 2] = wrap_angle(residuals[:, 2])
     cov = (residuals * weights[:, None]).T @ residuals
     return mean, cov
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    order = np.argsort(values)
+    cumulative = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+
+
+def mode_estimate(particles: np.ndarray, weights: np.ndarray, radius_m: float) -> np.ndarray:
+    """Pose (3,) of the main mode: the weighted mean of the particles within ``radius_m``
+    of the weighted median position. With one mode this is the weighted mean; when a few
+    particles still sit on wrong hypotheses (right after initialisation) it ignores them
+    instead of averaging across tens of metres."""
+    centre = np.array(
+        [_weighted_median(particles[:, 0], weights), _weighted_median(particles[:, 1], weights)]
+    )
+    near = np.hypot(particles[:, 0] - centre[0], particles[:, 1] - centre[1]) <= radius_m
+    if weights[near].sum() <= 0.0:
+        near = np.ones(len(particles), dtype=bool)
+    w = weights[near] / weights[near].sum()
+    mean, _ = weighted_estimate(particles[near], w)
+    return mean
 
 
 def sample_around(
@@ -117,6 +142,9 @@ class ParticleFilter:
             raise InvalidInputError("cannot initialise from an empty set of hypotheses")
         centres = hypotheses.pose_world + self.model.mu1
         self.initialise(centres, self.config.init_position_std_m, self.config.init_yaw_std_rad)
+        # Weigh the seeded particles by the same frame: where several hypotheses agree the
+        # mixture is denser, so a lone wrong hypothesis loses its share at once.
+        self.update(hypotheses)
 
     def predict(self, dt_s: float, speed_mps: float, yaw_rate_radps: float) -> None:
         if self.particles is None:
@@ -179,9 +207,9 @@ class ParticleFilter:
         if self.particles is None:
             raise InvalidInputError("the filter is not initialised")
         weights = normalise_log_weights(self.log_weights)
-        mean, cov = weighted_estimate(self.particles, weights)
+        _, cov = weighted_estimate(self.particles, weights)
         return FilterEstimate(
-            pose_world=mean,
+            pose_world=mode_estimate(self.particles, weights, self.config.mode_radius_m),
             covariance=cov,
             effective_sample_size=effective_sample_size(weights),
             n_hypotheses=n_hypotheses,

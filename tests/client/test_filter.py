@@ -184,3 +184,16 @@ def test_lever_arm_camera_circles_on_the_larger_radius():
         particles = predict(particles, 10.0, 0.2, dt, cfg, rng)
         assert abs(np.linalg.norm(particles[0, :2] - centre) - radius) < 0.05
     assert np.allclose(particles[0, :2], [-1.0, 100.0], atol=0.1)
+
+
+def test_first_estimate_ignores_a_lone_wrong_hypothesis():
+    rng = np.random.default_rng(8)
+    truth = np.array([10.0, 5.0, 0.3])
+    good = truth + rng.normal(scale=[0.05, 0.05, 0.005], size=(6, 3))
+    wrong = np.array([[60.0, -20.0, 0.3]])
+    poses = np.vstack([good, wrong])
+    hyps = Hypotheses(poses, poses + [1.0, 0.0, 0.0], np.full(7, 0.9))
+    pf = ParticleFilter(FilterConfig(n_particles=700), MeasurementModel(), rng)
+    est = pf.step(0.1, 0.0, 0.0, hyps)
+    # A plain weighted mean would sit ~7 m away (1/7 of the particles at 54 m).
+    assert np.linalg.norm(est.pose_world[:2] - truth[:2]) < 0.3
