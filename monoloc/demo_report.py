@@ -13,8 +13,8 @@ PAPER_RMSE_M = 0.313
 
 
 def summary_table(results: dict[str, DriveResult]) -> Table:
-    table = Table(title="monoloc demo (sim city)  vs  the paper on KITTI 00")
-    table.add_column("")
+    table = Table(title="monoloc demo (sim city) vs the paper (KITTI 00)")
+    table.add_column("", no_wrap=True)
     for name in results:
         table.add_column(name, justify="right")
     table.add_column("paper", justify="right", style="dim")
@@ -31,23 +31,25 @@ def summary_table(results: dict[str, DriveResult]) -> Table:
         return get
 
     row("frames", lambda r: str(len(r.estimates_world)))
-    row("frames with an estimate", metric("coverage", ".0%"))
-    row("position RMSE (m)", metric("position_rmse_m", ".3f"), f"{PAPER_RMSE_M}")
-    row("position median (m)", metric("position_median_m", ".3f"))
-    row("heading RMSE (deg)", metric("heading_rmse_deg", ".2f"))
-    row("within 0.25 m / 2 deg", metric("within_0_25m_2deg", ".1%"))
-    row("within 0.5 m / 5 deg", metric("within_0_5m_5deg", ".1%"))
-    row("frames with hypotheses", lambda r: f"{np.mean(r.n_hypotheses > 0):.0%}")
-    stages = sorted({k for r in results.values() for t in r.server_timings_ms for k in t})
+    row("with estimate", metric("coverage", ".0%"))
+    row("RMSE (m)", metric("position_rmse_m", ".3f"), f"{PAPER_RMSE_M}")
+    row("median (m)", metric("position_median_m", ".3f"))
+    row("heading RMSE (°)", metric("heading_rmse_deg", ".2f"))
+    row("< 0.25 m & 2°", metric("within_0_25m_2deg", ".1%"))
+    row("< 0.5 m & 5°", metric("within_0_5m_5deg", ".1%"))
+    row("with hypotheses", lambda r: f"{np.mean(r.n_hypotheses > 0):.0%}")
+    order = ["decode", "features", "vlad", "retrieval", "lookup", "matching", "pnp", "total"]
+    seen = {k for r in results.values() for t in r.server_timings_ms for k in t}
+    stages = [s for s in order if s in seen] + sorted(seen - set(order))
     for stage in stages:
 
         def pct(r, stage=stage):
             v = [t[stage] for t in r.server_timings_ms if stage in t]
             return f"{np.percentile(v, 50):.1f} / {np.percentile(v, 99):.1f}" if v else "-"
 
-        row(f"server {stage} p50 / p99 (ms)", pct)
-    row("round trip p50 (ms)", lambda r: f"{np.nanpercentile(r.latency_ms, 50):.1f}")
-    row("frames per second", lambda r: f"{r.frames_per_s:.1f}", "~10 (i7 laptop)")
+        row(f"{stage} ms p50/p99", pct)
+    row("round trip ms p50", lambda r: f"{np.nanpercentile(r.latency_ms, 50):.1f}")
+    row("frames / s", lambda r: f"{r.frames_per_s:.1f}", "~10 (i7)")
     return table
 
 

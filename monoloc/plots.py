@@ -58,7 +58,7 @@ def plot_errors(path: Path, runs: dict[str, tuple[np.ndarray, np.ndarray, np.nda
 def plot_retrieval(path: Path, query: np.ndarray, retrieved: list[tuple[str, np.ndarray]]):
     """A query frame above its top retrieved map images (grayscale arrays)."""
     n = 1 + len(retrieved)
-    plt, fig, axes = _figure(n, 1, figsize=(10, 1.9 * n))
+    plt, fig, axes = _figure(n, 1, figsize=(7, 1.25 * n))
     axes = np.atleast_1d(axes)
     axes[0].imshow(query, cmap="gray", vmin=0, vmax=255)
     axes[0].set_title("query frame", fontsize=9)
