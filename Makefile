@@ -27,13 +27,14 @@ demo: install
 
 # Benchmarks: slow test suites, then every bench script (each prints its figures beside a
 # baseline and writes bench/results/*.json), then bench/REPORT.md from those results.
-BENCHES := vision filter sim ingest localize retrieval speed accuracy accuracy_indoor
+BENCHES := vision filter sim ingest localize retrieval speed accuracy
 
 bench: install
 	$(PY) -m pytest -q -m slow
 	@for b in $(BENCHES); do \
 	  if [ -f bench/$$b.py ]; then echo "== bench/$$b.py"; $(PY) -P bench/$$b.py || exit 1; fi; \
 	done
+	$(PY) -P bench/accuracy.py --scenario indoor --size small
 	$(PY) -P bench/report.py
 
 clean:

@@ -152,6 +152,12 @@ class MapRegistry:
                     index.add(batch.entry_ids, batch.codes, batch.vlads, batch.planar)
                 save_index(path, index, record.version)
         cache = EntryCache(self._lookup, self._cache_entries)
+        # Warm the entry cache when the whole map fits: a query then reads no database rows
+        # (a cold lookup of ten entries costs ~2 ms of a ~25 ms query).
+        ids = index.entry_ids()
+        if len(ids) <= self._cache_entries:
+            for start in range(0, len(ids), 512):
+                cache.get(ids[start : start + 512].tolist())
         return MapRuntime(record, vocabulary, index, cache, record.version, time.monotonic())
 
     def get(self, map_id: int) -> MapRuntime:
