@@ -17,7 +17,7 @@ def drive(
     sequence: str | None = typer.Option(None, help="sequence NN under a KITTI dataset root"),
     frames: str | None = typer.Option(None, help="frame range A:B (python slice semantics)"),
     realtime: bool = typer.Option(False, help="send frames at their recorded times"),
-    no_prior: bool = typer.Option(False, help="always search the whole map"),
+    no_prior: bool = typer.Option(False, "--no-prior", help="always search the whole map"),
     particles: int = typer.Option(1000, help="number of particles"),
     k: int | None = typer.Option(None, help="retrieved entries per frame (server default 10)"),
     seed: int = typer.Option(0, help="seed of the filter's random generator"),
@@ -60,6 +60,8 @@ def drive(
                 config,
                 progress=lambda i, n: bar.update(task, completed=i),
             )
+    for note in result.notes[len(run.notes) :]:
+        console.print(f"[yellow]note:[/] {note}")
     tum, kitti = write_outputs(result, out)
     Console().print(metrics_table(result))
     console.print(f"trajectories: {tum}, {kitti}")

@@ -4,7 +4,9 @@ For each frame: predict the particles with the measured speed and yaw rate, send
 frame with the filter's prior (a disc around the predicted pose whose radius grows with
 the filter's uncertainty; no prior while uninitialised or lost), then update with the
 server's hypotheses. In real-time mode frames are sent at their recorded times and the
-server may drop stale ones; a dropped frame is a prediction-only step.
+server may drop stale ones; a dropped frame, like a frame the server answered with an
+error, is a prediction-only step. Every frame gets exactly one answer, in order; an
+answer out of order is an error (the stream guarantees the order).
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from client.api import FrameStream, LocalizeAnswer, MonolocClient, Prior
+from client.api import FrameStream, LocalizeAnswer, MonolocClient, Prior, ServerError
+from client.errors import InvalidInputError
 from client.measurement import Hypotheses, MeasurementModel
 from client.particle_filter import FilterConfig, ParticleFilter
 from client.replay import ReplayRun
@@ -60,6 +63,10 @@ class DriveResult:
     wall_s: float
     metrics: TrajectoryMetrics | None = None
     notes: list[str] = field(default_factory=list)
+    # Frames the server answered with an error: frame index -> "code: message".
+    errors: dict[int, str] = field(default_factory=dict)
+    # When each frame was sent, in seconds after the drive started (N,).
+    sent_at_s: np.ndarray | None = None
 
     @property
     def frames_per_s(self) -> float:
@@ -84,6 +91,17 @@ def prior_from_filter(pf: ParticleFilter, config: PriorConfig) -> Prior | None:
     )
 
 
+def _answer_seq(answer: dict, expected: int) -> int:
+    """The frame an answer belongs to; the stream answers in order, so it must be
+    ``expected``."""
+    seq = answer.get("seq")
+    if seq != expected:
+        raise ServerError(
+            f"the stream answered frame {seq} when frame {expected} was due: {str(answer)[:200]}"
+        )
+    return expected
+
+
 def _best_pose(answer: dict) -> np.ndarray:
     hyps = answer.get("hypotheses") or []
     if not hyps:
@@ -102,6 +120,8 @@ def drive(
 ) -> DriveResult:
     """Replay ``run`` over the WebSocket stream and return the filtered trajectory."""
     n = len(run)
+    if n == 0:
+        raise InvalidInputError(f"{run.name}: no frames to replay (check the frame range)")
     filter_config = config.filter
     if run.lever_arm_m is not None and config.filter.motion.lever_arm_m == 0.0:
         motion = replace(config.filter.motion, lever_arm_m=run.lever_arm_m)
@@ -113,8 +133,10 @@ def drive(
     latency = np.full(n, np.nan)
     best = np.full((n, 3), np.nan)
     timings: list[dict[str, float]] = [{} for _ in range(n)]
+    errors: dict[int, str] = {}
     lock = threading.Lock()
-    sent_at = np.zeros(n)
+    sent_at = np.full(n, np.nan)
+    last_done = [-1]  # the last frame the filter has processed
     start = time.perf_counter()
 
     def step_filter(i: int, hyps: Hypotheses) -> None:
@@ -129,12 +151,20 @@ def drive(
             pf.update(hyps)
         if pf.initialised:
             estimates[i] = pf.estimate().pose_world
+        last_done[0] = i
 
     def handle(i: int, answer: dict) -> None:
-        latency[i] = (time.perf_counter() - sent_at[i]) * 1e3
+        latency[i] = (time.perf_counter() - start - sent_at[i]) * 1e3
+        hyps = Hypotheses.empty()
         if answer.get("dropped"):
             dropped[i] = True
-            hyps = Hypotheses.empty()
+        elif "error" in answer:
+            err = answer["error"]
+            errors[i] = (
+                f"{err.get('code', 'error')}: {err.get('message', '')}"
+                if isinstance(err, dict)
+                else str(err)
+            )
         else:
             parsed = LocalizeAnswer.from_json(answer)
             hyps = parsed.hypotheses
@@ -146,52 +176,86 @@ def drive(
         if progress:
             progress(i + 1, n)
 
-    def current_prior() -> Prior | None:
+    def prior_for(i: int) -> Prior | None:
+        """The prior of frame i: the filter's estimate moved to frame i's time."""
         if not config.use_prior:
             return None
         with lock:
-            return prior_from_filter(pf, config.prior)
+            return _predicted_prior(pf, run, i, config.prior, last_done[0])
 
     with client.stream(map_id) as stream:
         if config.realtime:
-            _drive_realtime(stream, run, sent_at, current_prior, handle, config.k)
+            _drive_realtime(stream, run, sent_at, start, prior_for, handle, config.k)
         else:
             for i, path in enumerate(run.image_paths):
-                prior = None
-                if config.use_prior and pf.initialised and not pf.lost:
-                    # Predict to this frame's time for the prior; the filter step
-                    # re-predicts from the last update, so use a copy.
-                    prior = _predicted_prior(pf, run, i, config.prior)
-                sent_at[i] = time.perf_counter()
-                stream.send(i, float(run.timestamps_s[i]), path.read_bytes(), prior, config.k)
+                image = path.read_bytes()
+                prior = prior_for(i)
+                sent_at[i] = time.perf_counter() - start
+                stream.send(i, float(run.timestamps_s[i]), image, prior, config.k)
                 answer = stream.receive()
-                handle(int(answer.get("seq", i)), answer)
+                handle(_answer_seq(answer, i), answer)
     wall = time.perf_counter() - start
     metrics = None
     if run.truth_world is not None:
         metrics = trajectory_metrics(estimates, run.truth_world)
+    notes = list(run.notes)
+    if errors:
+        first = min(errors)
+        notes.append(
+            f"the server answered {len(errors)} frame(s) with an error (prediction only), "
+            f"first frame {first}: {errors[first]}"
+        )
     return DriveResult(
-        run, estimates, n_hyps, dropped, latency, timings, best, wall, metrics, list(run.notes)
+        run,
+        estimates,
+        n_hyps,
+        dropped,
+        latency,
+        timings,
+        best,
+        wall,
+        metrics,
+        notes,
+        errors,
+        sent_at,
     )
 
 
-def _predicted_prior(pf: ParticleFilter, run: ReplayRun, i: int, config: PriorConfig):
+def _predicted_prior(
+    pf: ParticleFilter, run: ReplayRun, i: int, config: PriorConfig, last: int | None = None
+) -> Prior | None:
+    """The filter's prior after frame ``last`` (default i - 1), dead-reckoned with the
+    measured signals to frame i's time (the filter itself is not touched)."""
     prior = prior_from_filter(pf, config)
-    if prior is None or i == 0:
+    last = i - 1 if last is None else last
+    if prior is None or last < 0 or last >= i:
         return prior
-    dt = float(run.timestamps_s[i] - run.timestamps_s[i - 1])
-    speed, yaw_rate = run.signals[i - 1]
+    x, y = prior.x_m, prior.y_m
     yaw = prior.yaw_rad if prior.yaw_rad is not None else 0.0
+    for j in range(last, i):
+        dt = float(run.timestamps_s[j + 1] - run.timestamps_s[j])
+        speed, yaw_rate = (float(v) for v in run.signals[j])
+        x += speed * math.cos(yaw) * dt
+        y += speed * math.sin(yaw) * dt
+        yaw += yaw_rate * dt
     return Prior(
-        x_m=prior.x_m + float(speed) * math.cos(yaw) * dt,
-        y_m=prior.y_m + float(speed) * math.sin(yaw) * dt,
+        x_m=x,
+        y_m=y,
         radius_m=prior.radius_m,
-        yaw_rad=yaw + float(yaw_rate) * dt,
+        yaw_rad=math.atan2(math.sin(yaw), math.cos(yaw)),
         yaw_tolerance_rad=prior.yaw_tolerance_rad,
     )
 
 
-def _drive_realtime(stream: FrameStream, run, sent_at, current_prior, handle, k) -> None:
+def _drive_realtime(
+    stream: FrameStream,
+    run: ReplayRun,
+    sent_at: np.ndarray,
+    start: float,
+    prior_for: Callable[[int], Prior | None],
+    handle: Callable[[int, dict], None],
+    k: int | None,
+) -> None:
     """Send at recorded times from a thread; handle answers in order on this one."""
     n = len(run)
     errors: list[BaseException] = []
@@ -200,21 +264,27 @@ def _drive_realtime(stream: FrameStream, run, sent_at, current_prior, handle, k)
         t0 = time.perf_counter()
         try:
             for i, path in enumerate(run.image_paths):
+                image = path.read_bytes()
                 due = float(run.timestamps_s[i] - run.timestamps_s[0])
                 delay = due - (time.perf_counter() - t0)
                 if delay > 0:
                     time.sleep(delay)
-                sent_at[i] = time.perf_counter()
-                stream.send(i, float(run.timestamps_s[i]), path.read_bytes(), current_prior(), k)
+                prior = prior_for(i)
+                sent_at[i] = time.perf_counter() - start
+                stream.send(i, float(run.timestamps_s[i]), image, prior, k)
         except BaseException as exc:  # noqa: BLE001 - re-raised on the main thread
             errors.append(exc)
 
     thread = threading.Thread(target=sender, daemon=True)
     thread.start()
-    for _ in range(n):
-        answer = stream.receive()
-        handle(int(answer["seq"]), answer)
-    thread.join()
+    try:
+        for i in range(n):
+            if errors:
+                break
+            answer = stream.receive()
+            handle(_answer_seq(answer, i), answer)
+    finally:
+        thread.join(timeout=5.0)
     if errors:
         raise errors[0]
 

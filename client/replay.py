@@ -50,15 +50,20 @@ class ReplayRun:
         return len(self.image_paths)
 
     def select(self, frames: slice) -> ReplayRun:
+        """The frames ``frames`` selects (python slice semantics), e.g. the test part."""
         idx = range(len(self))[frames]
         truth = None if self.truth_world is None else self.truth_world[frames]
+        notes = list(self.notes)
+        if len(idx) != len(self):
+            first = f"{idx[0]}..{idx[-1]}" if len(idx) else "none"
+            notes.append(f"frames {first} of {len(self)} selected ({len(idx)} frames)")
         return ReplayRun(
             self.name,
             [self.image_paths[i] for i in idx],
             self.timestamps_s[frames],
             self.signals[frames],
             truth,
-            self.notes,
+            notes,
             self.lever_arm_m,
         )
 
@@ -110,11 +115,31 @@ def signals_from_truth(
     return signals
 
 
-def _vehicle_signals(path: Path, n: int) -> np.ndarray:
+def _vehicle_signals(path: Path, timestamps_s: np.ndarray) -> np.ndarray:
+    """(speed_mps, yaw_rate_radps) (N, 2) from ``t speed yaw_rate`` lines, one per frame,
+    whose times match the frames' (within a quarter of the frame period)."""
     table = _load_table(path, 3)
+    n = len(timestamps_s)
     if len(table) != n:
         raise InvalidInputError(f"{path}: {len(table)} lines for {n} frames")
+    period = float(np.median(np.diff(timestamps_s))) if n > 1 else 0.0
+    tolerance = max(0.25 * period, 1e-3)
+    off = np.abs(table[:, 0] - timestamps_s)
+    if n and off.max() > tolerance:
+        row = int(np.flatnonzero(off > tolerance)[0])
+        raise InvalidInputError(
+            f"{path}: data row {row + 1} has time {table[row, 0]:.6f} s but frame {row} is "
+            f"at {timestamps_s[row]:.6f} s"
+        )
     return table[:, 1:3]
+
+
+def _check_images_exist(paths: list[Path], listing: Path) -> None:
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise NotFoundError(
+            f"{listing}: {len(missing)} image(s) listed but missing, first {missing[0]}"
+        )
 
 
 def read_kitti_run(
@@ -147,7 +172,7 @@ def read_kitti_run(
     notes = []
     vehicle = seq_dir / "vehicle.txt"
     if vehicle.exists():
-        signals = _vehicle_signals(vehicle, len(images))
+        signals = _vehicle_signals(vehicle, times)
     elif truth is not None:
         signals = signals_from_truth(times, truth, noise)
         notes.append(
@@ -172,13 +197,21 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
         parts = line.split()
         if len(parts) < 2:
             raise InvalidInputError(f"{rgb_path}:{line_no}: expected 'timestamp filename'")
-        times.append(float(parts[0]))
+        try:
+            times.append(float(parts[0]))
+        except ValueError as exc:
+            raise InvalidInputError(f"{rgb_path}:{line_no}: not a timestamp: {parts[0]!r}") from exc
         images.append(root / parts[1])
+    if not images:
+        raise InvalidInputError(f"{rgb_path} lists no frames")
+    _check_images_exist(images, rgb_path)
     times_arr = np.array(times)
     truth = None
     gt_path = root / "groundtruth.txt"
     if gt_path.exists():
         gt = _load_table(gt_path, 8)
+        if len(gt) == 0:
+            raise InvalidInputError(f"{gt_path} holds no poses")
         idx = np.clip(np.searchsorted(gt[:, 0], times_arr), 1, len(gt) - 1)
         nearest = np.where(
             np.abs(gt[idx - 1, 0] - times_arr) <= np.abs(gt[idx, 0] - times_arr), idx - 1, idx
@@ -193,7 +226,7 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
     vehicle = root / "vehicle.txt"
     if not vehicle.exists():
         raise NotFoundError(f"{vehicle} does not exist")
-    signals = _vehicle_signals(vehicle, len(images))
+    signals = _vehicle_signals(vehicle, times_arr)
     return ReplayRun(f"tum:{root.name}", images, times_arr, signals, truth, [])
 
 

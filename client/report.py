@@ -22,6 +22,7 @@ def summary_rows(result) -> list[tuple[str, str]]:
     rows += [
         ("frames with hypotheses", f"{100 * np.mean(result.n_hypotheses > 0):.1f} %"),
         ("dropped by the server", str(int(result.dropped.sum()))),
+        ("server errors", str(len(result.errors))),
         (
             "round trip p50 / p99",
             f"{np.percentile(lat, 50):.1f} / {np.percentile(lat, 99):.1f} ms" if len(lat) else "-",

@@ -4,6 +4,13 @@ image -> blur + ORB -> VLAD -> k-NN retrieval -> per entry: Hamming matching + P
 -> hypotheses T_world_from_query = T_world_from_ref @ T_ref_from_query.
 The map's data come in through two arguments (the index and an entry lookup), so this
 module does no I/O and can run against a database, a test fixture or a benchmark.
+
+``LocalizeConfig.pipeline = "paper"`` runs the paper-faithful baseline instead of
+monoloc's fast paths, for benchmarks: exact float k-NN over every VLAD of the index (no
+Hamming shortlist; with a prior, over every entry inside it; exhaustive while the index
+is flat, i.e. below ``IndexConfig.ivf_min_entries`` entries) and OpenCV brute-force
+matching per reference (``match_descriptors_bruteforce``, same match rule). Features,
+VLAD, PnP and the answer are the same.
 """
 
 from __future__ import annotations
@@ -11,12 +18,13 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
 from client.camera import CameraIntrinsics
 from client.geometry import planar_from_T_world_from_cam
-from server.index.retrieval import RetrievalIndex, RetrievalPrior
+from server.index.retrieval import RetrievalIndex, RetrievalPrior, SearchResult
 from server.vision.binary_code import vlad_binary_code
 from server.vision.features import OrbConfig, extract_features
 from server.vision.hypothesis import compose_hypothesis
@@ -32,6 +40,7 @@ class LocalizeConfig:
     match: MatchConfig = field(default_factory=MatchConfig)
     pnp: PnpConfig = field(default_factory=PnpConfig)
     k: int = 10
+    pipeline: Literal["monoloc", "paper"] = "monoloc"  # see the module docstring
 
 
 @dataclass(frozen=True)
@@ -111,16 +120,30 @@ def localize_frame(
     vlad = compute_vlad(features.descriptors, vocabulary)
     code = vlad_binary_code(vlad)
     lap("vlad")
-    found = index.search(vlad, code, k or config.k, prior)
+    k = k or config.k
+    if config.pipeline == "paper":
+        # k = every entry: the index ranks them all by exact float VLAD distance.
+        found = index.search(vlad, code, max(len(index), 1), prior)
+        found = SearchResult(found.entry_ids[:k], found.distances[:k])
+    else:
+        found = index.search(vlad, code, k, prior)
     lap("retrieval")
     entries = list(lookup_entries(found.entry_ids.tolist()))
     by_id = {e.entry_id: e for e in entries}
     refs = [by_id[i] for i in found.entry_ids.tolist() if i in by_id]
     e_vlad = dict(zip(found.entry_ids.tolist(), found.distances.tolist(), strict=True))
     lap("lookup")
-    matches = match_against_references(
-        features.descriptors, [r.descriptors for r in refs], config.match
-    )
+    if config.pipeline == "paper":
+        from server.vision.matching import match_descriptors_bruteforce
+
+        matches = [
+            match_descriptors_bruteforce(features.descriptors, r.descriptors, config.match)
+            for r in refs
+        ]
+    else:
+        matches = match_against_references(
+            features.descriptors, [r.descriptors for r in refs], config.match
+        )
     lap("matching")
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []

@@ -92,6 +92,12 @@ class Settings(BaseSettings):
         description="Serve /metrics without an API key (only for a private scrape network); "
         "otherwise it needs an admin key.",
     )
+    localize_pipeline: Literal["monoloc", "paper"] = Field(
+        default="monoloc",
+        description="'monoloc': binary-shortlist retrieval and FAISS Hamming matching; "
+        "'paper': the paper-faithful baseline (exact float k-NN over all VLADs, OpenCV "
+        "brute-force matching), same answers, for benchmarks (server.localize).",
+    )
     localize_seed: int | None = Field(
         default=None,
         description="Seed of the server's RNG seed sequence (RANSAC); None draws OS entropy. "

@@ -128,7 +128,7 @@ def localize_encoded(
     result, version = state.registry.localize(
         map_id,
         image,
-        LocalizeConfig(),
+        LocalizeConfig(pipeline=state.settings.localize_pipeline),
         np.random.default_rng(seed),
         intrinsics,
         options.prior,

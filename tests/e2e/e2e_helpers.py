@@ -1,0 +1,142 @@
+"""Helpers of the end-to-end tests: a real uvicorn on 127.0.0.1 in a thread, a sim city
+uploaded through the HTTP API as a vehicle operator would, and a consistent copy of a
+live server's database (a module name of its own: tests directories are not packages)."""
+
+from __future__ import annotations
+
+import io
+import socket
+import sqlite3
+import tarfile
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+ADMIN_KEY = "mlk_" + "E" * 43
+MAP_SEQ, QUERY_SEQ = "00", "01"  # the sim's map and query runs
+SIM_FRAMES = 40  # per run; full KITTI resolution (half size gives too few 3D points)
+
+
+@dataclass(frozen=True)
+class Keys:
+    admin: str
+    localize: str
+    write: str
+
+
+@dataclass(frozen=True)
+class LiveMap:
+    """A live server holding map ``map_name`` built from the sim's map run."""
+
+    url: str
+    app: object  # the FastAPI app, for in-process instrumentation
+    map_id: int
+    map_name: str
+    keys: Keys
+    data_dir: Path
+    dataset: Path
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@contextmanager
+def live_server(settings) -> Iterator[tuple[str, object]]:
+    """create_app(settings) under a real uvicorn on 127.0.0.1; yields (base URL, app)."""
+    import uvicorn
+
+    from server.api.app import create_app
+
+    app = create_app(settings)
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
+    )
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise AssertionError("uvicorn did not start")
+        time.sleep(0.02)
+    try:
+        yield f"http://127.0.0.1:{port}", app
+    finally:
+        server.should_exit = True
+        thread.join(30)
+
+
+def make_settings(data_dir: Path, **overrides):
+    from server.settings import Settings
+
+    values = dict(data_dir=data_dir, bootstrap_admin_key=ADMIN_KEY, worker_threads=1)
+    values.update(overrides)
+    return Settings(**values)
+
+
+def tar_sequence(dataset: Path, seq: str) -> bytes:
+    """tar.gz of one sequence in the KITTI layout (sequences/NN + poses/NN.txt)."""
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz", compresslevel=1) as tar:
+        tar.add(dataset / "sequences" / seq, arcname=f"kitti/sequences/{seq}")
+        tar.add(dataset / "poses" / f"{seq}.txt", arcname=f"kitti/poses/{seq}.txt")
+    return buffer.getvalue()
+
+
+def camera_json(intrinsics) -> dict:
+    c = intrinsics
+    return dict(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, width_px=c.width_px, height_px=c.height_px)
+
+
+def create_keys(client) -> Keys:
+    """A localize key and a map:write key, made with the bootstrap admin key."""
+    made = {}
+    for name, scope in (("car", "localize"), ("operator", "map:write")):
+        made[name] = client.request(
+            "POST", "/v1/keys", json={"name": name, "scopes": [scope]}
+        ).json()["key"]
+    return Keys(admin=ADMIN_KEY, localize=made["car"], write=made["operator"])
+
+
+def upload_map_run(client, name: str, dataset: Path, seq: str, timeout_s: float = 120) -> int:
+    """Create map ``name`` (admin client) and ingest sequence ``seq`` through the API."""
+    from client.camera import KITTI_CAM0
+
+    created = client.request(
+        "POST", "/v1/maps", json={"name": name, "camera": camera_json(KITTI_CAM0)}
+    ).json()
+    archive = tar_sequence(dataset, seq)
+    accepted = client.request(
+        "POST",
+        f"/v1/maps/{created['id']}/runs",
+        files={"archive": ("map.tar.gz", archive, "application/gzip")},
+        data={"format": "kitti", "kind": "map"},
+    ).json()
+    job_id = accepted["job"]["id"]
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = client.request("GET", f"/v1/jobs/{job_id}").json()
+        if job["state"] in ("done", "failed", "interrupted"):
+            assert job["state"] == "done", job
+            return int(created["id"])
+        time.sleep(0.1)
+    raise AssertionError(f"ingestion job {job_id} did not finish in {timeout_s} s")
+
+
+def copy_database(src_data_dir: Path, dst_data_dir: Path) -> None:
+    """A consistent copy of a live server's SQLite database (the backup API); the copy's
+    server rebuilds its retrieval indexes from it."""
+    dst_data_dir.mkdir(parents=True, exist_ok=True)
+    src = sqlite3.connect(src_data_dir / "monoloc.db")
+    dst = sqlite3.connect(dst_data_dir / "monoloc.db")
+    try:
+        src.backup(dst)
+    finally:
+        dst.close()
+        src.close()
