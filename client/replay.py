@@ -232,7 +232,8 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
 
 def rig_lever_arm_m(path: Path) -> float | None:
     """The camera's distance ahead of the speed reference point, from a ``dataset.json``
-    (monoloc's sim writes ``rig.T_vehicle_from_cam0``) at or above ``path``; None if absent."""
+    (monoloc's sim writes ``rig.T_vehicle_from_cam0``, indoors ``T_vehicle_from_cam``) at or
+    above ``path``; None if absent."""
     import json
 
     for folder in [path, *path.parents][:4]:
@@ -240,8 +241,9 @@ def rig_lever_arm_m(path: Path) -> float | None:
         if meta.exists():
             try:
                 rig = json.loads(meta.read_text()).get("rig") or {}
-                return float(np.asarray(rig["T_vehicle_from_cam0"], dtype=float)[0, 3])
-            except (ValueError, KeyError, TypeError, IndexError):
+                key = next(k for k in ("T_vehicle_from_cam0", "T_vehicle_from_cam") if k in rig)
+                return float(np.asarray(rig[key], dtype=float)[0, 3])
+            except (ValueError, KeyError, TypeError, IndexError, StopIteration):
                 return None
     return None
 
