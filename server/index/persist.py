@@ -44,9 +44,10 @@ def save_index(path: Path, index: RetrievalIndex, map_version: int) -> None:
     payload = dict(arrays)
     payload["map_version"] = np.array(map_version, dtype=np.int64)
     payload["format_version"] = np.array(FORMAT_VERSION, dtype=np.int64)
-    if index.kind == "ivf":
+    if index.kind in ("ivf", "hnsw"):
         with index._lock.read():
-            payload["faiss_ivf"] = faiss.serialize_index_binary(index._faiss)
+            if index._tombstones == 0:  # else rebuilt on load, without the removed nodes
+                payload["faiss_large"] = faiss.serialize_index_binary(index._faiss)
     fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
@@ -83,9 +84,9 @@ def load_index(
             f"index file {path} is stale: map version {version}, database {expected_map_version}"
         )
     ivf = None
-    if "faiss_ivf" in arrays:
+    if "faiss_large" in arrays:
         try:
-            ivf = faiss.deserialize_index_binary(arrays["faiss_ivf"])
+            ivf = faiss.deserialize_index_binary(arrays["faiss_large"])
         except RuntimeError as exc:
             raise IndexFileError(f"index file {path}: unreadable FAISS index: {exc}") from exc
     try:

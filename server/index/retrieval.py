@@ -56,7 +56,17 @@ class IndexConfig:
     """Retrieval settings. ``shortlist_size`` Hamming candidates are re-ranked exactly."""
 
     shortlist_size: int = 400
-    ivf_min_entries: int = 50_000  # from this size on, an IVF binary index is used
+    # From this size on an approximate index replaces the flat one: "hnsw" (default: on
+    # route-like data it keeps recall where IVF's coarse lists split neighbours) or "ivf".
+    large_kind: str = "hnsw"
+    ivf_min_entries: int = 50_000
+    hnsw_m: int = 32
+    hnsw_ef_construction: int = 40
+    hnsw_ef_search: int = 128
+    hnsw_shortlist: int = 100  # HNSW returns this many for the exact re-rank
+    # HNSW cannot delete: removed entries are tombstones, filtered from results, until
+    # they exceed this share of the index, which is then rebuilt.
+    hnsw_max_tombstones: float = 0.2
     ivf_lists_per_sqrt: float = 2.0  # nlist = this * sqrt(N)
     ivf_train_per_list: int = 40  # training sample = this * nlist codes (k-means cost)
     ivf_nprobe: int = 32
@@ -66,6 +76,8 @@ class IndexConfig:
     vector_dtype: str = "float32"
 
     def __post_init__(self) -> None:
+        if self.large_kind not in ("hnsw", "ivf"):
+            raise InvalidInputError(f"large_kind must be hnsw or ivf, not {self.large_kind}")
         if self.vector_dtype not in ("float32", "int8"):
             raise InvalidInputError(
                 f"vector_dtype must be float32 or int8, not {self.vector_dtype}"
@@ -95,7 +107,8 @@ class RetrievalIndex:
         self._size = 0
         self._row_of_id: dict[int, int] = {}
         self._faiss = self._new_flat()
-        self._is_ivf = False
+        self._kind = "flat"
+        self._tombstones = 0
 
     # ---- construction -------------------------------------------------------------
     @staticmethod
@@ -116,12 +129,29 @@ class RetrievalIndex:
         ivf.nprobe = self.config.ivf_nprobe
         return ivf
 
+    def _new_hnsw(self, codes: np.ndarray):
+        import faiss
+
+        hnsw = faiss.IndexBinaryHNSW(VLAD_DIM, self.config.hnsw_m)
+        hnsw.hnsw.efConstruction = self.config.hnsw_ef_construction
+        hnsw.hnsw.efSearch = self.config.hnsw_ef_search
+        return faiss.IndexBinaryIDMap2(hnsw)
+
+    def _configure(self, index) -> None:
+        import faiss
+
+        if self._kind == "ivf":
+            index.nprobe = self.config.ivf_nprobe
+        elif self._kind == "hnsw":
+            inner = faiss.downcast_IndexBinary(index.index)
+            inner.hnsw.efSearch = max(self.config.hnsw_ef_search, self.config.hnsw_shortlist)
+
     def __len__(self) -> int:
         return self._size
 
     @property
     def kind(self) -> str:
-        return "ivf" if self._is_ivf else "flat"
+        return self._kind
 
     def entry_ids(self) -> np.ndarray:
         with self._lock.read():
@@ -186,7 +216,7 @@ class RetrievalIndex:
                 self._row_of_id[int(entry_id)] = self._size + offset
             self._size += len(ids)
             self._faiss.add_with_ids(codes, ids)
-            if not self._is_ivf and self._size >= self.config.ivf_min_entries:
+            if self._kind == "flat" and self._size >= self.config.ivf_min_entries:
                 self._rebuild_faiss()
 
     def remove(self, entry_ids) -> int:
@@ -209,18 +239,28 @@ class RetrievalIndex:
                     self._sqnorms[row] = self._sqnorms[last]
                     self._row_of_id[moved_id] = row
                 self._size -= 1
-            self._faiss.remove_ids(faiss.IDSelectorBatch(np.asarray(wanted, dtype=np.int64)))
+            if self._kind == "hnsw":
+                self._tombstones += len(rows)
+                if self._tombstones > self.config.hnsw_max_tombstones * max(self._size, 1):
+                    self._rebuild_faiss()
+            else:
+                self._faiss.remove_ids(faiss.IDSelectorBatch(np.asarray(wanted, dtype=np.int64)))
             return len(rows)
 
     def _rebuild_faiss(self) -> None:
         codes = self._codes[: self._size]
         ids = self._ids[: self._size]
+        self._tombstones = 0
         if self._size >= self.config.ivf_min_entries:
-            self._faiss = self._new_ivf(codes)
-            self._is_ivf = True
+            self._kind = self.config.large_kind
+            if self._kind == "ivf":
+                self._faiss = self._new_ivf(codes)
+            else:
+                self._faiss = self._new_hnsw(codes)
         else:
             self._faiss = self._new_flat()
-            self._is_ivf = False
+            self._kind = "flat"
+        self._configure(self._faiss)
         if self._size:
             self._faiss.add_with_ids(np.ascontiguousarray(codes), ids)
 
@@ -247,9 +287,15 @@ class RetrievalIndex:
             return self._rerank(query, rows, k)
 
     def _shortlist_rows(self, code: np.ndarray, size: int) -> np.ndarray:
-        _, found = self._faiss.search(code, min(size, self._size))
-        ids = found[0][found[0] >= 0]
-        return np.fromiter((self._row_of_id[int(i)] for i in ids), dtype=np.int64, count=len(ids))
+        if self._kind == "hnsw":
+            size = min(size, self.config.hnsw_shortlist) + self._tombstones
+        _, found = self._faiss.search(code, min(size, self._size + self._tombstones))
+        # Tombstoned (removed) ids are no longer in the row map; a re-added id may appear
+        # twice in an HNSW graph: keep each live row once.
+        rows = dict.fromkeys(
+            self._row_of_id[int(i)] for i in found[0] if i >= 0 and int(i) in self._row_of_id
+        )
+        return np.fromiter(rows, dtype=np.int64, count=len(rows))
 
     def _prior_rows(self, code: np.ndarray, k: int, prior: RetrievalPrior) -> np.ndarray:
         inside = np.flatnonzero(prior.mask(self._poses[: self._size]))
@@ -316,8 +362,9 @@ class RetrievalIndex:
         if faiss_index is not None:
             if faiss_index.ntotal != n:
                 raise InvalidInputError("the FAISS index does not hold the given entries")
-            faiss_index.nprobe = index.config.ivf_nprobe
-            index._faiss, index._is_ivf = faiss_index, True
+            index._kind = "ivf" if "IVF" in type(faiss_index).__name__ else "hnsw"
+            index._faiss = faiss_index
+            index._configure(faiss_index)
         else:
             index._rebuild_faiss()
         return index
