@@ -16,9 +16,9 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
-from fastapi import UploadFile
+from fastapi import File, Form, UploadFile
 from sqlalchemy.orm import Session
 
 from client.errors import InvalidInputError
@@ -36,6 +36,24 @@ from server.api.job_handlers import open_source
 from server.storage import maps as maps_repo
 from server.storage.db import session_scope
 from server.storage.records import JobRecord
+
+# The upload fields shared by every route that takes a recorded run (mapping runs,
+# calibration): one definition of each, so the routes document them alike.
+RunFormat = Annotated[Literal["kitti", "tum"], Form(description="Layout of the run.")]
+RunArchive = Annotated[UploadFile | None, File(description="tar/zip of the run.")]
+RunFiles = Annotated[
+    list[UploadFile] | None,
+    File(description="Or: the run's files, each named by its relative path."),
+]
+RunSequence = Annotated[
+    str | None, Form(description="KITTI sequence (e.g. 00) if the upload holds several.")
+]
+RunFrames = Annotated[
+    str | None,
+    Form(
+        description="Frame range A:B (Python slice), e.g. 0:3860 for the mapping 85 % of KITTI 00."
+    ),
+]
 
 T = TypeVar("T")
 

@@ -11,10 +11,10 @@ defaults with ``"calibrated": false`` and ``"source": "defaults"``.
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 import anyio
-from fastapi import APIRouter, File, Form, UploadFile, status
+from fastapi import APIRouter, Form, UploadFile, status
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy.orm import Session
 
@@ -24,7 +24,17 @@ from server.api.archives import Unpacked
 from server.api.convert import AUTH_ERRORS, error_responses
 from server.api.deps import AppState, LocalizeKey, MapWriteKey, SessionDep, StateDep
 from server.api.schemas import CalibrationPublic, CalibrationUpdate, JobPublic
-from server.api.uploads import RunUpload, check_upload_parts, store_upload, upload_name
+from server.api.uploads import (
+    RunArchive,
+    RunFiles,
+    RunFormat,
+    RunFrames,
+    RunSequence,
+    RunUpload,
+    check_upload_parts,
+    store_upload,
+    upload_name,
+)
 from server.calibrate import CalibrationConfig, check_run_length
 from server.calibrate_jobs import JOB_KIND
 from server.storage import jobs as jobs_repo
@@ -171,16 +181,11 @@ async def calibration_job(
     map_id: int,
     state: StateDep,
     _key: MapWriteKey,
-    format: Annotated[Literal["kitti", "tum"], Form(description="Layout of the run.")],
-    archive: Annotated[UploadFile | None, File(description="tar/zip of the run.")] = None,
-    files: Annotated[
-        list[UploadFile] | None,
-        File(description="Or: the run's files, each named by its relative path."),
-    ] = None,
-    sequence: Annotated[
-        str | None, Form(description="KITTI sequence (e.g. 05) if the upload holds several.")
-    ] = None,
-    frames: Annotated[str | None, Form(description="Frame range A:B (Python slice).")] = None,
+    format: RunFormat,
+    archive: RunArchive = None,
+    files: RunFiles = None,
+    sequence: RunSequence = None,
+    frames: RunFrames = None,
     k: Annotated[
         int, Form(ge=1, le=100, description="Map entries per query, closest by pose.")
     ] = CalibrationConfig.k,

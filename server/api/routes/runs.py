@@ -12,10 +12,10 @@ shared with the calibration route).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated
 
 import anyio
-from fastapi import APIRouter, File, Form, UploadFile, status
+from fastapi import APIRouter, Form, UploadFile, status
 from sqlalchemy.orm import Session
 
 from server.api import convert
@@ -23,7 +23,17 @@ from server.api.archives import Unpacked
 from server.api.convert import AUTH_ERRORS, error_responses
 from server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
 from server.api.schemas import RunPublic, UploadAccepted
-from server.api.uploads import RunUpload, check_upload_parts, store_upload, upload_name
+from server.api.uploads import (
+    RunArchive,
+    RunFiles,
+    RunFormat,
+    RunFrames,
+    RunSequence,
+    RunUpload,
+    check_upload_parts,
+    store_upload,
+    upload_name,
+)
 from server.storage import jobs as jobs_repo
 from server.storage import maps as maps_repo
 from server.storage import runs as runs_repo
@@ -89,22 +99,11 @@ async def upload_run(
     map_id: int,
     state: StateDep,
     _key: MapWriteKey,
-    format: Annotated[Literal["kitti", "tum"], Form(description="Layout of the run.")],
-    archive: Annotated[UploadFile | None, File(description="tar/zip of the run.")] = None,
-    files: Annotated[
-        list[UploadFile] | None,
-        File(description="Or: the run's files, each named by its relative path."),
-    ] = None,
-    sequence: Annotated[
-        str | None, Form(description="KITTI sequence (e.g. 00) if the upload holds several.")
-    ] = None,
-    frames: Annotated[
-        str | None,
-        Form(
-            description="Frame range A:B (Python slice), "
-            "e.g. 0:3860 for the mapping 85 % of KITTI 00."
-        ),
-    ] = None,
+    format: RunFormat,
+    archive: RunArchive = None,
+    files: RunFiles = None,
+    sequence: RunSequence = None,
+    frames: RunFrames = None,
     kind: Annotated[str, Form(description="map, offcenter, night, ...")] = "map",
     train_vocabulary: Annotated[
         bool,
