@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from typing import Any
@@ -22,6 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from client.errors import ConflictError
 from server.calibrate import CalibrationConfig, TrainingFrame, calibrate, check_run_length
+from server.job_progress import progress_recorder, update_job_now
 from server.storage import jobs as jobs_repo
 from server.storage import maps as maps_repo
 from server.storage.db import session_scope
@@ -121,9 +121,7 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _update(factory, job_id: int, **fields) -> JobRecord:
-    with session_scope(factory) as session:
-        return jobs_repo.update_job(session, job_id, **fields)
+_update = update_job_now
 
 
 def run_calibration_job(
@@ -153,20 +151,9 @@ def run_calibration_job(
             session, JOB_KIND, map_id=record.id, params=job_params, message="queued"
         )
     _update(session_factory, job.id, state="running", message="calibrating")
-    last = [0.0]
-
-    def report(done: int, total: int) -> None:
-        if progress is not None:
-            progress(done, total)
-        now = time.monotonic()
-        if now - last[0] > 0.5 or done == total:
-            last[0] = now
-            _update(
-                session_factory,
-                job.id,
-                progress=done / max(total, 1),
-                message=f"frame {done} of {total}",
-            )
+    report = progress_recorder(
+        session_factory, job.id, lambda done, total: f"frame {done} of {total}", progress
+    )
 
     try:
         calibration = calibrate_map(

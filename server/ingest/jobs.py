@@ -4,7 +4,6 @@ job runner."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import asdict
 
@@ -16,6 +15,7 @@ from server.ingest.vocab import (
     change_map_vocabulary_detailed,
     train_map_vocabulary,
 )
+from server.job_progress import progress_recorder, update_job_now
 from server.storage import jobs as jobs_repo
 from server.storage.db import session_scope
 from server.storage.records import JobRecord
@@ -24,9 +24,7 @@ from server.vision.vocabulary import VocabularyConfig
 JOB_KIND = "vocabulary"
 
 
-def _update(factory, job_id: int, **fields) -> JobRecord:
-    with session_scope(factory) as session:
-        return jobs_repo.update_job(session, job_id, **fields)
+_update = update_job_now
 
 
 def run_vocabulary_job(
@@ -54,20 +52,12 @@ def run_vocabulary_job(
             session, JOB_KIND, map_id=record.id, params=params, message="queued"
         )
     _update(session_factory, job.id, state="running", message="starting")
-    last = [0.0]
-
-    def report(done: int, total: int) -> None:
-        if progress is not None:
-            progress(done, total)
-        now = time.monotonic()
-        if now - last[0] > 0.5 or done == total:
-            last[0] = now
-            _update(
-                session_factory,
-                job.id,
-                progress=done / max(total, 1),
-                message=f"{done} of {total} entries recomputed",
-            )
+    report = progress_recorder(
+        session_factory,
+        job.id,
+        lambda done, total: f"{done} of {total} entries recomputed",
+        progress,
+    )
 
     try:
         if source is not None:
