@@ -58,6 +58,22 @@ def ensure_dataset(
     return json.loads((root / "dataset.json").read_text())
 
 
+def calibrate_on(train, vocabulary):
+    """The measurement model fitted on a training run (KittiSequence / TumRun), each frame
+    read once, exactly as the server's calibration job does."""
+    from server.calibrate import CalibrationConfig, calibrate
+    from server.calibrate_jobs import training_frames
+
+    return calibrate(
+        training_frames(train),
+        train.intrinsics,
+        vocabulary,
+        CalibrationConfig(),
+        np.random.default_rng(0),
+        source_name="train",
+    )
+
+
 def sequence_of(meta: dict, run: str) -> str | None:
     for seq in meta["sequences"]:
         if seq["run"] == run:
@@ -98,7 +114,6 @@ def main() -> None:
     from client.measurement import MeasurementModel
     from client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row, stage_percentiles
-    from server.calibrate import CalibrationConfig, TrainingFrame, calibrate
     from server.ingest.kitti import read_kitti_sequence
     from server.vision.vocabulary import load_default_vocabulary
 
@@ -110,18 +125,7 @@ def main() -> None:
     lever = rig_lever_arm_m(root) or 0.0
     t0 = time.time()
     train = read_kitti_sequence(root, sequence_of(meta, "train"))
-    frames = (
-        TrainingFrame(train.load(f).image_gray, f.T_world_from_cam, train.load(f).source)
-        for f in train.frames
-    )
-    calib = calibrate(
-        frames,
-        train.intrinsics,
-        vocab,
-        CalibrationConfig(),
-        np.random.default_rng(0),
-        source_name="train",
-    )
+    calib = calibrate_on(train, vocab)
     model: MeasurementModel = calib.model
     print(f"calibrated on {calib.provenance['used']} hypotheses in {time.time() - t0:.0f} s")
     memory = MemoryMap.empty(vocab)
@@ -173,7 +177,6 @@ def main_indoor(args) -> None:
     from client.replay import read_tum_run as read_tum_replay
     from client.replay import rig_lever_arm_m
     from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row, stage_percentiles
-    from server.calibrate import CalibrationConfig, TrainingFrame, calibrate
     from server.ingest.tum import read_tum_run
     from server.vision.vocabulary import load_default_vocabulary
 
@@ -189,18 +192,7 @@ def main_indoor(args) -> None:
     vocab = load_default_vocabulary()
     lever = rig_lever_arm_m(root / "map") or 0.0
     train = read_tum_run(root / "train")
-    frames = (
-        TrainingFrame(train.load(f).image_gray, f.T_world_from_cam, train.load(f).source)
-        for f in train.frames
-    )
-    calib = calibrate(
-        frames,
-        train.intrinsics,
-        vocab,
-        CalibrationConfig(),
-        np.random.default_rng(0),
-        source_name="train",
-    )
+    calib = calibrate_on(train, vocab)
     memory = MemoryMap.empty(vocab)
     memory.add_run(read_tum_run(root / "map"))
     query = read_tum_run(root / "query")

@@ -53,7 +53,13 @@ def test_prior_and_k_reach_the_server(client, live_map, query):
     image, truth = query
     near = Prior(float(truth[0]), float(truth[1]), 6.0, float(truth[2]), 0.3)
     answer = client.localize(live_map.map_id, image, prior=near, k=3)
-    assert 1 <= len(answer.raw["retrieved"]) <= 3 and len(answer.hypotheses) >= 1
+    wider = client.localize(live_map.map_id, image, prior=near, k=10)
+    # The disc holds more than three entries, so k=3 must have cut the list to three.
+    assert len(wider.raw["retrieved"]) > 3
+    assert len(answer.raw["retrieved"]) == 3 and len(answer.hypotheses) >= 1
+    assert [r["entry_id"] for r in answer.raw["retrieved"]] == [
+        r["entry_id"] for r in wider.raw["retrieved"][:3]
+    ]
     entries = answer.hypotheses.entry_pose_world
     assert np.all(np.hypot(entries[:, 0] - truth[0], entries[:, 1] - truth[1]) <= 6.0)
     far = Prior(float(truth[0]) + 500.0, float(truth[1]), 5.0)
