@@ -217,7 +217,8 @@ def main() -> None:
             "cv2.solvePnPRansac defaults (EPnP samples, iterative refit), no LM",
         ),
     }
-    # The exhaustive Hamming distances alone: the floor of exact brute-force matching.
+    # FAISS's exhaustive distance matrix alone (scalar popcount), for comparison: the
+    # compiled kernel computes the same distances and applies the rule in less time.
     hamming_floor_ms, _ = p50_pair_ms(
         lambda: [hamming_matrix(query.descriptors, d, out=buffer) for d in ref_desc],
         lambda: None,
@@ -248,7 +249,7 @@ def main() -> None:
             for name, (ours, base, what) in stages.items()
         },
         "total_p50_ms": round(sum(s[0] for s in stages.values()), 3),
-        "hamming_distances_10_refs_p50_ms": round(hamming_floor_ms, 3),
+        "faiss_hamming_matrix_10_refs_p50_ms": round(hamming_floor_ms, 3),
         "accuracy": {
             "matches_per_ref": [len(m) for m in matches],
             "fast_matches_equal_baseline": all(
@@ -276,7 +277,8 @@ def print_report(report: dict) -> None:
             f"{row['speedup']:>8.1f}x{row['target_ms']:>8.1f}  {'pass' if row['pass'] else 'MISS'}"
         )
     print(f"{'total':<15}{report['total_p50_ms']:>11.2f}")
-    print(f"Hamming distances alone, 10 refs: {report['hamming_distances_10_refs_p50_ms']:.2f} ms")
+    faiss_ms = report["faiss_hamming_matrix_10_refs_p50_ms"]
+    print(f"FAISS distance matrices alone, 10 refs: {faiss_ms:.2f} ms")
     print("accuracy:", json.dumps(report["accuracy"]))
 
 

@@ -15,14 +15,13 @@ The rule never depends on how an implementation breaks ties, which is why (3) as
 uniqueness rather than "the argmin". Output rows are sorted by query index.
 
 Speed (measured on the 2-core dev box, one thread, 1000 x 1000 descriptors per pair):
-``cv2.BFMatcher.knnMatch`` takes ~8.5 ms per reference and the cross check doubles it;
+``cv2.BFMatcher.knnMatch`` takes ~8.5 ms per reference and the cross check doubles it.
 FAISS's ``hammings`` fills the full 1000 x 1000 distance matrix in ~1.3 ms (scalar
-popcount: this is the floor of exhaustive matching here, ~13 ms for ten references), and
-both directions of the rule are then ~0.45 ms of numpy reductions of that one matrix
-(~0.25 ms without the cross check).
-FAISS's k-NN search (``IndexBinaryFlat``, k = 2) costs the same per pair and would need a
-second search for the cross check. That is the fast path; ``match_descriptors_bruteforce``
-keeps the OpenCV baseline.
+popcount), and applying the rule to that matrix with numpy adds ~0.5 ms. The fast path
+(``server.vision._hamming_kernel``, numba) computes the distances with a vectorised
+popcount and applies the rule in the same pass without storing the matrix: ~1 ms per
+reference. ``match_descriptors_bruteforce`` keeps the OpenCV baseline, and
+:func:`hamming_matrix` (FAISS) the exhaustive distance floor that bench/vision.py prints.
 """
 
 from __future__ import annotations
@@ -35,7 +34,6 @@ import numpy as np
 from client.errors import InvalidInputError
 
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int32)
-_FAR = np.iinfo(np.int32).max
 
 
 @dataclass(frozen=True)
@@ -89,49 +87,47 @@ def hamming_matrix(
     return distances
 
 
-def _unique_nearest_queries(
-    distances: np.ndarray, query_idx: np.ndarray, ref_idx: np.ndarray, d_match: np.ndarray
+class _Scratch:
+    """Buffers the kernel writes into, sized for N query and M reference descriptors."""
+
+    def __init__(self, n: int, m: int) -> None:
+        self.row = np.empty(m, dtype=np.int32)
+        self.col_min1 = np.empty(m, dtype=np.int32)
+        self.col_min2 = np.empty(m, dtype=np.int32)
+        self.out_q = np.empty(n, dtype=np.int32)
+        self.out_r = np.empty(n, dtype=np.int32)
+        self.out_d = np.empty(n, dtype=np.int32)
+
+
+def _match_words(
+    query_words: np.ndarray, ref_desc: np.ndarray, config: MatchConfig, scratch: _Scratch
 ) -> np.ndarray:
-    """(K,) bool: is query_idx[k] the unique nearest query of ref_idx[k] (distance d_match)?
+    from server.vision._hamming_kernel import match_rows
 
-    Hides all K candidate pairs, takes each column's minimum over the remaining queries
-    (one contiguous reduction, ~0.1 ms for 1000 x 1000, against ~0.4 ms for counting ties
-    or gathering the candidate columns) and asks it to exceed d_match; candidates that
-    share a reference are settled among themselves (only a strictly closest one stays).
-    """
-    distances[query_idx, ref_idx] = _FAR
-    others_min = distances.min(axis=0)[ref_idx]
-    distances[query_idx, ref_idx] = d_match
-    unique = others_min > d_match
-    order = np.lexsort((d_match, ref_idx))  # by reference, then distance
-    ref_sorted, d_sorted = ref_idx[order], d_match[order]
-    same_as_previous = np.r_[False, ref_sorted[1:] == ref_sorted[:-1]]
-    tied_with_next = np.r_[
-        (ref_sorted[1:] == ref_sorted[:-1]) & (d_sorted[1:] == d_sorted[:-1]), False
-    ]
-    closest = np.empty(len(order), dtype=bool)
-    closest[order] = ~same_as_previous & ~tied_with_next
-    return unique & closest
+    if len(query_words) == 0 or len(ref_desc) == 0:
+        return _NO_MATCHES.copy()
+    ref_words_t = np.ascontiguousarray(ref_desc.view(np.uint64).T)
+    k = match_rows(
+        query_words,
+        ref_words_t,
+        int(config.max_hamming_bits),
+        float(config.ratio),
+        bool(config.cross_check),
+        scratch.row,
+        scratch.col_min1,
+        scratch.col_min2,
+        scratch.out_q,
+        scratch.out_r,
+        scratch.out_d,
+    )
+    return np.stack([scratch.out_q[:k], scratch.out_r[:k]], axis=1)
 
 
-def _apply_rule(distances: np.ndarray, config: MatchConfig) -> np.ndarray:
-    """Matches (K, 2) int32 from an (N, M) int32 distance matrix (modified, then restored)."""
-    n, m = distances.shape
-    rows = np.arange(n)
-    nearest = distances.argmin(axis=1)
-    d1 = distances[rows, nearest]
-    if m > 1:
-        distances[rows, nearest] = _FAR
-        d2 = distances.min(axis=1).astype(np.float64)
-        distances[rows, nearest] = d1
-    else:
-        d2 = np.full(n, np.inf)
-    keep = (d1 <= config.max_hamming_bits) & (d1 < config.ratio * d2)
-    query_idx, ref_idx, d_match = rows[keep], nearest[keep], d1[keep]
-    if config.cross_check and len(query_idx):
-        unique = _unique_nearest_queries(distances, query_idx, ref_idx, d_match)
-        query_idx, ref_idx = query_idx[unique], ref_idx[unique]
-    return np.stack([query_idx, ref_idx], axis=1).astype(np.int32)
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the matching kernel, so that no request pays it."""
+    rng = np.random.default_rng(0)
+    desc = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
+    match_descriptors(desc, desc)
 
 
 def match_descriptors(
@@ -139,13 +135,12 @@ def match_descriptors(
 ) -> np.ndarray:
     """Match (N, 32) query to (M, 32) reference uint8 ORB descriptors.
 
-    Returns (K, 2) int32 rows [query_idx, ref_idx], sorted by query index. Memory: one
-    N x M int32 matrix (4 MB for 1000 x 1000).
+    Returns (K, 2) int32 rows [query_idx, ref_idx], sorted by query index. Memory: O(N + M)
+    (the distance matrix is never stored).
     """
     query_desc, ref_desc = _check(query_desc, "query"), _check(ref_desc, "reference")
-    if len(query_desc) == 0 or len(ref_desc) == 0:
-        return _NO_MATCHES.copy()
-    return _apply_rule(hamming_matrix(query_desc, ref_desc), config)
+    scratch = _Scratch(len(query_desc), len(ref_desc))
+    return _match_words(query_desc.view(np.uint64), ref_desc, config, scratch)
 
 
 def match_against_references(
@@ -155,19 +150,14 @@ def match_against_references(
 
     The ratio test and the cross check are per reference (a search over the concatenated
     references would compare the second-nearest across images, which is wrong), so each
-    reference gets its own distance matrix; one buffer is reused for all of them.
+    reference gets its own pass; the scratch buffers are shared by all of them.
     """
     query_desc = _check(query_desc, "query")
     ref_arrays = [_check(r, f"reference {i}") for i, r in enumerate(refs)]
     largest = max((len(r) for r in ref_arrays), default=0)
-    buffer = np.empty(len(query_desc) * largest, dtype=np.int32)
-    results = []
-    for ref_desc in ref_arrays:
-        if len(query_desc) == 0 or len(ref_desc) == 0:
-            results.append(_NO_MATCHES.copy())
-            continue
-        results.append(_apply_rule(hamming_matrix(query_desc, ref_desc, out=buffer), config))
-    return results
+    scratch = _Scratch(len(query_desc), largest)
+    query_words = query_desc.view(np.uint64)
+    return [_match_words(query_words, ref_desc, config, scratch) for ref_desc in ref_arrays]
 
 
 def match_descriptors_bruteforce(
