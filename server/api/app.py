@@ -92,9 +92,9 @@ def _start(settings: Settings, metrics: Metrics) -> AppState:
     from server.storage.db import create_engine_for, make_session_factory, session_scope
     from server.storage.jobs import mark_interrupted_jobs
     from server.storage.migrate import upgrade_database
-    from server.vision.matching import warm_up
+    from server.vision.warmup import warm_up
 
-    warm_up()  # compile or load the matching kernel now, not in the first request
+    warm_up()  # compile or load the vision kernels now, not in the first request
     Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
     clean_incoming_uploads(settings)
     upgrade_database(settings.database_url)

@@ -123,13 +123,6 @@ def _match_words(
     return np.stack([scratch.out_q[:k], scratch.out_r[:k]], axis=1)
 
 
-def warm_up() -> None:
-    """Compile (or load from numba's cache) the matching kernel, so that no request pays it."""
-    rng = np.random.default_rng(0)
-    desc = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
-    match_descriptors(desc, desc)
-
-
 def match_descriptors(
     query_desc: np.ndarray, ref_desc: np.ndarray, config: MatchConfig = MatchConfig()
 ) -> np.ndarray:

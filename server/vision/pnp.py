@@ -17,7 +17,8 @@ Pipeline: RANSAC with P3P hypotheses on 4-point samples (measured ~0.7 ms for 30
 matches at 30 % outliers, against ~2.3 ms with OpenCV's default EPnP 5-point kernel),
 then SQPnP on the RANSAC inliers, re-selection of the inliers with that pose, and, with
 ``refine``, Levenberg-Marquardt (``cv2.solvePnPRefineLM``) on them and a last
-re-selection (see :func:`_refit` for why).
+re-selection (see :func:`_refit` for why). The inlier scoring and LM are compiled
+(``server.vision._pnp_kernel``).
 """
 
 from __future__ import annotations
@@ -54,9 +55,8 @@ class PnpConfig:
     reject (METHOD.md 6.4, monoloc's minimum); max_rotation_rad: reject relative
     rotations above this, None = the camera's horizontal field of view (METHOD.md 6.4);
     refine: Levenberg-Marquardt on the inliers after RANSAC, at most
-    ``refine_iterations`` steps (started from the SQPnP refit, two steps matched twenty to
-    0.5 mm on the bench scene, while OpenCV's default criteria always ran ~8 steps at
-    ~0.1 ms each for 600 inliers); minimal_solver: RANSAC's hypothesis solver, one of
+    ``refine_iterations`` accepted steps (started from the SQPnP refit, two steps matched
+    twenty to 0.5 mm on the bench scene); minimal_solver: RANSAC's hypothesis solver, one of
     ``SOLVERS`` ("p3p" measured fastest at equal accuracy).
     """
 
@@ -120,35 +120,23 @@ def _rejected(
     )
 
 
-def _reprojection(
-    points_ref_cam: np.ndarray,
-    points_query_px: np.ndarray,
-    rvec: np.ndarray,
-    tvec: np.ndarray,
-    K: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-point reprojection error (M,) px and depth in the query camera (M,) m."""
-    R, _ = cv2.Rodrigues(rvec)
-    points_query_cam = points_ref_cam @ R.T + tvec.reshape(1, 3)
-    depth = points_query_cam[:, 2]
-    safe_depth = np.where(depth > 1e-9, depth, 1e-9)
-    projected = (points_query_cam[:, :2] / safe_depth[:, None]) * [K[0, 0], K[1, 1]] + [
-        K[0, 2],
-        K[1, 2],
-    ]
-    return np.linalg.norm(projected - points_query_px, axis=1), depth
-
-
 def _inliers(
     points: np.ndarray,
     pixels: np.ndarray,
-    rvec: np.ndarray,
-    tvec: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
     K: np.ndarray,
     threshold_px: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Inlier mask (within ``threshold_px`` and in front of the camera) and errors (M,)."""
-    errors_px, depth_m = _reprojection(points, pixels, rvec, tvec, K)
+    """Inlier mask (within ``threshold_px`` and in front of the camera) and reprojection
+    errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
+    from server.vision._pnp_kernel import reprojection_errors
+
+    errors_px = np.empty(len(points))
+    depth_m = np.empty(len(points))
+    reprojection_errors(
+        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], errors_px, depth_m
+    )
     return (errors_px <= threshold_px) & (depth_m > 0.0), errors_px
 
 
@@ -161,27 +149,25 @@ def _refit(
     with EPnP, which was measured to fail outright on near-planar scenes (50 deg off on a
     textured wall), and early termination leaves an inlier set chosen by a 4-point model.
     SQPnP (globally optimal, planar-safe, ~0.1 ms) on those inliers, then re-selecting the
-    inliers with that better pose, fixes both; LM then minimises the reprojection error.
-    Returns (rvec, tvec, final inlier mask, errors_px (M,)); rvec is None if a solver gave
-    nothing finite.
+    inliers with that better pose, fixes both; LM then minimises the reprojection error
+    (``_pnp_kernel.refine_lm``). Returns (R_query_from_ref (3, 3), t_query_from_ref (3,),
+    final inlier mask, errors_px (M,)); R is None if a solver gave nothing finite.
     """
+    from server.vision._pnp_kernel import refine_lm
+
     ok, rvec, tvec = cv2.solvePnP(points[mask], pixels[mask], K, None, flags=cv2.SOLVEPNP_SQPNP)
     if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
         return None, None, mask, np.full(len(mask), np.inf)
-    mask, errors_px = _inliers(points, pixels, rvec, tvec, K, config.reprojection_error_px)
+    R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
+    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
     if config.refine and mask.sum() >= _MIN_POINTS_FOR_SOLVER:
-        criteria = (
-            cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
-            config.refine_iterations,
-            float(np.finfo(np.float32).eps),
+        R, t, _ = refine_lm(
+            points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
         )
-        rvec, tvec = cv2.solvePnPRefineLM(
-            points[mask], pixels[mask], K, None, rvec, tvec, criteria=criteria
-        )
-        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             return None, None, mask, errors_px
-        mask, errors_px = _inliers(points, pixels, rvec, tvec, K, config.reprojection_error_px)
-    return rvec, tvec, mask, errors_px
+        mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+    return R, t, mask, errors_px
 
 
 def ransac_iterations(n_points: int, config: PnpConfig) -> int:
@@ -248,17 +234,19 @@ def estimate_relative_pose(
             return _rejected(n_points, "PnP RANSAC found no pose")
         mask = np.zeros(n_points, dtype=bool)
         mask[order[inliers.ravel()]] = True
-        rvec, tvec, mask, errors_px = _refit(points, pixels, mask, K, config)
+        R_query_from_ref, t_query_from_ref, mask, errors_px = _refit(
+            points, pixels, mask, K, config
+        )
     except cv2.error as exc:  # degenerate input (e.g. all points identical)
         return _rejected(n_points, f"PnP failed: {str(exc).strip().splitlines()[-1]}")
-    if rvec is None:
+    if R_query_from_ref is None:
         return _rejected(n_points, "PnP refit on the RANSAC inliers failed")
 
     n_inliers = int(mask.sum())
     mean_error = float(errors_px[mask].mean()) if n_inliers else float("nan")
     T_query_from_ref = np.eye(4)
-    T_query_from_ref[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T_query_from_ref[:3, 3] = tvec.ravel()
+    T_query_from_ref[:3, :3] = R_query_from_ref
+    T_query_from_ref[:3, 3] = t_query_from_ref
     T_ref_from_query = invert_rigid(T_query_from_ref)
 
     if n_inliers < config.min_inliers:

@@ -157,3 +157,47 @@ def test_degenerate_and_malformed_inputs():
         estimate_relative_pose(np.zeros((10, 2)), np.zeros((9, 3)), CAM, PnpConfig(), rng)
     with pytest.raises(InvalidInputError):
         estimate_relative_pose(np.full((10, 2), np.nan), np.zeros((10, 3)), CAM, PnpConfig(), rng)
+
+
+def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
+    from server.vision._pnp_kernel import refine_lm, reprojection_errors
+
+    rng = np.random.default_rng(7)
+    pixels, points, T_ref_from_query, outliers = _scene(rng, n=400, outlier_fraction=0.0)
+    T_query_from_ref = invert_rigid(T_ref_from_query)
+    # Start 2 deg and 0.3 m away from the truth.
+    R0 = _rotation([0.3, 1.0, -0.2], np.radians(2.0)) @ T_query_from_ref[:3, :3]
+    t0 = T_query_from_ref[:3, 3] + [0.3, -0.1, 0.2]
+    mask = np.ones(len(points), dtype=bool)
+    K = CAM.K
+    args = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    errors_px, depth_m = np.empty(len(points)), np.empty(len(points))
+    reprojection_errors(points, pixels, R0, t0, *args, errors_px, depth_m)
+    projected, _ = cv2.projectPoints(points, cv2.Rodrigues(R0)[0], t0, K, None)
+    assert np.allclose(errors_px, np.linalg.norm(projected[:, 0] - pixels, axis=1), atol=1e-6)
+    assert np.allclose(depth_m, (points @ R0.T + t0)[:, 2])
+
+    R, t, cost = refine_lm(points, pixels, mask, R0, t0, *args, 20)
+    rvec_cv, tvec_cv = cv2.solvePnPRefineLM(
+        points,
+        pixels,
+        K,
+        None,
+        cv2.Rodrigues(R0)[0],
+        t0.reshape(3, 1).copy(),
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
+    )
+    assert np.allclose(cv2.Rodrigues(R)[0].ravel(), rvec_cv.ravel(), atol=1e-7)
+    assert np.allclose(t, tvec_cv.ravel(), atol=1e-5)
+    # 0.5 px noise: the optimum sits near the truth, and far below the starting cost.
+    assert np.linalg.norm(t - T_query_from_ref[:3, 3]) < 0.05
+    reprojection_errors(points, pixels, R, t, *args, errors_px, depth_m)
+    assert cost == pytest.approx(float(np.sum(errors_px**2)), rel=1e-9)
+    assert np.sqrt(cost / len(points)) < 1.0
+    # Masked-out points do not pull the fit: corrupt them and the result stays.
+    corrupted = pixels.copy()
+    corrupted[:50] += 40.0
+    mask[:50] = False
+    R2, t2, _ = refine_lm(points, corrupted, mask, R0, t0, *args, 20)
+    assert np.linalg.norm(t2 - t) < 0.02
+    assert np.degrees(rotation_angle_rad(R2 @ R.T)) < 0.05

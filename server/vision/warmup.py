@@ -1,0 +1,26 @@
+"""Compile (or load from numba's on-disk cache) the vision kernels before serving.
+
+The first call of a numba kernel in a process compiles it (~1-2 s) or loads it from the
+cache (~0.1 s); a server calls :func:`warm_up` at start so that no request pays that.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from client.camera import KITTI_CAM0
+from server.vision.matching import match_descriptors
+from server.vision.pnp import PnpConfig, estimate_relative_pose
+
+
+def warm_up() -> None:
+    """Run the matching kernel and PnP (inlier scoring + LM) once on a small exact scene."""
+    rng = np.random.default_rng(0)
+    descriptors = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
+    match_descriptors(descriptors, descriptors)
+    camera = KITTI_CAM0
+    points_cam = np.stack(
+        [rng.uniform(-5, 5, 40), rng.uniform(-2, 2, 40), rng.uniform(8, 30, 40)], axis=1
+    )
+    pixels = points_cam[:, :2] / points_cam[:, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    estimate_relative_pose(pixels, points_cam, camera, PnpConfig(), rng)
