@@ -91,7 +91,13 @@ def load_index(
             raise IndexFileError(f"index file {path}: unreadable FAISS index: {exc}") from exc
     try:
         return RetrievalIndex.from_arrays(
-            arrays["ids"], arrays["codes"], arrays["vlads"], arrays["poses"], config, ivf
+            arrays["ids"],
+            arrays["codes"],
+            arrays["vlads"],
+            arrays["poses"],
+            config,
+            ivf,
+            sketches=arrays.get("sketches"),
         )
     except (ValueError, MonolocError) as exc:
         raise IndexFileError(f"index file {path} is inconsistent: {exc}") from exc

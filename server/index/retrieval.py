@@ -1,7 +1,10 @@
 """Per-map retrieval index (METHOD.md section 4, monoloc's binary design).
 
 A FAISS binary index over the entries' VLAD sign codes gives a Hamming shortlist; the
-shortlist is re-ranked by the exact L2 distance of the float VLADs. With a planar prior
+shortlist is re-ranked by the exact L2 distance of the float VLADs. Large maps (from
+``ivf_min_entries``) shortlist by an exhaustive scan of 256-bit sketches instead
+(``large_kind="scan"``, see server.index.sketch for why), re-ranked by the full codes and
+then exactly; FAISS's binary HNSW and IVF remain selectable. With a planar prior
 only entries inside the radius (and heading window) compete. Entries are added and
 removed live; a readers-writer lock lets searches run concurrently but never during an
 add or a remove (FAISS's rule).
@@ -17,6 +20,7 @@ import numpy as np
 from client.errors import InvalidInputError
 from client.geometry import wrap_angle
 from server.index.rwlock import ReadWriteLock
+from server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
 
 VLAD_DIM = 2048
 CODE_BYTES = VLAD_DIM // 8
@@ -56,9 +60,12 @@ class IndexConfig:
     """Retrieval settings. ``shortlist_size`` Hamming candidates are re-ranked exactly."""
 
     shortlist_size: int = 400
-    # From this size on an approximate index replaces the flat one: "hnsw" (default: on
-    # route-like data it keeps recall where IVF's coarse lists split neighbours) or "ivf".
-    large_kind: str = "hnsw"
+    # From this size on another shortlist replaces FAISS's flat index: "scan" (default:
+    # exhaustive sketch scan, see server.index.sketch), FAISS's binary "hnsw" or "ivf".
+    large_kind: str = "scan"
+    scan_candidates: int = 2000  # sketch-nearest rows re-ranked by the full codes
+    scan_shortlist: int = 100  # full-code-nearest of those re-ranked exactly
+    scan_threads: int = 1  # 2 splits each scan over two cores (memory bound: ~1.5x)
     ivf_min_entries: int = 50_000
     hnsw_m: int = 32
     hnsw_ef_construction: int = 40
@@ -76,8 +83,12 @@ class IndexConfig:
     vector_dtype: str = "float32"
 
     def __post_init__(self) -> None:
-        if self.large_kind not in ("hnsw", "ivf"):
-            raise InvalidInputError(f"large_kind must be hnsw or ivf, not {self.large_kind}")
+        if self.large_kind not in ("scan", "hnsw", "ivf"):
+            raise InvalidInputError(f"large_kind must be scan, hnsw or ivf, not {self.large_kind}")
+        if self.scan_candidates < 1 or self.scan_shortlist < 1 or self.scan_threads not in (1, 2):
+            raise InvalidInputError(
+                "scan_candidates and scan_shortlist must be >= 1 and scan_threads 1 or 2"
+            )
         if self.vector_dtype not in ("float32", "int8"):
             raise InvalidInputError(
                 f"vector_dtype must be float32 or int8, not {self.vector_dtype}"
@@ -106,6 +117,7 @@ class RetrievalIndex:
         self._poses = np.zeros((0, 3), dtype=np.float64)
         self._size = 0
         self._row_of_id: dict[int, int] = {}
+        self._sketches = SketchTable()
         self._faiss = self._new_flat()
         self._kind = "flat"
         self._tombstones = 0
@@ -175,6 +187,7 @@ class RetrievalIndex:
         self._ids, self._codes = grow(self._ids), grow(self._codes)
         self._vlads, self._poses = grow(self._vlads), grow(self._poses)
         self._scales, self._sqnorms = grow(self._scales), grow(self._sqnorms)
+        self._sketches.reserve(capacity, self._size)
 
     def _store_vectors(self, rows: slice, vlads: np.ndarray) -> None:
         """Store float VLADs (n, 2048) at ``rows`` in the configured representation."""
@@ -212,10 +225,12 @@ class RetrievalIndex:
             rows = slice(self._size, self._size + len(ids))
             self._ids[rows], self._codes[rows], self._poses[rows] = ids, codes, poses
             self._store_vectors(rows, vlads)
+            self._sketches.set_rows(self._size, vlad_sketch(vlads))
             for offset, entry_id in enumerate(ids):
                 self._row_of_id[int(entry_id)] = self._size + offset
             self._size += len(ids)
-            self._faiss.add_with_ids(codes, ids)
+            if self._faiss is not None:
+                self._faiss.add_with_ids(codes, ids)
             if self._kind == "flat" and self._size >= self.config.ivf_min_entries:
                 self._rebuild_faiss()
 
@@ -237,13 +252,14 @@ class RetrievalIndex:
                     self._vlads[row], self._poses[row] = self._vlads[last], self._poses[last]
                     self._scales[row] = self._scales[last]
                     self._sqnorms[row] = self._sqnorms[last]
+                    self._sketches.move_row(row, last)
                     self._row_of_id[moved_id] = row
                 self._size -= 1
             if self._kind == "hnsw":
                 self._tombstones += len(rows)
                 if self._tombstones > self.config.hnsw_max_tombstones * max(self._size, 1):
                     self._rebuild_faiss()
-            else:
+            elif self._faiss is not None:
                 self._faiss.remove_ids(faiss.IDSelectorBatch(np.asarray(wanted, dtype=np.int64)))
             return len(rows)
 
@@ -253,6 +269,9 @@ class RetrievalIndex:
         self._tombstones = 0
         if self._size >= self.config.ivf_min_entries:
             self._kind = self.config.large_kind
+            if self._kind == "scan":
+                self._faiss = None  # the sketches are the index
+                return
             if self._kind == "ivf":
                 self._faiss = self._new_ivf(codes)
             else:
@@ -280,15 +299,39 @@ class RetrievalIndex:
         with self._lock.read():
             if self._size == 0:
                 return _empty_result()
+            sketch = vlad_sketch(query) if self._kind == "scan" else None
             if prior is None:
-                rows = self._shortlist_rows(code, max(self.config.shortlist_size, k))
+                rows = self._shortlist_rows(code, sketch, max(self.config.shortlist_size, k))
             else:
-                rows = self._prior_rows(code, k, prior)
+                rows = self._prior_rows(code, sketch, k, prior)
             return self._rerank(query, rows, k)
 
-    def _shortlist_rows(self, code: np.ndarray, size: int) -> np.ndarray:
+    def _scan_rows(self, code: np.ndarray, sketch: np.ndarray, size: int) -> np.ndarray:
+        """Top ``size`` rows by full-code Hamming among the sketch scan's candidates."""
+        from server.index._scan_kernel import hamming_rows
+
+        n_candidates = max(self.config.scan_candidates, 4 * size)
+        rows = self._sketches.nearest(sketch, self._size, n_candidates, self.config.scan_threads)
+        if len(rows) <= size:
+            return rows
+        distances = np.empty(len(rows), dtype=np.int32)
+        code_words = np.ascontiguousarray(code[0]).view(np.uint64)
+        hamming_rows(code_words, self._codes.view(np.uint64), rows, distances)
+        return rows[np.argsort(distances, kind="stable")[:size]]
+
+    def _shortlist_rows(
+        self, code: np.ndarray, sketch, size: int, capped: bool = True
+    ) -> np.ndarray:
+        """Up to ``size`` rows nearest by Hamming distance; ``capped``: approximate kinds
+        return at most their configured shortlist (a prior search widens past it)."""
+        if self._kind == "scan":
+            return self._scan_rows(
+                code, sketch, min(size, self.config.scan_shortlist) if capped else size
+            )
         if self._kind == "hnsw":
-            size = min(size, self.config.hnsw_shortlist) + self._tombstones
+            if capped:
+                size = min(size, self.config.hnsw_shortlist)
+            size += self._tombstones
         _, found = self._faiss.search(code, min(size, self._size + self._tombstones))
         # Tombstoned (removed) ids are no longer in the row map; a re-added id may appear
         # twice in an HNSW graph: keep each live row once.
@@ -297,7 +340,7 @@ class RetrievalIndex:
         )
         return np.fromiter(rows, dtype=np.int64, count=len(rows))
 
-    def _prior_rows(self, code: np.ndarray, k: int, prior: RetrievalPrior) -> np.ndarray:
+    def _prior_rows(self, code: np.ndarray, sketch, k: int, prior: RetrievalPrior) -> np.ndarray:
         inside = np.flatnonzero(prior.mask(self._poses[: self._size]))
         if len(inside) <= self.config.prior_exact_max:
             return inside
@@ -306,7 +349,7 @@ class RetrievalIndex:
         inside_set[inside] = True
         size = max(self.config.shortlist_size, k)
         while True:
-            rows = self._shortlist_rows(code, size)
+            rows = self._shortlist_rows(code, sketch, size, capped=False)
             rows = rows[inside_set[rows]]
             if len(rows) >= self.config.shortlist_size or size >= self._size:
                 return rows
@@ -336,14 +379,23 @@ class RetrievalIndex:
                 "codes": self._codes[:n].copy(),
                 "vlads": self._vlads[:n].astype(np.float32) * self._scales[:n, None],
                 "poses": self._poses[:n].copy(),
+                "sketches": self._sketches.rows(n),
             }
 
     @classmethod
     def from_arrays(
-        cls, ids, codes, vlads, poses, config: IndexConfig | None = None, faiss_index=None
+        cls,
+        ids,
+        codes,
+        vlads,
+        poses,
+        config: IndexConfig | None = None,
+        faiss_index=None,
+        sketches=None,
     ) -> RetrievalIndex:
         """Build an index from arrays; ``faiss_index`` (already holding exactly these ids)
-        skips building and, for IVF, training."""
+        skips building and, for IVF, training; ``sketches`` (N, 32) uint8 (as
+        ``snapshot`` gives them) skip recomputing them from the VLADs."""
         index = cls(config)
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         if len(np.unique(ids)) != len(ids):
@@ -354,9 +406,17 @@ class RetrievalIndex:
         index._codes[:n] = np.asarray(codes, dtype=np.uint8).reshape(n, CODE_BYTES)
         index._poses[:n] = np.asarray(poses, dtype=np.float64).reshape(n, 3)
         vlads = np.asarray(vlads).reshape(n, VLAD_DIM)
+        if sketches is not None:
+            sketches = np.asarray(sketches, dtype=np.uint8)
+            if sketches.shape != (n, SKETCH_BYTES):
+                raise InvalidInputError(f"sketches must be ({n}, {SKETCH_BYTES}) uint8")
+            index._sketches.set_rows(0, sketches)
         for start in range(0, n, 65536):  # chunked: bounded temporaries for huge maps
             stop = min(n, start + 65536)
-            index._store_vectors(slice(start, stop), vlads[start:stop].astype(np.float32))
+            block = vlads[start:stop].astype(np.float32)
+            index._store_vectors(slice(start, stop), block)
+            if sketches is None:
+                index._sketches.set_rows(start, vlad_sketch(block))
         index._size = n
         index._row_of_id = {int(i): row for row, i in enumerate(ids)}
         if faiss_index is not None:

@@ -116,7 +116,7 @@ def test_concurrent_add_remove_while_searching():
     assert index.search(vlads[399], codes[399], k=1).entry_ids[0] == 399
 
 
-@pytest.mark.parametrize("kind", ["ivf", "hnsw"])
+@pytest.mark.parametrize("kind", ["scan", "ivf", "hnsw"])
 def test_large_map_index_keeps_recall(kind):
     rng = np.random.default_rng(4)
     vlads, poses = _places(rng, 1500, 2)
@@ -149,7 +149,7 @@ def test_persist_round_trip_stale_and_corrupt(tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
-@pytest.mark.parametrize("kind", ["ivf", "hnsw"])
+@pytest.mark.parametrize("kind", ["scan", "ivf", "hnsw"])
 def test_large_index_persist_round_trip(tmp_path, kind):
     rng = np.random.default_rng(6)
     vlads, poses = _places(rng, 600, 1)
