@@ -12,95 +12,18 @@ add or a remove (FAISS's rule).
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
 
 from client.errors import InvalidInputError
-from client.geometry import wrap_angle
+from server.index.faiss_kinds import configure, new_flat, new_hnsw, new_ivf
 from server.index.rwlock import ReadWriteLock
 from server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
+from server.index.types import IndexConfig, RetrievalPrior, SearchResult, empty_result
+
+__all__ = ["IndexConfig", "RetrievalIndex", "RetrievalPrior", "SearchResult"]
 
 VLAD_DIM = 2048
 CODE_BYTES = VLAD_DIM // 8
-
-
-@dataclass(frozen=True)
-class RetrievalPrior:
-    """Only entries within ``radius_m`` of (x_m, y_m), and within ``yaw_tolerance_rad`` of
-    ``yaw_rad`` when both are given, compete."""
-
-    x_m: float
-    y_m: float
-    radius_m: float
-    yaw_rad: float | None = None
-    yaw_tolerance_rad: float | None = None
-
-    def __post_init__(self) -> None:
-        values = [self.x_m, self.y_m, self.radius_m]
-        if self.yaw_rad is not None:
-            values.append(self.yaw_rad)
-        if self.yaw_tolerance_rad is not None:
-            values.append(self.yaw_tolerance_rad)
-        if not all(math.isfinite(v) for v in values) or self.radius_m <= 0:
-            raise InvalidInputError(f"invalid retrieval prior {self}")
-
-    def mask(self, poses_world: np.ndarray) -> np.ndarray:
-        """Boolean (N,) of entries (planar poses (N, 3)) inside the prior."""
-        d2 = (poses_world[:, 0] - self.x_m) ** 2 + (poses_world[:, 1] - self.y_m) ** 2
-        inside = d2 <= self.radius_m**2
-        if self.yaw_rad is not None and self.yaw_tolerance_rad is not None:
-            inside &= np.abs(wrap_angle(poses_world[:, 2] - self.yaw_rad)) <= self.yaw_tolerance_rad
-        return inside
-
-
-@dataclass(frozen=True)
-class IndexConfig:
-    """Retrieval settings. ``shortlist_size`` Hamming candidates are re-ranked exactly."""
-
-    shortlist_size: int = 400
-    # From this size on another shortlist replaces FAISS's flat index: "scan" (default:
-    # exhaustive sketch scan, see server.index.sketch), FAISS's binary "hnsw" or "ivf".
-    large_kind: str = "scan"
-    scan_candidates: int = 2000  # sketch-nearest rows re-ranked by the full codes
-    scan_shortlist: int = 100  # full-code-nearest of those re-ranked exactly
-    scan_threads: int = 1  # 2 splits each scan over two cores (memory bound: ~1.5x)
-    ivf_min_entries: int = 50_000
-    hnsw_m: int = 32
-    hnsw_ef_construction: int = 40
-    hnsw_ef_search: int = 128
-    hnsw_shortlist: int = 100  # HNSW returns this many for the exact re-rank
-    # HNSW cannot delete: removed entries are tombstones, filtered from results, until
-    # they exceed this share of the index, which is then rebuilt.
-    hnsw_max_tombstones: float = 0.2
-    ivf_lists_per_sqrt: float = 2.0  # nlist = this * sqrt(N)
-    ivf_train_per_list: int = 40  # training sample = this * nlist codes (k-means cost)
-    ivf_nprobe: int = 32
-    prior_exact_max: int = 20_000  # up to this many candidates, re-rank all exactly
-    # Re-rank vectors: "float32" is exact; "int8" (per-entry scale, step ~1e-3 of the
-    # largest component) quarters the memory of very large maps at a negligible ranking cost.
-    vector_dtype: str = "float32"
-
-    def __post_init__(self) -> None:
-        if self.large_kind not in ("scan", "hnsw", "ivf"):
-            raise InvalidInputError(f"large_kind must be scan, hnsw or ivf, not {self.large_kind}")
-        if self.scan_candidates < 1 or self.scan_shortlist < 1 or self.scan_threads not in (1, 2):
-            raise InvalidInputError(
-                "scan_candidates and scan_shortlist must be >= 1 and scan_threads 1 or 2"
-            )
-        if self.vector_dtype not in ("float32", "int8"):
-            raise InvalidInputError(
-                f"vector_dtype must be float32 or int8, not {self.vector_dtype}"
-            )
-
-
-@dataclass(frozen=True)
-class SearchResult:
-    """Top-k entries, best first: ids (k,) int64 and VLAD L2 distances (k,) float32."""
-
-    entry_ids: np.ndarray
-    distances: np.ndarray
 
 
 class RetrievalIndex:
@@ -118,46 +41,11 @@ class RetrievalIndex:
         self._size = 0
         self._row_of_id: dict[int, int] = {}
         self._sketches = SketchTable()
-        self._faiss = self._new_flat()
+        self._faiss = new_flat()
         self._kind = "flat"
         self._tombstones = 0
 
     # ---- construction -------------------------------------------------------------
-    @staticmethod
-    def _new_flat():
-        import faiss
-
-        return faiss.IndexBinaryIDMap2(faiss.IndexBinaryFlat(VLAD_DIM))
-
-    def _new_ivf(self, codes: np.ndarray):
-        import faiss
-
-        nlist = max(16, int(self.config.ivf_lists_per_sqrt * math.sqrt(len(codes))))
-        quantizer = faiss.IndexBinaryFlat(VLAD_DIM)
-        ivf = faiss.IndexBinaryIVF(quantizer, VLAD_DIM, nlist)  # the wrapper keeps quantizer
-        n_train = self.config.ivf_train_per_list * nlist
-        train = codes if len(codes) <= n_train else codes[:: len(codes) // n_train]
-        ivf.train(np.ascontiguousarray(train))
-        ivf.nprobe = self.config.ivf_nprobe
-        return ivf
-
-    def _new_hnsw(self, codes: np.ndarray):
-        import faiss
-
-        hnsw = faiss.IndexBinaryHNSW(VLAD_DIM, self.config.hnsw_m)
-        hnsw.hnsw.efConstruction = self.config.hnsw_ef_construction
-        hnsw.hnsw.efSearch = self.config.hnsw_ef_search
-        return faiss.IndexBinaryIDMap2(hnsw)
-
-    def _configure(self, index) -> None:
-        import faiss
-
-        if self._kind == "ivf":
-            index.nprobe = self.config.ivf_nprobe
-        elif self._kind == "hnsw":
-            inner = faiss.downcast_IndexBinary(index.index)
-            inner.hnsw.efSearch = max(self.config.hnsw_ef_search, self.config.hnsw_shortlist)
-
     def __len__(self) -> int:
         return self._size
 
@@ -273,13 +161,13 @@ class RetrievalIndex:
                 self._faiss = None  # the sketches are the index
                 return
             if self._kind == "ivf":
-                self._faiss = self._new_ivf(codes)
+                self._faiss = new_ivf(codes, self.config)
             else:
-                self._faiss = self._new_hnsw(codes)
+                self._faiss = new_hnsw(self.config)
         else:
-            self._faiss = self._new_flat()
+            self._faiss = new_flat()
             self._kind = "flat"
-        self._configure(self._faiss)
+        configure(self._faiss, self._kind, self.config)
         if self._size:
             self._faiss.add_with_ids(np.ascontiguousarray(codes), ids)
 
@@ -298,7 +186,7 @@ class RetrievalIndex:
         code = np.ascontiguousarray(code_query, dtype=np.uint8).reshape(1, CODE_BYTES)
         with self._lock.read():
             if self._size == 0:
-                return _empty_result()
+                return empty_result()
             sketch = vlad_sketch(query) if self._kind == "scan" else None
             if prior is None:
                 rows = self._shortlist_rows(code, sketch, max(self.config.shortlist_size, k))
@@ -357,7 +245,7 @@ class RetrievalIndex:
 
     def _rerank(self, query: np.ndarray, rows: np.ndarray, k: int) -> SearchResult:
         if len(rows) == 0:
-            return _empty_result()
+            return empty_result()
         # |v - q|^2 = |v|^2 + |q|^2 - 2 v.q with |v|^2 precomputed: one mat-vec per search.
         dots = (self._vlads[rows].astype(np.float32, copy=False) @ query) * self._scales[rows]
         dist2 = self._sqnorms[rows] + float(query @ query) - 2.0 * dots
@@ -424,11 +312,7 @@ class RetrievalIndex:
                 raise InvalidInputError("the FAISS index does not hold the given entries")
             index._kind = "ivf" if "IVF" in type(faiss_index).__name__ else "hnsw"
             index._faiss = faiss_index
-            index._configure(faiss_index)
+            configure(faiss_index, index._kind, index.config)
         else:
             index._rebuild_faiss()
         return index
-
-
-def _empty_result() -> SearchResult:
-    return SearchResult(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float32))
