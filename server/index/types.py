@@ -48,7 +48,7 @@ class IndexConfig:
     # From this size on another shortlist replaces FAISS's flat index: "scan" (default:
     # exhaustive sketch scan, see server.index.sketch), FAISS's binary "hnsw" or "ivf".
     large_kind: str = "scan"
-    scan_candidates: int = 2000  # sketch-nearest rows re-ranked by the full codes
+    scan_candidates: int = 1000  # sketch-nearest rows re-ranked by the full codes
     scan_shortlist: int = 100  # full-code-nearest of those re-ranked exactly
     scan_threads: int = 1  # 2 splits each scan over two cores (memory bound: ~1.5x)
     ivf_min_entries: int = 50_000

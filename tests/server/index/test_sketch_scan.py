@@ -46,16 +46,18 @@ def test_scan_kernel_ranges_compose():
     )
     query = rng.integers(0, 256, size=32, dtype=np.uint8).view(np.uint64)
     n = words_t.shape[1]
-    whole, block_whole = np.empty(n, np.int32), np.empty(4, np.int32)
-    split, block_split = np.empty(n, np.int32), np.empty(4, np.int32)
-    scan(query, words_t, 0, n, whole, block_whole)
-    scan(query, words_t, 2 * BLOCK, n, split, block_split)
-    scan(query, words_t, 0, 2 * BLOCK, split, block_split)
-    assert np.array_equal(whole, split) and np.array_equal(block_whole, block_split)
-    assert block_whole[3] == whole[3 * BLOCK :].min()
+    whole, split = np.empty(4, np.int32), np.empty(4, np.int32)
+    scan(query, words_t, 0, n, whole)
+    scan(query, words_t, 2 * BLOCK, n, split)
+    scan(query, words_t, 0, 2 * BLOCK, split)
+    distances = hamming_distances(
+        query.view(np.uint8), np.ascontiguousarray(words_t.T).view(np.uint8)
+    )
+    assert np.array_equal(whole, split)
+    assert whole.tolist() == [distances[b * BLOCK : (b + 1) * BLOCK].min() for b in range(4)]
     out = np.empty(7, np.int64)
-    assert select_nearest(whole, block_whole, n, 7, out) == 7
-    assert np.array_equal(whole[out], np.sort(whole)[:7])
+    assert select_nearest(query, words_t, whole, n, 7, out) == 7
+    assert np.array_equal(distances[out], np.sort(distances)[:7])
 
 
 def test_sketch_distance_estimates_the_angle():
