@@ -102,7 +102,6 @@ def run_size(n: int, n_queries: int, rng: np.random.Generator) -> dict:
             index._vlads,
             index._poses,
             index._scales,
-            index._sqnorms,
         )
     )
     per_entry = (arrays_bytes + faiss_bytes + 100 * n) / n  # ~100 B/entry for the id map

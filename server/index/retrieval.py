@@ -36,7 +36,6 @@ class RetrievalIndex:
         self._codes = np.zeros((0, CODE_BYTES), dtype=np.uint8)
         self._vlads = np.zeros((0, VLAD_DIM), dtype=self.config.vector_dtype)
         self._scales = np.zeros(0, dtype=np.float32)  # stored vector * scale = VLAD
-        self._sqnorms = np.zeros(0, dtype=np.float32)  # squared norm of the stored VLAD
         self._poses = np.zeros((0, 3), dtype=np.float64)
         self._size = 0
         self._row_of_id: dict[int, int] = {}
@@ -74,7 +73,7 @@ class RetrievalIndex:
 
         self._ids, self._codes = grow(self._ids), grow(self._codes)
         self._vlads, self._poses = grow(self._vlads), grow(self._poses)
-        self._scales, self._sqnorms = grow(self._scales), grow(self._sqnorms)
+        self._scales = grow(self._scales)
         self._sketches.reserve(capacity, self._size)
 
     def _store_vectors(self, rows: slice, vlads: np.ndarray) -> None:
@@ -85,12 +84,9 @@ class RetrievalIndex:
             q = np.rint(vlads / scale[:, None]).astype(np.int8)
             self._vlads[rows] = q
             self._scales[rows] = scale
-            deq = q.astype(np.float32) * scale[:, None]
         else:
             self._vlads[rows] = vlads
             self._scales[rows] = 1.0
-            deq = vlads
-        self._sqnorms[rows] = np.einsum("ij,ij->i", deq, deq)
 
     def add(
         self, entry_ids: np.ndarray, codes: np.ndarray, vlads: np.ndarray, poses_world: np.ndarray
@@ -139,7 +135,6 @@ class RetrievalIndex:
                     self._ids[row], self._codes[row] = self._ids[last], self._codes[last]
                     self._vlads[row], self._poses[row] = self._vlads[last], self._poses[last]
                     self._scales[row] = self._scales[last]
-                    self._sqnorms[row] = self._sqnorms[last]
                     self._sketches.move_row(row, last)
                     self._row_of_id[moved_id] = row
                 self._size -= 1
@@ -189,7 +184,8 @@ class RetrievalIndex:
                 return empty_result()
             sketch = vlad_sketch(query) if self._kind == "scan" else None
             if prior is None:
-                rows = self._shortlist_rows(code, sketch, max(self.config.shortlist_size, k))
+                size = max(self.config.shortlist_size, k)
+                rows = self._shortlist_rows(code, sketch, size, cap=k)
             else:
                 rows = self._prior_rows(code, sketch, k, prior)
             return self._rerank(query, rows, k)
@@ -207,18 +203,17 @@ class RetrievalIndex:
         hamming_rows(code_words, self._codes.view(np.uint64), rows, distances)
         return rows[np.argsort(distances, kind="stable")[:size]]
 
-    def _shortlist_rows(
-        self, code: np.ndarray, sketch, size: int, capped: bool = True
-    ) -> np.ndarray:
-        """Up to ``size`` rows nearest by Hamming distance; ``capped``: approximate kinds
-        return at most their configured shortlist (a prior search widens past it)."""
+    def _shortlist_rows(self, code: np.ndarray, sketch, size: int, cap: int | None = None):
+        """Up to ``size`` rows nearest by Hamming distance. With ``cap`` (the k wanted),
+        approximate kinds return at most their configured shortlist, but never fewer than
+        ``cap`` rows; a prior search passes no cap and widens past the shortlist."""
         if self._kind == "scan":
-            return self._scan_rows(
-                code, sketch, min(size, self.config.scan_shortlist) if capped else size
-            )
+            if cap is not None:
+                size = min(size, max(self.config.scan_shortlist, cap))
+            return self._scan_rows(code, sketch, size)
         if self._kind == "hnsw":
-            if capped:
-                size = min(size, self.config.hnsw_shortlist)
+            if cap is not None:
+                size = min(size, max(self.config.hnsw_shortlist, cap))
             size += self._tombstones
         _, found = self._faiss.search(code, min(size, self._size + self._tombstones))
         # Tombstoned (removed) ids are no longer in the row map; a re-added id may appear
@@ -237,25 +232,22 @@ class RetrievalIndex:
         inside_set[inside] = True
         size = max(self.config.shortlist_size, k)
         while True:
-            rows = self._shortlist_rows(code, sketch, size, capped=False)
+            rows = self._shortlist_rows(code, sketch, size)
             rows = rows[inside_set[rows]]
             if len(rows) >= self.config.shortlist_size or size >= self._size:
                 return rows
             size *= 4
 
     def _rerank(self, query: np.ndarray, rows: np.ndarray, k: int) -> SearchResult:
+        from server.index._scan_kernel import vlad_distances
+
         if len(rows) == 0:
             return empty_result()
-        # |v - q|^2 = |v|^2 + |q|^2 - 2 v.q with |v|^2 precomputed: one mat-vec per search.
-        dots = (self._vlads[rows].astype(np.float32, copy=False) @ query) * self._scales[rows]
-        dist2 = self._sqnorms[rows] + float(query @ query) - 2.0 * dots
-        # That formula loses ~1e-3 to cancellation for near-identical vectors: recompute
-        # the few best candidates exactly (in float64) before the final order.
-        top = rows[np.argsort(dist2, kind="stable")[: 2 * k + 8]]
-        stored = self._vlads[top].astype(np.float64) * self._scales[top, None]
-        dist = np.linalg.norm(stored - query.astype(np.float64), axis=1)
+        rows = np.ascontiguousarray(rows, dtype=np.int64)
+        dist = np.empty(len(rows), dtype=np.float64)
+        vlad_distances(query.astype(np.float64), self._vlads, self._scales, rows, dist)
         order = np.argsort(dist, kind="stable")[:k]
-        return SearchResult(self._ids[top[order]].copy(), dist[order].astype(np.float32))
+        return SearchResult(self._ids[rows[order]].copy(), dist[order].astype(np.float32))
 
     # ---- snapshot (for persistence) ---------------------------------------------------
     def snapshot(self) -> dict[str, np.ndarray]:

@@ -128,6 +128,27 @@ def test_large_map_index_keeps_recall(kind):
     assert np.mean(hits) >= 0.95
 
 
+@pytest.mark.parametrize("kind", ["scan", "hnsw"])
+def test_k_above_the_approximate_shortlist_still_returns_k(kind):
+    rng = np.random.default_rng(7)
+    vlads, poses = _places(rng, 300, 2)
+    config = IndexConfig(
+        ivf_min_entries=500,
+        large_kind=kind,
+        scan_shortlist=5,
+        scan_candidates=200,
+        hnsw_shortlist=5,
+    )
+    index = RetrievalIndex.from_arrays(np.arange(600), _codes(vlads), vlads, poses, config)
+    assert index.kind == kind
+    found = index.search(vlads[100], _codes(vlads[100]), k=20)
+    assert len(found.entry_ids) == 20
+    assert found.entry_ids[0] == 100
+    assert np.all(np.diff(found.distances) >= 0)
+    exact = np.linalg.norm(vlads[found.entry_ids] - vlads[100], axis=1)
+    np.testing.assert_allclose(found.distances, exact, atol=1e-5)
+
+
 def test_persist_round_trip_stale_and_corrupt(tmp_path):
     rng = np.random.default_rng(5)
     vlads, poses = _places(rng, 30, 1)

@@ -47,17 +47,37 @@ def test_scan_kernel_ranges_compose():
     query = rng.integers(0, 256, size=32, dtype=np.uint8).view(np.uint64)
     n = words_t.shape[1]
     whole, split = np.empty(4, np.int32), np.empty(4, np.int32)
-    scan(query, words_t, 0, n, whole)
-    scan(query, words_t, 2 * BLOCK, n, split)
-    scan(query, words_t, 0, 2 * BLOCK, split)
+    bytes_whole, bytes_split = np.empty(n, np.uint8), np.empty(n, np.uint8)
+    scan(query, words_t, 0, n, bytes_whole, whole)
+    scan(query, words_t, 2 * BLOCK, n, bytes_split, split)
+    scan(query, words_t, 0, 2 * BLOCK, bytes_split, split)
     distances = hamming_distances(
         query.view(np.uint8), np.ascontiguousarray(words_t.T).view(np.uint8)
     )
     assert np.array_equal(whole, split)
+    assert np.array_equal(bytes_whole, bytes_split)
+    assert np.array_equal(bytes_whole, distances)
     assert whole.tolist() == [distances[b * BLOCK : (b + 1) * BLOCK].min() for b in range(4)]
     out = np.empty(7, np.int64)
-    assert select_nearest(query, words_t, whole, n, 7, out) == 7
+    assert select_nearest(bytes_whole, whole, n, 7, out) == 7
     assert np.array_equal(distances[out], np.sort(distances)[:7])
+
+
+def test_scan_of_opposite_sketches_clamps_at_255_and_still_selects():
+    """Distances of 256 are stored as 255: the selection still returns the wanted rows,
+    ordered up to that clamp (the full codes order the candidates afterwards)."""
+    rng = np.random.default_rng(2)
+    query = rng.integers(0, 256, size=32, dtype=np.uint8)
+    sketches = np.repeat(~query[None], 2 * BLOCK + 3, axis=0)  # every distance is 256
+    sketches[5, 0] ^= 1  # 255
+    sketches[70, :2] ^= 0xFF  # 240
+    table = SketchTable()
+    table.reserve(len(sketches), 0)
+    table.set_rows(0, sketches)
+    rows = table.nearest(query, len(sketches), 20)
+    assert len(rows) == 20 and len(set(rows.tolist())) == 20
+    assert rows[0] == 70
+    assert rows[1] == 5 or hamming_distances(query, sketches[rows[1:2]])[0] == 256
 
 
 def test_sketch_distance_estimates_the_angle():
