@@ -9,10 +9,10 @@ Why a scan and not a graph or inverted index: on bench/retrieval.py's route mode
 entries, FAISS's binary HNSW found 19 % of the true top 10 (a query is equally far from
 everything but its few true neighbours, so greedy graph search has nothing to follow)
 and the binary IVF lost neighbours across its coarse cells already at 100k (71 %). An
-exhaustive scan of 32-byte sketches reads 32 MB per million entries: ~1.7 ms on one core
-with the selection (the compiled popcount and the memory reads do not fully overlap; a
-bare read of the same 32 MB takes 0.8 ms), ~1.4 ms split over two. Its candidates are
-re-ranked by the full 2048-bit codes and finally by exact float distance.
+exhaustive scan of 32-byte sketches reads 32 MB per million entries: ~0.75 ms on one core,
+as long as a bare read of the same 32 MB, plus ~0.2 ms to select the 1000 nearest (the
+whole search at 1M entries: ~1.5 ms, see bench/REPORT.md). Its candidates are re-ranked
+by the full 2048-bit codes and finally by exact float distance.
 """
 
 from __future__ import annotations
