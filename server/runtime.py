@@ -62,6 +62,14 @@ class EntryCache:
                     self._items.popitem(last=False)
         return [found[i] for i in entry_ids if i in found]
 
+    def __contains__(self, entry_id: int) -> bool:
+        with self._lock:
+            return entry_id in self._items
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
+
     def discard(self, entry_ids: Sequence[int]) -> None:
         with self._lock:
             for i in entry_ids:
@@ -152,13 +160,17 @@ class MapRegistry:
                     index.add(batch.entry_ids, batch.codes, batch.vlads, batch.planar)
                 save_index(path, index, record.version)
         cache = EntryCache(self._lookup, self._cache_entries)
-        # Warm the entry cache when the whole map fits: a query then reads no database rows
-        # (a cold lookup of ten entries costs ~2 ms of a ~25 ms query).
-        ids = index.entry_ids()
-        if len(ids) <= self._cache_entries:
-            for start in range(0, len(ids), 512):
-                cache.get(ids[start : start + 512].tolist())
+        self._warm(cache, index.entry_ids(), len(index))
         return MapRuntime(record, vocabulary, index, cache, record.version, time.monotonic())
+
+    def _warm(self, cache: EntryCache, entry_ids: np.ndarray, map_size: int) -> None:
+        """Load entries into the cache when the whole map fits in it: a query then reads
+        no database rows (a cold lookup of ten entries costs ~2 ms of a ~25 ms query)."""
+        if map_size > self._cache_entries:
+            return
+        ids = np.asarray(entry_ids, dtype=np.int64).tolist()
+        for start in range(0, len(ids), 512):
+            cache.get(ids[start : start + 512])
 
     def get(self, map_id: int) -> MapRuntime:
         """The map's runtime, loading or refreshing it if needed (NotFoundError if gone)."""
@@ -203,8 +215,10 @@ class MapRegistry:
         if runtime is None:
             return  # loaded from the database on first use
         runtime.index.add(entry_ids, codes, vlads, poses_world)
-        runtime.cache.discard(list(np.asarray(entry_ids).tolist()))
+        runtime.cache.discard(list(np.asarray(entry_ids).tolist()))  # replaced entries
         runtime.version = new_version
+        # Read the new entries now, on the adding thread, not on a vehicle's first query.
+        self._warm(runtime.cache, entry_ids, len(runtime.index))
 
     def entries_removed(self, map_id: int, entry_ids: Sequence[int], new_version: int) -> None:
         runtime = self._maps.get(map_id)
@@ -218,6 +232,7 @@ class MapRegistry:
         runtime = self._maps.get(map_id)
         if runtime is not None:
             runtime.cache.discard([entry_id])
+            self._warm(runtime.cache, [entry_id], len(runtime.index))
 
     def forget(self, map_id: int, delete_file: bool = False) -> None:
         """Drop a map from memory (deleted, or its vocabulary changed)."""

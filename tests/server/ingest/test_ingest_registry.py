@@ -36,6 +36,21 @@ def _query(registry, map_id, seq, index=3):
     return runtime.index.search(vlad, vlad_binary_code(vlad), k=5)
 
 
+def test_entries_added_live_are_cached_before_the_first_query(
+    kitti_root, factory, make_map, make_run, settings
+):
+    seq = read_kitti_sequence(kitti_root.root)
+    map_id = make_map()
+    registry = MapRegistry(factory, settings.index_dir, version_check_s=1e9)
+    runtime = registry.get(map_id)
+    assert len(runtime.cache) == 0
+    ingest_run(factory, map_id, seq, run_id=make_run(map_id, seq), registry=registry)
+    assert registry.get(map_id) is runtime  # fed live, not rebuilt (which warms anyway)
+    ids = runtime.index.entry_ids().tolist()
+    assert ids and all(i in runtime.cache for i in ids)
+    assert len(runtime.cache) == len(ids)
+
+
 def test_index_survives_a_restart(ingested, factory, settings, caplog):
     registry, map_id, seq = ingested
     before = _query(registry, map_id, seq)

@@ -111,4 +111,12 @@ def test_retraining_reproduces_the_shipped_default():
 
     retrained = train_default_vocabulary()
     shipped = load_vocabulary(default_vocabulary_path())
-    assert retrained.version == shipped.version == DEFAULT_VOCABULARY_VERSION
+    assert shipped.version == DEFAULT_VOCABULARY_VERSION
+    # Bit for bit (same hash) only on the CPU family it was trained on: other SIMD
+    # kernels round differently (an AVX-512 EPYC retrain gives another hash).
+    # Elsewhere the recipe must give the same centres in the same order, up to rounding
+    # drift far below the spacing of the centres (~200 byte units apart).
+    drift = np.linalg.norm(retrained.centres - shipped.centres, axis=1)
+    spacing = np.linalg.norm(shipped.centres[:, None] - shipped.centres[None], axis=2)
+    spacing[np.diag_indices(len(spacing))] = np.inf
+    assert drift.max() < 5.0 < 0.05 * spacing.min(axis=1).min()
