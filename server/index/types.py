@@ -49,7 +49,7 @@ class IndexConfig:
     # exhaustive sketch scan, see server.index.sketch), FAISS's binary "hnsw" or "ivf".
     large_kind: str = "scan"
     scan_candidates: int = 1000  # sketch-nearest rows re-ranked by the full codes
-    scan_shortlist: int = 30  # full-code-nearest of those re-ranked exactly
+    scan_shortlist: int = 20  # full-code-nearest of those re-ranked exactly
     scan_threads: int = 1  # 2 splits each scan over two cores (memory bound: ~10 % faster)
     ivf_min_entries: int = 50_000
     hnsw_m: int = 32
