@@ -159,7 +159,7 @@ def parked_cars(city: City, variant: int, change_fraction: float = 0.3) -> Scene
     """The parked cars of one run. ``variant`` 0 is the reference arrangement; another
     variant re-draws each spot with probability ``change_fraction`` (moved, removed, a
     different car, or a new one), as happens between two drives of the same street."""
-    from sim.city_blocks import add_car
+    from sim.street_props import add_car
 
     poses = city.parking.poses
     n = len(poses)

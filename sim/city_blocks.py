@@ -1,4 +1,5 @@
-"""Builds one district's static scene: ground, roads, sidewalks, buildings, furniture.
+"""Builds one district's static scene: ground, roads, sidewalks, and (through
+sim.city_buildings and sim.street_props) buildings, furniture and parked cars.
 
 Heights: carriageway at z = 0, sidewalks and block interiors at the kerb height; walls
 reach below the ground so that no crack opens at their foot.
@@ -11,29 +12,21 @@ from dataclasses import replace
 
 import numpy as np
 
+from sim.city_buildings import WALL_FOOT_M, add_building, add_frontage
 from sim.scene import (
-    KIND_CAR,
-    KIND_FOLIAGE,
-    KIND_GLASS,
     KIND_GROUND,
-    KIND_LAMP,
-    KIND_POLE,
     KIND_ROAD,
-    KIND_SIGN,
     KIND_WALL,
     Scene,
     SceneBuilder,
     TextureSpec,
 )
-from sim.shapes import add_billboard, add_box, add_split_quad, add_wall, texture_size_px
+from sim.shapes import add_split_quad, add_wall, texture_size_px
+from sim.street_props import add_street_furniture
+from sim.street_props import texture_seed as _seed
 
 KERB_M = 0.12
-WALL_FOOT_M = -0.3
 UPV = np.array([0.0, 0.0, 1.0])
-
-
-def _seed(rng: np.random.Generator) -> int:
-    return int(rng.integers(0, 2**31))
 
 
 def _ground_rect(builder, x0, y0, x1, y1, z, kind_name, ppm, rng, kind, piece=8.0, **params):
@@ -184,7 +177,7 @@ def _outer_ring(b, rng, config, grid):
     _backdrop(b, rng, config, (kx0 - depth, ky0 - depth, kx1 + depth, ky1 + depth))
     for cx, cy in ((kx0 - depth, ky0 - depth), (kx1, ky0 - depth), (kx0 - depth, ky1), (kx1, ky1)):
         corners = np.array([[cx, cy + depth], [cx + depth, cy + depth], [cx + depth, cy], [cx, cy]])
-        _building(b, rng, config, corners, front_edges=(0, 1, 2, 3), height=None, shops=False)
+        add_building(b, rng, config, corners, front_edges=(0, 1, 2, 3), height=None, shops=False)
 
 
 def _backdrop(b, rng, config, inner_rect):
@@ -290,215 +283,13 @@ def _block(b, rng, config, kerb, side, facing):
     if facing[2]:
         fronts.append(((lx1, ly0 + cs), (lx1, ly1 - cn), (-1.0, 0.0), se))
     for start, end, normal, _ in fronts:
-        _frontage(
+        add_frontage(
             b, rng, config, np.array(start), np.array(end), np.array(normal), max(6.0, max_depth)
         )
     for start, end, normal, walk_w in fronts:
-        _furniture(b, rng, config, np.array(start), np.array(end), np.array(normal), z, walk_w)
-
-
-def _frontage(b, rng, config, start, end, normal, max_depth):
-    """Lots of buildings along the line start->end, set back along ``normal``."""
-    length = float(np.linalg.norm(end - start))
-    if length < 4.0:
-        return
-    d = (end - start) / length
-    pos = 0.0
-    while pos < length - 1e-6:
-        width = rng.uniform(*config.lot_width_m)
-        if length - (pos + width) < config.lot_width_m[0] * 0.6:
-            width = length - pos
-        if rng.random() < config.empty_lot_fraction and width < length:
-            pos += width
-            continue
-        setback = rng.uniform(*config.setback_m)
-        if rng.random() < config.deep_setback_fraction:
-            setback = rng.uniform(4.0, 8.0)
-        depth = min(max_depth - setback, rng.uniform(*config.lot_depth_m))
-        if depth < 3.0:
-            setback, depth = 0.0, max_depth
-        f0 = start + d * pos + normal * setback
-        f1 = start + d * (pos + width) + normal * setback
-        corners = np.array([f0, f1, f1 + normal * depth, f0 + normal * depth])
-        _building(
-            b,
-            rng,
-            config,
-            corners,
-            front_edges=(0,),
-            height=None,
-            shops=rng.random() < config.shop_fraction,
+        add_street_furniture(
+            b, rng, config, np.array(start), np.array(end), np.array(normal), z, walk_w
         )
-        pos += width
-
-
-def _building(b, rng, config, corners, front_edges, height, shops):
-    """A box building on footprint ``corners`` (4, 2) (any winding); edges listed in
-    ``front_edges`` (edge k = corners[k] -> corners[k+1]) get street facades."""
-    ppm = config.facade_texels_per_m
-    h = height if height is not None else rng.uniform(*config.building_height_m)
-    if rng.random() < 0.15:
-        h = rng.uniform(*config.building_height_m) * 1.6
-    x, y = corners[:, 0], corners[:, 1]
-    area2 = float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
-    if area2 > 0:  # counter-clockwise: reverse so that walls face outwards
-        cw = corners[::-1]
-        front = {(2 - e) % 4 for e in front_edges}
-    else:
-        cw = corners
-        front = set(front_edges)
-    plain_front = rng.random() < config.plain_facade_fraction
-    specs = []
-    for k in range(4):
-        length = float(np.linalg.norm(cw[(k + 1) % 4] - cw[k]))
-        if k in front:
-            style = "plain" if plain_front else ("shops" if shops else "windows")
-            p = ppm
-        else:
-            style = "plain" if rng.random() < 0.5 else "windows"
-            p = ppm * 0.6
-        w, hh = texture_size_px(length, h - WALL_FOOT_M, p)
-        specs.append((TextureSpec("facade", w, hh, _seed(rng), (("ppm", p), ("style", style))), p))
-    for k in range(4):
-        spec, p = specs[k]
-        add_wall(
-            b,
-            cw[k],
-            cw[(k + 1) % 4],
-            WALL_FOOT_M,
-            h,
-            spec,
-            p,
-            KIND_WALL,
-            max_piece_m=6.0,
-            reflectance=0.35,
-        )
-
-
-def _furniture(b, rng, config, start, end, normal, z, walk_w):
-    """Lamps, trees and signs on the sidewalk of width ``walk_w`` in front of the frontage
-    line start->end (buildings lie along ``normal``, the kerb against it)."""
-    length = float(np.linalg.norm(end - start))
-    if length < 5.0:
-        return
-    d = (end - start) / length
-    kerb_dist = walk_w - 0.5
-    lamp_pos = rng.uniform(3.0, 12.0)
-    while lamp_pos < length - 3.0:
-        _lamp(b, rng, start + d * lamp_pos - normal * kerb_dist, -normal, z)
-        lamp_pos += rng.uniform(*config.lamp_spacing_m)
-    if walk_w > 3.0 and rng.random() < config.tree_street_fraction:
-        t = rng.uniform(4.0, 8.0)
-        while t < length - 3.0:
-            _tree(b, rng, start + d * t - normal * (walk_w - 1.0), z)
-            t += rng.uniform(7.0, 12.0)
-    for t in (2.0, length - 2.0):
-        if rng.random() < 0.35:
-            _sign(b, rng, start + d * t - normal * kerb_dist, d if t < 2.5 else -d, z)
-
-
-def _lamp(b, rng, p_xy, towards_road, z):
-    pole_h = rng.uniform(6.0, 8.0)
-    metal = TextureSpec("metal", 16, int(pole_h * 40), _seed(rng), (("ppm", 40.0),))
-    corners = np.array(
-        [
-            [p_xy[0] - 0.08, p_xy[1] + 0.08],
-            [p_xy[0] + 0.08, p_xy[1] + 0.08],
-            [p_xy[0] + 0.08, p_xy[1] - 0.08],
-            [p_xy[0] - 0.08, p_xy[1] - 0.08],
-        ]
-    )
-    add_box(b, corners, z - 0.05, z + pole_h, [metal] * 4, 40.0, KIND_POLE, reflectance=0.5)
-    head_xy = p_xy + towards_road * 1.3
-    hc = np.array(
-        [
-            [head_xy[0] - 0.3, head_xy[1] + 0.15],
-            [head_xy[0] + 0.3, head_xy[1] + 0.15],
-            [head_xy[0] + 0.3, head_xy[1] - 0.15],
-            [head_xy[0] - 0.3, head_xy[1] - 0.15],
-        ]
-    )
-    lamp = TextureSpec("lamp", 24, 12, _seed(rng), (("ppm", 40.0),))
-    add_box(
-        b,
-        hc,
-        z + pole_h - 0.2,
-        z + pole_h,
-        [lamp] * 4,
-        40.0,
-        KIND_LAMP,
-        top_spec=lamp,
-        reflectance=0.6,
-    )
-    arm = np.array([p_xy, head_xy])
-    mid = arm.mean(axis=0)
-    ac = np.array(
-        [
-            [mid[0] - 0.65, mid[1] + 0.04],
-            [mid[0] + 0.65, mid[1] + 0.04],
-            [mid[0] + 0.65, mid[1] - 0.04],
-            [mid[0] - 0.65, mid[1] - 0.04],
-        ]
-    )
-    if abs(towards_road[1]) > abs(towards_road[0]):
-        ac = np.array(
-            [
-                [mid[0] - 0.04, mid[1] + 0.65],
-                [mid[0] + 0.04, mid[1] + 0.65],
-                [mid[0] + 0.04, mid[1] - 0.65],
-                [mid[0] - 0.04, mid[1] - 0.65],
-            ]
-        )
-    add_box(b, ac, z + pole_h - 0.1, z + pole_h, [metal] * 4, 40.0, KIND_POLE)
-    b.add_light((head_xy[0], head_xy[1], z + pole_h - 0.3), 1.0)
-
-
-def _tree(b, rng, p_xy, z):
-    trunk_h = rng.uniform(2.2, 3.2)
-    bark = TextureSpec("metal", 20, int(trunk_h * 40), _seed(rng), (("ppm", 40.0), ("bark", True)))
-    r = rng.uniform(0.1, 0.16)
-    corners = np.array(
-        [
-            [p_xy[0] - r, p_xy[1] + r],
-            [p_xy[0] + r, p_xy[1] + r],
-            [p_xy[0] + r, p_xy[1] - r],
-            [p_xy[0] - r, p_xy[1] - r],
-        ]
-    )
-    add_box(b, corners, z - 0.05, z + trunk_h + 0.5, [bark] * 4, 40.0, KIND_POLE, reflectance=0.3)
-    size = rng.uniform(3.0, 5.0)
-    yaw = rng.uniform(0, np.pi)
-    for k in range(2):
-        spec = TextureSpec("foliage", int(size * 30), int(size * 30), _seed(rng), (("ppm", 30.0),))
-        add_billboard(
-            b,
-            (p_xy[0], p_xy[1], z + trunk_h + size / 2 - 0.3),
-            yaw + k * np.pi / 2,
-            size,
-            size,
-            spec,
-            30.0,
-            KIND_FOLIAGE,
-            reflectance=0.2,
-        )
-
-
-def _sign(b, rng, p_xy, facing, z):
-    post = TextureSpec("metal", 8, 100, _seed(rng), (("ppm", 40.0),))
-    corners = np.array(
-        [
-            [p_xy[0] - 0.03, p_xy[1] + 0.03],
-            [p_xy[0] + 0.03, p_xy[1] + 0.03],
-            [p_xy[0] + 0.03, p_xy[1] - 0.03],
-            [p_xy[0] - 0.03, p_xy[1] - 0.03],
-        ]
-    )
-    add_box(b, corners, z - 0.05, z + 2.5, [post] * 4, 40.0, KIND_POLE, reflectance=0.5)
-    spec = TextureSpec("sign", 60, 60, _seed(rng), (("ppm", 100.0),))
-    yaw = math.atan2(facing[1], facing[0])
-    add_billboard(
-        b, (p_xy[0], p_xy[1], z + 2.4), yaw, 0.6, 0.6, spec, 100.0, KIND_SIGN, reflectance=0.9
-    )
 
 
 def _parking_spots(grid, spots):
@@ -523,47 +314,3 @@ def _parking_spots(grid, spots):
                             [[grid.xs[i] + off, y, np.pi / 2], [grid.xs[i] - off, y, -np.pi / 2]]
                         )
                     )
-
-
-def add_car(b: SceneBuilder, xy, yaw: float, seed: int) -> None:
-    """A parked car (two textured boxes: body and cabin) centred at ``xy``."""
-    rng = np.random.default_rng(seed)
-    ppm = 50.0
-    length, width = rng.uniform(3.9, 4.8), rng.uniform(1.7, 1.85)
-    tone = float(rng.choice([rng.uniform(0.05, 0.2), rng.uniform(0.3, 0.6), rng.uniform(0.7, 0.9)]))
-    from sim.shapes import footprint_corners
-
-    body = footprint_corners(xy, length, width, yaw)
-    body_h = rng.uniform(0.85, 1.0)
-
-    def spec(face, w_m, h_m):
-        return TextureSpec(
-            "car",
-            *texture_size_px(w_m, h_m, ppm),
-            _seed(rng),
-            (("ppm", ppm), ("tone", tone), ("face", face)),
-        )
-
-    side = spec("side", length, body_h - 0.12)
-    # Footprint order: rear-left, front-left, front-right, rear-right (clockwise):
-    # edges: left side, front, right side, back.
-    walls = [side, spec("front", width, body_h - 0.12), side, spec("back", width, body_h - 0.12)]
-    top = spec("top", length, width)
-    add_box(b, body, 0.12, body_h, walls, ppm, KIND_CAR, top_spec=top, reflectance=0.5)
-    cab_len = length * rng.uniform(0.45, 0.6)
-    cab_h = rng.uniform(0.4, 0.55)
-    centre = np.asarray(xy) - 0.1 * length * np.array([math.cos(yaw), math.sin(yaw)])
-    cabin = footprint_corners(centre, cab_len, width - 0.12, yaw)
-    cside = spec("cabin_side", cab_len, cab_h)
-    cend = spec("cabin_end", width - 0.12, cab_h)
-    add_box(
-        b,
-        cabin,
-        body_h,
-        body_h + cab_h,
-        [cside, cend, cside, cend],
-        ppm,
-        KIND_GLASS,
-        top_spec=spec("top", cab_len, width - 0.12),
-        reflectance=0.2,
-    )

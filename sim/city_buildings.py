@@ -1,0 +1,92 @@
+"""Buildings of a city block: frontages along a street and the buildings that fill them.
+
+Walls reach below the ground (``WALL_FOOT_M``) so that no crack opens at their foot.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.scene import KIND_WALL, TextureSpec
+from sim.shapes import add_wall, texture_size_px
+from sim.street_props import texture_seed as _seed
+
+WALL_FOOT_M = -0.3
+
+
+def add_frontage(b, rng, config, start, end, normal, max_depth):
+    """Lots of buildings along the line start->end, set back along ``normal``."""
+    length = float(np.linalg.norm(end - start))
+    if length < 4.0:
+        return
+    d = (end - start) / length
+    pos = 0.0
+    while pos < length - 1e-6:
+        width = rng.uniform(*config.lot_width_m)
+        if length - (pos + width) < config.lot_width_m[0] * 0.6:
+            width = length - pos
+        if rng.random() < config.empty_lot_fraction and width < length:
+            pos += width
+            continue
+        setback = rng.uniform(*config.setback_m)
+        if rng.random() < config.deep_setback_fraction:
+            setback = rng.uniform(4.0, 8.0)
+        depth = min(max_depth - setback, rng.uniform(*config.lot_depth_m))
+        if depth < 3.0:
+            setback, depth = 0.0, max_depth
+        f0 = start + d * pos + normal * setback
+        f1 = start + d * (pos + width) + normal * setback
+        corners = np.array([f0, f1, f1 + normal * depth, f0 + normal * depth])
+        add_building(
+            b,
+            rng,
+            config,
+            corners,
+            front_edges=(0,),
+            height=None,
+            shops=rng.random() < config.shop_fraction,
+        )
+        pos += width
+
+
+def add_building(b, rng, config, corners, front_edges, height, shops):
+    """A box building on footprint ``corners`` (4, 2) (any winding); edges listed in
+    ``front_edges`` (edge k = corners[k] -> corners[k+1]) get street facades."""
+    ppm = config.facade_texels_per_m
+    h = height if height is not None else rng.uniform(*config.building_height_m)
+    if rng.random() < 0.15:
+        h = rng.uniform(*config.building_height_m) * 1.6
+    x, y = corners[:, 0], corners[:, 1]
+    area2 = float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+    if area2 > 0:  # counter-clockwise: reverse so that walls face outwards
+        cw = corners[::-1]
+        front = {(2 - e) % 4 for e in front_edges}
+    else:
+        cw = corners
+        front = set(front_edges)
+    plain_front = rng.random() < config.plain_facade_fraction
+    specs = []
+    for k in range(4):
+        length = float(np.linalg.norm(cw[(k + 1) % 4] - cw[k]))
+        if k in front:
+            style = "plain" if plain_front else ("shops" if shops else "windows")
+            p = ppm
+        else:
+            style = "plain" if rng.random() < 0.5 else "windows"
+            p = ppm * 0.6
+        w, hh = texture_size_px(length, h - WALL_FOOT_M, p)
+        specs.append((TextureSpec("facade", w, hh, _seed(rng), (("ppm", p), ("style", style))), p))
+    for k in range(4):
+        spec, p = specs[k]
+        add_wall(
+            b,
+            cw[k],
+            cw[(k + 1) % 4],
+            WALL_FOOT_M,
+            h,
+            spec,
+            p,
+            KIND_WALL,
+            max_piece_m=6.0,
+            reflectance=0.35,
+        )
