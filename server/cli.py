@@ -76,5 +76,6 @@ def db_current(database_url: DatabaseUrlOption = None) -> None:
     typer.echo(f"{current or 'none'} (head {head}: {status})")
 
 
-# `monoloc map ...` and `monoloc localize` live in server/map_cli.py (ingestion helper).
-from server.map_cli import localize, map_app  # noqa: E402, F401
+# `monoloc map ...` lives in server/map_cli.py, `monoloc localize` in server/localize_cli.py.
+from server.localize_cli import localize  # noqa: E402, F401
+from server.map_cli import map_app  # noqa: E402, F401

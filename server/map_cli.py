@@ -1,5 +1,5 @@
-"""``monoloc map ...`` and ``monoloc localize``: parse arguments, call one typed function,
-print. Re-exported by ``server/cli.py`` (``map_app``, ``localize``).
+"""``monoloc map ...``: parse arguments, call one typed function, print. Re-exported by
+``server/cli.py`` (``map_app``); ``monoloc localize`` is in server/localize_cli.py.
 
 Every command works on the database of the settings (``MONOLOC_DATA_DIR`` /
 ``MONOLOC_DATABASE_URL``; ``--data-dir`` overrides the data directory) and upgrades its
@@ -27,7 +27,7 @@ DataDir = Annotated[
 MapRef = Annotated[str, typer.Option("--map", "-m", help="Map name or id.")]
 
 
-def _open(ctx: typer.Context | None, data_dir: Path | None = None):
+def open_database(ctx: typer.Context | None, data_dir: Path | None = None):
     """(settings, session factory) with the schema upgraded."""
     from server.settings import get_settings
     from server.storage.db import create_engine_for, make_session_factory
@@ -68,7 +68,7 @@ def map_create(
     """Create an empty map with a camera and a vocabulary."""
     from server.ingest.manage import CameraOverrides, camera_from_spec, create_map
 
-    _, factory = _open(ctx)
+    _, factory = open_database(ctx)
     intrinsics = camera_from_spec(camera, CameraOverrides(fx, fy, cx, cy, width, height))
     record = create_map(factory, name, intrinsics, vocabulary)
     typer.echo(
@@ -85,7 +85,7 @@ def map_list(ctx: typer.Context) -> None:
 
     from server.ingest.manage import list_maps
 
-    _, factory = _open(ctx)
+    _, factory = open_database(ctx)
     table = Table("id", "name", "entries", "version", "vocabulary", "camera", "calibrated")
     for m in list_maps(factory):
         c = m.camera
@@ -109,7 +109,7 @@ def map_stats(
     from server.ingest.manage import map_stats as compute
     from server.ingest.report import print_stats
 
-    _, factory = _open(ctx)
+    _, factory = open_database(ctx)
     print_stats(compute(factory, map_ref))
 
 
@@ -144,7 +144,7 @@ def map_ingest(
     from server.ingest.pipeline import IngestConfig
     from server.ingest.report import print_ingest_summary, progress_bar
 
-    _, factory = _open(ctx)
+    _, factory = open_database(ctx)
     intrinsics = CameraOverrides(fx, fy, cx, cy, width, height).complete()
     source = open_source(
         fmt,
@@ -185,7 +185,7 @@ def map_vocab(
     from server.ingest.manage import open_source
     from server.ingest.report import progress_bar
 
-    _, factory = _open(ctx)
+    _, factory = open_database(ctx)
     if (train_from is None) == (vocabulary is None):
         raise typer.BadParameter("give exactly one of --train-from and --vocabulary")
     source = None
@@ -237,7 +237,7 @@ def map_calibrate(
     from server.ingest.manage import open_source
     from server.ingest.report import progress_bar
 
-    _, factory = _open(ctx)
+    _, factory = open_database(ctx)
     config = CalibrationConfig(k=k)
     source = open_source(
         fmt, run, sequence=sequence, frames=parse_frame_range(frames), tum_camera=camera
@@ -289,7 +289,7 @@ def map_add_image(
         raise typer.BadParameter("give exactly one of --depth and --lidar")
     if lidar is not None and lidar_extrinsics is None:
         raise typer.BadParameter("--lidar needs --lidar-extrinsics")
-    _, factory = _open(ctx)
+    _, factory = open_database(ctx)
     T = (
         read_pose_file(pose_file)
         if pose_file
@@ -310,41 +310,3 @@ def map_add_image(
         f"{verb} entry {summary.id} at x={summary.x_m:.2f} y={summary.y_m:.2f} "
         f"with {summary.n_points} 3D keypoints"
     )
-
-
-def localize(
-    image: Annotated[Path, typer.Argument(help="Query image (PNG/JPEG).")],
-    map_ref: MapRef,
-    prior: Annotated[
-        str | None,
-        typer.Option(
-            help="x,y,radius (m) or x,y,radius,yaw_deg,tol_deg: only entries inside compete."
-        ),
-    ] = None,
-    k: Annotated[int, typer.Option(help="Entries retrieved.")] = 10,
-    json_out: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
-    seed: Annotated[int, typer.Option(help="RANSAC seed.")] = 0,
-    data_dir: DataDir = None,
-) -> None:
-    """Localize one image against a map: hypotheses and per-stage timings."""
-    import numpy as np
-
-    from server.ingest.common import decode_gray, read_bytes
-    from server.ingest.manage import find_map, parse_prior
-    from server.ingest.report import print_localization
-    from server.localize import LocalizeConfig
-    from server.runtime import MapRegistry
-
-    settings, factory = _open(None, data_dir)
-    record = find_map(factory, map_ref)
-    gray = decode_gray(read_bytes(image, "image"), image)
-    registry = MapRegistry(factory, settings.index_dir)
-    result, version = registry.localize(
-        record.id,
-        gray,
-        LocalizeConfig(k=k),
-        np.random.default_rng(seed),
-        prior=parse_prior(prior),
-        k=k,
-    )
-    print_localization(record, result, version, json_out)

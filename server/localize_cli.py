@@ -1,0 +1,49 @@
+"""``monoloc localize``: one image against a map, hypotheses and per-stage timings.
+Re-exported by ``server/cli.py``; shares the database options of server/map_cli.py."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from server.map_cli import DataDir, MapRef, open_database
+
+
+def localize(
+    image: Annotated[Path, typer.Argument(help="Query image (PNG/JPEG).")],
+    map_ref: MapRef,
+    prior: Annotated[
+        str | None,
+        typer.Option(
+            help="x,y,radius (m) or x,y,radius,yaw_deg,tol_deg: only entries inside compete."
+        ),
+    ] = None,
+    k: Annotated[int, typer.Option(help="Entries retrieved.")] = 10,
+    json_out: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+    seed: Annotated[int, typer.Option(help="RANSAC seed.")] = 0,
+    data_dir: DataDir = None,
+) -> None:
+    """Localize one image against a map: hypotheses and per-stage timings."""
+    import numpy as np
+
+    from server.ingest.common import decode_gray, read_bytes
+    from server.ingest.manage import find_map, parse_prior
+    from server.ingest.report import print_localization
+    from server.localize import LocalizeConfig
+    from server.runtime import MapRegistry
+
+    settings, factory = open_database(None, data_dir)
+    record = find_map(factory, map_ref)
+    gray = decode_gray(read_bytes(image, "image"), image)
+    registry = MapRegistry(factory, settings.index_dir)
+    result, version = registry.localize(
+        record.id,
+        gray,
+        LocalizeConfig(k=k),
+        np.random.default_rng(seed),
+        prior=parse_prior(prior),
+        k=k,
+    )
+    print_localization(record, result, version, json_out)
