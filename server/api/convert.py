@@ -9,6 +9,7 @@ import numpy as np
 
 from client.camera import CameraIntrinsics
 from server.api import schemas as s
+from server.api.schemas_admin import KeyPublic
 from server.api.schemas_localize import (
     HypothesisPublic,
     LocalizeResponse,
@@ -151,8 +152,8 @@ def job_public(j: JobRecord) -> s.JobPublic:
     )
 
 
-def key_public(k: ApiKeyRecord) -> s.KeyPublic:
-    return s.KeyPublic(
+def key_public(k: ApiKeyRecord) -> KeyPublic:
+    return KeyPublic(
         id=k.id,
         name=k.name,
         prefix=k.prefix,

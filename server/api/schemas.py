@@ -2,7 +2,8 @@
 
 Naming follows the FastAPI template: ``XCreate`` / ``XUpdate`` in, ``XPublic`` out.
 Poses are in the z-up world (METHOD.md section 9): metres and radians; a 4x4
-``T_world_from_cam`` travels as 16 numbers, row-major.
+``T_world_from_cam`` travels as 16 numbers, row-major. API keys and health: see
+server/api/schemas_admin.py; localization: server/api/schemas_localize.py.
 """
 
 from __future__ import annotations
@@ -12,16 +13,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.storage.keys import SCOPES
-
-Scope = Literal["localize", "map:write", "admin"]
-assert set(SCOPES) == {"localize", "map:write", "admin"}
-
 _T_EXAMPLE = [0.0, 0.0, 1.0, 12.5, -1.0, 0.0, 0.0, 3.2, 0.0, -1.0, 0.0, 1.65, 0.0, 0.0, 0.0, 1.0]
-_TIME = "2024-05-01T12:00:00Z"
+TIME_EXAMPLE = "2024-05-01T12:00:00Z"
 
 
-def _example(**values: Any) -> ConfigDict:
+def example(**values: Any) -> ConfigDict:
     return ConfigDict(json_schema_extra={"examples": [values]})
 
 
@@ -31,14 +27,14 @@ class ErrorDetail(BaseModel):
 
 
 class ErrorResponse(BaseModel):
-    model_config = _example(error={"code": "not_found", "message": "map 7 does not exist"})
+    model_config = example(error={"code": "not_found", "message": "map 7 does not exist"})
     error: ErrorDetail
 
 
 class Camera(BaseModel):
     """Pinhole intrinsics in pixels of the map's camera."""
 
-    model_config = _example(
+    model_config = example(
         fx=718.856, fy=718.856, cx=607.1928, cy=185.2157, width_px=1241, height_px=376
     )
     fx: float = Field(gt=0)
@@ -50,7 +46,7 @@ class Camera(BaseModel):
 
 
 class MapCreate(BaseModel):
-    model_config = _example(
+    model_config = example(
         name="kitti-00",
         camera=Camera.model_config["json_schema_extra"]["examples"][0],
         vocabulary="default",
@@ -75,7 +71,7 @@ class VocabularyPublic(BaseModel):
 class PlanarPose(BaseModel):
     """(X, Y, psi): position on the ground plane and heading of the optical axis."""
 
-    model_config = _example(x_m=12.5, y_m=3.2, yaw_rad=0.0)
+    model_config = example(x_m=12.5, y_m=3.2, yaw_rad=0.0)
     x_m: float
     y_m: float
     yaw_rad: float
@@ -89,13 +85,13 @@ _MAP_EXAMPLE = dict(
     version=4012,
     n_entries=3860,
     calibrated=False,
-    created_at=_TIME,
-    updated_at=_TIME,
+    created_at=TIME_EXAMPLE,
+    updated_at=TIME_EXAMPLE,
 )
 
 
 class MapPublic(BaseModel):
-    model_config = _example(**_MAP_EXAMPLE)
+    model_config = example(**_MAP_EXAMPLE)
     id: int
     name: str
     camera: Camera
@@ -108,7 +104,7 @@ class MapPublic(BaseModel):
 
 
 class MapDetail(MapPublic):
-    model_config = _example(
+    model_config = example(
         **_MAP_EXAMPLE, n_runs=2, tag_counts={"night": 120}, index_loaded=True, indexed_entries=3860
     )
     n_runs: int
@@ -118,7 +114,7 @@ class MapDetail(MapPublic):
 
 
 class MapList(BaseModel):
-    model_config = _example(items=[_MAP_EXAMPLE])
+    model_config = example(items=[_MAP_EXAMPLE])
     items: list[MapPublic]
 
 
@@ -134,12 +130,12 @@ _ENTRY_EXAMPLE = dict(
     timestamp_s=4.2,
     source_image_hash="9b1c...",
     vocabulary_id=1,
-    created_at=_TIME,
+    created_at=TIME_EXAMPLE,
 )
 
 
 class EntryPublic(BaseModel):
-    model_config = _example(**_ENTRY_EXAMPLE)
+    model_config = example(**_ENTRY_EXAMPLE)
     id: int
     map_id: int
     run_id: int | None
@@ -155,14 +151,14 @@ class EntryPublic(BaseModel):
 
 
 class EntryDetail(EntryPublic):
-    model_config = _example(**_ENTRY_EXAMPLE, T_world_from_cam=_T_EXAMPLE)
+    model_config = example(**_ENTRY_EXAMPLE, T_world_from_cam=_T_EXAMPLE)
     T_world_from_cam: list[float] = Field(
         min_length=16, max_length=16, description="4x4 row-major."
     )
 
 
 class EntryCreated(BaseModel):
-    model_config = _example(
+    model_config = example(
         entry=_ENTRY_EXAMPLE | {"T_world_from_cam": _T_EXAMPLE}, created=True, map_version=4013
     )
     entry: EntryDetail
@@ -171,7 +167,7 @@ class EntryCreated(BaseModel):
 
 
 class EntryList(BaseModel):
-    model_config = _example(items=[_ENTRY_EXAMPLE], total=1, limit=100, offset=0)
+    model_config = example(items=[_ENTRY_EXAMPLE], total=1, limit=100, offset=0)
     items: list[EntryPublic]
     total: int
     limit: int
@@ -179,7 +175,7 @@ class EntryList(BaseModel):
 
 
 class TagsUpdate(BaseModel):
-    model_config = _example(tags=["night", "off-center"])
+    model_config = example(tags=["night", "off-center"])
     tags: list[str] = Field(max_length=64)
 
 
@@ -196,13 +192,13 @@ _RUN_EXAMPLE = dict(
     frames_skipped=10,
     skip_reasons={"too_few_points": 10},
     error=None,
-    created_at=_TIME,
-    updated_at=_TIME,
+    created_at=TIME_EXAMPLE,
+    updated_at=TIME_EXAMPLE,
 )
 
 
 class RunPublic(BaseModel):
-    model_config = _example(**_RUN_EXAMPLE)
+    model_config = example(**_RUN_EXAMPLE)
     id: int
     map_id: int
     kind: str
@@ -230,14 +226,14 @@ _JOB_EXAMPLE = dict(
     error=None,
     params={"format": "kitti", "sequence": "00"},
     result=None,
-    created_at=_TIME,
-    updated_at=_TIME,
+    created_at=TIME_EXAMPLE,
+    updated_at=TIME_EXAMPLE,
     finished_at=None,
 )
 
 
 class JobPublic(BaseModel):
-    model_config = _example(**_JOB_EXAMPLE)
+    model_config = example(**_JOB_EXAMPLE)
     id: int
     kind: str
     map_id: int | None
@@ -254,12 +250,12 @@ class JobPublic(BaseModel):
 
 
 class JobList(BaseModel):
-    model_config = _example(items=[_JOB_EXAMPLE])
+    model_config = example(items=[_JOB_EXAMPLE])
     items: list[JobPublic]
 
 
 class UploadAccepted(BaseModel):
-    model_config = _example(
+    model_config = example(
         job=_JOB_EXAMPLE | {"state": "queued", "progress": 0.0},
         run=_RUN_EXAMPLE | {"status": "pending"},
         n_files=7724,
@@ -272,7 +268,7 @@ class UploadAccepted(BaseModel):
 
 
 class VocabularyJobCreate(BaseModel):
-    model_config = _example(vocabulary="default")
+    model_config = example(vocabulary="default")
     vocabulary: str = Field(
         description="'default' or the hash of a stored vocabulary. To train a map's own "
         "vocabulary, upload a run with train_vocabulary=true."
@@ -282,7 +278,7 @@ class VocabularyJobCreate(BaseModel):
 class CalibrationUpdate(BaseModel):
     """Measurement-model parameters (METHOD.md section 7) and their provenance."""
 
-    model_config = _example(
+    model_config = example(
         mu1=[0.02, -0.01, 0.001],
         Sigma1=[[0.04, 0, 0], [0, 0.04, 0], [0, 0, 0.0007]],
         mu2=[0.9, 0.0, 0.0, 0.0],
@@ -299,59 +295,12 @@ class CalibrationUpdate(BaseModel):
 
 
 class CalibrationPublic(CalibrationUpdate):
-    model_config = _example(
+    model_config = example(
         **CalibrationUpdate.model_config["json_schema_extra"]["examples"][0],
         calibrated=True,
         source="put",
-        updated_at=_TIME,
+        updated_at=TIME_EXAMPLE,
     )
     calibrated: bool = Field(description="False: these are the documented defaults.")
     source: str
     updated_at: datetime | None = None
-
-
-class KeyCreate(BaseModel):
-    model_config = _example(name="car1", scopes=["localize"])
-    name: str = Field(min_length=1, max_length=128)
-    scopes: list[Scope] = Field(min_length=1)
-
-
-class KeyPublic(BaseModel):
-    model_config = _example(
-        id=2,
-        name="car1",
-        prefix="mlk_3kq9XaB1",
-        scopes=["localize"],
-        created_at=_TIME,
-        revoked_at=None,
-    )
-    id: int
-    name: str
-    prefix: str
-    scopes: list[str]
-    created_at: datetime
-    revoked_at: datetime | None
-
-
-class KeyCreated(KeyPublic):
-    model_config = _example(
-        id=2,
-        name="car1",
-        prefix="mlk_3kq9XaB1",
-        scopes=["localize"],
-        created_at=_TIME,
-        revoked_at=None,
-        key="mlk_3kq9XaB1Jm0c0lH9bXgk2s7QJX1FyFQw8mN5tq8aEo4",
-    )
-    key: str = Field(description="The key itself; shown only in this answer.")
-
-
-class KeyList(BaseModel):
-    model_config = _example(items=[KeyPublic.model_config["json_schema_extra"]["examples"][0]])
-    items: list[KeyPublic]
-
-
-class HealthStatus(BaseModel):
-    model_config = _example(status="ok", maps_loaded=2)
-    status: str
-    maps_loaded: int | None = None

@@ -8,7 +8,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
 from server.api.deps import AppState
-from server.api.schemas import HealthStatus
+from server.api.schemas_admin import HealthStatus
 
 router = APIRouter(tags=["health"])
 

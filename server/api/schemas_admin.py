@@ -1,0 +1,62 @@
+"""Request and response bodies of the key administration and health routes (pydantic v2),
+each with an OpenAPI example; the conventions of server/api/schemas.py."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+from server.api.schemas import TIME_EXAMPLE, example
+from server.storage.keys import SCOPES
+
+Scope = Literal["localize", "map:write", "admin"]
+assert set(SCOPES) == {"localize", "map:write", "admin"}
+
+
+class KeyCreate(BaseModel):
+    model_config = example(name="car1", scopes=["localize"])
+    name: str = Field(min_length=1, max_length=128)
+    scopes: list[Scope] = Field(min_length=1)
+
+
+class KeyPublic(BaseModel):
+    model_config = example(
+        id=2,
+        name="car1",
+        prefix="mlk_3kq9XaB1",
+        scopes=["localize"],
+        created_at=TIME_EXAMPLE,
+        revoked_at=None,
+    )
+    id: int
+    name: str
+    prefix: str
+    scopes: list[str]
+    created_at: datetime
+    revoked_at: datetime | None
+
+
+class KeyCreated(KeyPublic):
+    model_config = example(
+        id=2,
+        name="car1",
+        prefix="mlk_3kq9XaB1",
+        scopes=["localize"],
+        created_at=TIME_EXAMPLE,
+        revoked_at=None,
+        key="mlk_3kq9XaB1Jm0c0lH9bXgk2s7QJX1FyFQw8mN5tq8aEo4",
+    )
+    key: str = Field(description="The key itself; shown only in this answer.")
+
+
+class KeyList(BaseModel):
+    model_config = example(items=[KeyPublic.model_config["json_schema_extra"]["examples"][0]])
+    items: list[KeyPublic]
+
+
+class HealthStatus(BaseModel):
+    model_config = example(status="ok", maps_loaded=2)
+    status: str
+    maps_loaded: int | None = None
