@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test lint bench demo clean
+.PHONY: install test test-postgres lint bench demo clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -21,6 +21,13 @@ lint: install
 
 test: install lint
 	$(PY) -m pytest -q
+
+# The storage and ingestion suites against PostgreSQL: a fresh database per test on the
+# server of MONOLOC_TEST_POSTGRES_URL (its user must be allowed to create databases).
+test-postgres: install
+	@test -n "$$MONOLOC_TEST_POSTGRES_URL" || { echo "set MONOLOC_TEST_POSTGRES_URL, e.g. postgresql+psycopg://postgres@/postgres?host=/tmp&port=5432"; exit 2; }
+	$(PY) -m pip install -q -e '.[dev,postgres]'
+	$(PY) -m pytest -q tests/server/storage tests/server/ingest
 
 demo: install
 	$(VENV)/bin/monoloc demo

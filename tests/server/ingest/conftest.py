@@ -152,8 +152,9 @@ def kitti_copy(kitti_root: KittiFixture, tmp_path: Path) -> KittiFixture:
 
 
 @pytest.fixture
-def settings(tmp_path: Path) -> Settings:
-    return Settings(data_dir=tmp_path / "data")
+def settings(tmp_path: Path, database_url) -> Settings:
+    extra = {"database_url": database_url} if database_url else {}
+    return Settings(data_dir=tmp_path / "data", **extra)
 
 
 @pytest.fixture

@@ -1,4 +1,8 @@
-"""Fixtures of the storage tests: a migrated SQLite file in tmp_path and entry builders."""
+"""Fixtures of the storage tests: a migrated database and entry builders.
+
+The database is a SQLite file in tmp_path, or a fresh PostgreSQL database per test with
+``MONOLOC_TEST_POSTGRES_URL`` set (see tests/conftest.py).
+"""
 
 from __future__ import annotations
 
@@ -20,8 +24,9 @@ from server.storage.records import NewEntry
 
 
 @pytest.fixture
-def settings(tmp_path) -> Settings:
-    return Settings(data_dir=tmp_path / "data")
+def settings(tmp_path, database_url) -> Settings:
+    extra = {"database_url": database_url} if database_url else {}
+    return Settings(data_dir=tmp_path / "data", **extra)
 
 
 @pytest.fixture
