@@ -46,14 +46,14 @@ def _block_scan(q0, q1, q2, q3, codes_t, start, stop, distances):
 def scan(query_words, codes_t, lo, hi, distances, block_min):
     """Hamming distances of query_words (4,) uint64 to codes_t[:, lo:hi] into
     distances[lo:hi] (uint8, 256 stored as 255) and each block of BLOCK codes' minimum
-    into block_min[lo // BLOCK ...] (int32). ``lo`` must be a multiple of BLOCK; disjoint
-    ranges may run in parallel. One byte per code keeps the writes to 1/32 of the reads,
-    and lets :func:`select_nearest` revisit a block by reading one cache line."""
+    (also capped at 255) into block_min[lo // BLOCK ...] (int32). ``lo`` must be a
+    multiple of BLOCK; disjoint ranges may run in parallel. One byte per code keeps the
+    writes to 1/32 of the reads, and lets :func:`select_nearest` revisit a block by
+    reading one cache line."""
     q0, q1, q2, q3 = query_words[0], query_words[1], query_words[2], query_words[3]
     for b in range(lo // BLOCK, (hi + BLOCK - 1) // BLOCK):
-        block_min[b] = _block_scan(
-            q0, q1, q2, q3, codes_t, b * BLOCK, min(b * BLOCK + BLOCK, hi), distances
-        )
+        low = _block_scan(q0, q1, q2, q3, codes_t, b * BLOCK, min(b * BLOCK + BLOCK, hi), distances)
+        block_min[b] = min(low, np.int32(255))
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
@@ -67,7 +67,7 @@ def select_nearest(distances, block_min, n_codes, n_wanted, out_rows):
         return 0
     histogram = np.zeros(258, dtype=np.int64)
     for b in range(n_blocks):
-        histogram[min(block_min[b], 255)] += 1
+        histogram[block_min[b]] += 1
     # Smallest threshold with n_wanted blocks at or under it (each holds an entry <= it);
     # with fewer blocks than n_wanted, every block (threshold 255: every entry).
     threshold, covered = 0, histogram[0]

@@ -78,6 +78,9 @@ def test_scan_of_opposite_sketches_clamps_at_255_and_still_selects():
     assert len(rows) == 20 and len(set(rows.tolist())) == 20
     assert rows[0] == 70
     assert rows[1] == 5 or hamming_distances(query, sketches[rows[1:2]])[0] == 256
+    # Every row wanted, the last block holding only distances of 256.
+    rows = table.nearest(query, len(sketches), len(sketches))
+    assert sorted(rows.tolist()) == list(range(len(sketches)))
 
 
 def test_sketch_distance_estimates_the_angle():
