@@ -22,8 +22,7 @@ from sim.scene import (
     TextureSpec,
 )
 from sim.shapes import add_split_quad, add_wall, texture_size_px
-from sim.street_props import add_street_furniture
-from sim.street_props import texture_seed as _seed
+from sim.street_props import add_street_furniture, texture_seed
 
 KERB_M = 0.12
 UPV = np.array([0.0, 0.0, 1.0])
@@ -34,7 +33,7 @@ def _ground_rect(builder, x0, y0, x1, y1, z, kind_name, ppm, rng, kind, piece=8.
     if x1 - x0 < 0.05 or y1 - y0 < 0.05:
         return
     w, h = texture_size_px(x1 - x0, y1 - y0, ppm)
-    spec = TextureSpec(kind_name, w, h, _seed(rng), (("ppm", ppm),) + tuple(params.items()))
+    spec = TextureSpec(kind_name, w, h, texture_seed(rng), (("ppm", ppm),) + tuple(params.items()))
     add_split_quad(
         builder,
         (x0, y1, z),
@@ -64,7 +63,7 @@ def _road_segment(builder, a_xy, b_xy, width, ppm, rng):
         ("cross_end", bool(rng.random() < 0.3)),
         ("edge_lines", bool(rng.random() < 0.3)),
     )
-    spec = TextureSpec("road", w, h, _seed(rng), params)
+    spec = TextureSpec("road", w, h, texture_seed(rng), params)
     add_split_quad(
         builder,
         origin,
@@ -88,7 +87,7 @@ def build_district_scene(grid, config, seed: int) -> tuple[Scene, np.ndarray]:
     xs, ys = grid.xs, grid.ys
     # Ground far outside the district (beyond the outer ring of buildings), seen through
     # gaps; four rectangles around the district rather than one plane under everything.
-    base = TextureSpec("asphalt", 256, 256, _seed(rng), (("ppm", gppm),), wrap=True)
+    base = TextureSpec("asphalt", 256, 256, texture_seed(rng), (("ppm", gppm),), wrap=True)
     inner, outer = 20.0, 250.0
     bx0, by0, bx1, by1 = xs[0] - inner, ys[0] - inner, xs[-1] + inner, ys[-1] + inner
     for rx0, ry0, rx1, ry1 in (
@@ -205,7 +204,7 @@ def _backdrop(b, rng, config, inner_rect):
             spec = TextureSpec(
                 "facade",
                 *texture_size_px(w, h - WALL_FOOT_M, ppm),
-                _seed(rng),
+                texture_seed(rng),
                 (("ppm", ppm), ("style", "windows")),
             )
             x, y = corners[:, 0], corners[:, 1]
@@ -241,7 +240,7 @@ def _block(b, rng, config, kerb, side, facing):
             spec = TextureSpec(
                 "kerb",
                 *texture_size_px(math.dist(ring[k], ring[(k + 1) % 4]), 0.25, gppm),
-                _seed(rng),
+                texture_seed(rng),
                 (("ppm", gppm),),
             )
             add_wall(

@@ -9,7 +9,7 @@ import numpy as np
 
 from sim.scene import KIND_WALL, TextureSpec
 from sim.shapes import add_wall, texture_size_px
-from sim.street_props import texture_seed as _seed
+from sim.street_props import texture_seed
 
 WALL_FOOT_M = -0.3
 
@@ -75,7 +75,9 @@ def add_building(b, rng, config, corners, front_edges, height, shops):
             style = "plain" if rng.random() < 0.5 else "windows"
             p = ppm * 0.6
         w, hh = texture_size_px(length, h - WALL_FOOT_M, p)
-        specs.append((TextureSpec("facade", w, hh, _seed(rng), (("ppm", p), ("style", style))), p))
+        specs.append(
+            (TextureSpec("facade", w, hh, texture_seed(rng), (("ppm", p), ("style", style))), p)
+        )
     for k in range(4):
         spec, p = specs[k]
         add_wall(

@@ -28,9 +28,6 @@ def texture_seed(rng: np.random.Generator) -> int:
     return int(rng.integers(0, 2**31))
 
 
-_seed = texture_seed
-
-
 def add_street_furniture(b, rng, config, start, end, normal, z, walk_w):
     """Lamps, trees and signs on the sidewalk of width ``walk_w`` in front of the frontage
     line start->end (buildings lie along ``normal``, the kerb against it)."""
@@ -55,7 +52,7 @@ def add_street_furniture(b, rng, config, start, end, normal, z, walk_w):
 
 def _lamp(b, rng, p_xy, towards_road, z):
     pole_h = rng.uniform(6.0, 8.0)
-    metal = TextureSpec("metal", 16, int(pole_h * 40), _seed(rng), (("ppm", 40.0),))
+    metal = TextureSpec("metal", 16, int(pole_h * 40), texture_seed(rng), (("ppm", 40.0),))
     corners = np.array(
         [
             [p_xy[0] - 0.08, p_xy[1] + 0.08],
@@ -74,7 +71,7 @@ def _lamp(b, rng, p_xy, towards_road, z):
             [head_xy[0] - 0.3, head_xy[1] - 0.15],
         ]
     )
-    lamp = TextureSpec("lamp", 24, 12, _seed(rng), (("ppm", 40.0),))
+    lamp = TextureSpec("lamp", 24, 12, texture_seed(rng), (("ppm", 40.0),))
     add_box(
         b,
         hc,
@@ -111,7 +108,9 @@ def _lamp(b, rng, p_xy, towards_road, z):
 
 def _tree(b, rng, p_xy, z):
     trunk_h = rng.uniform(2.2, 3.2)
-    bark = TextureSpec("metal", 20, int(trunk_h * 40), _seed(rng), (("ppm", 40.0), ("bark", True)))
+    bark = TextureSpec(
+        "metal", 20, int(trunk_h * 40), texture_seed(rng), (("ppm", 40.0), ("bark", True))
+    )
     r = rng.uniform(0.1, 0.16)
     corners = np.array(
         [
@@ -125,7 +124,9 @@ def _tree(b, rng, p_xy, z):
     size = rng.uniform(3.0, 5.0)
     yaw = rng.uniform(0, np.pi)
     for k in range(2):
-        spec = TextureSpec("foliage", int(size * 30), int(size * 30), _seed(rng), (("ppm", 30.0),))
+        spec = TextureSpec(
+            "foliage", int(size * 30), int(size * 30), texture_seed(rng), (("ppm", 30.0),)
+        )
         add_billboard(
             b,
             (p_xy[0], p_xy[1], z + trunk_h + size / 2 - 0.3),
@@ -140,7 +141,7 @@ def _tree(b, rng, p_xy, z):
 
 
 def _sign(b, rng, p_xy, facing, z):
-    post = TextureSpec("metal", 8, 100, _seed(rng), (("ppm", 40.0),))
+    post = TextureSpec("metal", 8, 100, texture_seed(rng), (("ppm", 40.0),))
     corners = np.array(
         [
             [p_xy[0] - 0.03, p_xy[1] + 0.03],
@@ -150,7 +151,7 @@ def _sign(b, rng, p_xy, facing, z):
         ]
     )
     add_box(b, corners, z - 0.05, z + 2.5, [post] * 4, 40.0, KIND_POLE, reflectance=0.5)
-    spec = TextureSpec("sign", 60, 60, _seed(rng), (("ppm", 100.0),))
+    spec = TextureSpec("sign", 60, 60, texture_seed(rng), (("ppm", 100.0),))
     yaw = math.atan2(facing[1], facing[0])
     add_billboard(
         b, (p_xy[0], p_xy[1], z + 2.4), yaw, 0.6, 0.6, spec, 100.0, KIND_SIGN, reflectance=0.9
@@ -171,7 +172,7 @@ def add_car(b: SceneBuilder, xy, yaw: float, seed: int) -> None:
         return TextureSpec(
             "car",
             *texture_size_px(w_m, h_m, ppm),
-            _seed(rng),
+            texture_seed(rng),
             (("ppm", ppm), ("tone", tone), ("face", face)),
         )
 

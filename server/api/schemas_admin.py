@@ -21,15 +21,18 @@ class KeyCreate(BaseModel):
     scopes: list[Scope] = Field(min_length=1)
 
 
+_KEY_EXAMPLE = dict(
+    id=2,
+    name="car1",
+    prefix="mlk_3kq9XaB1",
+    scopes=["localize"],
+    created_at=TIME_EXAMPLE,
+    revoked_at=None,
+)
+
+
 class KeyPublic(BaseModel):
-    model_config = example(
-        id=2,
-        name="car1",
-        prefix="mlk_3kq9XaB1",
-        scopes=["localize"],
-        created_at=TIME_EXAMPLE,
-        revoked_at=None,
-    )
+    model_config = example(**_KEY_EXAMPLE)
     id: int
     name: str
     prefix: str
@@ -39,20 +42,12 @@ class KeyPublic(BaseModel):
 
 
 class KeyCreated(KeyPublic):
-    model_config = example(
-        id=2,
-        name="car1",
-        prefix="mlk_3kq9XaB1",
-        scopes=["localize"],
-        created_at=TIME_EXAMPLE,
-        revoked_at=None,
-        key="mlk_3kq9XaB1Jm0c0lH9bXgk2s7QJX1FyFQw8mN5tq8aEo4",
-    )
+    model_config = example(**_KEY_EXAMPLE, key="mlk_3kq9XaB1Jm0c0lH9bXgk2s7QJX1FyFQw8mN5tq8aEo4")
     key: str = Field(description="The key itself; shown only in this answer.")
 
 
 class KeyList(BaseModel):
-    model_config = example(items=[KeyPublic.model_config["json_schema_extra"]["examples"][0]])
+    model_config = example(items=[_KEY_EXAMPLE])
     items: list[KeyPublic]
 
 

@@ -7,7 +7,8 @@ scan writes each distance as one byte and keeps each block's minimum; a histogra
 block minima gives a threshold T under which at least n entries lie (each block whose
 minimum is <= T holds one); only those blocks' bytes are read again to collect their
 entries <= T, and a counting sort over the few candidates returns the n nearest in
-distance order."""
+distance order. Also the re-rank's kernels: full-code Hamming distances of gathered rows
+and exact float distances of VLAD rows read in place."""
 
 from __future__ import annotations
 
@@ -21,11 +22,11 @@ BLOCK = 64
 
 @njit(inline="always")
 def _block_scan(q0, q1, q2, q3, codes_t, start, stop, distances):
-    """Distances to codes start .. stop - 1 into distances[start:stop] (uint8, clamped at
-    255) and their minimum. The rows are sliced first so that the index is a loop counter
-    from 0: LLVM then knows it is non-negative and uses plain vector loads. Indexing
-    codes_t[w, start + j] directly keeps numba's negative-index wrap-around, which LLVM
-    vectorises with gathers (5x slower on Zen 4)."""
+    """Distances to codes start .. stop - 1 into distances[start:stop] and their minimum,
+    both clamped at 255 (one byte per distance). The rows are sliced first so that the
+    index is a loop counter from 0: LLVM then knows it is non-negative and uses plain
+    vector loads. Indexing codes_t[w, start + j] directly keeps numba's negative-index
+    wrap-around, which LLVM vectorises with gathers (5x slower on Zen 4)."""
     w0, w1 = codes_t[0, start:stop], codes_t[1, start:stop]
     w2, w3 = codes_t[2, start:stop], codes_t[3, start:stop]
     out = distances[start:stop]
@@ -37,7 +38,8 @@ def _block_scan(q0, q1, q2, q3, codes_t, start, stop, distances):
             + _popcount64(q2 ^ w2[j])
             + _popcount64(q3 ^ w3[j])
         )
-        out[j] = np.uint8(min(d, np.int32(255)))
+        d = min(d, np.int32(255))
+        out[j] = np.uint8(d)
         low = min(low, d)
     return low
 
@@ -52,8 +54,9 @@ def scan(query_words, codes_t, lo, hi, distances, block_min):
     reading one cache line."""
     q0, q1, q2, q3 = query_words[0], query_words[1], query_words[2], query_words[3]
     for b in range(lo // BLOCK, (hi + BLOCK - 1) // BLOCK):
-        low = _block_scan(q0, q1, q2, q3, codes_t, b * BLOCK, min(b * BLOCK + BLOCK, hi), distances)
-        block_min[b] = min(low, np.int32(255))
+        block_min[b] = _block_scan(
+            q0, q1, q2, q3, codes_t, b * BLOCK, min(b * BLOCK + BLOCK, hi), distances
+        )
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
