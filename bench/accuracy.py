@@ -39,7 +39,7 @@ def limit_threads() -> None:
 def ensure_dataset(
     root: Path, size: str, frames: int, seed: int, runs: tuple[str, ...], scenario: str = "urban"
 ):
-    from sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
 
     if (root / "dataset.json").exists():
         return json.loads((root / "dataset.json").read_text())
@@ -61,8 +61,8 @@ def ensure_dataset(
 def calibrate_on(train, vocabulary):
     """The measurement model fitted on a training run (KittiSequence / TumRun), each frame
     read once, exactly as the server's calibration job does."""
-    from server.calibrate import CalibrationConfig, calibrate
-    from server.calibrate_jobs import training_frames
+    from monoloc.server.calibrate import CalibrationConfig, calibrate
+    from monoloc.server.calibrate_jobs import training_frames
 
     return calibrate(
         training_frames(train),
@@ -111,11 +111,11 @@ def main() -> None:
     limit_threads()
     if args.scenario == "indoor":
         return main_indoor(args)
-    from client.measurement import MeasurementModel
-    from client.replay import read_kitti_run, rig_lever_arm_m
+    from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
+    from monoloc.core.measurement import MeasurementModel
     from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row, stage_percentiles
-    from server.ingest.kitti import read_kitti_sequence
-    from server.vision.vocabulary import load_default_vocabulary
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     root = args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
     meta = ensure_dataset(
@@ -174,11 +174,11 @@ PAPER_INDOOR = {"open_loop_within_0_1m": 1.0, "open_loop_within_0_06m": 0.92}
 
 
 def main_indoor(args) -> None:
-    from client.replay import read_tum_run as read_tum_replay
-    from client.replay import rig_lever_arm_m
+    from monoloc.client.replay import read_tum_run as read_tum_replay
+    from monoloc.client.replay import rig_lever_arm_m
     from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row, stage_percentiles
-    from server.ingest.tum import read_tum_run
-    from server.vision.vocabulary import load_default_vocabulary
+    from monoloc.server.ingest.tum import read_tum_run
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     root = args.data / f"indoor_{args.size}_{args.frames}_s{args.seed}"
     ensure_dataset(

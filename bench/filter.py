@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from client.measurement import Hypotheses, MeasurementModel, gaussian_log_pdf, log_likelihood
-from client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.core.measurement import Hypotheses, MeasurementModel, gaussian_log_pdf, log_likelihood
 
 RESULTS = Path(__file__).parent / "results"
 

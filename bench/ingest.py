@@ -8,7 +8,7 @@ database writes):
 
 - baseline: the same steps, one frame after another on one thread (read, build the
   entry, add it; commit every 24 frames);
-- pipeline, 1 worker: ``server.ingest.pipeline.ingest_run`` with one build thread (DB
+- pipeline, 1 worker: ``monoloc.server.ingest.pipeline.ingest_run`` with one build thread (DB
   writes overlap on the calling thread);
 - pipeline, 2 workers: the product setting on a 2-core machine.
 
@@ -47,7 +47,7 @@ def ensure_dataset(root: Path, frames: int = FRAMES) -> Path:
     """A sim city with map (00) and query (01) passes at KITTI resolution (cached)."""
     if (root / "dataset.json").exists():
         return root
-    from sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
 
     print(f"generating {frames} + {frames} frames into {root} (once) ...", flush=True)
     generate_dataset(GenerateConfig(seed=0, runs=("map", "query"), max_frames=frames), root)
@@ -55,10 +55,10 @@ def ensure_dataset(root: Path, frames: int = FRAMES) -> Path:
 
 
 def _fresh_map(workdir: Path, source):
-    from server.ingest.manage import create_map
-    from server.settings import Settings
-    from server.storage.db import create_engine_for, make_session_factory
-    from server.storage.migrate import upgrade_database
+    from monoloc.server.ingest.manage import create_map
+    from monoloc.server.settings import Settings
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
+    from monoloc.server.storage.migrate import upgrade_database
 
     shutil.rmtree(workdir, ignore_errors=True)
     settings = Settings(data_dir=workdir)
@@ -75,11 +75,11 @@ def run_baseline(workdir: Path, source) -> tuple[float, int]:
     import numpy as np
     from threadpoolctl import threadpool_limits
 
-    from server.entry_builder import BuildConfig, TooFewPointsError, build_entry
-    from server.storage import entries as entries_repo
-    from server.storage import maps as maps_repo
-    from server.storage.db import session_scope
-    from server.vision.vocabulary import Vocabulary
+    from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
+    from monoloc.server.storage import entries as entries_repo
+    from monoloc.server.storage import maps as maps_repo
+    from monoloc.server.storage.db import session_scope
+    from monoloc.server.vision.vocabulary import Vocabulary
 
     factory, map_id = _fresh_map(workdir, source)
     start = time.perf_counter()
@@ -117,8 +117,8 @@ def run_baseline(workdir: Path, source) -> tuple[float, int]:
 
 
 def run_pipeline(workdir: Path, source, workers: int) -> tuple[float, int]:
-    from server.ingest.manage import ingest_source
-    from server.ingest.pipeline import IngestConfig
+    from monoloc.server.ingest.manage import ingest_source
+    from monoloc.server.ingest.pipeline import IngestConfig
 
     factory, map_id = _fresh_map(workdir, source)
     start = time.perf_counter()
@@ -131,7 +131,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--repeats", type=int, default=REPEATS)
     args = parser.parse_args()
-    from server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.kitti import read_kitti_sequence
 
     source = read_kitti_sequence(ensure_dataset(args.data), "00")
     n = source.n_frames

@@ -46,11 +46,11 @@ STAGES = ("features", "vlad", "retrieval", "lookup", "matching", "pnp", "total")
 def paper_localize(image, intrinsics, vocabulary, ids, vlads, lookup, config, rng, k):
     """Same steps as localize_frame, with exact float k-NN and OpenCV brute-force matching.
     Returns (best position (2,) or None, retrieved ids, timings_ms)."""
-    from server.vision.features import extract_features
-    from server.vision.hypothesis import compose_hypothesis
-    from server.vision.matching import match_descriptors_bruteforce
-    from server.vision.pnp import estimate_relative_pose
-    from server.vision.vlad import compute_vlad
+    from monoloc.server.vision.features import extract_features
+    from monoloc.server.vision.hypothesis import compose_hypothesis
+    from monoloc.server.vision.matching import match_descriptors_bruteforce
+    from monoloc.server.vision.pnp import estimate_relative_pose
+    from monoloc.server.vision.vlad import compute_vlad
 
     timings, clock = {}, [time.perf_counter()]
     start = clock[0]
@@ -105,7 +105,7 @@ def summarise(samples: list[dict]) -> dict:
 def ensure_dataset(root: Path, frames: int = 100) -> Path:
     """The sim city of bench/ingest.py (map 00 and query 01 at KITTI resolution)."""
     if not (root / "dataset.json").exists():
-        from sim.generate import GenerateConfig, generate_dataset
+        from monoloc.sim.generate import GenerateConfig, generate_dataset
 
         print(f"generating {frames} + {frames} frames into {root} (once) ...", flush=True)
         generate_dataset(GenerateConfig(seed=0, runs=("map", "query"), max_frames=frames), root)
@@ -113,11 +113,11 @@ def ensure_dataset(root: Path, frames: int = 100) -> Path:
 
 
 def build_registry(workdir: Path, map_run):
-    from server.ingest.manage import create_map, ingest_source
-    from server.runtime import MapRegistry
-    from server.settings import Settings
-    from server.storage.db import create_engine_for, make_session_factory
-    from server.storage.migrate import upgrade_database
+    from monoloc.server.ingest.manage import create_map, ingest_source
+    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.settings import Settings
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
+    from monoloc.server.storage.migrate import upgrade_database
 
     settings = Settings(data_dir=workdir)
     upgrade_database(settings.database_url)
@@ -137,9 +137,9 @@ def main() -> None:
     import faiss
     from threadpoolctl import threadpool_limits
 
-    from client.geometry import planar_from_T_world_from_cam
-    from server.ingest.kitti import read_kitti_sequence
-    from server.localize import LocalizeConfig
+    from monoloc.core.geometry import planar_from_T_world_from_cam
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.localize import LocalizeConfig
 
     root = ensure_dataset(args.data)
     map_run, query_run = read_kitti_sequence(root, "00"), read_kitti_sequence(root, "01")

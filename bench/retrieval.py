@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from server.index.retrieval import IndexConfig, RetrievalIndex
-from server.vision.binary_code import vlad_binary_code
+from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
+from monoloc.server.vision.binary_code import vlad_binary_code
 
 RESULTS = Path(__file__).parent / "results"
 DIM = 2048

@@ -43,11 +43,11 @@ def main() -> None:
 
     _import_the_sim_package()
 
-    from sim.camera import Lighting, render
-    from sim.city import build_city, parked_cars
-    from sim.generate import GenerateConfig, plan_runs
-    from sim.lidar import firing_times_s, scan
-    from sim.scene import TextureBank, concat_scenes
+    from monoloc.sim.camera import Lighting, render
+    from monoloc.sim.city import build_city, parked_cars
+    from monoloc.sim.generate import GenerateConfig, plan_runs
+    from monoloc.sim.lidar import firing_times_s, scan
+    from monoloc.sim.scene import TextureBank, concat_scenes
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=40)
@@ -150,10 +150,15 @@ def _indoor(
     camera + depth time of the same run is the baseline next to it."""
     import cv2
 
-    from sim.generate import GenerateConfig
-    from sim.indoor import build_world
-    from sim.indoor_generate import indoor_config_for, render_rgbd, run_camera_config, run_scene
-    from sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
+    from monoloc.sim.generate import GenerateConfig
+    from monoloc.sim.indoor import build_world
+    from monoloc.sim.indoor_generate import (
+        indoor_config_for,
+        render_rgbd,
+        run_camera_config,
+        run_scene,
+    )
+    from monoloc.sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
 
     config = GenerateConfig(scenario="indoor", seed=seed, runs=("map", "train"))
     indoor = indoor_config_for(config)

@@ -108,7 +108,7 @@ def ensure_dataset(frames: int) -> Path:
         return SHARED_SIM
     root = WORK / "sim"
     if not (root / "dataset.json").exists():
-        from sim.generate import GenerateConfig, generate_dataset
+        from monoloc.sim.generate import GenerateConfig, generate_dataset
 
         print(f"generating {frames} + {frames} frames into {root} (once) ...", flush=True)
         generate_dataset(GenerateConfig(seed=0, runs=("map", "query"), max_frames=frames), root)
@@ -117,7 +117,7 @@ def ensure_dataset(frames: int) -> Path:
 
 def ensure_map(dataset: Path) -> int:
     """The map run uploaded and ingested once; returns the map id (cached)."""
-    from client.api import MonolocClient
+    from monoloc.client.api import MonolocClient
 
     marker, data_dir = WORK / "map.json", WORK / "data"
     if marker.exists():
@@ -156,7 +156,7 @@ def ensure_map(dataset: Path) -> int:
 
 def vehicle(url: str, map_id: int, frames: list[bytes], window: int, out: dict) -> None:
     """Stream ``frames`` with at most ``window`` unanswered; round trips in ms."""
-    from client.api import FrameStream
+    from monoloc.client.api import FrameStream
 
     sent: dict[int, float] = {}
     round_trip, answers = [], []
@@ -245,7 +245,7 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=1, help="frames in flight per vehicle")
     args = parser.parse_args()
 
-    from client.replay import read_kitti_run
+    from monoloc.client.replay import read_kitti_run
 
     WORK.mkdir(parents=True, exist_ok=True)
     dataset = ensure_dataset(args.frames)

@@ -28,19 +28,19 @@ import cv2  # noqa: E402
 import faiss  # noqa: E402
 import numpy as np  # noqa: E402
 
-from client.camera import CameraIntrinsics  # noqa: E402
-from client.geometry import invert_rigid, rotation_angle_rad  # noqa: E402
-from server.vision.default_vocab import load_photos  # noqa: E402
-from server.vision.features import extract_features  # noqa: E402
-from server.vision.matching import (  # noqa: E402
+from monoloc.core.camera import CameraIntrinsics  # noqa: E402
+from monoloc.core.geometry import invert_rigid, rotation_angle_rad  # noqa: E402
+from monoloc.server.vision.default_vocab import load_photos  # noqa: E402
+from monoloc.server.vision.features import extract_features  # noqa: E402
+from monoloc.server.vision.matching import (  # noqa: E402
     MatchConfig,
     hamming_matrix,
     match_against_references,
     match_descriptors_bruteforce,
 )
-from server.vision.pnp import PnpConfig, estimate_relative_pose  # noqa: E402
-from server.vision.vlad import compute_vlad  # noqa: E402
-from server.vision.vocabulary import load_default_vocabulary  # noqa: E402
+from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose  # noqa: E402
+from monoloc.server.vision.vlad import compute_vlad  # noqa: E402
+from monoloc.server.vision.vocabulary import load_default_vocabulary  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 REPEATS = 40

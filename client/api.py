@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 
-from client.errors import InvalidInputError, MonolocError, NotFoundError
-from client.measurement import Hypotheses, MeasurementModel
+from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
+from monoloc.core.measurement import Hypotheses, MeasurementModel
 
 
 class ServerError(MonolocError):

@@ -27,12 +27,12 @@ def drive(
     from rich.console import Console
     from rich.progress import Progress
 
-    from client.api import MonolocClient
-    from client.drive import DriveConfig, write_outputs
-    from client.drive import drive as run_drive
-    from client.particle_filter import FilterConfig
-    from client.replay import parse_frames, read_run
-    from client.report import metrics_table
+    from monoloc.client.api import MonolocClient
+    from monoloc.client.drive import DriveConfig, write_outputs
+    from monoloc.client.drive import drive as run_drive
+    from monoloc.client.particle_filter import FilterConfig
+    from monoloc.client.replay import parse_frames, read_run
+    from monoloc.client.report import metrics_table
 
     console = Console(stderr=True)
     run = read_run(run_dir, sequence).select(parse_frames(frames))

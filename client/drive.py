@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from client.api import FrameStream, LocalizeAnswer, MonolocClient, Prior, ServerError
-from client.errors import InvalidInputError
-from client.measurement import Hypotheses, MeasurementModel
-from client.particle_filter import FilterConfig, ParticleFilter
-from client.replay import ReplayRun
-from client.trajectory import TrajectoryMetrics, trajectory_metrics, write_trajectory_files
+from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, Prior, ServerError
+from monoloc.client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.client.replay import ReplayRun
+from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics, write_trajectory_files
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.measurement import Hypotheses, MeasurementModel
 
 
 @dataclass(frozen=True)

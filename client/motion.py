@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.geometry import wrap_angle
+from monoloc.core.geometry import wrap_angle
 
 
 @dataclass(frozen=True)

@@ -13,11 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from client.geometry import circular_mean, wrap_angle
-from client.measurement import Hypotheses, MeasurementModel, log_likelihood_and_distance
-from client.motion import MotionConfig, predict
-from client.resampling import effective_sample_size, normalise_log_weights, systematic_resample
+from monoloc.client.motion import MotionConfig, predict
+from monoloc.client.resampling import (
+    effective_sample_size,
+    normalise_log_weights,
+    systematic_resample,
+)
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import circular_mean, wrap_angle
+from monoloc.core.measurement import Hypotheses, MeasurementModel, log_likelihood_and_distance
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import InvalidInputError, NotFoundError
-from client.geometry import (
+from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.core.geometry import (
     R_from_quaternion_xyzw,
     kitti_to_zup,
     planar_from_T_world_from_cam,

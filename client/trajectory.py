@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from client.geometry import (
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import (
     T_world_from_cam_planar,
     quaternion_xyzw_from_R,
     wrap_angle,
@@ -42,7 +42,7 @@ def write_tum(
 def write_kitti(stream: io.TextIOBase, T_world_from_cam: np.ndarray) -> None:
     """KITTI lines (3x4 row-major) in KITTI's own world convention (y down, z forward).
 
-    The z-up world maps back to KITTI's through client.geometry.zup_to_kitti, so the file
+    The z-up world maps back to KITTI's through monoloc.core.geometry.zup_to_kitti, so the file
     compares directly with the dataset's poses/NN.txt.
     """
     for T in T_world_from_cam:

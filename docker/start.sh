@@ -4,7 +4,7 @@
 # jobs end 'interrupted', indexes are persisted).
 #
 # Environment: MONOLOC_HOST (default 0.0.0.0), MONOLOC_PORT (8000), MONOLOC_DATA_DIR,
-# MONOLOC_DATABASE_URL and every other MONOLOC_* setting (server/settings.py);
+# MONOLOC_DATABASE_URL and every other MONOLOC_* setting (monoloc.server.settings);
 # MONOLOC_PYTHON picks the interpreter (default: python3 on PATH).
 # One process per data directory: the map index and the job runner live in it.
 set -eu
@@ -18,5 +18,5 @@ PORT="${MONOLOC_PORT:-8000}"
 if [ -n "${TMPDIR:-}" ]; then mkdir -p "$TMPDIR"; fi
 
 "$PYTHON" -m monoloc.cli db upgrade
-exec "$PYTHON" -m uvicorn --factory server.api.app:create_app_from_env \
+exec "$PYTHON" -m uvicorn --factory monoloc.server.api.app:create_app_from_env \
     --host "$HOST" --port "$PORT" --workers 1 --timeout-graceful-shutdown 30

@@ -1,7 +1,7 @@
 """Alembic environment of the monoloc map database.
 
 The database URL comes, in order, from ``config.attributes["database_url"]`` or the
-``sqlalchemy.url`` option (both set programmatically by ``server.storage.migrate``),
+``sqlalchemy.url`` option (both set programmatically by ``monoloc.server.storage.migrate``),
 else from the ``MONOLOC_*`` settings. On SQLite the migrations run in batch mode
 (``render_as_batch``: ALTER through table copies) with foreign keys switched off for the
 copy, and ``PRAGMA foreign_key_check`` must come back clean afterwards.
@@ -15,8 +15,8 @@ from alembic import context
 from sqlalchemy import pool
 from sqlalchemy.engine import Connection
 
-from server.storage.db import create_engine_for_url
-from server.storage.models import Base
+from monoloc.server.storage.db import create_engine_for_url
+from monoloc.server.storage.models import Base
 
 target_metadata = Base.metadata
 
@@ -27,7 +27,7 @@ def _database_url_and_pragmas() -> tuple[str, str, int]:
     url = config.attributes.get("database_url") or config.get_main_option("sqlalchemy.url")
     if url:
         return url, "NORMAL", 5000
-    from server.settings import get_settings
+    from monoloc.server.settings import get_settings
 
     settings = get_settings()
     return settings.database_url, settings.sqlite_synchronous, settings.busy_timeout_ms

@@ -11,7 +11,7 @@ import sys
 
 import typer
 
-from client.errors import MonolocError
+from monoloc.core.errors import MonolocError
 
 app = typer.Typer(
     name="monoloc",
@@ -20,38 +20,46 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-# (module, attribute, name) of each sub-command group; a module that does not exist yet
-# is skipped so partial checkouts still run.
+# (module, attribute, name, extra) of each sub-command group and command: ``extra`` is
+# the install extra that brings the command's dependencies (a bare `pip install monoloc`
+# is the vehicle library: `monoloc drive` only).
 _GROUPS = [
-    ("server.cli", "vocab_app", "vocab"),
-    ("server.cli", "db_app", "db"),
-    ("server.cli", "map_app", "map"),
-    ("server.cli", "keys_app", "keys"),
-    ("sim.cli", "app", "sim"),
+    ("monoloc.server.cli", "vocab_app", "vocab", "server"),
+    ("monoloc.server.cli", "db_app", "db", "server"),
+    ("monoloc.server.cli", "map_app", "map", "server"),
+    ("monoloc.server.cli", "keys_app", "keys", "server"),
+    ("monoloc.sim.cli", "app", "sim", "sim"),
 ]
 _COMMANDS = [
-    ("server.cli", "localize", "localize"),
-    ("server.cli", "serve", "serve"),
-    ("client.cli", "drive", "drive"),
-    ("monoloc.demo", "demo", "demo"),
+    ("monoloc.server.cli", "localize", "localize", "server"),
+    ("monoloc.server.cli", "serve", "serve", "server"),
+    ("monoloc.client.cli", "drive", "drive", ""),
+    ("monoloc.demo", "demo", "demo", "all"),
 ]
 
 
 def _register() -> None:
-    for module_name, attr, name in _GROUPS + _COMMANDS:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name and module_name.startswith(exc.name):
-                continue
-            raise
-        obj = getattr(module, attr, None)
-        if obj is None:
-            continue
+    for module_name, attr, name, _ in _GROUPS + _COMMANDS:
+        module = importlib.import_module(module_name)
+        obj = getattr(module, attr)
         if isinstance(obj, typer.Typer):
             app.add_typer(obj, name=name)
         else:
             app.command(name=name)(obj)
+
+
+def _missing_extra_message(exc: ModuleNotFoundError, argv: list[str]) -> str | None:
+    """One line naming the extra to install, when a command's dependency is missing."""
+    if exc.name is None or exc.name.split(".")[0] == "monoloc":
+        return None
+    command = argv[1] if len(argv) > 1 else ""
+    extra = next((e for _, _, name, e in _GROUPS + _COMMANDS if name == command), "all")
+    if not extra:
+        return None  # a vehicle command: its dependencies are required, so this is a bug
+    return (
+        f"error: `monoloc {command}` needs {exc.name!r}, which the bare vehicle install "
+        f"leaves out: pip install 'monoloc[{extra}]'"
+    )
 
 
 def main() -> None:
@@ -61,6 +69,12 @@ def main() -> None:
         app(standalone_mode=False)
     except MonolocError as exc:
         typer.secho(f"error: {exc}", err=True, fg=typer.colors.RED)
+        sys.exit(1)
+    except ModuleNotFoundError as exc:
+        message = _missing_extra_message(exc, sys.argv)
+        if message is None:
+            raise
+        typer.secho(message, err=True, fg=typer.colors.RED)
         sys.exit(1)
     except (typer.Abort, KeyboardInterrupt):
         typer.secho("aborted", err=True)

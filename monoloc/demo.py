@@ -46,8 +46,8 @@ def demo(
 def run_demo(config: DemoConfig) -> dict:
     from rich.console import Console
 
-    from client.api import MonolocClient
     from monoloc import demo_io
+    from monoloc.client.api import MonolocClient
     from monoloc.demo_steps import DemoSteps
 
     console = Console()

@@ -15,8 +15,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from client.api import MonolocClient
-from client.errors import MonolocError
+from monoloc.client.api import MonolocClient
+from monoloc.core.errors import MonolocError
 
 
 class DemoError(MonolocError):

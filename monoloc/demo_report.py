@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from rich.table import Table
 
-from client.drive import DriveResult
+from monoloc.client.drive import DriveResult
 
 PAPER_RMSE_M = 0.313
 

@@ -11,10 +11,10 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from client.api import MonolocClient
-from client.drive import DriveConfig, DriveResult, drive, write_outputs
-from client.replay import read_run
 from monoloc import demo_io
+from monoloc.client.api import MonolocClient
+from monoloc.client.drive import DriveConfig, DriveResult, drive, write_outputs
+from monoloc.client.replay import read_run
 
 RUNS = ("train", "map", "query", "night", "nightmap")
 
@@ -44,7 +44,7 @@ class DemoSteps:
 
     # ---- 1 ---------------------------------------------------------------------------
     def generate(self) -> Dataset:
-        from sim.generate import GenerateConfig, generate_dataset
+        from monoloc.sim.generate import GenerateConfig, generate_dataset
 
         root = self.out / f"city_{self.config.size}_{self.config.frames}_s{self.config.seed}"
         meta_path = root / "dataset.json"
@@ -90,8 +90,8 @@ class DemoSteps:
         return job
 
     def build_map(self, client: MonolocClient, dataset: Dataset) -> int:
-        from server.ingest.common import png_size
-        from server.ingest.kitti import read_kitti_calibration
+        from monoloc.server.ingest.common import png_size
+        from monoloc.server.ingest.kitti import read_kitti_calibration
 
         seq_dir = dataset.root / "sequences" / dataset.sequences["map"]
         calib = read_kitti_calibration(seq_dir / "calib.txt")
@@ -172,7 +172,7 @@ class DemoSteps:
         return result
 
     def add_night_entries(self, client, map_id, dataset) -> int:
-        from server.ingest.kitti import read_kitti_sequence
+        from monoloc.server.ingest.kitti import read_kitti_sequence
 
         seq = read_kitti_sequence(dataset.root, dataset.sequences["nightmap"])
         added = 0

@@ -19,15 +19,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from client.drive import PriorConfig, prior_from_filter
-from client.geometry import circular_mean, planar_from_T_world_from_cam
-from client.measurement import Hypotheses, MeasurementModel
-from client.particle_filter import FilterConfig, ParticleFilter
-from client.trajectory import TrajectoryMetrics, trajectory_metrics
-from server.entry_builder import BuildConfig, TooFewPointsError, build_entry
-from server.index.retrieval import RetrievalIndex, RetrievalPrior
-from server.localize import LocalizationResult, LocalizeConfig, ReferenceEntry, localize_frame
-from server.vision.vocabulary import Vocabulary
+from monoloc.client.drive import PriorConfig, prior_from_filter
+from monoloc.client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics
+from monoloc.core.geometry import circular_mean, planar_from_T_world_from_cam
+from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
+from monoloc.server.index.retrieval import RetrievalIndex, RetrievalPrior
+from monoloc.server.localize import (
+    LocalizationResult,
+    LocalizeConfig,
+    ReferenceEntry,
+    localize_frame,
+)
+from monoloc.server.vision.vocabulary import Vocabulary
 
 Progress = Callable[[int, int], None] | None
 

@@ -8,7 +8,7 @@ against each (section 6 steps 3-5) and collect
     e_i   = z_q - z_i                                   (truth minus hypothesis)
     r_i   = [e_vlad_i, X_i - X_q, Y_i - Y_q, psi_i - psi_q]
 
-then fit (mu1, Sigma1) to e and (mu2, Sigma2) to r with client.calibration (monoloc's
+then fit (mu1, Sigma1) to e and (mu2, Sigma2) to r with monoloc.core.calibration (monoloc's
 default is the unbiased covariance about the mean). Hypotheses farther than
 ``gate_position_m`` / ``gate_yaw_rad`` from the truth are PnP failures, not noise: they
 are counted and left out of both fits (the measurement model's outlier floor stands for
@@ -26,25 +26,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from client.calibration import fit_measurement_model, pose_errors, retrieval_vectors
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import planar_from_T_world_from_cam, wrap_angle
-from client.measurement import MeasurementModel
-from server.entry_builder import (
+from monoloc.core.calibration import fit_measurement_model, pose_errors, retrieval_vectors
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
+from monoloc.core.measurement import MeasurementModel
+from monoloc.server.entry_builder import (
     BuildConfig,
     DepthSource,
     LidarSource,
     TooFewPointsError,
     build_entry,
 )
-from server.storage.records import NewEntry
-from server.vision.features import extract_features
-from server.vision.hypothesis import compose_hypothesis
-from server.vision.matching import MatchConfig, match_against_references
-from server.vision.pnp import PnpConfig, estimate_relative_pose
-from server.vision.vlad import compute_vlad
-from server.vision.vocabulary import Vocabulary
+from monoloc.server.storage.records import NewEntry
+from monoloc.server.vision.features import extract_features
+from monoloc.server.vision.hypothesis import compose_hypothesis
+from monoloc.server.vision.matching import MatchConfig, match_against_references
+from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.server.vision.vlad import compute_vlad
+from monoloc.server.vision.vocabulary import Vocabulary
 
 MIN_GOOD_HYPOTHESES = 10
 ERROR_CONVENTION = "e = truth - hypothesis, (X m, Y m, psi rad), psi wrapped to (-pi, pi]"

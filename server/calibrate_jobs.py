@@ -1,7 +1,7 @@
-"""Calibration of a map from a training run, at the edges of ``server.calibrate``: read
+"""Calibration of a map from a training run, at the edges of ``monoloc.server.calibrate``: read
 the run's frames, fit the measurement model, store it (with its provenance) on the map.
 
-The HTTP job handler (``server.api.job_handlers.run_calibration``) and ``monoloc map
+The HTTP job handler (``monoloc.server.api.job_handlers.run_calibration``) and ``monoloc map
 calibrate`` (:func:`run_calibration_job`, recorded as a job row like the CLI's
 vocabulary job) both end in :func:`calibrate_map`. The training run is never added to
 the map: its temporary map lives in memory only. Calibrating again replaces the stored
@@ -19,13 +19,13 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.errors import ConflictError
-from server.calibrate import CalibrationConfig, TrainingFrame, calibrate, check_run_length
-from server.job_progress import progress_recorder, update_job_now
-from server.storage import jobs as jobs_repo
-from server.storage import maps as maps_repo
-from server.storage.db import session_scope
-from server.storage.records import JobRecord
+from monoloc.core.errors import ConflictError
+from monoloc.server.calibrate import CalibrationConfig, TrainingFrame, calibrate, check_run_length
+from monoloc.server.job_progress import progress_recorder, update_job_now
+from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import JobRecord
 
 JOB_KIND = "calibrate"
 
@@ -38,7 +38,7 @@ def training_frames(source) -> Iterator[TrainingFrame]:
 
 
 def _map_vocabulary(session_factory: sessionmaker[Session], map_id: int):
-    from server.vision.vocabulary import Vocabulary
+    from monoloc.server.vision.vocabulary import Vocabulary
 
     with session_scope(session_factory) as session:
         record = maps_repo.get_map(session, map_id)
@@ -136,7 +136,7 @@ def run_calibration_job(
 ) -> tuple[JobRecord, dict[str, Any]]:
     """:func:`calibrate_map` recorded as a job (state, progress, error, result) for the
     CLI. ``params`` describe the run for the job row (format, path, frames, ...)."""
-    from server.ingest.manage import find_map
+    from monoloc.server.ingest.manage import find_map
 
     record = find_map(session_factory, map_ref)
     job_params = {

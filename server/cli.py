@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from server.api.cli import keys_app, serve  # noqa: F401  (wired by monoloc/cli.py)
+from monoloc.server.api.cli import keys_app, serve  # noqa: F401  (wired by monoloc/cli.py)
 
 vocab_app = typer.Typer(help="Visual vocabulary: retrain the shipped 64-word default.")
 
@@ -30,8 +30,8 @@ def vocab_train(
     n_iter: Annotated[int, typer.Option(help="k-means iterations.")] = 20,
 ) -> None:
     """Retrain the default vocabulary on augmented scikit-image photographs."""
-    from server.vision.default_vocab import train_default_vocabulary
-    from server.vision.vocabulary import VocabularyConfig, save_vocabulary
+    from monoloc.server.vision.default_vocab import train_default_vocabulary
+    from monoloc.server.vision.vocabulary import VocabularyConfig, save_vocabulary
 
     vocabulary = train_default_vocabulary(vocabulary=VocabularyConfig(seed=seed, n_iter=n_iter))
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -49,7 +49,7 @@ DatabaseUrlOption = Annotated[
 
 
 def _database_url(database_url: str | None) -> str:
-    from server.settings import get_settings
+    from monoloc.server.settings import get_settings
 
     return database_url or get_settings().database_url
 
@@ -57,8 +57,8 @@ def _database_url(database_url: str | None) -> str:
 @db_app.command("upgrade")
 def db_upgrade(database_url: DatabaseUrlOption = None) -> None:
     """Create or upgrade the database schema to the newest revision."""
-    from server.storage.db import redact_url
-    from server.storage.migrate import current_revision, upgrade_database
+    from monoloc.server.storage.db import redact_url
+    from monoloc.server.storage.migrate import current_revision, upgrade_database
 
     url = _database_url(database_url)
     upgrade_database(url)
@@ -68,7 +68,7 @@ def db_upgrade(database_url: DatabaseUrlOption = None) -> None:
 @db_app.command("current")
 def db_current(database_url: DatabaseUrlOption = None) -> None:
     """Print the database's schema revision ('none' if not created yet) and the newest."""
-    from server.storage.migrate import current_revision, head_revision
+    from monoloc.server.storage.migrate import current_revision, head_revision
 
     url = _database_url(database_url)
     current, head = current_revision(url), head_revision()
@@ -77,5 +77,5 @@ def db_current(database_url: DatabaseUrlOption = None) -> None:
 
 
 # `monoloc map ...` lives in server/map_cli.py, `monoloc localize` in server/localize_cli.py.
-from server.localize_cli import localize  # noqa: E402, F401
-from server.map_cli import map_app  # noqa: E402, F401
+from monoloc.server.localize_cli import localize  # noqa: E402, F401
+from monoloc.server.map_cli import map_app  # noqa: E402, F401

@@ -13,19 +13,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import check_rigid
-from server.storage.records import NewEntry
-from server.vision.binary_code import vlad_binary_code
-from server.vision.depth import (
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import check_rigid
+from monoloc.server.storage.records import NewEntry
+from monoloc.server.vision.binary_code import vlad_binary_code
+from monoloc.server.vision.depth import (
     DepthAssociationConfig,
     points_from_depth_image,
     points_from_lidar,
 )
-from server.vision.features import Features, OrbConfig, extract_features
-from server.vision.vlad import compute_vlad
-from server.vision.vocabulary import Vocabulary
+from monoloc.server.vision.features import Features, OrbConfig, extract_features
+from monoloc.server.vision.vlad import compute_vlad
+from monoloc.server.vision.vocabulary import Vocabulary
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,9 @@ from collections.abc import Callable
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.storage import jobs as jobs_repo
-from server.storage.db import session_scope
-from server.storage.records import JobRecord
+from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import JobRecord
 
 
 def update_job_now(factory: sessionmaker[Session], job_id: int, **fields) -> JobRecord:

@@ -22,16 +22,16 @@ from typing import Literal
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.geometry import planar_from_T_world_from_cam
-from server.index.retrieval import RetrievalIndex, RetrievalPrior, SearchResult
-from server.vision.binary_code import vlad_binary_code
-from server.vision.features import OrbConfig, extract_features
-from server.vision.hypothesis import compose_hypothesis
-from server.vision.matching import MatchConfig, match_against_references
-from server.vision.pnp import PnpConfig, estimate_relative_pose
-from server.vision.vlad import compute_vlad
-from server.vision.vocabulary import Vocabulary
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.geometry import planar_from_T_world_from_cam
+from monoloc.server.index.retrieval import RetrievalIndex, RetrievalPrior, SearchResult
+from monoloc.server.vision.binary_code import vlad_binary_code
+from monoloc.server.vision.features import OrbConfig, extract_features
+from monoloc.server.vision.hypothesis import compose_hypothesis
+from monoloc.server.vision.matching import MatchConfig, match_against_references
+from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.server.vision.vlad import compute_vlad
+from monoloc.server.vision.vocabulary import Vocabulary
 
 
 @dataclass(frozen=True)
@@ -134,7 +134,7 @@ def localize_frame(
     e_vlad = dict(zip(found.entry_ids.tolist(), found.distances.tolist(), strict=True))
     lap("lookup")
     if config.pipeline == "paper":
-        from server.vision.matching import match_descriptors_bruteforce
+        from monoloc.server.vision.matching import match_descriptors_bruteforce
 
         matches = [
             match_descriptors_bruteforce(features.descriptors, r.descriptors, config.match)

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from server.map_cli import DataDir, MapRef, open_database
+from monoloc.server.map_cli import DataDir, MapRef, open_database
 
 
 def localize(
@@ -28,11 +28,11 @@ def localize(
     """Localize one image against a map: hypotheses and per-stage timings."""
     import numpy as np
 
-    from server.ingest.common import decode_gray, read_bytes
-    from server.ingest.manage import find_map, parse_prior
-    from server.ingest.report import print_localization
-    from server.localize import LocalizeConfig
-    from server.runtime import MapRegistry
+    from monoloc.server.ingest.common import decode_gray, read_bytes
+    from monoloc.server.ingest.manage import find_map, parse_prior
+    from monoloc.server.ingest.report import print_localization
+    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.runtime import MapRegistry
 
     settings, factory = open_database(None, data_dir)
     record = find_map(factory, map_ref)

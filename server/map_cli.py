@@ -29,9 +29,9 @@ MapRef = Annotated[str, typer.Option("--map", "-m", help="Map name or id.")]
 
 def open_database(ctx: typer.Context | None, data_dir: Path | None = None):
     """(settings, session factory) with the schema upgraded."""
-    from server.settings import get_settings
-    from server.storage.db import create_engine_for, make_session_factory
-    from server.storage.migrate import upgrade_database
+    from monoloc.server.settings import get_settings
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
+    from monoloc.server.storage.migrate import upgrade_database
 
     if data_dir is None and ctx is not None:
         data_dir = (ctx.obj or {}).get("data_dir")
@@ -66,7 +66,7 @@ def map_create(
     vocabulary: Annotated[str, typer.Option(help="default | vocabulary id | hash")] = "default",
 ) -> None:
     """Create an empty map with a camera and a vocabulary."""
-    from server.ingest.manage import CameraOverrides, camera_from_spec, create_map
+    from monoloc.server.ingest.manage import CameraOverrides, camera_from_spec, create_map
 
     _, factory = open_database(ctx)
     intrinsics = camera_from_spec(camera, CameraOverrides(fx, fy, cx, cy, width, height))
@@ -83,7 +83,7 @@ def map_list(ctx: typer.Context) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from server.ingest.manage import list_maps
+    from monoloc.server.ingest.manage import list_maps
 
     _, factory = open_database(ctx)
     table = Table("id", "name", "entries", "version", "vocabulary", "camera", "calibrated")
@@ -106,8 +106,8 @@ def map_stats(
     ctx: typer.Context, map_ref: Annotated[str, typer.Argument(help="Map name or id.")]
 ) -> None:
     """Entries, runs, tags, version, vocabulary, calibration, 3D keypoints per entry."""
-    from server.ingest.manage import map_stats as compute
-    from server.ingest.report import print_stats
+    from monoloc.server.ingest.manage import map_stats as compute
+    from monoloc.server.ingest.report import print_stats
 
     _, factory = open_database(ctx)
     print_stats(compute(factory, map_ref))
@@ -138,11 +138,11 @@ def map_ingest(
     height: int | None = None,
 ) -> None:
     """Ingest a KITTI sequence or a TUM RGB-D run into a map (idempotent, resumable)."""
-    from server.entry_builder import BuildConfig
-    from server.ingest.common import parse_frame_range
-    from server.ingest.manage import CameraOverrides, ingest_source, open_source
-    from server.ingest.pipeline import IngestConfig
-    from server.ingest.report import print_ingest_summary, progress_bar
+    from monoloc.server.entry_builder import BuildConfig
+    from monoloc.server.ingest.common import parse_frame_range
+    from monoloc.server.ingest.manage import CameraOverrides, ingest_source, open_source
+    from monoloc.server.ingest.pipeline import IngestConfig
+    from monoloc.server.ingest.report import print_ingest_summary, progress_bar
 
     _, factory = open_database(ctx)
     intrinsics = CameraOverrides(fx, fy, cx, cy, width, height).complete()
@@ -180,10 +180,10 @@ def map_vocab(
 ) -> None:
     """Train a vocabulary (k=64) from a run and/or switch the map to it (a recorded job:
     every entry's VLAD and code is recomputed)."""
-    from server.ingest.common import parse_frame_range
-    from server.ingest.jobs import run_vocabulary_job
-    from server.ingest.manage import open_source
-    from server.ingest.report import progress_bar
+    from monoloc.server.ingest.common import parse_frame_range
+    from monoloc.server.ingest.jobs import run_vocabulary_job
+    from monoloc.server.ingest.manage import open_source
+    from monoloc.server.ingest.report import progress_bar
 
     _, factory = open_database(ctx)
     if (train_from is None) == (vocabulary is None):
@@ -231,11 +231,11 @@ def map_calibrate(
 ) -> None:
     """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
     store it with its provenance (a recorded job; the run is not added to the map)."""
-    from server.calibrate import CalibrationConfig
-    from server.calibrate_jobs import describe_calibration, run_calibration_job
-    from server.ingest.common import parse_frame_range
-    from server.ingest.manage import open_source
-    from server.ingest.report import progress_bar
+    from monoloc.server.calibrate import CalibrationConfig
+    from monoloc.server.calibrate_jobs import describe_calibration, run_calibration_job
+    from monoloc.server.ingest.common import parse_frame_range
+    from monoloc.server.ingest.manage import open_source
+    from monoloc.server.ingest.report import progress_bar
 
     _, factory = open_database(ctx)
     config = CalibrationConfig(k=k)
@@ -271,9 +271,9 @@ def map_add_image(
     tags: str = "",
 ) -> None:
     """Add one reference image with its pose and a depth image or a LiDAR scan."""
-    from server.ingest.common import read_bytes
-    from server.ingest.manage import find_map
-    from server.ingest.single import (
+    from monoloc.server.ingest.common import read_bytes
+    from monoloc.server.ingest.manage import find_map
+    from monoloc.server.ingest.single import (
         add_single_image,
         depth_source_from_file,
         lidar_source_from_file,

@@ -22,17 +22,22 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.camera import CameraIntrinsics
-from client.errors import NotFoundError
-from client.measurement import MeasurementModel
-from server.index.persist import IndexFileError, load_index, save_index
-from server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
-from server.localize import LocalizationResult, LocalizeConfig, ReferenceEntry, localize_frame
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage.db import session_scope
-from server.storage.records import MapRecord
-from server.vision.vocabulary import Vocabulary
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import NotFoundError
+from monoloc.core.measurement import MeasurementModel
+from monoloc.server.index.persist import IndexFileError, load_index, save_index
+from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
+from monoloc.server.localize import (
+    LocalizationResult,
+    LocalizeConfig,
+    ReferenceEntry,
+    localize_frame,
+)
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import MapRecord
+from monoloc.server.vision.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Compiled inner loop of the LiDAR ray caster (numba). Imported lazily by sim.lidar."""
+"""Compiled inner loop of the LiDAR ray caster (numba). Imported lazily by monoloc.sim.lidar."""
 
 from __future__ import annotations
 

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from sim.render import Raster, RenderConfig, rasterize
-from sim.scene import KIND_LAMP, Scene, TextureBank
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.sim.render import Raster, RenderConfig, rasterize
+from monoloc.sim.scene import KIND_LAMP, Scene, TextureBank
 
 LIGHTINGS = ("day", "dusk", "night")
 

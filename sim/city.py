@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from sim.city_blocks import build_district_scene
-from sim.scene import Scene, SceneBuilder, concat_scenes
+from monoloc.core.errors import InvalidInputError
+from monoloc.sim.city_blocks import build_district_scene
+from monoloc.sim.scene import Scene, SceneBuilder, concat_scenes
 
 SIZE_PRESETS = {"small": (2, 2), "medium": (3, 3), "large": (5, 4)}
 
@@ -159,7 +159,7 @@ def parked_cars(city: City, variant: int, change_fraction: float = 0.3) -> Scene
     """The parked cars of one run. ``variant`` 0 is the reference arrangement; another
     variant re-draws each spot with probability ``change_fraction`` (moved, removed, a
     different car, or a new one), as happens between two drives of the same street."""
-    from sim.street_props import add_car
+    from monoloc.sim.street_props import add_car
 
     poses = city.parking.poses
     n = len(poses)

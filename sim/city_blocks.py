@@ -1,5 +1,5 @@
 """Builds one district's static scene: ground, roads, sidewalks, and (through
-sim.city_buildings and sim.street_props) buildings, furniture and parked cars.
+sim.city_buildings and monoloc.sim.street_props) buildings, furniture and parked cars.
 
 Heights: carriageway at z = 0, sidewalks and block interiors at the kerb height; walls
 reach below the ground so that no crack opens at their foot.
@@ -12,8 +12,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from sim.city_buildings import WALL_FOOT_M, add_building, add_frontage
-from sim.scene import (
+from monoloc.sim.city_buildings import WALL_FOOT_M, add_building, add_frontage
+from monoloc.sim.scene import (
     KIND_GROUND,
     KIND_ROAD,
     KIND_WALL,
@@ -21,8 +21,8 @@ from sim.scene import (
     SceneBuilder,
     TextureSpec,
 )
-from sim.shapes import add_split_quad, add_wall, texture_size_px
-from sim.street_props import add_street_furniture, texture_seed
+from monoloc.sim.shapes import add_split_quad, add_wall, texture_size_px
+from monoloc.sim.street_props import add_street_furniture, texture_seed
 
 KERB_M = 0.12
 UPV = np.array([0.0, 0.0, 1.0])

@@ -39,8 +39,8 @@ def generate(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
-    from sim.generate import GenerateConfig, frames_per_second_note, generate_dataset
-    from sim.recording import RecordingErrors
+    from monoloc.sim.generate import GenerateConfig, frames_per_second_note, generate_dataset
+    from monoloc.sim.recording import RecordingErrors
 
     config = GenerateConfig(
         scenario=scenario,
@@ -92,7 +92,7 @@ def preview(
     per_run: int = typer.Option(4, help="frames per run on the contact sheet"),
 ) -> None:
     """A PNG with a top-down map of the routes and a contact sheet of frames."""
-    from sim.preview import write_preview
+    from monoloc.sim.preview import write_preview
 
     path = write_preview(dataset, out or dataset / "preview.png", per_run)
     typer.echo(f"wrote {path}")

@@ -29,18 +29,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from client.camera import KITTI_CAM0, CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import T_ZUP_FROM_KITTI, invert_rigid
-from sim.camera import CameraConfig, Lighting
-from sim.city import City, CityConfig, build_city
-from sim.lidar import LidarConfig
-from sim.recording import RecordingErrors
-from sim.routes import lane_path, offset_path, plan_route, wandering_offset
-from sim.vehicle import SensorRig, VehicleConfig, VehicleStates, drive
+from monoloc.core.camera import KITTI_CAM0, CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import T_ZUP_FROM_KITTI, invert_rigid
+from monoloc.sim.camera import CameraConfig, Lighting
+from monoloc.sim.city import City, CityConfig, build_city
+from monoloc.sim.lidar import LidarConfig
+from monoloc.sim.recording import RecordingErrors
+from monoloc.sim.routes import lane_path, offset_path, plan_route, wandering_offset
+from monoloc.sim.vehicle import SensorRig, VehicleConfig, VehicleStates, drive
 
 if TYPE_CHECKING:
-    from sim.indoor_plan import IndoorConfig
+    from monoloc.sim.indoor_plan import IndoorConfig
 
 # Appended kinds keep the seeds of the earlier ones (a kind's index seeds its run).
 RUN_KINDS = ("map", "query", "train", "night", "offcenter", "nightmap")
@@ -55,7 +55,7 @@ class GenerateConfig:
     """What to generate. ``max_frames`` caps each run; ``image_scale`` resizes the camera
     (scaled intrinsics) for quick tests; ``write_depth`` adds sequences/NN/depth/.
 
-    Scenario ``indoor`` (TUM RGB-D layout, ``sim.indoor_generate``) uses scenario, size,
+    Scenario ``indoor`` (TUM RGB-D layout, ``monoloc.sim.indoor_generate``) uses scenario, size,
     seed, runs (from map, query, train, offcenter; the default means all four),
     max_frames, image_scale, workers and ``indoor`` (default: the size preset;
     ``errors=RecordingErrors.none()`` also turns every indoor error off); the
@@ -94,7 +94,7 @@ class GenerateConfig:
             raise InvalidInputError(f"unknown scenario {self.scenario!r}; use one of {SCENARIOS}")
         kinds, runs = RUN_KINDS, self.runs
         if self.scenario == "indoor":
-            from sim.indoor_plan import INDOOR_RUN_KINDS, indoor_runs
+            from monoloc.sim.indoor_plan import INDOOR_RUN_KINDS, indoor_runs
 
             kinds, runs = INDOOR_RUN_KINDS, indoor_runs(self.runs)
         bad = [r for r in runs if r not in kinds]
@@ -107,7 +107,7 @@ class GenerateConfig:
         if not 0.05 <= self.image_scale <= 1.0:
             raise InvalidInputError(f"image_scale must be in [0.05, 1], got {self.image_scale}")
         if self.scenario == "indoor":
-            from sim.indoor import room_configs
+            from monoloc.sim.indoor import room_configs
 
             room_configs(self.size) if self.indoor is None else None
             return
@@ -214,7 +214,7 @@ def kitti_world(T_simworld_from_cam0: np.ndarray) -> dict[str, np.ndarray]:
 
     ``T_simworld_from_kittiworld``: the KITTI world is that camera frame itself.
     ``T_simworld_from_zupworld``: the z-up world a reader gets from
-    ``client.geometry.kitti_to_zup`` (T_zup = T_ZUP_FROM_KITTI @ T_kitti), i.e.
+    ``monoloc.core.geometry.kitti_to_zup`` (T_zup = T_ZUP_FROM_KITTI @ T_kitti), i.e.
     T_simworld_from_kittiworld @ inv(T_ZUP_FROM_KITTI). This is the one place the sim's
     internal city frame is tied to the files' frames.
     """
@@ -232,11 +232,11 @@ def generate_dataset(
 ) -> DatasetSummary:
     """Write the dataset under ``out_dir``; ``progress(seq_id, done, total)`` is called as
     frames are written."""
-    from sim.generate_run import prepare_run_files, render_chunk, write_run_metadata
+    from monoloc.sim.generate_run import prepare_run_files, render_chunk, write_run_metadata
 
     config.validate()
     if config.scenario == "indoor":
-        from sim.indoor_generate import generate_indoor_dataset
+        from monoloc.sim.indoor_generate import generate_indoor_dataset
 
         return generate_indoor_dataset(config, out_dir, progress)
     start = time.perf_counter()
@@ -293,7 +293,7 @@ def _matrix(T: np.ndarray) -> list[list[float]]:
 
 
 def _write_dataset_json(config, plans, written, frames, out_dir) -> None:
-    from sim.kitti_writer import write_dataset_json
+    from monoloc.sim.kitti_writer import write_dataset_json
 
     k = config.intrinsics()
     info = {
@@ -306,7 +306,7 @@ def _write_dataset_json(config, plans, written, frames, out_dir) -> None:
             "All poses/NN.txt (T_world_from_cam0, 3x4 row-major) share one world frame: "
             "the camera-0 frame of the first frame of the map run as written (or of the "
             "first run if there is no map run), KITTI convention (x right, y down, z "
-            "forward). client.geometry.kitti_to_zup converts it to monoloc's z-up world."
+            "forward). monoloc.core.geometry.kitti_to_zup converts it to monoloc's z-up world."
         ),
         "T_simworld_from_kittiworld": _matrix(frames["T_simworld_from_kittiworld"]),
         "T_simworld_from_zupworld": _matrix(frames["T_simworld_from_zupworld"]),

@@ -1,4 +1,4 @@
-"""Per-run work of ``sim.generate``: the measured values a run writes, and rendering a
+"""Per-run work of ``monoloc.sim.generate``: the measured values a run writes, and rendering a
 chunk of its frames (run in worker processes; each keeps its city and texture cache)."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from client.geometry import invert_rigid
-from sim import kitti_writer as kw
-from sim.recording import apply_pose_errors, measured_signals, perturb_calibration
+from monoloc.core.geometry import invert_rigid
+from monoloc.sim import kitti_writer as kw
+from monoloc.sim.recording import apply_pose_errors, measured_signals, perturb_calibration
 
 
 @dataclass(frozen=True)
@@ -26,7 +26,7 @@ class WrittenRun:
 
 def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
     """Decide the measured values of a run (deterministic in its seed)."""
-    from sim.generate import true_camera_poses
+    from monoloc.sim.generate import true_camera_poses
 
     rng = np.random.default_rng([plan.seed, 1])
     errors = config.errors
@@ -58,8 +58,8 @@ _STATE: dict = {}
 
 def _world(config, plan):
     """City, per-variant scene and texture bank of this process (built once)."""
-    from sim.city import build_city, parked_cars
-    from sim.scene import TextureBank, concat_scenes
+    from monoloc.sim.city import build_city, parked_cars
+    from monoloc.sim.scene import TextureBank, concat_scenes
 
     key = (config.seed, config.city_config())
     if _STATE.get("key") != key:
@@ -80,8 +80,8 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
     """Render and write frames [first, last) of ``plan``."""
     import cv2
 
-    from sim.camera import CameraConfig, render
-    from sim.lidar import firing_times_s, scan
+    from monoloc.sim.camera import CameraConfig, render
+    from monoloc.sim.lidar import firing_times_s, scan
 
     cv2.setNumThreads(1)
     scene, bank = _world(config, plan)

@@ -19,12 +19,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from sim.indoor_furniture import add_furniture
-from sim.indoor_infield import add_infield, obstacle_slots
-from sim.indoor_track import TrackShape, make_track
-from sim.scene import KIND_GROUND, KIND_LAMP, KIND_WALL, Scene, SceneBuilder, TextureSpec
-from sim.shapes import add_split_quad, add_wall, texture_size_px
+from monoloc.core.errors import InvalidInputError
+from monoloc.sim.indoor_furniture import add_furniture
+from monoloc.sim.indoor_infield import add_infield, obstacle_slots
+from monoloc.sim.indoor_track import TrackShape, make_track
+from monoloc.sim.scene import KIND_GROUND, KIND_LAMP, KIND_WALL, Scene, SceneBuilder, TextureSpec
+from monoloc.sim.shapes import add_split_quad, add_wall, texture_size_px
 
 # Section styles of non-plain walls and their weights.
 _STYLE_WEIGHTS = {

@@ -1,7 +1,7 @@
 """Furniture of an indoor room, as textured boxes: shelving units, cabinets and lockers
-against the walls (fronts painted like the wall sections of ``sim.indoor_textures``),
+against the walls (fronts painted like the wall sections of ``monoloc.sim.indoor_textures``),
 boxes, crates, bins and chairs on the floor along the walls. The infield and the
-obstacles beside the track are in ``sim.indoor_infield``.
+obstacles beside the track are in ``monoloc.sim.indoor_infield``.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import math
 
 import numpy as np
 
-from sim.scene import KIND_WALL, SceneBuilder, TextureSpec
-from sim.shapes import add_box, add_split_quad, footprint_corners, texture_size_px
+from monoloc.sim.scene import KIND_WALL, SceneBuilder, TextureSpec
+from monoloc.sim.shapes import add_box, add_split_quad, footprint_corners, texture_size_px
 
 _FRONT_PPM = 300.0
 _SIDE_PPM = 250.0

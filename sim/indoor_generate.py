@@ -1,8 +1,8 @@
 """Generate the indoor dataset: rooms with a race track, a 1:10 car with an RGB-D camera,
-written in the TUM RGB-D layout (``sim.tum_writer``), one folder per run.
+written in the TUM RGB-D layout (``monoloc.sim.tum_writer``), one folder per run.
 
 World frame of every ``groundtruth.txt``: the motion-capture frame, z up, origin on the
-floor at the centre of the main room (``sim.indoor``); all runs share it. Generation is
+floor at the centre of the main room (``monoloc.sim.indoor``); all runs share it. Generation is
 deterministic in the seed: the same config gives the same bytes, whatever the number of
 worker processes.
 """
@@ -16,24 +16,24 @@ from pathlib import Path
 
 import numpy as np
 
-from sim import tum_writer as tw
-from sim.indoor_plan import (
+from monoloc.sim import tum_writer as tw
+from monoloc.sim.indoor_plan import (
     IndoorConfig,
     IndoorRunPlan,
     T_world_from_cam_at,
     indoor_runs,
     plan_indoor_runs,
 )
-from sim.indoor_sensors import IndoorErrors, mocap_noise, noisy_depth
+from monoloc.sim.indoor_sensors import IndoorErrors, mocap_noise, noisy_depth
 
 CHUNK_FRAMES = 25
 
 
 def indoor_config_for(config) -> IndoorConfig:
-    """The IndoorConfig of a ``sim.generate.GenerateConfig``: its ``indoor`` field, else
+    """The IndoorConfig of a ``monoloc.sim.generate.GenerateConfig``: its ``indoor`` field, else
     the size preset, with every error off when ``errors`` is ``RecordingErrors.none()``
     (the CLI's --no-errors); ``image_scale`` scales the camera."""
-    from sim.recording import RecordingErrors
+    from monoloc.sim.recording import RecordingErrors
 
     indoor = config.indoor
     if indoor is None:
@@ -48,8 +48,8 @@ def render_rgbd(scene, bank, T_rgb, T_depth, intrinsics, lighting, camera, error
     """One RGB-D frame: image (H, W) uint8 seen from ``T_rgb`` (T_world_from_cam), the
     exact depth (H, W) float32 (inf: nothing) seen from ``T_depth``, and the depth the
     sensor reports (float32 m, 0 = none)."""
-    from sim.camera import auto_exposure, expose, shade
-    from sim.render import rasterize
+    from monoloc.sim.camera import auto_exposure, expose, shade
+    from monoloc.sim.render import rasterize
 
     raster = rasterize(scene, bank, T_rgb, intrinsics, render_cfg, night=lighting.night)
     radiance = shade(raster, scene, T_rgb, intrinsics, lighting)
@@ -67,7 +67,7 @@ def _source(config, plan: IndoorRunPlan) -> str:
 
 def write_run_metadata(config, indoor: IndoorConfig, plan: IndoorRunPlan, out_dir: Path) -> None:
     """rgb.txt, depth.txt, groundtruth.txt, vehicle.txt and camera.json of one run."""
-    from sim.recording import RecordingErrors, measured_signals
+    from monoloc.sim.recording import RecordingErrors, measured_signals
 
     run_dir = Path(out_dir) / plan.run
     for sub in ("rgb", "depth"):
@@ -126,10 +126,10 @@ _STATE: dict = {}
 
 def run_scene(config, indoor: IndoorConfig, plan: IndoorRunPlan):
     """World, per-(room, obstacle variant) scene and texture bank of this process."""
-    from sim.indoor import build_world
-    from sim.indoor_infield import obstacles_scene
-    from sim.indoor_textures_floor import IndoorTextureBank
-    from sim.scene import concat_scenes
+    from monoloc.sim.indoor import build_world
+    from monoloc.sim.indoor_infield import obstacles_scene
+    from monoloc.sim.indoor_textures_floor import IndoorTextureBank
+    from monoloc.sim.scene import concat_scenes
 
     key = (config.seed, indoor.main_room, indoor.train_room)
     if _STATE.get("key") != key:
@@ -155,7 +155,7 @@ def run_scene(config, indoor: IndoorConfig, plan: IndoorRunPlan):
 
 def run_camera_config(indoor: IndoorConfig, plan: IndoorRunPlan):
     """The run's camera settings: its exposure offset, noise on or off."""
-    from sim.camera import CameraConfig
+    from monoloc.sim.camera import CameraConfig
 
     e = indoor.errors
     cam = indoor.camera
@@ -206,9 +206,9 @@ def generate_indoor_dataset(
     config, out_dir: Path, progress: Callable[[str, int, int], None] | None = None
 ):
     """Write the indoor dataset of a ``GenerateConfig`` under ``out_dir``; returns a
-    ``sim.generate.DatasetSummary``."""
-    from sim.generate import DatasetSummary, SequenceSummary
-    from sim.indoor import build_world
+    ``monoloc.sim.generate.DatasetSummary``."""
+    from monoloc.sim.generate import DatasetSummary, SequenceSummary
+    from monoloc.sim.indoor import build_world
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -247,7 +247,7 @@ def generate_indoor_dataset(
             for fut in as_completed(futures):
                 fut.result()
                 report(*futures[fut])
-    from sim.indoor_info import dataset_info
+    from monoloc.sim.indoor_info import dataset_info
 
     tw.write_dataset_json(out_dir, dataset_info(config, indoor, world, plans))
     summaries = [

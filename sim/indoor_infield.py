@@ -10,16 +10,16 @@ import math
 
 import numpy as np
 
-from sim.indoor_furniture import add_chair, add_textured_box, add_underside
-from sim.indoor_track import centre_line, distance_to_line, inside_loop
-from sim.scene import KIND_CAR, Scene, SceneBuilder
-from sim.shapes import footprint_corners
+from monoloc.sim.indoor_furniture import add_chair, add_textured_box, add_underside
+from monoloc.sim.indoor_track import centre_line, distance_to_line, inside_loop
+from monoloc.sim.scene import KIND_CAR, Scene, SceneBuilder
+from monoloc.sim.shapes import footprint_corners
 
 
 def _free_spot(rng, config, loop, radius, inside, placed, margin=0.3, tries=200):
     """A random floor point at least ``margin`` + radius from the track edge, inside or
     outside the loop, not overlapping ``placed`` circles (x, y, r); None if none."""
-    from sim.indoor import room_bounds
+    from monoloc.sim.indoor import room_bounds
 
     x0, y0, x1, y1 = room_bounds(config)
     for _ in range(tries):

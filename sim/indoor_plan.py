@@ -25,15 +25,15 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from sim.camera import CameraConfig, Lighting
-from sim.indoor import SIZE_PRESETS, IndoorWorld, RoomConfig, room_configs
-from sim.indoor_sensors import D435_COLOR, IndoorErrors, IndoorRig
-from sim.indoor_track import lap_length_m, lap_path, wandering_offset
-from sim.render import RenderConfig
-from sim.routes import offset_path
-from sim.vehicle import VehicleConfig, VehicleStates, drive
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.sim.camera import CameraConfig, Lighting
+from monoloc.sim.indoor import SIZE_PRESETS, IndoorWorld, RoomConfig, room_configs
+from monoloc.sim.indoor_sensors import D435_COLOR, IndoorErrors, IndoorRig
+from monoloc.sim.indoor_track import lap_length_m, lap_path, wandering_offset
+from monoloc.sim.render import RenderConfig
+from monoloc.sim.routes import offset_path
+from monoloc.sim.vehicle import VehicleConfig, VehicleStates, drive
 
 INDOOR_RUN_KINDS = ("map", "query", "train", "offcenter")
 _OUTDOOR_DEFAULT_RUNS = ("map", "query", "train", "night", "offcenter")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import NotFoundError
+from monoloc.core.errors import NotFoundError
 
 
 def write_indoor_preview(dataset: Path, info: dict, out: Path, per_run: int = 4) -> Path:
@@ -19,8 +19,8 @@ def write_indoor_preview(dataset: Path, info: dict, out: Path, per_run: int = 4)
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim import tum_writer as tw
-    from sim.indoor_track import TrackShape, centre_line
+    from monoloc.sim import tum_writer as tw
+    from monoloc.sim.indoor_track import TrackShape, centre_line
 
     dataset = Path(dataset)
     sequences = info["sequences"]

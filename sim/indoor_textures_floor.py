@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.indoor_canvas import Canvas, word
-from sim.indoor_textures import wall
-from sim.indoor_track import TrackShape, centre_line, curvature_closed
-from sim.scene import TextureBank, TextureLayers, TextureSpec
-from sim.texture_tools import material, smooth_noise, to_uint8
+from monoloc.sim.indoor_canvas import Canvas, word
+from monoloc.sim.indoor_textures import wall
+from monoloc.sim.indoor_track import TrackShape, centre_line, curvature_closed
+from monoloc.sim.scene import TextureBank, TextureLayers, TextureSpec
+from monoloc.sim.texture_tools import material, smooth_noise, to_uint8
 
 FLOOR_STYLES = ("concrete", "tiles", "parquet", "carpet")
 

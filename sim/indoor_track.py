@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from sim.routes import Path, resample
+from monoloc.core.errors import InvalidInputError
+from monoloc.sim.routes import Path, resample
 
 _SAMPLES = 1440
 

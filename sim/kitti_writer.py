@@ -8,7 +8,7 @@
 <root>/sequences/NN/times.txt          one time in seconds per frame
 <root>/sequences/NN/vehicle.txt        t speed_mps yaw_rate_radps (measured)
 <root>/poses/NN.txt                    3x4 T_world_from_cam0 row-major per line
-<root>/dataset.json                    what each sequence is (see sim.generate)
+<root>/dataset.json                    what each sequence is (see monoloc.sim.generate)
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 KITTI_STEREO_BASELINE_M = 0.5371657
 KITTI_COLOUR_OFFSET_M = -0.0598  # camera 2 sits ~6 cm left of camera 0 in KITTI

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.scene import KIND_GLASS, Scene, TextureBank
+from monoloc.sim.scene import KIND_GLASS, Scene, TextureBank
 
 
 def hdl64_elevations_deg() -> tuple[float, ...]:
@@ -192,7 +192,7 @@ def _cast_kernel():
     """The compiled ray-casting loop (numba, compiled on first use and cached on disk)."""
     global _KERNEL
     if _KERNEL is None:
-        from sim._lidar_kernel import cast
+        from monoloc.sim._lidar_kernel import cast
 
         _KERNEL = cast
     return _KERNEL

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import InvalidInputError, NotFoundError
-from client.geometry import kitti_to_zup
+from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.core.geometry import kitti_to_zup
 
 
 def write_preview(dataset: Path, out: Path, per_run: int = 4) -> Path:
@@ -19,7 +19,7 @@ def write_preview(dataset: Path, out: Path, per_run: int = 4) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.kitti_writer import read_poses
+    from monoloc.sim.kitti_writer import read_poses
 
     dataset = Path(dataset)
     info_path = dataset / "dataset.json"
@@ -31,7 +31,7 @@ def write_preview(dataset: Path, out: Path, per_run: int = 4) -> Path:
     except (ValueError, KeyError) as exc:
         raise InvalidInputError(f"{info_path}: not a valid dataset.json ({exc})") from exc
     if info.get("format") == "tum-rgbd":
-        from sim.indoor_preview import write_indoor_preview
+        from monoloc.sim.indoor_preview import write_indoor_preview
 
         return write_indoor_preview(dataset, info, out, per_run)
     n = len(sequences)

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from sim.vehicle import _rpy
+from monoloc.sim.vehicle import _rpy
 
 
 @dataclass(frozen=True)

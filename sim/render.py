@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.geometry import invert_rigid
-from sim.scene import Scene, TextureBank
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.geometry import invert_rigid
+from monoloc.sim.scene import Scene, TextureBank
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from sim.city import StreetGrid
+from monoloc.core.errors import InvalidInputError
+from monoloc.sim.city import StreetGrid
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ at ``s = (x + 0.5 - tex_offset_px[0]) / texels_per_m`` and likewise ``t`` with y
 share one texture with different offsets (a long wall cut into strips).
 
 Textures are :class:`TextureSpec` records: small, hashable and picklable; the pixels are
-made on demand by ``sim.textures`` and cached in a :class:`TextureBank`, so a large city
+made on demand by ``monoloc.sim.textures`` and cached in a :class:`TextureBank`, so a large city
 costs memory only for what a camera has recently seen, and output does not depend on the
 order in which textures are first used.
 """
@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 # Surface kinds: used by lighting (lamps glow at night) and by the LiDAR (reflectance).
 KIND_GROUND = 0
@@ -37,7 +37,7 @@ KIND_GLASS = 8
 
 @dataclass(frozen=True)
 class TextureSpec:
-    """How to make one texture: generator name in ``sim.textures``, size, seed, params.
+    """How to make one texture: generator name in ``monoloc.sim.textures``, size, seed, params.
 
     ``params`` is a tuple of (name, value) pairs so the spec stays hashable.
     ``wrap``: the texture tiles beyond its edges (ground materials); otherwise its edge
@@ -226,7 +226,7 @@ class TextureBank:
         if spec in self._layers:
             self._layers.move_to_end(spec)
             return self._layers[spec]
-        from sim.textures import generate_texture
+        from monoloc.sim.textures import generate_texture
 
         layers = generate_texture(spec)
         self._layers[spec] = layers

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from sim.scene import SceneBuilder, TextureSpec
+from monoloc.sim.scene import SceneBuilder, TextureSpec
 
 UP = np.array([0.0, 0.0, 1.0])
 DOWN = -UP

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from sim.scene import (
+from monoloc.sim.scene import (
     KIND_CAR,
     KIND_FOLIAGE,
     KIND_GLASS,
@@ -20,7 +20,7 @@ from sim.scene import (
     SceneBuilder,
     TextureSpec,
 )
-from sim.shapes import add_billboard, add_box, footprint_corners, texture_size_px
+from monoloc.sim.shapes import add_billboard, add_box, footprint_corners, texture_size_px
 
 
 def texture_seed(rng: np.random.Generator) -> int:

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.scene import TextureLayers, TextureSpec
-from sim.texture_tools import (
+from monoloc.sim.scene import TextureLayers, TextureSpec
+from monoloc.sim.texture_tools import (
     PICTURE_PHOTOS,
     SHOP_WORDS,
     crop_resize,
@@ -22,12 +22,12 @@ from sim.texture_tools import (
     smooth_noise,
     to_uint8,
 )
-from sim.textures_street import GROUND_GENERATORS
+from monoloc.sim.textures_street import GROUND_GENERATORS
 
 
 def generate_texture(spec: TextureSpec) -> TextureLayers:
     """Pixels of ``spec`` (deterministic in ``spec.seed``)."""
-    from client.errors import InvalidInputError
+    from monoloc.core.errors import InvalidInputError
 
     generator = GENERATORS.get(spec.kind) or GROUND_GENERATORS.get(spec.kind)
     if generator is None:

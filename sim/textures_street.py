@@ -1,12 +1,12 @@
 """Texture generators for the street: asphalt, markings, paving, kerbs, vegetation,
-cars, poles, lamps and signs. See ``sim.textures`` for the conventions."""
+cars, poles, lamps and signs. See ``monoloc.sim.textures`` for the conventions."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from sim.scene import TextureLayers, TextureSpec
-from sim.texture_tools import (
+from monoloc.sim.scene import TextureLayers, TextureSpec
+from monoloc.sim.texture_tools import (
     PICTURE_PHOTOS,
     SHOP_WORDS,
     crop_resize,

@@ -11,7 +11,7 @@ layout, one folder per run::
                                     (OpenCV camera axes) at the motion capture's stamps
     <root>/<run>/vehicle.txt        "t speed_mps yaw_rate_radps" at the rgb stamps
     <root>/<run>/camera.json        fx, fy, cx, cy, width, height, depth_scale_per_m
-    <root>/dataset.json             what each run is (see sim.indoor_generate)
+    <root>/dataset.json             what each run is (see monoloc.sim.indoor_generate)
 
 Timestamps are seconds on one clock (as TUM's, Unix-like), written with 6 decimals;
 an image's file name is its stamp exactly as listed.
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import R_from_quaternion_xyzw, quaternion_xyzw_from_R
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import R_from_quaternion_xyzw, quaternion_xyzw_from_R
 
 DEPTH_SCALE_PER_M = 5000.0
 

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from client.geometry import R_world_from_cam_level, invert_rigid
-from sim.routes import Path
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import R_world_from_cam_level, invert_rigid
+from monoloc.sim.routes import Path
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,1 @@
-"""The HTTP/WebSocket map server (FastAPI). Build it with ``server.api.app.create_app``."""
+"""The HTTP/WebSocket map server (FastAPI). Build it with ``monoloc.server.api.app.create_app``."""

@@ -21,11 +21,11 @@ import anyio
 import numpy as np
 from fastapi import FastAPI
 
-from server.api.deps import AppState
-from server.api.errors import install_error_handlers
-from server.api.limits import BodySizeLimitMiddleware
-from server.api.metrics import Metrics, RequestMetricsMiddleware
-from server.settings import Settings, get_settings
+from monoloc.server.api.deps import AppState
+from monoloc.server.api.errors import install_error_handlers
+from monoloc.server.api.limits import BodySizeLimitMiddleware
+from monoloc.server.api.metrics import Metrics, RequestMetricsMiddleware
+from monoloc.server.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
 
@@ -85,14 +85,14 @@ def _limit_threads(settings: Settings):
 
 def _start(settings: Settings, metrics: Metrics) -> AppState:
     """Blocking start-up work (run in a thread by the lifespan)."""
-    from server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
-    from server.api.job_handlers import HANDLERS
-    from server.api.jobs import JobRunner
-    from server.runtime import MapRegistry
-    from server.storage.db import create_engine_for, make_session_factory, session_scope
-    from server.storage.jobs import mark_interrupted_jobs
-    from server.storage.migrate import upgrade_database
-    from server.vision.warmup import warm_up
+    from monoloc.server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
+    from monoloc.server.api.job_handlers import HANDLERS
+    from monoloc.server.api.jobs import JobRunner
+    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+    from monoloc.server.storage.jobs import mark_interrupted_jobs
+    from monoloc.server.storage.migrate import upgrade_database
+    from monoloc.server.vision.warmup import warm_up
 
     warm_up()  # compile or load the vision kernels now, not in the first request
     Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
@@ -138,7 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        from server.api.redact import install_log_redaction
+        from monoloc.server.api.redact import install_log_redaction
 
         install_log_redaction()
         limiter = _limit_threads(settings)
@@ -152,8 +152,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await anyio.to_thread.run_sync(_stop, state)
             limiter.restore_original_limits()
 
-    from server.api.routes import ROUTERS
-    from server.api.routes.metrics import metrics_router
+    from monoloc.server.api.routes import ROUTERS
+    from monoloc.server.api.routes.metrics import metrics_router
 
     app = FastAPI(
         title="monoloc map server",
@@ -173,5 +173,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 
 def create_app_from_env() -> FastAPI:
-    """Factory for ``uvicorn --factory server.api.app:create_app_from_env``."""
+    """Factory for ``uvicorn --factory monoloc.server.api.app:create_app_from_env``."""
     return create_app(get_settings())

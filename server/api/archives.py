@@ -21,7 +21,11 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-from server.api.errors import BadRequestError, PayloadTooLargeError, UnsupportedMediaTypeError
+from monoloc.server.api.errors import (
+    BadRequestError,
+    PayloadTooLargeError,
+    UnsupportedMediaTypeError,
+)
 
 _COPY_CHUNK = 1 << 20
 

@@ -16,12 +16,12 @@ from pathlib import Path
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.errors import InvalidInputError
-from server.api.archives import remove_tree
-from server.settings import Settings
-from server.storage.db import session_scope
-from server.storage.keys import KEY_PREFIX, PREFIX_CHARS, hash_api_key
-from server.storage.models import ApiKey, utc_now
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.api.archives import remove_tree
+from monoloc.server.settings import Settings
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.keys import KEY_PREFIX, PREFIX_CHARS, hash_api_key
+from monoloc.server.storage.models import ApiKey, utc_now
 
 log = logging.getLogger(__name__)
 _BOOTSTRAP_RE = re.compile(rf"^{KEY_PREFIX}[A-Za-z0-9_-]{{32,200}}$")

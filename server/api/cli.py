@@ -20,7 +20,7 @@ DataDirOption = Annotated[
 
 
 def _settings(data_dir: Path | None, **overrides: object):
-    from server.settings import get_settings
+    from monoloc.server.settings import get_settings
 
     if data_dir is not None:
         overrides["data_dir"] = data_dir
@@ -28,8 +28,8 @@ def _settings(data_dir: Path | None, **overrides: object):
 
 
 def _sessions(data_dir: Path | None):
-    from server.storage.db import create_engine_for, make_session_factory
-    from server.storage.migrate import upgrade_database
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
+    from monoloc.server.storage.migrate import upgrade_database
 
     settings = _settings(data_dir)
     upgrade_database(settings.database_url)
@@ -45,8 +45,8 @@ def keys_create(
     data_dir: DataDirOption = None,
 ) -> None:
     """Create a key and print it once (only its hash is stored)."""
-    from server.storage.db import session_scope
-    from server.storage.keys import create_api_key
+    from monoloc.server.storage.db import session_scope
+    from monoloc.server.storage.keys import create_api_key
 
     with session_scope(_sessions(data_dir)) as session:
         record, plaintext = create_api_key(session, name, ",".join(scope))
@@ -61,8 +61,8 @@ def keys_create(
 @keys_app.command("list")
 def keys_list(data_dir: DataDirOption = None) -> None:
     """List keys (prefix, name, scopes, revoked or not); never the keys themselves."""
-    from server.storage.db import session_scope
-    from server.storage.keys import list_api_keys
+    from monoloc.server.storage.db import session_scope
+    from monoloc.server.storage.keys import list_api_keys
 
     with session_scope(_sessions(data_dir)) as session:
         records = list_api_keys(session)
@@ -76,8 +76,8 @@ def keys_list(data_dir: DataDirOption = None) -> None:
 @keys_app.command("revoke")
 def keys_revoke(key_id: int, data_dir: DataDirOption = None) -> None:
     """Revoke a key by id (see `monoloc keys list`)."""
-    from server.storage.db import session_scope
-    from server.storage.keys import revoke_api_key
+    from monoloc.server.storage.db import session_scope
+    from monoloc.server.storage.keys import revoke_api_key
 
     with session_scope(_sessions(data_dir)) as session:
         record = revoke_api_key(session, key_id)
@@ -93,7 +93,7 @@ def serve(
     """Run the map server (one process: the index and the jobs live in it)."""
     import uvicorn
 
-    from server.api.app import create_app
+    from monoloc.server.api.app import create_app
 
     overrides: dict[str, object] = {}
     if host is not None:

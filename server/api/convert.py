@@ -7,17 +7,17 @@ from typing import Any
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from server.api import schemas as s
-from server.api.schemas_admin import KeyPublic
-from server.api.schemas_localize import (
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.server.api import schemas as s
+from monoloc.server.api.schemas_admin import KeyPublic
+from monoloc.server.api.schemas_localize import (
     HypothesisPublic,
     LocalizeResponse,
     RejectedPublic,
     RetrievedPublic,
 )
-from server.localize import LocalizationResult, PoseHypothesis
-from server.storage.records import (
+from monoloc.server.localize import LocalizationResult, PoseHypothesis
+from monoloc.server.storage.records import (
     ApiKeyRecord,
     EntrySummary,
     JobRecord,

@@ -28,14 +28,14 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.requests import HTTPConnection
 
-from server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
-from server.api.jobs import JobRunner
-from server.api.metrics import Metrics
-from server.runtime import MapRegistry
-from server.settings import Settings
-from server.storage.db import session_scope
-from server.storage.keys import verify_api_key
-from server.storage.records import ApiKeyRecord
+from monoloc.server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
+from monoloc.server.api.jobs import JobRunner
+from monoloc.server.api.metrics import Metrics
+from monoloc.server.runtime import MapRegistry
+from monoloc.server.settings import Settings
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.keys import verify_api_key
+from monoloc.server.storage.records import ApiKeyRecord
 
 T = TypeVar("T")
 

@@ -3,7 +3,7 @@
 Checks before any decoding: the image is PNG/JPEG with an acceptable pixel count, the
 depth image a 16-bit grayscale PNG, the LiDAR scan a whole number of 16-byte points
 within ``max_lidar_points``; poses are 12 or 16 finite numbers forming a rigid
-transform. Then ``server.ingest.single.add_single_image`` builds and stores the entry
+transform. Then ``monoloc.server.ingest.single.add_single_image`` builds and stores the entry
 and feeds the live index (on the CPU pool).
 """
 
@@ -14,16 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from server.api.convert import entry_detail
-from server.api.deps import AppState
-from server.api.errors import PayloadTooLargeError
-from server.api.limits import ImageInfo, check_image, decode_depth_png
-from server.api.schemas import EntryCreated
-from server.entry_builder import DepthSource, LidarSource
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage.db import session_scope
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.api.convert import entry_detail
+from monoloc.server.api.deps import AppState
+from monoloc.server.api.errors import PayloadTooLargeError
+from monoloc.server.api.limits import ImageInfo, check_image, decode_depth_png
+from monoloc.server.api.schemas import EntryCreated
+from monoloc.server.entry_builder import DepthSource, LidarSource
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.db import session_scope
 
 LIDAR_POINT_BYTES = 16  # float32 x, y, z, reflectance (KITTI .bin)
 
@@ -43,7 +43,7 @@ class NewEntryForm:
 def parse_transform(text: str, what: str) -> np.ndarray:
     """(4, 4) rigid transform from a JSON array (flat or nested) or comma/space-separated
     numbers, 12 (3x4) or 16 (4x4), row-major."""
-    from server.ingest.single import parse_numbers, transform_from_numbers
+    from monoloc.server.ingest.single import parse_numbers, transform_from_numbers
 
     stripped = text.strip()
     if stripped.startswith("["):
@@ -98,7 +98,7 @@ def check_form(form: NewEntryForm, max_pixels: int) -> tuple[ImageInfo, ImageInf
 def _build_and_store(
     state: AppState, map_id: int, form: NewEntryForm, depth_info: ImageInfo | None
 ) -> EntryCreated:
-    from server.ingest.single import add_single_image
+    from monoloc.server.ingest.single import add_single_image
 
     T_world_from_cam = parse_transform(form.T_world_from_cam, "T_world_from_cam")
     if form.depth is not None:

@@ -19,7 +19,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.websockets import WebSocket
 
-from client.errors import MonolocError
+from monoloc.core.errors import MonolocError
 
 log = logging.getLogger(__name__)
 

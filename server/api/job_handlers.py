@@ -18,22 +18,22 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from client.errors import ConflictError, InvalidInputError
-from server.api.archives import dataset_root
-from server.api.jobs import JobContext, JobHandler, JobInterruptedError
+from monoloc.core.errors import ConflictError, InvalidInputError
+from monoloc.server.api.archives import dataset_root
+from monoloc.server.api.jobs import JobContext, JobHandler, JobInterruptedError
 
 
 def open_source(fmt: str, root: Path, sequence: str | None, frames: str | None):
     """The reader's view of an unpacked run: a KittiSequence or a TumRun (validated)."""
-    from server.ingest.common import parse_frame_range
+    from monoloc.server.ingest.common import parse_frame_range
 
     frame_range = parse_frame_range(frames)
     if fmt == "kitti":
-        from server.ingest.kitti import read_kitti_sequence
+        from monoloc.server.ingest.kitti import read_kitti_sequence
 
         return read_kitti_sequence(root, sequence=sequence, frames=frame_range)
     if fmt == "tum":
-        from server.ingest.tum import read_tum_run
+        from monoloc.server.ingest.tum import read_tum_run
 
         return read_tum_run(root, frames=frame_range)
     raise InvalidInputError(f"unknown run format {fmt!r}: use kitti or tum")
@@ -51,7 +51,7 @@ class _NamedSource:
 def _train_vocabulary(ctx: JobContext, source) -> dict[str, Any]:
     """Train a vocabulary on the run (k = 64, seeded: a resumed job trains the same one)
     and switch the map to it before its frames are ingested."""
-    from server.ingest.vocab import change_map_vocabulary_detailed, train_map_vocabulary
+    from monoloc.server.ingest.vocab import change_map_vocabulary_detailed, train_map_vocabulary
 
     ctx.progress(0.0, "training the map's vocabulary on this run", force=True)
     # The description names the run by its upload, not by the server's temporary path.
@@ -78,7 +78,7 @@ def _train_vocabulary(ctx: JobContext, source) -> dict[str, Any]:
 
 
 def run_ingest(ctx: JobContext) -> dict[str, Any]:
-    from server.ingest.pipeline import IngestConfig, ingest_run
+    from monoloc.server.ingest.pipeline import IngestConfig, ingest_run
 
     job = ctx.job
     if job.map_id is None or job.run_id is None:
@@ -121,7 +121,7 @@ def run_vocabulary(ctx: JobContext) -> dict[str, Any]:
     """Switch the map to another stored vocabulary and recompute every VLAD (from the
     entry's original image when the server still has it, else from its stored
     descriptors; ``approximate`` counts those). Resumable."""
-    from server.ingest.vocab import change_map_vocabulary_detailed
+    from monoloc.server.ingest.vocab import change_map_vocabulary_detailed
 
     job = ctx.job
     if job.map_id is None:
@@ -147,8 +147,8 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
     """Fit the measurement model on the uploaded training run (its own intrinsics, the
     map's vocabulary) and store it on the map; the run is not added to the map. A stop
     request ends the job ``interrupted``; resuming it calibrates again from the start."""
-    from server.calibrate import CalibrationConfig
-    from server.calibrate_jobs import calibrate_map, job_result
+    from monoloc.server.calibrate import CalibrationConfig
+    from monoloc.server.calibrate_jobs import calibrate_map, job_result
 
     job = ctx.job
     if job.map_id is None:

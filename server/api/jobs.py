@@ -27,12 +27,12 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.errors import ConflictError, MonolocError
-from server.api.archives import remove_tree
-from server.settings import Settings
-from server.storage import jobs as jobs_repo
-from server.storage.db import session_scope
-from server.storage.records import JobRecord
+from monoloc.core.errors import ConflictError, MonolocError
+from monoloc.server.api.archives import remove_tree
+from monoloc.server.settings import Settings
+from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import JobRecord
 
 log = logging.getLogger(__name__)
 

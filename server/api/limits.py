@@ -21,8 +21,8 @@ import numpy as np
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from client.errors import InvalidInputError
-from server.api.errors import PayloadTooLargeError, UnsupportedMediaTypeError, error_body
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.api.errors import PayloadTooLargeError, UnsupportedMediaTypeError, error_body
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"

@@ -18,14 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from server.api.convert import localize_response
-from server.api.deps import AppState
-from server.api.limits import ImageInfo, check_image, decode_gray
-from server.api.schemas_localize import LocalizeResponse
-from server.index.retrieval import RetrievalPrior
-from server.localize import LocalizeConfig
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.api.convert import localize_response
+from monoloc.server.api.deps import AppState
+from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
+from monoloc.server.api.schemas_localize import LocalizeResponse
+from monoloc.server.index.retrieval import RetrievalPrior
+from monoloc.server.localize import LocalizeConfig
 
 MAX_K = 100
 

@@ -8,8 +8,8 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from server.api.schemas import TIME_EXAMPLE, example
-from server.storage.keys import SCOPES
+from monoloc.server.api.schemas import TIME_EXAMPLE, example
+from monoloc.server.storage.keys import SCOPES
 
 Scope = Literal["localize", "map:write", "admin"]
 assert set(SCOPES) == {"localize", "map:write", "admin"}

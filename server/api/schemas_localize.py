@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.api.schemas import PlanarPose
+from monoloc.server.api.schemas import PlanarPose
 
 _HYPOTHESIS = dict(
     entry_id=42,

@@ -21,8 +21,8 @@ from typing import Annotated, Any, Literal, TypeVar
 from fastapi import File, Form, UploadFile
 from sqlalchemy.orm import Session
 
-from client.errors import InvalidInputError
-from server.api.archives import (
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.api.archives import (
     ArchiveLimits,
     Unpacked,
     dataset_root,
@@ -30,12 +30,12 @@ from server.api.archives import (
     save_file_set,
     unpack_archive,
 )
-from server.api.bootstrap import INCOMING_PREFIX, uploads_dir
-from server.api.deps import AppState
-from server.api.job_handlers import open_source
-from server.storage import maps as maps_repo
-from server.storage.db import session_scope
-from server.storage.records import JobRecord
+from monoloc.server.api.bootstrap import INCOMING_PREFIX, uploads_dir
+from monoloc.server.api.deps import AppState
+from monoloc.server.api.job_handlers import open_source
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import JobRecord
 
 # The upload fields shared by every route that takes a recorded run (mapping runs,
 # calibration): one definition of each, so the routes document them alike.

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from server.vision._bits import popcount64 as _popcount64
+from monoloc.server.vision._bits import popcount64 as _popcount64
 
 BLOCK = 64
 

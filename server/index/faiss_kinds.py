@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from server.index.types import IndexConfig
+from monoloc.server.index.types import IndexConfig
 
 VLAD_DIM = 2048
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import MonolocError
-from server.index.retrieval import IndexConfig, RetrievalIndex
+from monoloc.core.errors import MonolocError
+from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 
 FORMAT_VERSION = 1
 

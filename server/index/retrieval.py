@@ -3,7 +3,7 @@
 A FAISS binary index over the entries' VLAD sign codes gives a Hamming shortlist; the
 shortlist is re-ranked by the exact L2 distance of the float VLADs. Large maps (from
 ``ivf_min_entries``) shortlist by an exhaustive scan of 256-bit sketches instead
-(``large_kind="scan"``, see server.index.sketch for why), re-ranked by the full codes and
+(``large_kind="scan"``, see monoloc.server.index.sketch for why), re-ranked by the full codes and
 then exactly; FAISS's binary HNSW and IVF remain selectable. With a planar prior
 only entries inside the radius (and heading window) compete. Entries are added and
 removed live; a readers-writer lock lets searches run concurrently but never during an
@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from server.index.faiss_kinds import configure, new_flat, new_hnsw, new_ivf
-from server.index.rwlock import ReadWriteLock
-from server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
-from server.index.types import IndexConfig, RetrievalPrior, SearchResult, empty_result
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.index.faiss_kinds import configure, new_flat, new_hnsw, new_ivf
+from monoloc.server.index.rwlock import ReadWriteLock
+from monoloc.server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
+from monoloc.server.index.types import IndexConfig, RetrievalPrior, SearchResult, empty_result
 
 __all__ = ["IndexConfig", "RetrievalIndex", "RetrievalPrior", "SearchResult"]
 
@@ -192,7 +192,7 @@ class RetrievalIndex:
 
     def _scan_rows(self, code: np.ndarray, sketch: np.ndarray, size: int) -> np.ndarray:
         """Top ``size`` rows by full-code Hamming among the sketch scan's candidates."""
-        from server.index._scan_kernel import hamming_rows
+        from monoloc.server.index._scan_kernel import hamming_rows
 
         n_candidates = max(self.config.scan_candidates, 4 * size)
         rows = self._sketches.nearest(sketch, self._size, n_candidates, self.config.scan_threads)
@@ -239,7 +239,7 @@ class RetrievalIndex:
             size *= 4
 
     def _rerank(self, query: np.ndarray, rows: np.ndarray, k: int) -> SearchResult:
-        from server.index._scan_kernel import vlad_distances
+        from monoloc.server.index._scan_kernel import vlad_distances
 
         if len(rows) == 0:
             return empty_result()

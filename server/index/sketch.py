@@ -3,7 +3,7 @@
 A sketch is the sign pattern of the VLAD projected on 256 fixed orthonormal directions
 (seeded, the same for every map and every run): the Hamming distance of two sketches
 estimates the angle between the two VLADs (sign random projection), with 8x fewer bits
-than the 2048 sign bits of :func:`server.vision.binary_code.vlad_binary_code`.
+than the 2048 sign bits of :func:`monoloc.server.vision.binary_code.vlad_binary_code`.
 
 Why a scan and not a graph or inverted index: on bench/retrieval.py's route model at 1M
 entries, FAISS's binary HNSW found 19 % of the true top 10 (a query is equally far from
@@ -99,7 +99,7 @@ class SketchTable:
     def nearest(self, sketch: np.ndarray, size: int, n_wanted: int, threads: int = 1):
         """Rows (<= n_wanted,) int64 of the sketches nearest to ``sketch`` (32,) uint8 among
         the first ``size`` rows, nearest first. ``threads`` = 2 splits the scan in halves."""
-        from server.index._scan_kernel import BLOCK, scan, select_nearest
+        from monoloc.server.index._scan_kernel import BLOCK, scan, select_nearest
 
         query_words = np.ascontiguousarray(sketch, dtype=np.uint8).view(np.uint64)
         distances = self._distance_buffer(size)

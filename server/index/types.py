@@ -1,4 +1,4 @@
-"""Settings, prior and result types of the retrieval index (server.index.retrieval)."""
+"""Settings, prior and result types of the retrieval index (monoloc.server.index.retrieval)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from client.geometry import wrap_angle
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class IndexConfig:
 
     shortlist_size: int = 400
     # From this size on another shortlist replaces FAISS's flat index: "scan" (default:
-    # exhaustive sketch scan, see server.index.sketch), FAISS's binary "hnsw" or "ivf".
+    # exhaustive sketch scan, see monoloc.server.index.sketch), FAISS's binary "hnsw" or "ivf".
     large_kind: str = "scan"
     scan_candidates: int = 1000  # sketch-nearest rows re-ranked by the full codes
     scan_shortlist: int = 20  # full-code-nearest of those re-ranked exactly

@@ -2,5 +2,5 @@
 (``pipeline.ingest_run``), single images (``single``), vocabularies (``vocab``) and
 the typed operations behind the CLI (``manage``, ``jobs``, ``report``).
 
-Nothing is imported here so that ``import server.ingest`` stays cheap.
+Nothing is imported here so that ``import monoloc.server.ingest`` stays cheap.
 """

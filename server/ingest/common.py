@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 _RANGE_RE = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*(?::\s*(-?\d*)\s*)?$")
 
@@ -64,7 +64,7 @@ def format_frame_range(frames: slice | None) -> str:
 class LoadedFrame:
     """One frame read from disk: the image file's bytes (hashed for idempotency), the
     decoded (H, W) uint8 grayscale image and the frame's 3D source (a ``LidarSource`` or
-    ``DepthSource`` of ``server.entry_builder``)."""
+    ``DepthSource`` of ``monoloc.server.entry_builder``)."""
 
     image_bytes: bytes
     image_gray: np.ndarray

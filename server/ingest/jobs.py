@@ -9,17 +9,17 @@ from dataclasses import asdict
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.ingest.manage import find_map, resolve_vocabulary
-from server.ingest.vocab import (
+from monoloc.server.ingest.manage import find_map, resolve_vocabulary
+from monoloc.server.ingest.vocab import (
     VocabularyChange,
     change_map_vocabulary_detailed,
     train_map_vocabulary,
 )
-from server.job_progress import progress_recorder, update_job_now
-from server.storage import jobs as jobs_repo
-from server.storage.db import session_scope
-from server.storage.records import JobRecord
-from server.vision.vocabulary import VocabularyConfig
+from monoloc.server.job_progress import progress_recorder, update_job_now
+from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import JobRecord
+from monoloc.server.vision.vocabulary import VocabularyConfig
 
 JOB_KIND = "vocabulary"
 

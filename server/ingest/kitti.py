@@ -20,7 +20,7 @@ image and scan file of the whole sequence present (non-empty; scans a whole numb
 Errors name the file and the line.
 
 KITTI's world is its first camera frame (x right, y down, z forward); the poses are
-converted to monoloc's z-up world by ``client.geometry.kitti_to_zup`` (the one place
+converted to monoloc's z-up world by ``monoloc.core.geometry.kitti_to_zup`` (the one place
 that conversion lives). ``frames`` selects a range of frame indices with Python slice
 semantics (``slice(0, 3860)``: frames 0..3859), applied after the whole sequence was
 validated.
@@ -34,10 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import check_rigid, kitti_to_zup
-from server.ingest.common import (
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import check_rigid, kitti_to_zup
+from monoloc.server.ingest.common import (
     InputFileError,
     LoadedFrame,
     decode_gray,
@@ -102,7 +102,7 @@ class KittiSequence:
 
     def load(self, frame: KittiFrame) -> LoadedFrame:
         """Read the frame's image and scan (thread-safe; no database access)."""
-        from server.entry_builder import LidarSource
+        from monoloc.server.entry_builder import LidarSource
 
         data = read_bytes(frame.image_path, "image")
         image = decode_gray(data, frame.image_path)

@@ -18,15 +18,15 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.camera import KITTI_CAM0, CameraIntrinsics
-from client.errors import InvalidInputError
-from server.ingest.common import InputFileError, png_size
-from server.ingest.pipeline import IngestConfig, IngestSummary, ingest_run
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage import runs as runs_repo
-from server.storage.db import session_scope
-from server.storage.records import MapRecord, RunRecord, VocabularyRecord
+from monoloc.core.camera import KITTI_CAM0, CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.ingest.common import InputFileError, png_size
+from monoloc.server.ingest.pipeline import IngestConfig, IngestSummary, ingest_run
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage import runs as runs_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import MapRecord, RunRecord, VocabularyRecord
 
 KIND_TAGS = {"night": ("night",), "offcenter": ("off-center",)}
 
@@ -59,8 +59,8 @@ def _with_size(fx, fy, cx, cy, size: tuple[int, int] | None, o: CameraOverrides,
 
 def camera_from_spec(spec: str | None, overrides: CameraOverrides = CameraOverrides()):
     """A CameraIntrinsics from a camera spec (see the module docstring)."""
-    from server.ingest.kitti import read_kitti_calibration
-    from server.ingest.tum import TUM_CAMERAS, read_tum_run
+    from monoloc.server.ingest.kitti import read_kitti_calibration
+    from monoloc.server.ingest.tum import TUM_CAMERAS, read_tum_run
 
     if spec is None:
         camera = overrides.complete()
@@ -99,7 +99,7 @@ def camera_from_spec(spec: str | None, overrides: CameraOverrides = CameraOverri
 def resolve_vocabulary(session: Session, ref: str = "default") -> VocabularyRecord:
     """``default`` (the shipped vocabulary, stored on first use), an id or a hash."""
     if ref == "default":
-        from server.vision.vocabulary import load_default_vocabulary
+        from monoloc.server.vision.vocabulary import load_default_vocabulary
 
         vocabulary = load_default_vocabulary()
         description = vocabulary.description or "monoloc default vocabulary"
@@ -136,11 +136,11 @@ def open_source(
 ):
     """Open (and validate) a KITTI sequence or a TUM run."""
     if fmt == "kitti":
-        from server.ingest.kitti import read_kitti_sequence
+        from monoloc.server.ingest.kitti import read_kitti_sequence
 
         return read_kitti_sequence(path, sequence, frames)
     if fmt == "tum":
-        from server.ingest.tum import read_tum_run
+        from monoloc.server.ingest.tum import read_tum_run
 
         return read_tum_run(path, intrinsics=camera, camera=tum_camera, frames=frames)
     raise InvalidInputError(f"unknown format {fmt!r}: kitti or tum")
@@ -195,7 +195,7 @@ class MapStats:
 
 
 def map_stats(session_factory: sessionmaker[Session], ref: str | int) -> MapStats:
-    from server.storage.models import Entry
+    from monoloc.server.storage.models import Entry
 
     with session_scope(session_factory) as session:
         record = maps_repo.find_map(session, ref)
@@ -227,8 +227,8 @@ def list_maps(session_factory: sessionmaker[Session]) -> list[MapRecord]:
 
 def parse_prior(text: str | None):
     """``x,y,r`` or ``x,y,r,yaw_deg,tol_deg`` (metres, degrees) -> RetrievalPrior."""
-    from server.index.retrieval import RetrievalPrior
-    from server.ingest.single import parse_numbers
+    from monoloc.server.index.retrieval import RetrievalPrior
+    from monoloc.server.ingest.single import parse_numbers
 
     if text is None:
         return None

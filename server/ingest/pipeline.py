@@ -7,7 +7,7 @@ Stages, for a source opened (and its metadata validated) by a reader:
    (``already_in_map``) before any other work, so a re-run adds nothing twice and an
    interrupted run resumes where it stopped.
 2. build: decode, blur + ORB, 3D points from the LiDAR scan or depth image, VLAD
-   (``server.entry_builder.build_entry``) in a thread pool (OpenCV and numpy release the
+   (``monoloc.server.entry_builder.build_entry``) in a thread pool (OpenCV and numpy release the
    GIL; OpenCV and BLAS are limited to one thread each so 2 cores are not oversubscribed).
 3. write: on the calling thread, in order, in batches of ``batch_size`` frames, each
    batch one transaction (entries + run counters); after each commit the registry's
@@ -36,16 +36,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.errors import InvalidInputError
-from client.geometry import planar_from_T_world_from_cam
-from server.entry_builder import BuildConfig, TooFewPointsError, build_entry
-from server.ingest.common import InputFileError, read_bytes
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage import runs as runs_repo
-from server.storage.db import session_scope
-from server.storage.records import NewEntry
-from server.vision.vocabulary import Vocabulary
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import planar_from_T_world_from_cam
+from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
+from monoloc.server.ingest.common import InputFileError, read_bytes
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage import runs as runs_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import NewEntry
+from monoloc.server.vision.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
 

@@ -13,16 +13,16 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import check_rigid, planar_from_T_world_from_cam
-from server.entry_builder import BuildConfig, DepthSource, LidarSource, build_entry
-from server.ingest.common import InputFileError, decode_depth, decode_gray, read_bytes
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage.db import session_scope
-from server.storage.records import EntrySummary
-from server.vision.vocabulary import Vocabulary
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import check_rigid, planar_from_T_world_from_cam
+from monoloc.server.entry_builder import BuildConfig, DepthSource, LidarSource, build_entry
+from monoloc.server.ingest.common import InputFileError, decode_depth, decode_gray, read_bytes
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import EntrySummary
+from monoloc.server.vision.vocabulary import Vocabulary
 
 UPLOAD = Path("<uploaded image>")
 
@@ -119,7 +119,7 @@ def read_lidar_extrinsics(spec: str) -> np.ndarray:
     """T_cam_from_lidar from a KITTI calib.txt path (its Tr line) or 12/16 numbers."""
     path = Path(spec)
     if path.is_file():
-        from server.ingest.kitti import read_kitti_calibration
+        from monoloc.server.ingest.kitti import read_kitti_calibration
 
         return read_kitti_calibration(path).T_cam_from_lidar
     return transform_from_numbers(parse_numbers(spec, "LiDAR extrinsics"), "LiDAR extrinsics")
@@ -132,6 +132,6 @@ def depth_source_from_file(path: Path, scale_per_m: float) -> DepthSource:
 
 def lidar_source_from_file(path: Path, T_cam_from_lidar: np.ndarray) -> LidarSource:
     """A KITTI .bin scan (float32 x, y, z, r) and T_cam_from_lidar (4, 4)."""
-    from server.ingest.kitti import read_scan
+    from monoloc.server.ingest.kitti import read_scan
 
     return LidarSource(read_scan(Path(path)), T_cam_from_lidar)

@@ -26,7 +26,7 @@ folder with keys fx, fy, cx, cy and optionally width/height (or width_px/height_
 the first image's size), ``depth_scale`` (raw units per metre, default 5000) and
 ``world_frame``. The ground-truth world is taken to be z-up (monoloc's convention)
 unless ``world_frame`` is ``"kitti"`` or ``"camera"`` (x right, y down, z forward),
-which is converted with ``client.geometry.kitti_to_zup``.
+which is converted with ``monoloc.core.geometry.kitti_to_zup``.
 """
 
 from __future__ import annotations
@@ -37,10 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import R_from_quaternion_xyzw, kitti_to_zup
-from server.ingest.common import (
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import R_from_quaternion_xyzw, kitti_to_zup
+from monoloc.server.ingest.common import (
     InputFileError,
     LoadedFrame,
     decode_depth,
@@ -92,7 +92,7 @@ class TumRun:
 
     def load(self, frame: TumFrame) -> LoadedFrame:
         """Read the frame's colour and depth images (thread-safe; no database access)."""
-        from server.entry_builder import DepthSource
+        from monoloc.server.entry_builder import DepthSource
 
         data = read_bytes(frame.image_path, "image")
         image = decode_gray(data, frame.image_path)

@@ -1,7 +1,7 @@
 """A map's own vocabulary: train one from a run's images, and switch a map to it.
 
 Which descriptors a VLAD is computed from: an entry's VLAD is computed from *all* ORB
-descriptors of its image, exactly like a query's (``server.entry_builder``), while the
+descriptors of its image, exactly like a query's (``monoloc.server.entry_builder``), while the
 entry stores only the descriptors of keypoints that received a 3D point. Measured on a
 sim city (100 query frames against 100 map frames, full KITTI resolution): recall@1
 0.97 with whole-image map VLADs against 0.76 when map VLADs use only the 3D keypoints'
@@ -27,15 +27,15 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.errors import InvalidInputError, MonolocError
-from server.ingest.common import read_bytes
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage import runs as runs_repo
-from server.storage.db import session_scope
-from server.storage.records import VocabularyRecord
-from server.vision.features import OrbConfig, extract_features
-from server.vision.vocabulary import Vocabulary, VocabularyConfig, train_vocabulary
+from monoloc.core.errors import InvalidInputError, MonolocError
+from monoloc.server.ingest.common import read_bytes
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage import runs as runs_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.records import VocabularyRecord
+from monoloc.server.vision.features import OrbConfig, extract_features
+from monoloc.server.vision.vocabulary import Vocabulary, VocabularyConfig, train_vocabulary
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ _BATCH = 64
 
 
 def _features_of(path: Path, orb: OrbConfig) -> np.ndarray:
-    from server.ingest.common import decode_gray
+    from monoloc.server.ingest.common import decode_gray
 
     return extract_features(decode_gray(read_bytes(path, "image"), path), orb).descriptors
 
@@ -109,8 +109,8 @@ class VocabularyChange:
 
 
 def _reopen(source_format: str, source_name: str):
-    from server.ingest.kitti import read_kitti_sequence
-    from server.ingest.tum import read_tum_run
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.tum import read_tum_run
 
     path = Path(source_name)
     if not source_name or not path.is_dir():
@@ -159,7 +159,7 @@ def _descriptor_set(entry, paths: dict[str, Path], orb: OrbConfig) -> tuple[np.n
         try:
             data = read_bytes(path, "image")
             if hashlib.sha256(data).hexdigest() == entry.summary.source_image_hash:
-                from server.ingest.common import decode_gray
+                from monoloc.server.ingest.common import decode_gray
 
                 return extract_features(decode_gray(data, path), orb).descriptors, True
         except MonolocError:
@@ -185,8 +185,8 @@ def change_map_vocabulary_detailed(
     import cv2
     from threadpoolctl import threadpool_limits
 
-    from server.vision.binary_code import vlad_binary_code
-    from server.vision.vlad import compute_vlad
+    from monoloc.server.vision.binary_code import vlad_binary_code
+    from monoloc.server.vision.vlad import compute_vlad
 
     with session_scope(session_factory) as session:
         record = maps_repo.get_map(session, map_id)

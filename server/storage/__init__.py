@@ -3,5 +3,5 @@
 Modules: ``models`` (schema), ``db`` (engine with SQLite pragmas, sessions), ``migrate``
 (Alembic upgrade), ``arrays`` (numpy <-> blob), ``records`` (plain results), and the
 repositories ``maps``, ``entries``, ``jobs``, ``keys``. Nothing is imported here so that
-``import server.storage`` stays cheap.
+``import monoloc.server.storage`` stays cheap.
 """

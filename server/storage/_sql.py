@@ -9,7 +9,7 @@ from sqlalchemy import insert
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from client.errors import ConflictError
+from monoloc.core.errors import ConflictError
 
 
 def insert_or_ignore(

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 VLAD_DIM = 2048  # 64 words x 32 descriptor bytes (METHOD.md section 4)
 CODE_BYTES = 256  # binary code of a VLAD: 2048 bits

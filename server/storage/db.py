@@ -3,7 +3,7 @@
 SQLite (the default) runs with ``journal_mode=WAL`` (readers never block the writer),
 ``foreign_keys=ON`` (cascades and references enforced), ``busy_timeout`` (a writer waits
 for the lock instead of failing with "database is locked") and ``synchronous`` from the
-settings (see ``server.settings`` for the durability trade-off). Any other URL (e.g.
+settings (see ``monoloc.server.settings`` for the durability trade-off). Any other URL (e.g.
 ``postgresql+psycopg://...``) is used as is, without pragmas.
 
 Transactions: the pysqlite driver opens a transaction at the first write statement of a
@@ -25,10 +25,10 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 if TYPE_CHECKING:
-    from server.settings import Settings
+    from monoloc.server.settings import Settings
 
 SYNCHRONOUS_LEVELS = ("OFF", "NORMAL", "FULL", "EXTRA")
 

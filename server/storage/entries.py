@@ -12,19 +12,19 @@ import numpy as np
 from sqlalchemy import Select, delete, exists, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
-from client.errors import InvalidInputError, NotFoundError
-from server.storage import arrays as arr
-from server.storage._sql import insert_or_ignore
-from server.storage.entry_checks import (
+from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.server.storage import arrays as arr
+from monoloc.server.storage._sql import insert_or_ignore
+from monoloc.server.storage.entry_checks import (
     check_area,
     check_code_and_vlad,
     check_new_entry,
     check_source_hash,
     normalise_tags,
 )
-from server.storage.maps import bump_map_version, get_vocabulary
-from server.storage.models import Entry, EntryTag, Map, Run, utc_now
-from server.storage.records import Area, EntryData, EntrySummary, MapVectors, NewEntry
+from monoloc.server.storage.maps import bump_map_version, get_vocabulary
+from monoloc.server.storage.models import Entry, EntryTag, Map, Run, utc_now
+from monoloc.server.storage.records import Area, EntryData, EntrySummary, MapVectors, NewEntry
 
 _IN_CHUNK = 500  # ids/hashes per IN (...) clause
 

@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from client.geometry import check_rigid, planar_from_T_world_from_cam
-from server.storage import arrays as arr
-from server.storage.records import Area, NewEntry
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import check_rigid, planar_from_T_world_from_cam
+from monoloc.server.storage import arrays as arr
+from monoloc.server.storage.records import Area, NewEntry
 
 SHA256_HEX_RE = re.compile(r"^[0-9a-f]{64}$")
 TAG_RE = re.compile(r"^[a-z0-9][a-z0-9_.:-]{0,63}$")

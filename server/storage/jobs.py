@@ -15,11 +15,11 @@ from typing import Any
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from client.errors import ConflictError, InvalidInputError, NotFoundError
-from server.storage.maps import get_map
-from server.storage.models import JOB_STATES, Job, Run, utc_now
-from server.storage.records import JobRecord
-from server.storage.runs import check_kind, get_run
+from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
+from monoloc.server.storage.maps import get_map
+from monoloc.server.storage.models import JOB_STATES, Job, Run, utc_now
+from monoloc.server.storage.records import JobRecord
+from monoloc.server.storage.runs import check_kind, get_run
 
 TERMINAL_JOB_STATES = ("done", "failed", "interrupted")
 _JOB_TRANSITIONS = {

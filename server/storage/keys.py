@@ -22,9 +22,9 @@ from collections.abc import Iterable
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from client.errors import InvalidInputError, NotFoundError
-from server.storage.models import ApiKey, utc_now
-from server.storage.records import ApiKeyRecord
+from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.server.storage.models import ApiKey, utc_now
+from monoloc.server.storage.records import ApiKeyRecord
 
 SCOPES = ("localize", "map:write", "admin")
 KEY_PREFIX = "mlk_"

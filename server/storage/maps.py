@@ -14,12 +14,12 @@ import numpy as np
 from sqlalchemy import Select, delete, func, select, update
 from sqlalchemy.orm import Session
 
-from client.camera import CameraIntrinsics
-from client.errors import ConflictError, InvalidInputError, NotFoundError
-from server.storage._sql import insert_or_ignore
-from server.storage.arrays import CENTRES, N_WORDS, pack_array, unpack_array
-from server.storage.models import Entry, Map, Vocabulary, utc_now
-from server.storage.records import MapRecord, VocabularyRecord
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
+from monoloc.server.storage._sql import insert_or_ignore
+from monoloc.server.storage.arrays import CENTRES, N_WORDS, pack_array, unpack_array
+from monoloc.server.storage.models import Entry, Map, Vocabulary, utc_now
+from monoloc.server.storage.records import MapRecord, VocabularyRecord
 
 MAP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 # Calibration of the measurement model (METHOD.md section 7): key -> shape.
@@ -48,7 +48,7 @@ def get_or_create_vocabulary(
     Returns (record, created). ``description`` says how it was trained. The hash is the
     vision core's ``vocabulary_hash`` (so it equals ``Vocabulary.version``).
     """
-    from server.vision.vocabulary import vocabulary_hash
+    from monoloc.server.vision.vocabulary import vocabulary_hash
 
     blob = pack_array(centres, CENTRES, "vocabulary centres")
     version_hash = vocabulary_hash(np.frombuffer(blob, dtype=np.float32).reshape(CENTRES[1]))

@@ -13,8 +13,8 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
-from client.errors import MonolocError
-from server.storage.db import redact_url
+from monoloc.core.errors import MonolocError
+from monoloc.server.storage.db import redact_url
 
 
 class MigrationError(MonolocError):
@@ -29,7 +29,7 @@ def _first_line(exc: BaseException) -> str:
 def migrations_dir() -> Path:
     """The folder holding ``env.py`` and ``versions/``; raises MigrationError if absent."""
     candidates = [Path(__file__).resolve().parents[2] / "migrations"]
-    spec = importlib.util.find_spec("migrations")
+    spec = importlib.util.find_spec("monoloc.migrations")
     if spec is not None and spec.submodule_search_locations:
         candidates.extend(Path(p) for p in spec.submodule_search_locations)
     for candidate in candidates:
@@ -70,7 +70,7 @@ def current_revision(database_url: str) -> str | None:
     from sqlalchemy import pool
     from sqlalchemy.exc import SQLAlchemyError
 
-    from server.storage.db import _sqlite_file, create_engine_for_url
+    from monoloc.server.storage.db import _sqlite_file, create_engine_for_url
 
     db_file = _sqlite_file(database_url) if database_url.startswith("sqlite") else None
     if db_file is not None and not db_file.exists():

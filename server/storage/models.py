@@ -1,6 +1,6 @@
 """SQLAlchemy 2.x models of the map database (the schema Alembic's 0001 revision creates).
 
-Array columns are raw blobs whose dtype and shape are fixed by ``server.storage.arrays``
+Array columns are raw blobs whose dtype and shape are fixed by ``monoloc.server.storage.arrays``
 (VLAD (2048,) float32, code (256,) uint8, keypoints (N, 2) float32 pixels, descriptors
 (N, 32) uint8, points (N, 3) float32 in the reference camera frame (OpenCV), pose 4x4
 float64 ``T_world_from_cam`` row-major). Timestamps are timezone-aware UTC.

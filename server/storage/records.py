@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
+from monoloc.core.camera import CameraIntrinsics
 
 
 @dataclass(frozen=True)

@@ -10,10 +10,10 @@ from collections.abc import Mapping
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from client.errors import InvalidInputError, NotFoundError
-from server.storage.maps import get_map
-from server.storage.models import RUN_STATUSES, SOURCE_FORMATS, Run, utc_now
-from server.storage.records import RunRecord
+from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.server.storage.maps import get_map
+from monoloc.server.storage.models import RUN_STATUSES, SOURCE_FORMATS, Run, utc_now
+from monoloc.server.storage.records import RunRecord
 
 KIND_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,31}$")
 

@@ -5,18 +5,18 @@ Every function takes arrays and a frozen config and returns arrays; the only fil
 reading and writing vocabularies (``vocabulary.py``).
 """
 
-from server.vision.binary_code import CODE_BYTES, vlad_binary_code
-from server.vision.features import Features, OrbConfig, extract_features
-from server.vision.hypothesis import compose_hypothesis, planar_hypothesis
-from server.vision.matching import (
+from monoloc.server.vision.binary_code import CODE_BYTES, vlad_binary_code
+from monoloc.server.vision.features import Features, OrbConfig, extract_features
+from monoloc.server.vision.hypothesis import compose_hypothesis, planar_hypothesis
+from monoloc.server.vision.matching import (
     MatchConfig,
     match_against_references,
     match_descriptors,
     match_descriptors_bruteforce,
 )
-from server.vision.pnp import PnpConfig, RelativePose, estimate_relative_pose
-from server.vision.vlad import VLAD_DIM, compute_vlad, compute_vlad_batch, vlad_distance
-from server.vision.vocabulary import (
+from monoloc.server.vision.pnp import PnpConfig, RelativePose, estimate_relative_pose
+from monoloc.server.vision.vlad import VLAD_DIM, compute_vlad, compute_vlad_batch, vlad_distance
+from monoloc.server.vision.vocabulary import (
     Vocabulary,
     VocabularyConfig,
     load_default_vocabulary,

@@ -1,4 +1,4 @@
-"""Compiled Hamming matching kernel (numba). Imported lazily by server.vision.matching.
+"""Compiled Hamming matching kernel (numba). Imported lazily by monoloc.server.vision.matching.
 
 One pass over the query x reference distance matrix, one query row at a time, never
 storing the matrix: the row's distances go to a scratch buffer while their minimum is
@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from server.vision._bits import popcount64 as _popcount64
+from monoloc.server.vision._bits import popcount64 as _popcount64
 
 _FAR = np.int32(1 << 20)
 
@@ -36,7 +36,7 @@ def match_rows(
     out_r,
     out_d,
 ):
-    """Apply the match rule of server.vision.matching to one query/reference pair.
+    """Apply the match rule of monoloc.server.vision.matching to one query/reference pair.
 
     query_words (N, 4) uint64, ref_words_t (4, M) uint64 (descriptors as 64-bit words, the
     reference transposed); row, col_min1, col_min2 int32 scratch of >= M; out_q, out_r,

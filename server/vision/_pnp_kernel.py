@@ -1,4 +1,4 @@
-"""Compiled PnP refinement and inlier scoring (numba). Imported lazily by server.vision.pnp.
+"""Compiled PnP refinement and inlier scoring (numba). Imported lazily by monoloc.server.vision.pnp.
 
 Poses here are (R_query_from_ref (3, 3), t_query_from_ref (3,)) float64: they take points
 in the reference camera frame to the query camera frame. Pixels follow the OpenCV

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 VLAD_DIM = 2048
 CODE_BYTES = VLAD_DIM // 8  # 256

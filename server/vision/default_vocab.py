@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from server.vision.features import OrbConfig, as_gray_uint8, extract_features
-from server.vision.vocabulary import Vocabulary, VocabularyConfig, train_vocabulary
+from monoloc.server.vision.features import OrbConfig, as_gray_uint8, extract_features
+from monoloc.server.vision.vocabulary import Vocabulary, VocabularyConfig, train_vocabulary
 
 # scikit-image photographs available without a download (skimage.data).
 DEFAULT_PHOTOS = (

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.geometry import check_rigid, planar_from_T_world_from_cam
+from monoloc.core.geometry import check_rigid, planar_from_T_world_from_cam
 
 
 def compose_hypothesis(T_world_from_ref: np.ndarray, T_ref_from_query: np.ndarray) -> np.ndarray:

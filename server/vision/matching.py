@@ -18,7 +18,7 @@ Speed (measured on the 2-core dev box, one thread, 1000 x 1000 descriptors per p
 ``cv2.BFMatcher.knnMatch`` takes ~8.5 ms per reference and the cross check doubles it.
 FAISS's ``hammings`` fills the full 1000 x 1000 distance matrix in ~1.3 ms (scalar
 popcount), and applying the rule to that matrix with numpy adds ~0.5 ms. The fast path
-(``server.vision._hamming_kernel``, numba) computes the distances with a vectorised
+(``monoloc.server.vision._hamming_kernel``, numba) computes the distances with a vectorised
 popcount and applies the rule in the same pass without storing the matrix: ~1 ms per
 reference. ``match_descriptors_bruteforce`` keeps the OpenCV baseline, and
 :func:`hamming_matrix` (FAISS) the exhaustive distance floor that bench/vision.py prints.
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int32)
 
@@ -102,7 +102,7 @@ class _Scratch:
 def _match_words(
     query_words: np.ndarray, ref_desc: np.ndarray, config: MatchConfig, scratch: _Scratch
 ) -> np.ndarray:
-    from server.vision._hamming_kernel import match_rows
+    from monoloc.server.vision._hamming_kernel import match_rows
 
     if len(query_words) == 0 or len(ref_desc) == 0:
         return _NO_MATCHES.copy()

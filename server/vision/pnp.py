@@ -17,7 +17,7 @@ Pipeline: RANSAC with P3P hypotheses on 4-point samples (measured ~0.7 ms for 30
 matches at 30 % outliers, against ~2.3 ms with OpenCV's default EPnP 5-point kernel),
 then SQPnP on the RANSAC inliers, re-selection of the inliers with that pose, and, with
 ``refine``, Levenberg-Marquardt on them and a last re-selection (see :func:`_refit` for
-why). The inlier scoring and LM are compiled (``server.vision._pnp_kernel``; its LM
+why). The inlier scoring and LM are compiled (``monoloc.server.vision._pnp_kernel``; its LM
 reaches OpenCV's solvePnPRefineLM optimum at about a tenth of the time).
 """
 
@@ -29,9 +29,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from client.camera import CameraIntrinsics
-from client.errors import InvalidInputError
-from client.geometry import invert_rigid, rotation_angle_rad
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import invert_rigid, rotation_angle_rad
 
 # Below this many points no solver gives a checked pose (P3P samples 4, EPnP 5).
 _MIN_POINTS_FOR_SOLVER = 6
@@ -130,7 +130,7 @@ def _inliers(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Inlier mask (within ``threshold_px`` and in front of the camera) and reprojection
     errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
-    from server.vision._pnp_kernel import reprojection_errors
+    from monoloc.server.vision._pnp_kernel import reprojection_errors
 
     errors_px = np.empty(len(points))
     depth_m = np.empty(len(points))
@@ -153,7 +153,7 @@ def _refit(
     (``_pnp_kernel.refine_lm``). Returns (R_query_from_ref (3, 3), t_query_from_ref (3,),
     final inlier mask, errors_px (M,)); R is None if a solver gave nothing finite.
     """
-    from server.vision._pnp_kernel import refine_lm
+    from monoloc.server.vision._pnp_kernel import refine_lm
 
     ok, rvec, tvec = cv2.solvePnP(points[mask], pixels[mask], K, None, flags=cv2.SOLVEPNP_SQPNP)
     if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):

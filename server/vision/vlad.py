@@ -16,8 +16,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from server.vision.vocabulary import DESCRIPTOR_DIM, Vocabulary
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.vision.vocabulary import DESCRIPTOR_DIM, Vocabulary
 
 VLAD_DIM = 64 * DESCRIPTOR_DIM  # with the 64-word vocabulary of METHOD.md
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 DEFAULT_VOCABULARY_FILE = "default_vocabulary.npz"
 N_WORDS = 64
@@ -175,7 +175,8 @@ def load_vocabulary(path: str | Path, expected_n_words: int | None = N_WORDS) ->
 
 def default_vocabulary_path() -> Path:
     """Path of the vocabulary shipped in ``server/vision/data``."""
-    return Path(str(importlib.resources.files("server.vision") / "data" / DEFAULT_VOCABULARY_FILE))
+    data_dir = importlib.resources.files("monoloc.server.vision") / "data"
+    return Path(str(data_dir / DEFAULT_VOCABULARY_FILE))
 
 
 @functools.cache

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.camera import KITTI_CAM0
-from server.vision.matching import match_descriptors
-from server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.core.camera import KITTI_CAM0
+from monoloc.server.vision.matching import match_descriptors
+from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
 
 
 def warm_up() -> None:

@@ -14,8 +14,8 @@ import httpx
 import numpy as np
 import pytest
 
-from client.api import LocalizeAnswer, MonolocClient, Prior, ServerError, encode_frame
-from client.errors import InvalidInputError, NotFoundError
+from monoloc.client.api import LocalizeAnswer, MonolocClient, Prior, ServerError, encode_frame
+from monoloc.core.errors import InvalidInputError, NotFoundError
 
 OK_ANSWER = {
     "map_id": 1,

@@ -1,4 +1,4 @@
-"""The replay loop (client.drive) against a scripted stream: the filter's prior goes out
+"""The replay loop (monoloc.client.drive) against a scripted stream: the filter's prior goes out
 with every frame once initialised (moved to the frame's time), dropped frames and frames
 the server could not process become prediction-only steps and are accounted for, and an
 answer out of order is refused. The same loop against a live server: tests/e2e."""
@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.api import ServerError
-from client.drive import DriveConfig, PriorConfig, drive
-from client.errors import InvalidInputError
-from client.measurement import MeasurementModel
-from client.particle_filter import FilterConfig
-from client.replay import ReplayRun
-from client.report import summary_rows
+from monoloc.client.api import ServerError
+from monoloc.client.drive import DriveConfig, PriorConfig, drive
+from monoloc.client.particle_filter import FilterConfig
+from monoloc.client.replay import ReplayRun
+from monoloc.client.report import summary_rows
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.measurement import MeasurementModel
 
 SPEED_MPS = 5.0
 

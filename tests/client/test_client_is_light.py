@@ -1,18 +1,34 @@
-"""The vehicle library must stay light: importing all of `client` pulls in no heavy deps."""
+"""The vehicle library must stay light: importing all of `monoloc.client` and
+`monoloc.core` pulls in no heavy deps."""
 
 import json
 import subprocess
 import sys
 
-FORBIDDEN = ("cv2", "faiss", "fastapi", "sqlalchemy", "pydantic_settings", "skimage")
+FORBIDDEN = (
+    "cv2",
+    "faiss",
+    "fastapi",
+    "starlette",
+    "uvicorn",
+    "sqlalchemy",
+    "alembic",
+    "pydantic",
+    "pydantic_settings",
+    "skimage",
+    "numba",
+    "matplotlib",
+)
 
 _PROBE = """
 import importlib, json, pkgutil, sys
-import client
-names = ["client"]
-for info in pkgutil.walk_packages(client.__path__, prefix="client."):
-    importlib.import_module(info.name)
-    names.append(info.name)
+import monoloc.client
+import monoloc.core
+names = ["monoloc.client", "monoloc.core"]
+for package in (monoloc.client, monoloc.core):
+    for info in pkgutil.walk_packages(package.__path__, prefix=package.__name__ + "."):
+        importlib.import_module(info.name)
+        names.append(info.name)
 heavy = sorted(m for m in sys.modules if m.split(".")[0] in {forbidden})
 print(json.dumps({{"modules": names, "heavy": heavy}}))
 """
@@ -25,7 +41,7 @@ def test_importing_every_client_module_loads_no_heavy_dependency():
     )
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout.strip().splitlines()[-1])
-    assert "client.geometry" in report["modules"]
+    assert "monoloc.core.geometry" in report["modules"]
     assert report["heavy"] == [], f"client imports heavy modules: {report['heavy']}"
 
 

@@ -11,9 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError, NotFoundError
-from client.geometry import kitti_to_zup, planar_from_T_world_from_cam
-from client.replay import (
+from monoloc.client.replay import (
     SignalNoise,
     parse_frames,
     read_kitti_run,
@@ -22,6 +20,8 @@ from client.replay import (
     rig_lever_arm_m,
     signals_from_truth,
 )
+from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.core.geometry import kitti_to_zup, planar_from_T_world_from_cam
 
 N_FRAMES = 12
 LEVER_ARM_M = 1.3  # not the sim's default (1.0), so reading it back means something
@@ -31,9 +31,9 @@ LEVER_ARM_M = 1.3  # not the sim's default (1.0), so reading it back means somet
 def sim_run(tmp_path_factory) -> Path:
     """Dataset root of one sim map run: 12 frames, quarter-size images, no LiDAR, exact
     signals (the readers do not look at pixels)."""
-    from sim.generate import GenerateConfig, generate_dataset
-    from sim.recording import RecordingErrors
-    from sim.vehicle import SensorRig
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.recording import RecordingErrors
+    from monoloc.sim.vehicle import SensorRig
 
     root = tmp_path_factory.mktemp("replay_sim")
     config = GenerateConfig(

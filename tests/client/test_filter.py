@@ -3,12 +3,12 @@ import math
 import numpy as np
 import pytest
 
-from client.calibration import fit_measurement_model, pose_errors, retrieval_vectors
-from client.geometry import wrap_angle
-from client.measurement import Hypotheses, MeasurementModel, log_likelihood
-from client.motion import MotionConfig, predict
-from client.particle_filter import FilterConfig, ParticleFilter
-from client.resampling import effective_sample_size, systematic_resample
+from monoloc.client.motion import MotionConfig, predict
+from monoloc.client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.client.resampling import effective_sample_size, systematic_resample
+from monoloc.core.calibration import fit_measurement_model, pose_errors, retrieval_vectors
+from monoloc.core.geometry import wrap_angle
+from monoloc.core.measurement import Hypotheses, MeasurementModel, log_likelihood
 
 
 def test_motion_model_drives_a_known_circle():

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from client.geometry import (
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import (
     R_from_quaternion_xyzw,
     T_world_from_cam_planar,
     check_rigid,

@@ -4,15 +4,15 @@ import math
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from client.geometry import kitti_to_zup, planar_from_T_world_from_cam
-from client.trajectory import (
+from monoloc.client.trajectory import (
     poses_from_planar,
     trajectory_metrics,
     write_kitti,
     write_trajectory_files,
     write_tum,
 )
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import kitti_to_zup, planar_from_T_world_from_cam
 
 
 def test_tum_and_kitti_round_trip_through_text():

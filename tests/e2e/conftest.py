@@ -24,8 +24,8 @@ from e2e_helpers import (
 def sim_city(tmp_path_factory) -> Path:
     """Map run 00 and query run 01 (lateral offsets, moved cars, other light) of one
     street, SIM_FRAMES frames each at 1241 x 376, with vehicle.txt and dataset.json."""
-    from sim.generate import GenerateConfig, generate_dataset
-    from sim.lidar import LidarConfig
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.lidar import LidarConfig
 
     root = tmp_path_factory.mktemp("sim_city")
     config = GenerateConfig(
@@ -41,7 +41,7 @@ def sim_city(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def live_map(sim_city, tmp_path_factory) -> Iterator[LiveMap]:
     """A real server (uvicorn, one worker thread) with map 'city' = the sim's map run."""
-    from client.api import MonolocClient
+    from monoloc.client.api import MonolocClient
 
     data_dir = tmp_path_factory.mktemp("server") / "data"
     with live_server(make_settings(data_dir)) as (url, app):

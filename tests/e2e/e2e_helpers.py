@@ -51,7 +51,7 @@ def live_server(settings) -> Iterator[tuple[str, object]]:
     """create_app(settings) under a real uvicorn on 127.0.0.1; yields (base URL, app)."""
     import uvicorn
 
-    from server.api.app import create_app
+    from monoloc.server.api.app import create_app
 
     app = create_app(settings)
     port = free_port()
@@ -73,7 +73,7 @@ def live_server(settings) -> Iterator[tuple[str, object]]:
 
 
 def make_settings(data_dir: Path, **overrides):
-    from server.settings import Settings
+    from monoloc.server.settings import Settings
 
     values = dict(data_dir=data_dir, bootstrap_admin_key=ADMIN_KEY, worker_threads=1)
     values.update(overrides)
@@ -106,7 +106,7 @@ def create_keys(client) -> Keys:
 
 def upload_map_run(client, name: str, dataset: Path, seq: str, timeout_s: float = 120) -> int:
     """Create map ``name`` (admin client) and ingest sequence ``seq`` through the API."""
-    from client.camera import KITTI_CAM0
+    from monoloc.core.camera import KITTI_CAM0
 
     created = client.request(
         "POST", "/v1/maps", json={"name": name, "camera": camera_json(KITTI_CAM0)}

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from e2e_helpers import QUERY_SEQ
 
-from client.api import MonolocClient, Prior, ServerError
-from client.errors import NotFoundError
-from client.measurement import Hypotheses, MeasurementModel
-from client.replay import read_run
+from monoloc.client.api import MonolocClient, Prior, ServerError
+from monoloc.client.replay import read_run
+from monoloc.core.errors import NotFoundError
+from monoloc.core.measurement import Hypotheses, MeasurementModel
 
 FRAME = 12
 

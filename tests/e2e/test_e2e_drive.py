@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from e2e_helpers import QUERY_SEQ
 
-from client.api import MonolocClient
-from client.drive import DriveConfig, drive
-from client.geometry import zup_to_kitti
-from client.particle_filter import FilterConfig
-from client.replay import read_run
-from client.trajectory import poses_from_planar
+from monoloc.client.api import MonolocClient
+from monoloc.client.drive import DriveConfig, drive
+from monoloc.client.particle_filter import FilterConfig
+from monoloc.client.replay import read_run
+from monoloc.client.trajectory import poses_from_planar
+from monoloc.core.geometry import zup_to_kitti
 
 
 def test_replay_of_a_tiny_sim_run_ends_within_half_a_metre(live_map):

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from e2e_helpers import QUERY_SEQ, copy_database, live_server, make_settings
 
-from client.api import MonolocClient
-from client.replay import read_run
+from monoloc.client.api import MonolocClient
+from monoloc.client.replay import read_run
 
 
 def test_setting_reads_the_environment_and_refuses_unknown_pipelines(monkeypatch, tmp_path):
     from pydantic import ValidationError
 
-    from server.settings import Settings
+    from monoloc.server.settings import Settings
 
     assert Settings(data_dir=tmp_path).localize_pipeline == "monoloc"
     monkeypatch.setenv("MONOLOC_LOCALIZE_PIPELINE", "paper")
@@ -25,7 +25,7 @@ def test_setting_reads_the_environment_and_refuses_unknown_pipelines(monkeypatch
 
 
 def test_both_pipelines_give_the_same_hypotheses_on_the_same_frame(live_map, tmp_path, monkeypatch):
-    import server.vision.matching as matching
+    import monoloc.server.vision.matching as matching
 
     calls = []
     bruteforce = matching.match_descriptors_bruteforce

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from server.calibrate import CalibrationConfig, TrainingFrame, calibrate
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.calibrate import CalibrationConfig, TrainingFrame, calibrate
 
 N_FRAMES = 30
 OFFSET_X_M = 0.5
@@ -28,9 +28,9 @@ OFFSET_YAW_RAD = 0.02
 
 
 def _generate(root: Path, exact: bool) -> Path:
-    from sim.generate import GenerateConfig, generate_dataset
-    from sim.lidar import LidarConfig
-    from sim.recording import RecordingErrors
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.lidar import LidarConfig
+    from monoloc.sim.recording import RecordingErrors
 
     config = GenerateConfig(
         size="small",
@@ -57,7 +57,7 @@ def exact_run(tmp_path_factory) -> Path:
 def _frames(root: Path, offset_x_m: float = 0.0, offset_yaw_rad: float = 0.0) -> list:
     """TrainingFrames of sequence 00; the query frames' (odd frames') truth is moved by
     +offset_x_m along world X and turned by +offset_yaw_rad about world z."""
-    from server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.kitti import read_kitti_sequence
 
     source = read_kitti_sequence(root)
     c, s = math.cos(offset_yaw_rad), math.sin(offset_yaw_rad)
@@ -74,8 +74,8 @@ def _frames(root: Path, offset_x_m: float = 0.0, offset_yaw_rad: float = 0.0) ->
 
 
 def _calibrate(root: Path, config: CalibrationConfig, progress=None, **offsets):
-    from server.ingest.kitti import read_kitti_sequence
-    from server.vision.vocabulary import load_default_vocabulary
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     intrinsics = read_kitti_sequence(root).intrinsics
     return calibrate(
@@ -142,8 +142,8 @@ def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
 
 
 def test_too_short_a_run_is_refused(noisy_run):
-    from server.ingest.kitti import read_kitti_sequence
-    from server.vision.vocabulary import load_default_vocabulary
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     with pytest.raises(InvalidInputError, match="at least 10 map frames .* got 6 map frames"):
         calibrate(
@@ -162,10 +162,10 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     from typer.testing import CliRunner
 
     from monoloc import cli
-    from server.settings import Settings
-    from server.storage import jobs as jobs_repo
-    from server.storage import maps as maps_repo
-    from server.storage.db import create_engine_for, make_session_factory, session_scope
+    from monoloc.server.settings import Settings
+    from monoloc.server.storage import jobs as jobs_repo
+    from monoloc.server.storage import maps as maps_repo
+    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
 
     cli._register()
     env = {"MONOLOC_DATA_DIR": str(tmp_path / "data")}

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from client.geometry import planar_from_T_world_from_cam
+from monoloc.core.geometry import planar_from_T_world_from_cam
 
 
 @dataclass(frozen=True)
@@ -28,15 +28,15 @@ class Outcome:
 
 @pytest.fixture(scope="module")
 def city_outcome(tmp_path_factory) -> Outcome:
-    from server.ingest.kitti import read_kitti_sequence
-    from server.ingest.manage import create_map, ingest_source
-    from server.localize import LocalizeConfig
-    from server.runtime import MapRegistry
-    from server.settings import Settings
-    from server.storage.db import create_engine_for, make_session_factory
-    from server.storage.migrate import upgrade_database
-    from sim.generate import GenerateConfig, generate_dataset
-    from sim.lidar import LidarConfig
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.manage import create_map, ingest_source
+    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.settings import Settings
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
+    from monoloc.server.storage.migrate import upgrade_database
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.lidar import LidarConfig
 
     root = tmp_path_factory.mktemp("city")
     config = GenerateConfig(

@@ -2,9 +2,9 @@ import json
 
 import pytest
 
-from sim.generate import GenerateConfig, generate_dataset
-from sim.lidar import LidarConfig
-from sim.recording import RecordingErrors
+from monoloc.sim.generate import GenerateConfig, generate_dataset
+from monoloc.sim.lidar import LidarConfig
+from monoloc.sim.recording import RecordingErrors
 
 TINY = GenerateConfig(
     seed=3,

@@ -2,10 +2,10 @@ import hashlib
 
 import numpy as np
 
-from client.camera import KITTI_CAM0
-from client.geometry import invert_rigid
-from sim import kitti_writer as kw
-from sim.generate import GenerateConfig, generate_dataset
+from monoloc.core.camera import KITTI_CAM0
+from monoloc.core.geometry import invert_rigid
+from monoloc.sim import kitti_writer as kw
+from monoloc.sim.generate import GenerateConfig, generate_dataset
 
 
 def _project(points_cam: np.ndarray, P0: np.ndarray):

@@ -3,14 +3,14 @@ import math
 import numpy as np
 import pytest
 
-from client.geometry import invert_rigid, kitti_to_zup
-from sim import kitti_writer as kw
-from sim.camera import Lighting, render
-from sim.city import build_city, parked_cars
-from sim.generate import GenerateConfig, kitti_world, plan_runs, true_camera_poses
-from sim.generate_run import prepare_run_files, write_run_metadata
-from sim.recording import RecordingErrors
-from sim.scene import TextureBank, concat_scenes
+from monoloc.core.geometry import invert_rigid, kitti_to_zup
+from monoloc.sim import kitti_writer as kw
+from monoloc.sim.camera import Lighting, render
+from monoloc.sim.city import build_city, parked_cars
+from monoloc.sim.generate import GenerateConfig, kitti_world, plan_runs, true_camera_poses
+from monoloc.sim.generate_run import prepare_run_files, write_run_metadata
+from monoloc.sim.recording import RecordingErrors
+from monoloc.sim.scene import TextureBank, concat_scenes
 
 CONFIG = GenerateConfig(seed=0, runs=("map", "query", "night", "offcenter"))
 

@@ -6,14 +6,14 @@ import json
 import numpy as np
 import pytest
 
-from client.geometry import invert_rigid
-from sim import indoor_generate
-from sim import tum_writer as tw
-from sim.generate import GenerateConfig, generate_dataset
-from sim.indoor import build_world
-from sim.indoor_generate import indoor_config_for, render_rgbd, run_camera_config, run_scene
-from sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
-from sim.recording import RecordingErrors
+from monoloc.core.geometry import invert_rigid
+from monoloc.sim import indoor_generate
+from monoloc.sim import tum_writer as tw
+from monoloc.sim.generate import GenerateConfig, generate_dataset
+from monoloc.sim.indoor import build_world
+from monoloc.sim.indoor_generate import indoor_config_for, render_rgbd, run_camera_config, run_scene
+from monoloc.sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
+from monoloc.sim.recording import RecordingErrors
 
 SEED = 4
 EXACT = GenerateConfig(
@@ -219,7 +219,7 @@ def test_same_seed_gives_same_bytes(tmp_path):
 def test_cli_generates_and_previews(tmp_path):
     from typer.testing import CliRunner
 
-    from sim.cli import app
+    from monoloc.sim.cli import app
 
     runner = CliRunner()
     out = tmp_path / "ds"
@@ -239,7 +239,7 @@ def test_cli_generates_and_previews(tmp_path):
 def test_server_tum_reader_reads_the_output(noisy_dataset):
     """The contract: monoloc's own TUM reader associates every frame and gets the
     camera and the ground truth."""
-    tum = pytest.importorskip("server.ingest.tum")
+    tum = pytest.importorskip("monoloc.server.ingest.tum")
     root, info = noisy_dataset
     run = tum.read_tum_run(root / "map")
     assert run.n_frames == info["sequences"][0]["frames"] and not run.read_skips
@@ -250,7 +250,7 @@ def test_server_tum_reader_reads_the_output(noisy_dataset):
 
 
 def test_indoor_rejects_outdoor_only_runs_and_sizes(tmp_path):
-    from client.errors import InvalidInputError
+    from monoloc.core.errors import InvalidInputError
 
     with pytest.raises(InvalidInputError, match="indoor runs"):
         generate_dataset(GenerateConfig(scenario="indoor", runs=("map", "night")), tmp_path)

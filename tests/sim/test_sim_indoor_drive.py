@@ -5,23 +5,23 @@ import math
 import numpy as np
 import pytest
 
-from client.geometry import invert_rigid
-from sim import tum_writer as tw
-from sim.generate import GenerateConfig
-from sim.indoor import build_world, room_bounds
-from sim.indoor_generate import (
+from monoloc.core.geometry import invert_rigid
+from monoloc.sim import tum_writer as tw
+from monoloc.sim.generate import GenerateConfig
+from monoloc.sim.indoor import build_world, room_bounds
+from monoloc.sim.indoor_generate import (
     indoor_config_for,
     render_rgbd,
     run_camera_config,
     run_scene,
     write_run_metadata,
 )
-from sim.indoor_infield import obstacles_scene
-from sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
-from sim.indoor_sensors import IndoorErrors
-from sim.indoor_track import centre_line, curvature_closed, distance_to_line
-from sim.recording import RecordingErrors
-from sim.scene import KIND_GROUND
+from monoloc.sim.indoor_infield import obstacles_scene
+from monoloc.sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
+from monoloc.sim.indoor_sensors import IndoorErrors
+from monoloc.sim.indoor_track import centre_line, curvature_closed, distance_to_line
+from monoloc.sim.recording import RecordingErrors
+from monoloc.sim.scene import KIND_GROUND
 
 SEED = 4
 CONFIG = GenerateConfig(scenario="indoor", seed=SEED, runs=("map", "query", "train", "offcenter"))

@@ -1,12 +1,12 @@
 import numpy as np
 import pytest
 
-from client.camera import CameraIntrinsics
-from client.geometry import T_world_from_cam_planar
-from sim import textures
-from sim.render import rasterize
-from sim.scene import KIND_WALL, SceneBuilder, TextureBank, TextureLayers, TextureSpec
-from sim.shapes import add_wall
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.geometry import T_world_from_cam_planar
+from monoloc.sim import textures
+from monoloc.sim.render import rasterize
+from monoloc.sim.scene import KIND_WALL, SceneBuilder, TextureBank, TextureLayers, TextureSpec
+from monoloc.sim.shapes import add_wall
 
 K = CameraIntrinsics(fx=200.0, fy=200.0, cx=79.5, cy=59.5, width_px=160, height_px=120)
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from server.api.routes import (
+from monoloc.server.api.routes import (
     calibration,
     entries,
     health,

@@ -1,10 +1,10 @@
 """Measurement-model calibration per map (METHOD.md section 7): get (localize: the
 vehicle downloads it), put and delete (map:write), and calibration jobs (map:write): a
-training run uploaded like a mapping run (``server.api.uploads``: one tar/zip archive or
+training run uploaded like a mapping run (``monoloc.server.api.uploads``: one tar/zip archive or
 a multipart file set, KITTI or TUM) is fitted by a ``calibrate`` job, which stores the
 parameters with their provenance. The training run is not added to the map.
 
-An uncalibrated map answers ``client.measurement.MeasurementModel``'s documented
+An uncalibrated map answers ``monoloc.core.measurement.MeasurementModel``'s documented
 defaults with ``"calibrated": false`` and ``"source": "defaults"``.
 """
 
@@ -18,13 +18,13 @@ from fastapi import APIRouter, Form, UploadFile, status
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy.orm import Session
 
-from client.measurement import MeasurementModel
-from server.api import convert
-from server.api.archives import Unpacked
-from server.api.convert import AUTH_ERRORS, error_responses
-from server.api.deps import AppState, LocalizeKey, MapWriteKey, SessionDep, StateDep
-from server.api.schemas import CalibrationPublic, CalibrationUpdate, JobPublic
-from server.api.uploads import (
+from monoloc.core.measurement import MeasurementModel
+from monoloc.server.api import convert
+from monoloc.server.api.archives import Unpacked
+from monoloc.server.api.convert import AUTH_ERRORS, error_responses
+from monoloc.server.api.deps import AppState, LocalizeKey, MapWriteKey, SessionDep, StateDep
+from monoloc.server.api.schemas import CalibrationPublic, CalibrationUpdate, JobPublic
+from monoloc.server.api.uploads import (
     RunArchive,
     RunFiles,
     RunFormat,
@@ -35,11 +35,11 @@ from server.api.uploads import (
     store_upload,
     upload_name,
 )
-from server.calibrate import CalibrationConfig, check_run_length
-from server.calibrate_jobs import JOB_KIND
-from server.storage import jobs as jobs_repo
-from server.storage import maps as maps_repo
-from server.storage.records import JobRecord
+from monoloc.server.calibrate import CalibrationConfig, check_run_length
+from monoloc.server.calibrate_jobs import JOB_KIND
+from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.records import JobRecord
 
 router = APIRouter(prefix="/v1/maps/{map_id}/calibration", tags=["calibration"])
 
@@ -84,7 +84,7 @@ def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
         model = MeasurementModel()
         return CalibrationPublic(
             **{k: v for k, v in model.to_dict().items() if k != "source"},
-            provenance={"note": "documented defaults (client.measurement.MeasurementModel)"},
+            provenance={"note": "documented defaults (monoloc.core.measurement.MeasurementModel)"},
             calibrated=False,
             source="defaults",
         )

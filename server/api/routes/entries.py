@@ -9,16 +9,16 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile, status
 
-from client.errors import InvalidInputError
-from server.api import convert
-from server.api.convert import AUTH_ERRORS, error_responses
-from server.api.deps import MapWriteKey, RegistryDep, SessionDep, StateDep
-from server.api.entry_upload import NewEntryForm, add_entry_from_form
-from server.api.schemas import EntryCreated, EntryDetail, EntryList, EntryPublic, TagsUpdate
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage.entry_checks import normalise_tags
-from server.storage.records import Area
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.api import convert
+from monoloc.server.api.convert import AUTH_ERRORS, error_responses
+from monoloc.server.api.deps import MapWriteKey, RegistryDep, SessionDep, StateDep
+from monoloc.server.api.entry_upload import NewEntryForm, add_entry_from_form
+from monoloc.server.api.schemas import EntryCreated, EntryDetail, EntryList, EntryPublic, TagsUpdate
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.entry_checks import normalise_tags
+from monoloc.server.storage.records import Area
 
 router = APIRouter(prefix="/v1/maps/{map_id}/entries", tags=["entries"])
 

@@ -7,8 +7,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
-from server.api.deps import AppState
-from server.api.schemas_admin import HealthStatus
+from monoloc.server.api.deps import AppState
+from monoloc.server.api.schemas_admin import HealthStatus
 
 router = APIRouter(tags=["health"])
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
-from server.api import convert
-from server.api.convert import AUTH_ERRORS, error_responses
-from server.api.deps import AdminKey, SessionDep
-from server.api.schemas_admin import KeyCreate, KeyCreated, KeyList, KeyPublic
-from server.storage import keys as keys_repo
+from monoloc.server.api import convert
+from monoloc.server.api.convert import AUTH_ERRORS, error_responses
+from monoloc.server.api.deps import AdminKey, SessionDep
+from monoloc.server.api.schemas_admin import KeyCreate, KeyCreated, KeyList, KeyPublic
+from monoloc.server.storage import keys as keys_repo
 
 router = APIRouter(prefix="/v1/keys", tags=["keys"])
 

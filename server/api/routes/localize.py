@@ -6,10 +6,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Request, UploadFile
 
-from server.api.convert import AUTH_ERRORS, error_responses
-from server.api.deps import LocalizeKey, StateDep
-from server.api.localizing import localize_bytes, parse_options
-from server.api.schemas_localize import LocalizeResponse
+from monoloc.server.api.convert import AUTH_ERRORS, error_responses
+from monoloc.server.api.deps import LocalizeKey, StateDep
+from monoloc.server.api.localizing import localize_bytes, parse_options
+from monoloc.server.api.schemas_localize import LocalizeResponse
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["localize"])
 

@@ -5,16 +5,16 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
 
-from client.camera import CameraIntrinsics
-from client.errors import ConflictError
-from server.api import convert
-from server.api.convert import AUTH_ERRORS, error_responses
-from server.api.deps import AdminKey, LocalizeKey, RegistryDep, SessionDep, StateDep
-from server.api.schemas import JobPublic, MapCreate, MapDetail, MapList, VocabularyJobCreate
-from server.storage import entries as entries_repo
-from server.storage import jobs as jobs_repo
-from server.storage import maps as maps_repo
-from server.storage import runs as runs_repo
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import ConflictError
+from monoloc.server.api import convert
+from monoloc.server.api.convert import AUTH_ERRORS, error_responses
+from monoloc.server.api.deps import AdminKey, LocalizeKey, RegistryDep, SessionDep, StateDep
+from monoloc.server.api.schemas import JobPublic, MapCreate, MapDetail, MapList, VocabularyJobCreate
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage import runs as runs_repo
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
@@ -22,7 +22,7 @@ router = APIRouter(prefix="/v1/maps", tags=["maps"])
 def _vocabulary_id(session, ref: str) -> int:
     """'default' (stored on first use) or the hash of a stored vocabulary."""
     if ref == "default":
-        from server.vision.vocabulary import load_default_vocabulary
+        from monoloc.server.vision.vocabulary import load_default_vocabulary
 
         default = load_default_vocabulary()
         record, _ = maps_repo.get_or_create_vocabulary(

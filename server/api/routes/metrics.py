@@ -6,10 +6,10 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import PlainTextResponse
 from sqlalchemy import func, select
 
-from server.api.convert import AUTH_ERRORS
-from server.api.deps import AppState, StateDep, require_scope
-from server.api.metrics import render_gauge
-from server.storage.models import Entry, Job, Map
+from monoloc.server.api.convert import AUTH_ERRORS
+from monoloc.server.api.deps import AppState, StateDep, require_scope
+from monoloc.server.api.metrics import render_gauge
+from monoloc.server.storage.models import Entry, Job, Map
 
 
 def _scrape(state: AppState) -> str:

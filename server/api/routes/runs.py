@@ -5,7 +5,7 @@ inside the run (``sequences/00/image_0/000000.png``); list and get runs.
 The upload is unpacked into ``uploads/.incoming-<random>`` with the archive limits, then
 opened and validated by the reader (calibration, poses, file counts: 422 naming the
 file). Only then are the run and its ingestion job stored, and the directory renamed to
-``uploads/<job id>``: a rejected upload leaves nothing behind (``server.api.uploads``,
+``uploads/<job id>``: a rejected upload leaves nothing behind (``monoloc.server.api.uploads``,
 shared with the calibration route).
 """
 
@@ -18,12 +18,12 @@ import anyio
 from fastapi import APIRouter, Form, UploadFile, status
 from sqlalchemy.orm import Session
 
-from server.api import convert
-from server.api.archives import Unpacked
-from server.api.convert import AUTH_ERRORS, error_responses
-from server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
-from server.api.schemas import RunPublic, UploadAccepted
-from server.api.uploads import (
+from monoloc.server.api import convert
+from monoloc.server.api.archives import Unpacked
+from monoloc.server.api.convert import AUTH_ERRORS, error_responses
+from monoloc.server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
+from monoloc.server.api.schemas import RunPublic, UploadAccepted
+from monoloc.server.api.uploads import (
     RunArchive,
     RunFiles,
     RunFormat,
@@ -34,11 +34,11 @@ from server.api.uploads import (
     store_upload,
     upload_name,
 )
-from server.storage import jobs as jobs_repo
-from server.storage import maps as maps_repo
-from server.storage import runs as runs_repo
-from server.storage.entry_checks import normalise_tags
-from server.storage.records import JobRecord, RunRecord
+from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage import runs as runs_repo
+from monoloc.server.storage.entry_checks import normalise_tags
+from monoloc.server.storage.records import JobRecord, RunRecord
 
 router = APIRouter(prefix="/v1/maps/{map_id}/runs", tags=["runs"])
 
@@ -153,7 +153,7 @@ def list_runs(map_id: int, session: SessionDep, _key: MapWriteKey) -> list[RunPu
 def get_run(map_id: int, run_id: int, session: SessionDep, _key: MapWriteKey) -> RunPublic:
     run = runs_repo.get_run(session, run_id)
     if run.map_id != map_id:
-        from client.errors import NotFoundError
+        from monoloc.core.errors import NotFoundError
 
         raise NotFoundError(f"run {run_id} does not exist in map {map_id}")
     return convert.run_public(run)

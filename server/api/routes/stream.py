@@ -32,10 +32,10 @@ from typing import Any
 import anyio
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from client.errors import InvalidInputError, MonolocError
-from server.api.deps import AppState, StateDep, StreamKey
-from server.api.errors import error_code
-from server.api.localizing import localize_bytes, parse_options
+from monoloc.core.errors import InvalidInputError, MonolocError
+from monoloc.server.api.deps import AppState, StateDep, StreamKey
+from monoloc.server.api.errors import error_code
+from monoloc.server.api.localizing import localize_bytes, parse_options
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["stream"])

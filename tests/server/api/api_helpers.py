@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from server.settings import Settings
+from monoloc.server.settings import Settings
 
 with warnings.catch_warnings():  # starlette's notice about httpx vs httpx2
     warnings.simplefilter("ignore")
@@ -42,7 +42,7 @@ def make_settings(data_dir: Path, **overrides) -> Settings:
 
 
 def open_client(settings: Settings) -> TestClient:
-    from server.api.app import create_app
+    from monoloc.server.api.app import create_app
 
     return TestClient(create_app(settings))
 
@@ -58,7 +58,7 @@ def create_keys(client: TestClient) -> Keys:
 
 
 def camera_of(dataset: Path) -> dict:
-    from client.camera import KITTI_CAM0
+    from monoloc.core.camera import KITTI_CAM0
 
     c = KITTI_CAM0.scaled(SIM_SCALE)
     return dict(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, width_px=c.width_px, height_px=c.height_px)
@@ -85,7 +85,7 @@ def wait_job(client: TestClient, job_id: int, headers: dict, timeout_s: float = 
 
 def ground_truth(dataset: Path, seq: str, frame: int) -> np.ndarray:
     """T_world_from_cam (4, 4) of a frame in the z-up world."""
-    from client.geometry import kitti_to_zup
+    from monoloc.core.geometry import kitti_to_zup
 
     rows = np.loadtxt(dataset / "poses" / f"{seq}.txt").reshape(-1, 3, 4)
     T = np.eye(4)
@@ -113,7 +113,7 @@ def live_server(settings: Settings, app=None, log_level: str = "warning") -> Ite
 
     import uvicorn
 
-    from server.api.app import create_app
+    from monoloc.server.api.app import create_app
 
     port = free_port()
     config = uvicorn.Config(

@@ -27,8 +27,8 @@ from api_helpers import (
 @pytest.fixture(scope="session")
 def sim_dataset(tmp_path_factory) -> Path:
     """A map run and a query run of the same street, 16 frames each, KITTI size."""
-    from sim.generate import GenerateConfig, generate_dataset
-    from sim.lidar import LidarConfig
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.lidar import LidarConfig
 
     root = tmp_path_factory.mktemp("sim")
     config = GenerateConfig(

@@ -60,7 +60,7 @@ def _nothing_stored(client, keys, map_id, data_dir: Path) -> None:
 
 
 def test_uploaded_training_run_calibrates_the_map(app, sim_dataset):
-    from client.api import MonolocClient
+    from monoloc.client.api import MonolocClient
 
     client, keys, map_id, data_dir = app
     r = _post(client, keys, map_id, archive=tar_sequence(sim_dataset, "00"))
@@ -144,7 +144,7 @@ def test_run_without_usable_frames_fails_the_job_and_stores_nothing(app, sim_dat
 def test_cancelled_calibration_resumes(app, sim_dataset, monkeypatch):
     """A file-set upload; the job is cancelled mid-run (slowed down to make that
     certain), ends interrupted with nothing stored, and a resume calibrates the map."""
-    import server.calibrate as calibration
+    import monoloc.server.calibrate as calibration
 
     build = calibration.build_entry
 

@@ -13,7 +13,7 @@ from api_helpers import (
     open_client,
 )
 
-from client.geometry import planar_from_T_world_from_cam, wrap_angle
+from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
 
 QUERY_FRAME = 8
 

@@ -19,7 +19,7 @@ from api_helpers import (
     wait_job,
 )
 
-from client.geometry import planar_from_T_world_from_cam
+from monoloc.core.geometry import planar_from_T_world_from_cam
 
 
 def _upload(client, keys, dataset, **data):
@@ -37,7 +37,7 @@ def _upload(client, keys, dataset, **data):
 
 
 def test_interrupted_ingestion_resumes_without_duplicates(sim_dataset, tmp_path, monkeypatch):
-    import server.ingest.pipeline as pipeline
+    import monoloc.server.ingest.pipeline as pipeline
 
     build = pipeline.build_entry
 
@@ -57,8 +57,8 @@ def test_interrupted_ingestion_resumes_without_duplicates(sim_dataset, tmp_path,
             assert time.monotonic() < deadline
             time.sleep(0.02)
     # Shutdown asked the job to stop: it committed what it had and is 'interrupted'.
-    from server.storage import jobs as jobs_repo
-    from server.storage.db import create_engine_for, make_session_factory, session_scope
+    from monoloc.server.storage import jobs as jobs_repo
+    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
 
     engine = create_engine_for(settings)
     with session_scope(make_session_factory(engine)) as session:

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from api_helpers import ADMIN_KEY, create_keys, live_server, make_settings, open_client
 
-from client.errors import InvalidInputError
-from server.api.errors import PayloadTooLargeError, UnsupportedMediaTypeError
-from server.api.limits import check_image
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.api.errors import PayloadTooLargeError, UnsupportedMediaTypeError
+from monoloc.server.api.limits import check_image
 
 CAMERA = dict(fx=300.0, fy=300.0, cx=159.5, cy=119.5, width_px=320, height_px=240)
 

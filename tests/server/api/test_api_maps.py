@@ -8,8 +8,8 @@ import math
 import numpy as np
 from api_helpers import frame_png
 
-from client.api import MonolocClient
-from client.measurement import MeasurementModel
+from monoloc.client.api import MonolocClient
+from monoloc.core.measurement import MeasurementModel
 
 CAMERA = dict(fx=300.0, fy=300.0, cx=159.5, cy=119.5, width_px=320, height_px=240)
 CALIBRATION = dict(

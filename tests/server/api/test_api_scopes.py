@@ -122,8 +122,8 @@ def test_metrics_can_be_made_public(tmp_path):
 
 
 def test_bootstrap_key_is_used_only_on_an_empty_key_table(tmp_path):
-    from server.storage.db import create_engine_for, make_session_factory, session_scope
-    from server.storage.keys import list_api_keys
+    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+    from monoloc.server.storage.keys import list_api_keys
 
     settings = make_settings(tmp_path / "d")
     for _ in range(2):

@@ -1,5 +1,5 @@
 """The WebSocket stream over a real uvicorn, driven by the vehicle's own client
-(client.api.FrameStream): answers in order with seq preserved, per-frame errors in
+(monoloc.client.api.FrameStream): answers in order with seq preserved, per-frame errors in
 place, and stale frames dropped (and said so) when the client floods."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from api_helpers import frame_png, ground_truth, live_server, make_settings
 
-from client.api import FrameStream, Prior, ServerError
-from client.geometry import planar_from_T_world_from_cam
-from server.api.app import create_app
+from monoloc.client.api import FrameStream, Prior, ServerError
+from monoloc.core.geometry import planar_from_T_world_from_cam
+from monoloc.server.api.app import create_app
 
 
 def _stream(port: int, key: str, map_id: int) -> FrameStream:
@@ -89,7 +89,7 @@ def test_stream_refuses_a_missing_key_and_a_missing_map(map_copy):
 def test_client_leaving_mid_stream_and_query_key_not_logged(sim_dataset, map_copy, caplog):
     from websockets.sync.client import connect
 
-    from client.api import encode_frame
+    from monoloc.client.api import encode_frame
 
     image = frame_png(sim_dataset, "01", 9)
     key = map_copy.keys.localize

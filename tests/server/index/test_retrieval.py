@@ -3,9 +3,9 @@ import threading
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from server.index.persist import IndexFileError, load_index, save_index
-from server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.index.persist import IndexFileError, load_index, save_index
+from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
 
 
 def _places(rng, n_places, views_per_place, noise=0.6):

@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.camera import CameraIntrinsics
-from client.geometry import invert_rigid
-from server.settings import Settings
-from server.storage.db import create_engine_for, make_session_factory
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.geometry import invert_rigid
+from monoloc.server.settings import Settings
+from monoloc.server.storage.db import create_engine_for, make_session_factory
 
 CAMERA = CameraIntrinsics(359.428, 359.428, 303.3464, 92.35785, 620, 188)
 WALL_Z_M = 8.0  # the wall is the plane z = 8 m of KITTI's world (first camera frame)
@@ -159,7 +159,7 @@ def settings(tmp_path: Path, database_url) -> Settings:
 
 @pytest.fixture
 def factory(settings: Settings) -> Iterator:
-    from server.storage.migrate import upgrade_database
+    from monoloc.server.storage.migrate import upgrade_database
 
     upgrade_database(settings.database_url)
     engine = create_engine_for(settings)
@@ -169,14 +169,14 @@ def factory(settings: Settings) -> Iterator:
 
 def new_map(factory, camera: CameraIntrinsics = CAMERA, name: str = "m") -> int:
     """An empty map with the default vocabulary; returns its id."""
-    from server.ingest.manage import create_map
+    from monoloc.server.ingest.manage import create_map
 
     return create_map(factory, name, camera).id
 
 
 def new_run(factory, map_id: int, source, kind: str = "map") -> int:
-    from server.storage import runs as runs_repo
-    from server.storage.db import session_scope
+    from monoloc.server.storage import runs as runs_repo
+    from monoloc.server.storage.db import session_scope
 
     with session_scope(factory) as session:
         return runs_repo.create_run(

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from client.geometry import kitti_to_zup
+from monoloc.core.geometry import kitti_to_zup
 
 
 @pytest.fixture(scope="module")

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from client.geometry import kitti_to_zup
-from server.ingest.common import InputFileError, parse_frame_range
-from server.ingest.kitti import read_kitti_sequence
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import kitti_to_zup
+from monoloc.server.ingest.common import InputFileError, parse_frame_range
+from monoloc.server.ingest.kitti import read_kitti_sequence
 
 
 def test_reads_calibration_poses_and_frames(kitti_root):

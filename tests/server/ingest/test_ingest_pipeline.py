@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.geometry import zup_to_kitti
-from server.ingest.common import InputFileError
-from server.ingest.kitti import read_kitti_sequence
-from server.ingest.pipeline import IngestConfig, ingest_run
-from server.storage import entries as entries_repo
-from server.storage import runs as runs_repo
-from server.storage.db import session_scope
+from monoloc.core.geometry import zup_to_kitti
+from monoloc.server.ingest.common import InputFileError
+from monoloc.server.ingest.kitti import read_kitti_sequence
+from monoloc.server.ingest.pipeline import IngestConfig, ingest_run
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import runs as runs_repo
+from monoloc.server.storage.db import session_scope
 
 
 def _entries(factory, map_id):
@@ -126,7 +126,7 @@ def test_skip_bad_frames_reports_them(kitti_copy, factory, make_map, make_run):
 def test_bad_metadata_fails_before_writing_and_keeps_earlier_data(
     kitti_copy, factory, make_map, make_run
 ):
-    from server.ingest.common import parse_frame_range
+    from monoloc.server.ingest.common import parse_frame_range
 
     first = read_kitti_sequence(kitti_copy.root, frames=parse_frame_range(":4"))
     map_id = make_map()
@@ -141,7 +141,7 @@ def test_bad_metadata_fails_before_writing_and_keeps_earlier_data(
 
 
 def test_registry_sees_new_entries_at_once(kitti_root, factory, make_map, make_run, settings):
-    from server.runtime import MapRegistry
+    from monoloc.server.runtime import MapRegistry
 
     seq = read_kitti_sequence(kitti_root.root)
     map_id = make_map()

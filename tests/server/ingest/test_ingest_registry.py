@@ -1,4 +1,4 @@
-"""The live index of an ingested map (server.runtime.MapRegistry): restart, corrupt and
+"""The live index of an ingested map (monoloc.server.runtime.MapRegistry): restart, corrupt and
 stale index files, and edits while another thread searches."""
 
 from __future__ import annotations
@@ -9,12 +9,12 @@ import threading
 import numpy as np
 import pytest
 
-from server.ingest.kitti import read_kitti_sequence
-from server.ingest.pipeline import ingest_run
-from server.runtime import MapRegistry
-from server.vision.binary_code import vlad_binary_code
-from server.vision.features import extract_features
-from server.vision.vlad import compute_vlad
+from monoloc.server.ingest.kitti import read_kitti_sequence
+from monoloc.server.ingest.pipeline import ingest_run
+from monoloc.server.runtime import MapRegistry
+from monoloc.server.vision.binary_code import vlad_binary_code
+from monoloc.server.vision.features import extract_features
+from monoloc.server.vision.vlad import compute_vlad
 
 
 @pytest.fixture
@@ -55,7 +55,7 @@ def test_index_survives_a_restart(ingested, factory, settings, caplog):
     registry, map_id, seq = ingested
     before = _query(registry, map_id, seq)
     caplog.clear()
-    caplog.set_level(logging.INFO, logger="server.runtime")
+    caplog.set_level(logging.INFO, logger="monoloc.server.runtime")
     restarted = MapRegistry(factory, settings.index_dir)
     after = _query(restarted, map_id, seq)
     assert "index loaded from" in caplog.text and "rebuilding" not in caplog.text
@@ -71,7 +71,7 @@ def test_corrupt_index_file_is_rebuilt(ingested, factory, settings, caplog):
     data[len(data) // 2 : len(data) // 2 + 64] = b"\x00" * 64
     path.write_bytes(bytes(data))
     caplog.clear()
-    caplog.set_level(logging.INFO, logger="server.runtime")
+    caplog.set_level(logging.INFO, logger="monoloc.server.runtime")
     restarted = MapRegistry(factory, settings.index_dir)
     after = _query(restarted, map_id, seq)
     assert "rebuilding from the database" in caplog.text
@@ -83,25 +83,25 @@ def test_corrupt_index_file_is_rebuilt(ingested, factory, settings, caplog):
 
 
 def test_stale_index_file_is_rebuilt(ingested, factory, settings, caplog):
-    from server.storage import entries as entries_repo
-    from server.storage.db import session_scope
+    from monoloc.server.storage import entries as entries_repo
+    from monoloc.server.storage.db import session_scope
 
     registry, map_id, seq = ingested
     with session_scope(factory) as session:  # an edit the index file does not know about
         first = entries_repo.list_entries(session, map_id, limit=1)[0]
         entries_repo.delete_entry(session, first.id)
     caplog.clear()
-    caplog.set_level(logging.INFO, logger="server.runtime")
+    caplog.set_level(logging.INFO, logger="monoloc.server.runtime")
     restarted = MapRegistry(factory, settings.index_dir)
     assert len(restarted.get(map_id).index) == 7
     assert "is stale: map version 8, database 9" in caplog.text
 
 
 def test_add_and_remove_while_searching_from_another_thread(ingested, factory, kitti_root):
-    from server.ingest.single import add_single_image
-    from server.localize import LocalizeConfig
-    from server.storage import entries as entries_repo
-    from server.storage.db import session_scope
+    from monoloc.server.ingest.single import add_single_image
+    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.storage import entries as entries_repo
+    from monoloc.server.storage.db import session_scope
 
     registry, map_id, seq = ingested
     query = seq.load(seq.frames[4]).image_gray
@@ -156,9 +156,9 @@ def test_entry_deleted_under_a_search_is_skipped_not_an_error(ingested, factory)
     """An entry deleted in the database but still in the live index (the instant between
     the delete's commit and ``entries_removed``, or a delete by another process before
     the version check) is dropped from the candidates instead of failing the query."""
-    from server.localize import LocalizeConfig
-    from server.storage import entries as entries_repo
-    from server.storage.db import session_scope
+    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.storage import entries as entries_repo
+    from monoloc.server.storage.db import session_scope
 
     registry, map_id, seq = ingested
     query = seq.load(seq.frames[4]).image_gray

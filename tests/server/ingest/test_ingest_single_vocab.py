@@ -5,18 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from server.entry_builder import DepthSource
-from server.ingest.kitti import read_kitti_sequence
-from server.ingest.pipeline import ingest_run
-from server.ingest.single import add_single_image, transform_from_numbers
-from server.ingest.vocab import change_map_vocabulary_detailed, train_map_vocabulary
-from server.storage import entries as entries_repo
-from server.storage import maps as maps_repo
-from server.storage.db import session_scope
-from server.vision.features import extract_features
-from server.vision.vlad import compute_vlad
-from server.vision.vocabulary import Vocabulary, VocabularyConfig
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.entry_builder import DepthSource
+from monoloc.server.ingest.kitti import read_kitti_sequence
+from monoloc.server.ingest.pipeline import ingest_run
+from monoloc.server.ingest.single import add_single_image, transform_from_numbers
+from monoloc.server.ingest.vocab import change_map_vocabulary_detailed, train_map_vocabulary
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.db import session_scope
+from monoloc.server.vision.features import extract_features
+from monoloc.server.vision.vlad import compute_vlad
+from monoloc.server.vision.vocabulary import Vocabulary, VocabularyConfig
 
 
 def test_single_image_with_lidar_then_depth(kitti_root, factory, make_map):
@@ -49,7 +49,7 @@ def test_single_image_with_lidar_then_depth(kitti_root, factory, make_map):
 
 
 def test_train_and_change_vocabulary(kitti_root, factory, make_map, make_run, settings):
-    from server.runtime import MapRegistry
+    from monoloc.server.runtime import MapRegistry
 
     seq = read_kitti_sequence(kitti_root.root)
     map_id = make_map()

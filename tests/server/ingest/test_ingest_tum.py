@@ -7,17 +7,17 @@ import json
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from client.geometry import (
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import (
     kitti_to_zup,
     quaternion_xyzw_from_R,
     zup_to_kitti,
 )
-from server.ingest.common import InputFileError
-from server.ingest.pipeline import ingest_run
-from server.ingest.tum import associate, ground_truth_at, read_tum_run
-from server.storage import entries as entries_repo
-from server.storage.db import session_scope
+from monoloc.server.ingest.common import InputFileError
+from monoloc.server.ingest.pipeline import ingest_run
+from monoloc.server.ingest.tum import associate, ground_truth_at, read_tum_run
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage.db import session_scope
 
 
 def test_association_is_greedy_one_to_one_within_tolerance():

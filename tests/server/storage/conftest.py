@@ -14,13 +14,13 @@ import pytest
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from client.camera import KITTI_CAM0
-from client.geometry import T_world_from_cam_planar
-from server.settings import Settings
-from server.storage.db import create_engine_for, make_session_factory, session_scope
-from server.storage.maps import create_map, get_or_create_vocabulary
-from server.storage.migrate import upgrade_database
-from server.storage.records import NewEntry
+from monoloc.core.camera import KITTI_CAM0
+from monoloc.core.geometry import T_world_from_cam_planar
+from monoloc.server.settings import Settings
+from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+from monoloc.server.storage.maps import create_map, get_or_create_vocabulary
+from monoloc.server.storage.migrate import upgrade_database
+from monoloc.server.storage.records import NewEntry
 
 
 @pytest.fixture

@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 from sqlalchemy import update
 
-from client.errors import InvalidInputError
-from server.storage import arrays as arr
-from server.storage.db import session_scope
-from server.storage.entries import add_entry, get_entry_data, iter_map_vectors
-from server.storage.models import Entry
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.storage import arrays as arr
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.entries import add_entry, get_entry_data, iter_map_vectors
+from monoloc.server.storage.models import Entry
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,7 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from server.storage.migrate import current_revision
+from monoloc.server.storage.migrate import current_revision
 
 REPO = Path(__file__).resolve().parents[3]
 

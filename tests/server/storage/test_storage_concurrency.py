@@ -3,12 +3,12 @@ import threading
 import numpy as np
 import pytest
 
-from client.camera import KITTI_CAM0
-from server.settings import Settings
-from server.storage.db import create_engine_for, make_session_factory, session_scope
-from server.storage.entries import add_entry, count_entries, list_entries
-from server.storage.maps import create_map, get_map, get_or_create_vocabulary
-from server.storage.migrate import upgrade_database
+from monoloc.core.camera import KITTI_CAM0
+from monoloc.server.settings import Settings
+from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+from monoloc.server.storage.entries import add_entry, count_entries, list_entries
+from monoloc.server.storage.maps import create_map, get_map, get_or_create_vocabulary
+from monoloc.server.storage.migrate import upgrade_database
 
 
 def _run_threads(targets):

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 from sqlalchemy import func, select
 
-from client.camera import KITTI_CAM0
-from client.errors import ConflictError, InvalidInputError, NotFoundError
-from server.storage.db import session_scope
-from server.storage.entries import (
+from monoloc.core.camera import KITTI_CAM0
+from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.entries import (
     add_entry,
     count_entries,
     delete_entry,
@@ -17,8 +17,8 @@ from server.storage.entries import (
     tag_counts,
     update_entry_vlad,
 )
-from server.storage.jobs import create_job, get_job
-from server.storage.maps import (
+from monoloc.server.storage.jobs import create_job, get_job
+from monoloc.server.storage.maps import (
     create_map,
     delete_map,
     get_map,
@@ -27,9 +27,9 @@ from server.storage.maps import (
     set_calibration,
     set_map_vocabulary,
 )
-from server.storage.models import Entry, EntryTag, Run
-from server.storage.records import Area
-from server.storage.runs import create_run
+from monoloc.server.storage.models import Entry, EntryTag, Run
+from monoloc.server.storage.records import Area
+from monoloc.server.storage.runs import create_run
 
 
 def test_add_entry_is_idempotent_by_source_hash_and_bumps_version(factory, map_id, make_entry):

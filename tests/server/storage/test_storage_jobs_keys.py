@@ -1,11 +1,22 @@
 import pytest
 
-from client.errors import ConflictError, InvalidInputError
-from server.storage.db import session_scope
-from server.storage.jobs import create_job, get_job, list_jobs, mark_interrupted_jobs, update_job
-from server.storage.keys import create_api_key, list_api_keys, revoke_api_key, verify_api_key
-from server.storage.models import ApiKey
-from server.storage.runs import create_run, get_run, update_run
+from monoloc.core.errors import ConflictError, InvalidInputError
+from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.jobs import (
+    create_job,
+    get_job,
+    list_jobs,
+    mark_interrupted_jobs,
+    update_job,
+)
+from monoloc.server.storage.keys import (
+    create_api_key,
+    list_api_keys,
+    revoke_api_key,
+    verify_api_key,
+)
+from monoloc.server.storage.models import ApiKey
+from monoloc.server.storage.runs import create_run, get_run, update_run
 
 
 def test_job_lifecycle_and_forbidden_transitions(factory, map_id):

@@ -1,5 +1,4 @@
 import sqlite3
-import tomllib
 from pathlib import Path
 
 import pytest
@@ -7,15 +6,15 @@ from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import create_engine, inspect
 
-from server.settings import Settings, get_settings
-from server.storage.db import create_engine_for
-from server.storage.migrate import (
+from monoloc.server.settings import Settings, get_settings
+from monoloc.server.storage.db import create_engine_for
+from monoloc.server.storage.migrate import (
     current_revision,
     head_revision,
     migrations_dir,
     upgrade_database,
 )
-from server.storage.models import Base
+from monoloc.server.storage.models import Base
 
 REPO = Path(__file__).resolve().parents[3]
 TABLES = {"vocabularies", "maps", "runs", "entries", "entry_tags", "jobs", "api_keys"}
@@ -79,11 +78,6 @@ def test_settings_from_environment_not_cached(tmp_path, monkeypatch):
         get_settings()
 
 
-def test_migrations_are_shipped_as_packages():
+def test_migrations_are_found_in_the_source_tree():
+    # The wheel ships them as monoloc.migrations (tests/test_packaging.py).
     assert migrations_dir() == REPO / "migrations"
-    from setuptools import find_packages
-
-    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    found = find_packages(where=str(REPO), include=config["packages"]["find"]["include"])
-    assert {"migrations", "migrations.versions", "server.storage"} <= set(found)
-    assert "script.py.mako" in config["package-data"]["migrations"]

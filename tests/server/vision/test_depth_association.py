@@ -1,7 +1,7 @@
 import numpy as np
 
-from client.camera import KITTI_CAM0
-from server.vision.depth import (
+from monoloc.core.camera import KITTI_CAM0
+from monoloc.server.vision.depth import (
     DepthAssociationConfig,
     points_from_depth_image,
     points_from_lidar,

@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 from skimage import data
 
-from client.errors import InvalidInputError
-from server.vision.binary_code import CODE_BYTES, hamming_distances, vlad_binary_code
-from server.vision.features import OrbConfig, extract_features
-from server.vision.vlad import compute_vlad_batch
-from server.vision.vocabulary import load_default_vocabulary
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.vision.binary_code import CODE_BYTES, hamming_distances, vlad_binary_code
+from monoloc.server.vision.features import OrbConfig, extract_features
+from monoloc.server.vision.vlad import compute_vlad_batch
+from monoloc.server.vision.vocabulary import load_default_vocabulary
 
 PHOTOS = (
     "astronaut",

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from skimage import data
 
-from client.errors import InvalidInputError
-from server.vision.features import OrbConfig, extract_features
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.vision.features import OrbConfig, extract_features
 
 
 def test_real_photo_gives_1000_features_with_documented_shapes():

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from client.errors import InvalidInputError
-from client.geometry import T_world_from_cam_planar
-from server.vision.hypothesis import compose_hypothesis, planar_hypothesis
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import T_world_from_cam_planar
+from monoloc.server.vision.hypothesis import compose_hypothesis, planar_hypothesis
 
 
 def test_query_two_metres_ahead_and_turned_right():

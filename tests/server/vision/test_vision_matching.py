@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from skimage import data
 
-from client.errors import InvalidInputError
-from server.vision.features import extract_features
-from server.vision.matching import (
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.vision.features import extract_features
+from monoloc.server.vision.matching import (
     MatchConfig,
     match_against_references,
     match_descriptors,

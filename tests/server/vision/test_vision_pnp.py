@@ -2,10 +2,10 @@ import cv2
 import numpy as np
 import pytest
 
-from client.camera import KITTI_CAM0 as CAM
-from client.errors import InvalidInputError
-from client.geometry import invert_rigid, rotation_angle_rad
-from server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.core.camera import KITTI_CAM0 as CAM
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import invert_rigid, rotation_angle_rad
+from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
 
 
 def _rotation(axis, angle_rad):
@@ -160,7 +160,7 @@ def test_degenerate_and_malformed_inputs():
 
 
 def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
-    from server.vision._pnp_kernel import refine_lm, reprojection_errors
+    from monoloc.server.vision._pnp_kernel import refine_lm, reprojection_errors
 
     rng = np.random.default_rng(7)
     pixels, points, T_ref_from_query, outliers = _scene(rng, n=400, outlier_fraction=0.0)

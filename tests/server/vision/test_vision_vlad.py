@@ -3,16 +3,16 @@ import numpy as np
 import pytest
 from skimage import data
 
-from client.errors import InvalidInputError
-from server.vision.features import extract_features
-from server.vision.vlad import (
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.vision.features import extract_features
+from monoloc.server.vision.vlad import (
     VLAD_DIM,
     assign_words,
     compute_vlad,
     compute_vlad_batch,
     vlad_distance,
 )
-from server.vision.vocabulary import Vocabulary, load_default_vocabulary
+from monoloc.server.vision.vocabulary import Vocabulary, load_default_vocabulary
 
 
 def _descriptors(name):

@@ -1,9 +1,9 @@
 import numpy as np
 from typer.testing import CliRunner
 
-import server.vision.default_vocab as default_vocab
-from server.cli import vocab_app
-from server.vision.vocabulary import VocabularyConfig, load_vocabulary, train_vocabulary
+import monoloc.server.vision.default_vocab as default_vocab
+from monoloc.server.cli import vocab_app
+from monoloc.server.vision.vocabulary import VocabularyConfig, load_vocabulary, train_vocabulary
 
 
 def test_vocab_train_writes_a_loadable_vocabulary(tmp_path, monkeypatch):

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from skimage import data
 
-from client.errors import InvalidInputError
-from server.vision.features import extract_features
-from server.vision.vocabulary import (
+from monoloc.core.errors import InvalidInputError
+from monoloc.server.vision.features import extract_features
+from monoloc.server.vision.vocabulary import (
     Vocabulary,
     VocabularyConfig,
     default_vocabulary_path,
@@ -107,7 +107,7 @@ def test_vocabulary_checks_its_own_version_and_inputs():
 
 @pytest.mark.slow
 def test_retraining_reproduces_the_shipped_default():
-    from server.vision.default_vocab import train_default_vocabulary
+    from monoloc.server.vision.default_vocab import train_default_vocabulary
 
     retrained = train_default_vocabulary()
     shipped = load_vocabulary(default_vocabulary_path())

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.errors import InvalidInputError
-from client.geometry import wrap_angle
-from client.measurement import MeasurementModel
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import wrap_angle
+from monoloc.core.measurement import MeasurementModel
 
 
 def pose_errors(truth_world: np.ndarray, hypotheses_world: np.ndarray) -> np.ndarray:

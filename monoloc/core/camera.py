@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError
 
 # KITTI's world is its first camera frame (x right, y down, z forward). The z-up world
 # has x forward (KITTI z), y left (-KITTI x), z up (-KITTI y). This is the one place

@@ -1,0 +1,104 @@
+"""A bare ``pip install monoloc`` is the vehicle library: built as a wheel, installed in a
+fresh virtual environment without extras, it drives a run against a live server of the
+full install, and names the extra a server command needs instead of a traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+from e2e_helpers import QUERY_SEQ
+
+REPO = Path(__file__).resolve().parents[2]
+HEAVY = ("cv2", "faiss", "fastapi", "sqlalchemy", "numba", "skimage", "matplotlib")
+
+
+def _run(args: list[str], timeout: float = 600, **kwargs) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        args, capture_output=True, text=True, timeout=timeout, check=False, **kwargs
+    )
+
+
+@pytest.fixture(scope="module")
+def bare_venv(tmp_path_factory) -> Path:
+    """A fresh venv holding the monoloc wheel and only its required dependencies."""
+    root = tmp_path_factory.mktemp("bare")
+    built = _run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(root / "dist"),
+            str(REPO),
+        ]
+    )
+    shutil.rmtree(REPO / "build", ignore_errors=True)
+    assert built.returncode == 0, built.stderr[-2000:]
+    (wheel,) = (root / "dist").glob("monoloc-*.whl")
+    venv.create(root / "venv", with_pip=True)
+    python = root / "venv" / "bin" / "python"
+    installed = _run([str(python), "-m", "pip", "install", "-q", str(wheel)])
+    assert installed.returncode == 0, installed.stderr[-2000:]
+    return root / "venv"
+
+
+def test_the_bare_install_holds_no_heavy_dependency(bare_venv):
+    probe = (
+        "import importlib.util, json; "
+        f"print(json.dumps([m for m in {HEAVY!r} if importlib.util.find_spec(m)]))"
+    )
+    done = _run([str(bare_venv / "bin" / "python"), "-c", probe])
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == []
+
+
+def test_a_server_command_names_the_extra_it_needs(bare_venv, tmp_path):
+    done = _run([str(bare_venv / "bin" / "monoloc"), "serve"], cwd=tmp_path)
+    assert done.returncode == 1
+    assert "Traceback" not in done.stderr
+    assert "pip install 'monoloc[server]'" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_the_bare_install_drives_a_run_against_a_full_server(bare_venv, live_map, tmp_path):
+    out = tmp_path / "traj" / "query"
+    env = dict(os.environ, COLUMNS="160", MONOLOC_API_KEY=live_map.keys.localize)
+    done = _run(
+        [
+            str(bare_venv / "bin" / "monoloc"),
+            "drive",
+            str(live_map.dataset),
+            "--sequence",
+            QUERY_SEQ,
+            "--server",
+            live_map.url,
+            "--map",
+            live_map.map_name,
+            "--frames",
+            "10:30",
+            "--particles",
+            "500",
+            "--out",
+            str(out),
+        ],
+        cwd=tmp_path,
+        env=env,
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    tum = out.with_name("query.tum.txt")
+    rows = [line.split() for line in tum.read_text().splitlines() if line.strip()]
+    assert len(rows) >= 16 and all(len(r) == 8 for r in rows)
+    rmse = float(re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout).group(1))
+    assert rmse < 0.5
