@@ -21,6 +21,7 @@ import numpy as np
 
 from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
 from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.prior import RetrievalPrior
 
 
 class ServerError(MonolocError):
@@ -29,27 +30,6 @@ class ServerError(MonolocError):
     def __init__(self, message: str, status_code: int | None = None) -> None:
         super().__init__(message)
         self.status_code = status_code
-
-
-@dataclass(frozen=True)
-class Prior:
-    """Retrieval prior sent with a frame: only map entries inside compete."""
-
-    x_m: float
-    y_m: float
-    radius_m: float
-    yaw_rad: float | None = None
-    yaw_tolerance_rad: float | None = None
-
-    def to_fields(self) -> dict[str, float]:
-        fields = {"prior_x_m": self.x_m, "prior_y_m": self.y_m, "prior_radius_m": self.radius_m}
-        if self.yaw_rad is not None and self.yaw_tolerance_rad is not None:
-            fields["prior_yaw_rad"] = self.yaw_rad
-            fields["prior_yaw_tolerance_rad"] = self.yaw_tolerance_rad
-        return fields
-
-    def to_json(self) -> dict[str, float]:
-        return {key.removeprefix("prior_"): value for key, value in self.to_fields().items()}
 
 
 @dataclass(frozen=True)
@@ -203,7 +183,7 @@ class MonolocClient:
         self,
         map_id: int,
         image_bytes: bytes,
-        prior: Prior | None = None,
+        prior: RetrievalPrior | None = None,
         k: int | None = None,
         filename: str = "frame.png",
         seed: int | None = None,
@@ -290,7 +270,7 @@ class FrameStream:
         seq: int,
         t_s: float,
         image_bytes: bytes,
-        prior: Prior | None = None,
+        prior: RetrievalPrior | None = None,
         k: int | None = None,
         seed: int | None = None,
     ) -> None:

@@ -20,12 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, Prior, ServerError
+from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, ServerError
 from monoloc.client.particle_filter import FilterConfig, ParticleFilter
 from monoloc.client.replay import ReplayRun
 from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics, write_trajectory_files
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.prior import RetrievalPrior
 
 
 @dataclass(frozen=True)
@@ -73,14 +74,14 @@ class DriveResult:
         return len(self.estimates_world) / self.wall_s if self.wall_s > 0 else math.inf
 
 
-def prior_from_filter(pf: ParticleFilter, config: PriorConfig) -> Prior | None:
+def prior_from_filter(pf: ParticleFilter, config: PriorConfig) -> RetrievalPrior | None:
     """The retrieval prior for the next frame, or None for a global search."""
     if not pf.initialised or pf.lost:
         return None
     est = pf.estimate()
     radius = config.sigma_multiplier * est.position_std_m + config.margin_m
     yaw_std = math.sqrt(max(est.covariance[2, 2], 0.0))
-    return Prior(
+    return RetrievalPrior(
         x_m=float(est.pose_world[0]),
         y_m=float(est.pose_world[1]),
         radius_m=float(np.clip(radius, config.min_radius_m, config.max_radius_m)),
@@ -176,7 +177,7 @@ def drive(
         if progress:
             progress(i + 1, n)
 
-    def prior_for(i: int) -> Prior | None:
+    def prior_for(i: int) -> RetrievalPrior | None:
         """The prior of frame i: the filter's estimate moved to frame i's time."""
         if not config.use_prior:
             return None
@@ -223,7 +224,7 @@ def drive(
 
 def _predicted_prior(
     pf: ParticleFilter, run: ReplayRun, i: int, config: PriorConfig, last: int | None = None
-) -> Prior | None:
+) -> RetrievalPrior | None:
     """The filter's prior after frame ``last`` (default i - 1), dead-reckoned with the
     measured signals to frame i's time (the filter itself is not touched)."""
     prior = prior_from_filter(pf, config)
@@ -238,7 +239,7 @@ def _predicted_prior(
         x += speed * math.cos(yaw) * dt
         y += speed * math.sin(yaw) * dt
         yaw += yaw_rate * dt
-    return Prior(
+    return RetrievalPrior(
         x_m=x,
         y_m=y,
         radius_m=prior.radius_m,
@@ -252,7 +253,7 @@ def _drive_realtime(
     run: ReplayRun,
     sent_at: np.ndarray,
     start: float,
-    prior_for: Callable[[int], Prior | None],
+    prior_for: Callable[[int], RetrievalPrior | None],
     handle: Callable[[int, dict], None],
     k: int | None,
 ) -> None:

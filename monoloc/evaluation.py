@@ -25,7 +25,7 @@ from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics
 from monoloc.core.geometry import circular_mean, planar_from_T_world_from_cam
 from monoloc.core.measurement import Hypotheses, MeasurementModel
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
-from monoloc.server.index.retrieval import RetrievalIndex, RetrievalPrior
+from monoloc.server.index.retrieval import RetrievalIndex
 from monoloc.server.localize import (
     LocalizationResult,
     LocalizeConfig,
@@ -186,13 +186,6 @@ def evaluate_run(
             if prior is None and "global" in results:
                 results["full"] = results["global"]
             else:
-                rp = (
-                    None
-                    if prior is None
-                    else RetrievalPrior(
-                        prior.x_m, prior.y_m, prior.radius_m, prior.yaw_rad, prior.yaw_tolerance_rad
-                    )
-                )
                 results["full"] = localize_frame(
                     image,
                     seq.intrinsics,
@@ -201,7 +194,7 @@ def evaluate_run(
                     memory.lookup,
                     config.localize,
                     rng,
-                    rp,
+                    prior,
                 )
         main = results.get("full", results.get("global"))
         timings.append(main.timings_ms)

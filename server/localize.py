@@ -24,7 +24,8 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.geometry import planar_from_T_world_from_cam
-from monoloc.server.index.retrieval import RetrievalIndex, RetrievalPrior, SearchResult
+from monoloc.core.prior import RetrievalPrior
+from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.features import OrbConfig, extract_features
 from monoloc.server.vision.hypothesis import compose_hypothesis

@@ -25,8 +25,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import NotFoundError
 from monoloc.core.measurement import MeasurementModel
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.persist import IndexFileError, load_index, save_index
-from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
+from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 from monoloc.server.localize import (
     LocalizationResult,
     LocalizeConfig,

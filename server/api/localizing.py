@@ -20,11 +20,11 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.api.convert import localize_response
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
 from monoloc.server.api.schemas_localize import LocalizeResponse
-from monoloc.server.index.retrieval import RetrievalPrior
 from monoloc.server.localize import LocalizeConfig
 
 MAX_K = 100

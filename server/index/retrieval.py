@@ -15,12 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.faiss_kinds import configure, new_flat, new_hnsw, new_ivf
 from monoloc.server.index.rwlock import ReadWriteLock
 from monoloc.server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
-from monoloc.server.index.types import IndexConfig, RetrievalPrior, SearchResult, empty_result
+from monoloc.server.index.types import IndexConfig, SearchResult, empty_result
 
-__all__ = ["IndexConfig", "RetrievalIndex", "RetrievalPrior", "SearchResult"]
+__all__ = ["IndexConfig", "RetrievalIndex", "SearchResult"]
 
 VLAD_DIM = 2048
 CODE_BYTES = VLAD_DIM // 8

@@ -1,43 +1,13 @@
-"""Settings, prior and result types of the retrieval index (monoloc.server.index.retrieval)."""
+"""Settings and result types of the retrieval index (monoloc.server.index.retrieval); its
+prior is ``monoloc.core.prior.RetrievalPrior``, shared with the vehicle."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.core.geometry import wrap_angle
-
-
-@dataclass(frozen=True)
-class RetrievalPrior:
-    """Only entries within ``radius_m`` of (x_m, y_m), and within ``yaw_tolerance_rad`` of
-    ``yaw_rad`` when both are given, compete."""
-
-    x_m: float
-    y_m: float
-    radius_m: float
-    yaw_rad: float | None = None
-    yaw_tolerance_rad: float | None = None
-
-    def __post_init__(self) -> None:
-        values = [self.x_m, self.y_m, self.radius_m]
-        if self.yaw_rad is not None:
-            values.append(self.yaw_rad)
-        if self.yaw_tolerance_rad is not None:
-            values.append(self.yaw_tolerance_rad)
-        if not all(math.isfinite(v) for v in values) or self.radius_m <= 0:
-            raise InvalidInputError(f"invalid retrieval prior {self}")
-
-    def mask(self, poses_world: np.ndarray) -> np.ndarray:
-        """Boolean (N,) of entries (planar poses (N, 3)) inside the prior."""
-        d2 = (poses_world[:, 0] - self.x_m) ** 2 + (poses_world[:, 1] - self.y_m) ** 2
-        inside = d2 <= self.radius_m**2
-        if self.yaw_rad is not None and self.yaw_tolerance_rad is not None:
-            inside &= np.abs(wrap_angle(poses_world[:, 2] - self.yaw_rad)) <= self.yaw_tolerance_rad
-        return inside
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.camera import KITTI_CAM0, CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.ingest.common import InputFileError, png_size
 from monoloc.server.ingest.pipeline import IngestConfig, IngestSummary, ingest_run
 from monoloc.server.storage import entries as entries_repo
@@ -225,9 +226,8 @@ def list_maps(session_factory: sessionmaker[Session]) -> list[MapRecord]:
         return maps_repo.list_maps(session)
 
 
-def parse_prior(text: str | None):
+def parse_prior(text: str | None) -> RetrievalPrior | None:
     """``x,y,r`` or ``x,y,r,yaw_deg,tol_deg`` (metres, degrees) -> RetrievalPrior."""
-    from monoloc.server.index.retrieval import RetrievalPrior
     from monoloc.server.ingest.single import parse_numbers
 
     if text is None:

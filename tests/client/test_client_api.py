@@ -14,8 +14,9 @@ import httpx
 import numpy as np
 import pytest
 
-from monoloc.client.api import LocalizeAnswer, MonolocClient, Prior, ServerError, encode_frame
+from monoloc.client.api import LocalizeAnswer, MonolocClient, ServerError, encode_frame
 from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.core.prior import RetrievalPrior
 
 OK_ANSWER = {
     "map_id": 1,
@@ -148,7 +149,7 @@ def test_settings_are_checked():
 def test_localize_sends_prior_k_and_seed_as_form_fields():
     script = Script([(200, OK_ANSWER)])
     with script.client() as client:
-        client.localize(5, b"img", prior=Prior(1.5, -2.0, 8.0, 0.3, 0.4), k=4, seed=11)
+        client.localize(5, b"img", prior=RetrievalPrior(1.5, -2.0, 8.0, 0.3, 0.4), k=4, seed=11)
     request = script.requests[0]
     assert request.url.path == "/v1/maps/5/localize"
     body = request.content.decode("latin-1")
@@ -177,7 +178,7 @@ def test_answers_parse_into_hypotheses_and_malformed_ones_are_refused():
 
 
 def test_stream_messages_follow_the_wire_format():
-    prior = Prior(1.0, 2.0, 10.0)
+    prior = RetrievalPrior(1.0, 2.0, 10.0)
     message = encode_frame({"seq": 3, "t": 0.3, "prior": prior.to_json()}, b"IMAGE")
     (n,) = struct.unpack(">I", message[:4])
     header = json.loads(message[4 : 4 + n])

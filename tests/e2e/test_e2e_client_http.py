@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 from e2e_helpers import QUERY_SEQ
 
-from monoloc.client.api import MonolocClient, Prior, ServerError
+from monoloc.client.api import MonolocClient, ServerError
 from monoloc.client.replay import read_run
 from monoloc.core.errors import NotFoundError
 from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.prior import RetrievalPrior
 
 FRAME = 12
 
@@ -51,7 +52,7 @@ def test_localize_over_http_gives_hypotheses_near_the_truth(client, live_map, qu
 
 def test_prior_and_k_reach_the_server(client, live_map, query):
     image, truth = query
-    near = Prior(float(truth[0]), float(truth[1]), 6.0, float(truth[2]), 0.3)
+    near = RetrievalPrior(float(truth[0]), float(truth[1]), 6.0, float(truth[2]), 0.3)
     answer = client.localize(live_map.map_id, image, prior=near, k=3)
     wider = client.localize(live_map.map_id, image, prior=near, k=10)
     # The disc holds more than three entries, so k=3 must have cut the list to three.
@@ -62,7 +63,7 @@ def test_prior_and_k_reach_the_server(client, live_map, query):
     ]
     entries = answer.hypotheses.entry_pose_world
     assert np.all(np.hypot(entries[:, 0] - truth[0], entries[:, 1] - truth[1]) <= 6.0)
-    far = Prior(float(truth[0]) + 500.0, float(truth[1]), 5.0)
+    far = RetrievalPrior(float(truth[0]) + 500.0, float(truth[1]), 5.0)
     nothing = client.localize(live_map.map_id, image, prior=far)
     assert nothing.raw["retrieved"] == [] and len(nothing.hypotheses) == 0
     assert nothing.hypotheses.pose_world.shape == (0, 3)

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from api_helpers import frame_png, ground_truth, live_server, make_settings
 
-from monoloc.client.api import FrameStream, Prior, ServerError
+from monoloc.client.api import FrameStream, ServerError
 from monoloc.core.geometry import planar_from_T_world_from_cam
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.api.app import create_app
 
 
@@ -34,7 +35,7 @@ def test_round_trip_in_order_with_errors_in_place(sim_dataset, map_copy):
         stream.send(1, 0.1, b"GIF89a not an image")
         for seq, frame in enumerate(frames[1:], start=2):
             truth = planar_from_T_world_from_cam(ground_truth(sim_dataset, "01", frame))
-            prior = Prior(float(truth[0]), float(truth[1]), 20.0)
+            prior = RetrievalPrior(float(truth[0]), float(truth[1]), 20.0)
             stream.send(seq, seq / 10, frame_png(sim_dataset, "01", frame), prior=prior, k=5)
         answers = [stream.receive() for _ in range(6)]
     assert [a["seq"] for a in answers] == [0, None, 1, 2, 3, 4]

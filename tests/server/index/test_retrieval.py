@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.persist import IndexFileError, load_index, save_index
-from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
+from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 
 
 def _places(rng, n_places, views_per_place, noise=0.6):

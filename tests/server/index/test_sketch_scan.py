@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
 
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index._scan_kernel import BLOCK, scan, select_nearest
 from monoloc.server.index.persist import load_index, save_index
-from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex, RetrievalPrior
+from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 from monoloc.server.index.sketch import SketchTable, sketch_projection, vlad_sketch
 from monoloc.server.vision.binary_code import hamming_distances, vlad_binary_code
 
