@@ -240,8 +240,8 @@ class FrameStream:
 
     The connection is opened as the context manager websockets documents (entered on an
     ``ExitStack`` that :meth:`close` unwinds), so it works the same with websockets 12
-    through 17+. No permessage-deflate: frames are PNG/JPEG already, and deflating ~300 kB
-    per frame cost ~10 ms of round trip on localhost (bench/speed.py).
+    through 17+. No permessage-deflate: frames are PNG/JPEG already, and deflating them
+    again only adds round-trip time (bench/speed.py).
     """
 
     def __init__(self, base_url: str, api_key: str, map_id: int, timeout_s: float) -> None:

@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import typer
 
 PAPER = {"position_rmse_m": 0.313, "rate_hz": 10.0}
@@ -78,7 +77,3 @@ def run_demo(config: DemoConfig) -> dict:
     console.print(f"summary: {out / 'summary.json'}; plots: {', '.join(summary['plots'])}")
     console.print(f"total {summary['total_s']:.0f} s")
     return summary
-
-
-def finite_rows(a: np.ndarray) -> np.ndarray:
-    return np.all(np.isfinite(a), axis=1)

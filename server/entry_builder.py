@@ -8,7 +8,6 @@ keeps only the keypoints that received a 3D point.
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -53,11 +52,6 @@ class BuildConfig:
 
 class TooFewPointsError(InvalidInputError):
     """The image has too few keypoints with a 3D point to be a useful map entry."""
-
-
-def image_hash(encoded_bytes: bytes) -> str:
-    """sha256 hex of the source image file's bytes (the idempotency key of an entry)."""
-    return hashlib.sha256(encoded_bytes).hexdigest()
 
 
 def points_for(

@@ -171,7 +171,8 @@ class MapRegistry:
 
     def _warm(self, cache: EntryCache, entry_ids: np.ndarray, map_size: int) -> None:
         """Load entries into the cache when the whole map fits in it: a query then reads
-        no database rows (a cold lookup of ten entries costs ~2 ms of a ~25 ms query)."""
+        no database rows (a cold lookup of ten entries is a visible share of a query;
+        bench/localize.py reports the lookup stage)."""
         if map_size > self._cache_entries:
             return
         ids = np.asarray(entry_ids, dtype=np.int64).tolist()

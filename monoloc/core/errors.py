@@ -30,9 +30,3 @@ class ConflictError(MonolocError):
     """The request contradicts what is stored (duplicate name, wrong state)."""
 
     http_status = 409
-
-
-class PoseEstimationError(MonolocError):
-    """A pose could not be estimated (too few matches, degenerate geometry)."""
-
-    http_status = 422

@@ -26,7 +26,7 @@ def _block_scan(q0, q1, q2, q3, codes_t, start, stop, distances):
     both clamped at 255 (one byte per distance). The rows are sliced first so that the
     index is a loop counter from 0: LLVM then knows it is non-negative and uses plain
     vector loads. Indexing codes_t[w, start + j] directly keeps numba's negative-index
-    wrap-around, which LLVM vectorises with gathers (5x slower on Zen 4)."""
+    wrap-around, which LLVM vectorises with gathers (several times slower)."""
     w0, w1 = codes_t[0, start:stop], codes_t[1, start:stop]
     w2, w3 = codes_t[2, start:stop], codes_t[3, start:stop]
     out = distances[start:stop]

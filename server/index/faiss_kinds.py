@@ -8,8 +8,7 @@ import math
 import numpy as np
 
 from monoloc.server.index.types import IndexConfig
-
-VLAD_DIM = 2048
+from monoloc.server.vision.sizes import VLAD_DIM
 
 
 def new_flat():

@@ -20,11 +20,9 @@ from monoloc.server.index.faiss_kinds import configure, new_flat, new_hnsw, new_
 from monoloc.server.index.rwlock import ReadWriteLock
 from monoloc.server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
 from monoloc.server.index.types import IndexConfig, SearchResult, empty_result
+from monoloc.server.vision.sizes import CODE_BYTES, VLAD_DIM
 
 __all__ = ["IndexConfig", "RetrievalIndex", "SearchResult"]
-
-VLAD_DIM = 2048
-CODE_BYTES = VLAD_DIM // 8
 
 
 class RetrievalIndex:

@@ -9,9 +9,9 @@ Why a scan and not a graph or inverted index: on bench/retrieval.py's route mode
 entries, FAISS's binary HNSW found 19 % of the true top 10 (a query is equally far from
 everything but its few true neighbours, so greedy graph search has nothing to follow)
 and the binary IVF lost neighbours across its coarse cells already at 100k (71 %). An
-exhaustive scan of 32-byte sketches reads 32 MB per million entries: ~0.75 ms on one core,
-as long as a bare read of the same 32 MB, plus ~0.2 ms to select the 1000 nearest (the
-whole search at 1M entries: ~1.5 ms, see bench/REPORT.md). Its candidates are re-ranked
+exhaustive scan of 32-byte sketches reads 32 MB per million entries and runs as fast as a
+bare read of them; selecting the nearest candidates costs a fraction of that
+(bench/retrieval.py, figures in bench/REPORT.md). Its candidates are re-ranked
 by the full 2048-bit codes and finally by exact float distance.
 """
 
@@ -23,11 +23,12 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from monoloc.server.vision.sizes import VLAD_DIM
+
 SKETCH_BITS = 256
 SKETCH_BYTES = SKETCH_BITS // 8
 _SKETCH_WORDS = SKETCH_BITS // 64
 _PROJECTION_SEED = 20261122
-_VLAD_DIM = 2048
 
 
 @functools.cache
@@ -35,7 +36,7 @@ def sketch_projection() -> np.ndarray:
     """(2048, 256) float32 with orthonormal columns, from a fixed seed (never changes:
     stored sketches depend on it)."""
     rng = np.random.default_rng(_PROJECTION_SEED)
-    q, _ = np.linalg.qr(rng.normal(size=(_VLAD_DIM, SKETCH_BITS)))
+    q, _ = np.linalg.qr(rng.normal(size=(VLAD_DIM, SKETCH_BITS)))
     return np.ascontiguousarray(q, dtype=np.float32)
 
 
@@ -46,7 +47,7 @@ def vlad_sketch(vlads: np.ndarray, chunk: int = 65536) -> np.ndarray:
     """
     values = np.asarray(vlads, dtype=np.float32)
     single = values.ndim == 1
-    values = values.reshape(-1, _VLAD_DIM)
+    values = values.reshape(-1, VLAD_DIM)
     projection = sketch_projection()
     out = np.empty((len(values), SKETCH_BYTES), dtype=np.uint8)
     for start in range(0, len(values), chunk):
@@ -67,7 +68,7 @@ class SketchTable:
     def __init__(self) -> None:
         self._words_t = np.zeros((_SKETCH_WORDS, 0), dtype=np.uint64)
         # Per-thread scan output, reused: a fresh megabyte per query costs its page
-        # faults (~0.3 ms at 1M rows), more than the selection that reads it.
+        # faults, more than the selection that reads it.
         self._scratch = threading.local()
 
     def _distance_buffer(self, size: int) -> np.ndarray:

@@ -51,15 +51,6 @@ def parse_frame_range(text: str | None) -> slice | None:
     return slice(start, stop, step)
 
 
-def format_frame_range(frames: slice | None) -> str:
-    """Inverse of :func:`parse_frame_range` (for run names and messages)."""
-    if frames is None:
-        return ":"
-    parts = ["" if v is None else str(v) for v in (frames.start, frames.stop)]
-    text = ":".join(parts)
-    return text if frames.step in (None, 1) else f"{text}:{frames.step}"
-
-
 @dataclass(frozen=True)
 class LoadedFrame:
     """One frame read from disk: the image file's bytes (hashed for idempotency), the

@@ -228,23 +228,3 @@ def change_map_vocabulary_detailed(
     return VocabularyChange(
         map_id, vocabulary_id, exact + approximate, exact, approximate, stopped, version
     )
-
-
-def change_map_vocabulary(
-    session_factory: sessionmaker[Session],
-    map_id: int,
-    vocabulary_id: int,
-    *,
-    registry=None,
-    progress: Callable[[int, int], None] | None = None,
-    should_stop: Callable[[], bool] | None = None,
-) -> int:
-    """:func:`change_map_vocabulary_detailed`, returning the number of entries recomputed."""
-    return change_map_vocabulary_detailed(
-        session_factory,
-        map_id,
-        vocabulary_id,
-        registry=registry,
-        progress=progress,
-        should_stop=should_stop,
-    ).recomputed

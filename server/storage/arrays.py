@@ -14,11 +14,7 @@ import math
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
-
-VLAD_DIM = 2048  # 64 words x 32 descriptor bytes (METHOD.md section 4)
-CODE_BYTES = 256  # binary code of a VLAD: 2048 bits
-DESCRIPTOR_BYTES = 32  # ORB
-N_WORDS = 64  # vocabulary size k
+from monoloc.server.vision.sizes import CODE_BYTES, DESCRIPTOR_BYTES, N_WORDS, VLAD_DIM
 
 # (dtype, shape) of every array column; None marks the variable row count N.
 POSE = ("<f8", (4, 4))

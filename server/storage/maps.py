@@ -17,9 +17,10 @@ from sqlalchemy.orm import Session
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
 from monoloc.server.storage._sql import insert_or_ignore
-from monoloc.server.storage.arrays import CENTRES, N_WORDS, pack_array, unpack_array
+from monoloc.server.storage.arrays import CENTRES, pack_array, unpack_array
 from monoloc.server.storage.models import Entry, Map, Vocabulary, utc_now
 from monoloc.server.storage.records import MapRecord, VocabularyRecord
+from monoloc.server.vision.sizes import N_WORDS
 
 MAP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 # Calibration of the measurement model (METHOD.md section 7): key -> shape.
@@ -75,10 +76,6 @@ def get_vocabulary_by_hash(session: Session, version_hash: str) -> VocabularyRec
     if row is None:
         raise NotFoundError(f"vocabulary with hash {version_hash!r} does not exist")
     return _vocabulary_record(row)
-
-
-def list_vocabularies(session: Session) -> list[VocabularyRecord]:
-    return [_vocabulary_record(r) for r in session.scalars(select(Vocabulary).order_by("id"))]
 
 
 # --- maps -----------------------------------------------------------------------------

@@ -23,9 +23,6 @@ import numpy as np
 
 from monoloc.core.errors import InvalidInputError
 
-VLAD_DIM = 2048
-CODE_BYTES = VLAD_DIM // 8  # 256
-
 
 def vlad_binary_code(vlad: np.ndarray) -> np.ndarray:
     """Sign-bit code of one VLAD (D,) or a batch (N, D), D a multiple of 8 (2048 here).

@@ -14,14 +14,13 @@ query descriptor i and reference descriptor j are matched iff
 The rule never depends on how an implementation breaks ties, which is why (3) asks for
 uniqueness rather than "the argmin". Output rows are sorted by query index.
 
-Speed (measured on the 2-core dev box, one thread, 1000 x 1000 descriptors per pair):
-``cv2.BFMatcher.knnMatch`` takes ~8.5 ms per reference and the cross check doubles it.
-FAISS's ``hammings`` fills the full 1000 x 1000 distance matrix in ~1.3 ms (scalar
-popcount), and applying the rule to that matrix with numpy adds ~0.5 ms. The fast path
-(``monoloc.server.vision._hamming_kernel``, numba) computes the distances with a vectorised
-popcount and applies the rule in the same pass without storing the matrix: ~1 ms per
-reference. ``match_descriptors_bruteforce`` keeps the OpenCV baseline, and
-:func:`hamming_matrix` (FAISS) the exhaustive distance floor that bench/vision.py prints.
+Speed: OpenCV's ``BFMatcher.knnMatch`` plus its cross check is the slowest way; FAISS's
+``hammings`` fills the whole distance matrix with a scalar popcount and the rule is then
+applied to it with numpy. The fast path (``monoloc.server.vision._hamming_kernel``, numba)
+computes the distances with a vectorised popcount and applies the rule in the same pass
+without storing the matrix. ``match_descriptors_bruteforce`` keeps the OpenCV baseline and
+:func:`hamming_matrix` (FAISS) the exhaustive distance floor; bench/vision.py prints all
+three.
 """
 
 from __future__ import annotations

@@ -13,12 +13,12 @@ and ignores the global RNG, so the call alone would be deterministic but deaf to
 the correspondences are therefore also shuffled with ``rng`` before the call, which makes
 the samples depend on ``rng`` (and only on it) whatever the OpenCV version does.
 
-Pipeline: RANSAC with P3P hypotheses on 4-point samples (measured ~0.7 ms for 300
-matches at 30 % outliers, against ~2.3 ms with OpenCV's default EPnP 5-point kernel),
-then SQPnP on the RANSAC inliers, re-selection of the inliers with that pose, and, with
-``refine``, Levenberg-Marquardt on them and a last re-selection (see :func:`_refit` for
-why). The inlier scoring and LM are compiled (``monoloc.server.vision._pnp_kernel``; its LM
-reaches OpenCV's solvePnPRefineLM optimum at about a tenth of the time).
+Pipeline: RANSAC with P3P hypotheses on 4-point samples (several times faster than
+OpenCV's default EPnP 5-point kernel at equal accuracy; bench/vision.py), then SQPnP on
+the RANSAC inliers, re-selection of the inliers with that pose, and, with ``refine``,
+Levenberg-Marquardt on them and a last re-selection (see :func:`_refit` for why). The
+inlier scoring and LM are compiled (``monoloc.server.vision._pnp_kernel``; its LM reaches
+OpenCV's solvePnPRefineLM optimum, faster: bench/vision.py times both).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ class PnpConfig:
     refine: Levenberg-Marquardt on the inliers after RANSAC, at most
     ``refine_iterations`` accepted steps (started from the SQPnP refit, two steps matched
     twenty to 0.5 mm on the bench scene); minimal_solver: RANSAC's hypothesis solver, one of
-    ``SOLVERS`` ("p3p" measured fastest at equal accuracy).
+    ``SOLVERS`` ("p3p": the fastest at equal accuracy in bench/vision.py).
     """
 
     reprojection_error_px: float = 3.0
@@ -148,9 +148,9 @@ def _refit(
     Why not the pose solvePnPRansac returns: with P3P samples OpenCV refits the inliers
     with EPnP, which was measured to fail outright on near-planar scenes (50 deg off on a
     textured wall), and early termination leaves an inlier set chosen by a 4-point model.
-    SQPnP (globally optimal, planar-safe, ~0.1 ms) on those inliers, then re-selecting the
-    inliers with that better pose, fixes both; LM then minimises the reprojection error
-    (``_pnp_kernel.refine_lm``). Returns (R_query_from_ref (3, 3), t_query_from_ref (3,),
+    SQPnP (globally optimal, planar-safe, cheap next to RANSAC) on those inliers, then
+    re-selecting the inliers with that better pose, fixes both; LM then minimises the
+    reprojection error (``_pnp_kernel.refine_lm``). Returns (R_query_from_ref (3, 3), t_query_from_ref (3,),
     final inlier mask, errors_px (M,)); R is None if a solver gave nothing finite.
     """
     from monoloc.server.vision._pnp_kernel import refine_lm

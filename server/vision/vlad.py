@@ -17,16 +17,15 @@ from collections.abc import Sequence
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.vision.vocabulary import DESCRIPTOR_DIM, Vocabulary
-
-VLAD_DIM = 64 * DESCRIPTOR_DIM  # with the 64-word vocabulary of METHOD.md
+from monoloc.server.vision.sizes import DESCRIPTOR_BYTES
+from monoloc.server.vision.vocabulary import Vocabulary
 
 
 def _centres(vocabulary: Vocabulary | np.ndarray) -> np.ndarray:
     if isinstance(vocabulary, Vocabulary):
         return vocabulary.centres
     centres = np.asarray(vocabulary, dtype=np.float32)
-    if centres.ndim != 2 or centres.shape[1] != DESCRIPTOR_DIM or len(centres) == 0:
+    if centres.ndim != 2 or centres.shape[1] != DESCRIPTOR_BYTES or len(centres) == 0:
         raise InvalidInputError(f"vocabulary centres must be (K, 32), got {centres.shape}")
     return centres
 
@@ -48,9 +47,9 @@ _TIE_MARGIN = 16.0
 _CHUNK_ROWS = 1024
 
 # Why cv2.gemm and np.bincount rather than ``@``: these products are tiny (1000 x 32 x 64)
-# and numpy's OpenBLAS splits them over its thread pool; on a loaded 2-core machine that
-# hand-off was measured at up to 8 ms (p90) for a 0.1 ms product. OpenCV's gemm (0.2 ms)
-# and bincount (0.13 ms) run in the calling thread and stay flat under load.
+# and numpy's OpenBLAS splits them over its thread pool; on a loaded 2-core machine the
+# hand-off costs many times the product itself, with a long tail. OpenCV's gemm and
+# np.bincount run in the calling thread and stay flat under load (bench/vision.py).
 
 
 def assign_words(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -> np.ndarray:
@@ -84,10 +83,10 @@ def assign_words(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -
 def _residual_sums(descriptors: np.ndarray, words: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """(K, 32) float64 sums of (x_n - c_{a_n}) per word for (N, 32) uint8 descriptors."""
     n_words = len(centres)
-    cells = (words[:, None] * DESCRIPTOR_DIM + np.arange(DESCRIPTOR_DIM)).ravel()
+    cells = (words[:, None] * DESCRIPTOR_BYTES + np.arange(DESCRIPTOR_BYTES)).ravel()
     sums = np.bincount(
-        cells, weights=descriptors.ravel().astype(np.float64), minlength=n_words * DESCRIPTOR_DIM
-    ).reshape(n_words, DESCRIPTOR_DIM)
+        cells, weights=descriptors.ravel().astype(np.float64), minlength=n_words * DESCRIPTOR_BYTES
+    ).reshape(n_words, DESCRIPTOR_BYTES)
     counts = np.bincount(words, minlength=n_words).astype(np.float64)
     return sums - counts[:, None] * centres.astype(np.float64)
 
@@ -112,7 +111,7 @@ def compute_vlad_batch(
     centres = _centres(vocabulary)
     sets = [_check_descriptors(d, f"descriptor set {i}") for i, d in enumerate(descriptor_sets)]
     if not sets:
-        return np.zeros((0, len(centres) * DESCRIPTOR_DIM), dtype=np.float32)
+        return np.zeros((0, len(centres) * DESCRIPTOR_BYTES), dtype=np.float32)
     all_descriptors = np.concatenate(sets) if len(sets) > 1 else sets[0]
     words = assign_words(all_descriptors, centres)
     bounds = np.cumsum([0] + [len(d) for d in sets])

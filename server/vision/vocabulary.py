@@ -17,10 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.server.vision.sizes import DESCRIPTOR_BYTES, N_WORDS
 
 DEFAULT_VOCABULARY_FILE = "default_vocabulary.npz"
-N_WORDS = 64
-DESCRIPTOR_DIM = 32
 
 
 @dataclass(frozen=True)
@@ -64,7 +63,7 @@ class Vocabulary:
 
     def __post_init__(self) -> None:
         centres = np.array(self.centres, dtype=np.float32, order="C")
-        if centres.ndim != 2 or centres.shape[1] != DESCRIPTOR_DIM or centres.shape[0] < 1:
+        if centres.ndim != 2 or centres.shape[1] != DESCRIPTOR_BYTES or centres.shape[0] < 1:
             raise InvalidInputError(f"vocabulary centres must be (K, 32), got {centres.shape}")
         if not np.all(np.isfinite(centres)):
             raise InvalidInputError("vocabulary centres contain NaN or infinite values")
@@ -114,7 +113,7 @@ def train_vocabulary(
         descriptors = descriptors[rows]
     points = np.ascontiguousarray(descriptors, dtype=np.float32)
     kmeans = faiss.Kmeans(
-        DESCRIPTOR_DIM,
+        DESCRIPTOR_BYTES,
         config.n_words,
         niter=config.n_iter,
         seed=config.seed,
@@ -157,7 +156,7 @@ def load_vocabulary(path: str | Path, expected_n_words: int | None = N_WORDS) ->
         raise InvalidInputError(f"cannot read vocabulary file {path}: {exc}") from exc
     if (
         centres.ndim != 2
-        or centres.shape[1] != DESCRIPTOR_DIM
+        or centres.shape[1] != DESCRIPTOR_BYTES
         or (expected_n_words is not None and centres.shape[0] != expected_n_words)
     ):
         want = f"({expected_n_words}, 32)" if expected_n_words is not None else "(K, 32)"

@@ -4,8 +4,9 @@ import pytest
 from skimage import data
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.vision.binary_code import CODE_BYTES, hamming_distances, vlad_binary_code
+from monoloc.server.vision.binary_code import hamming_distances, vlad_binary_code
 from monoloc.server.vision.features import OrbConfig, extract_features
+from monoloc.server.vision.sizes import CODE_BYTES
 from monoloc.server.vision.vlad import compute_vlad_batch
 from monoloc.server.vision.vocabulary import load_default_vocabulary
 

@@ -5,8 +5,8 @@ from skimage import data
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.server.vision.features import extract_features
+from monoloc.server.vision.sizes import VLAD_DIM
 from monoloc.server.vision.vlad import (
-    VLAD_DIM,
     assign_words,
     compute_vlad,
     compute_vlad_batch,
