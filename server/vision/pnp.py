@@ -150,8 +150,9 @@ def _refit(
     textured wall), and early termination leaves an inlier set chosen by a 4-point model.
     SQPnP (globally optimal, planar-safe, cheap next to RANSAC) on those inliers, then
     re-selecting the inliers with that better pose, fixes both; LM then minimises the
-    reprojection error (``_pnp_kernel.refine_lm``). Returns (R_query_from_ref (3, 3), t_query_from_ref (3,),
-    final inlier mask, errors_px (M,)); R is None if a solver gave nothing finite.
+    reprojection error (``_pnp_kernel.refine_lm``). Returns (R_query_from_ref (3, 3),
+    t_query_from_ref (3,), final inlier mask, errors_px (M,)); R is None if a solver gave
+    nothing finite.
     """
     from monoloc.server.vision._pnp_kernel import refine_lm
 
