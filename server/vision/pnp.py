@@ -201,6 +201,32 @@ def estimate_relative_pose(
     ``min_inliers`` inliers, relative rotation above ``max_rotation_rad`` (default: the
     horizontal FOV). Raises InvalidInputError only for malformed arrays.
     """
+    pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
+    n_points = len(pixels)
+    if n_points < max(config.min_inliers, _MIN_POINTS_FOR_SOLVER):
+        return _rejected(n_points, f"too few correspondences ({n_points})")
+    K = intrinsics.K
+    try:
+        mask = _ransac_inliers(points, pixels, K, config, rng)
+        if mask is None:
+            return _rejected(n_points, "PnP RANSAC found no pose")
+        R_query_from_ref, t_query_from_ref, mask, errors_px = _refit(
+            points, pixels, mask, K, config
+        )
+    except cv2.error as exc:  # degenerate input (e.g. all points identical)
+        return _rejected(n_points, f"PnP failed: {str(exc).strip().splitlines()[-1]}")
+    if R_query_from_ref is None:
+        return _rejected(n_points, "PnP refit on the RANSAC inliers failed")
+    T_query_from_ref = np.eye(4)
+    T_query_from_ref[:3, :3] = R_query_from_ref
+    T_query_from_ref[:3, 3] = t_query_from_ref
+    return _judged(invert_rigid(T_query_from_ref), mask, errors_px, intrinsics, config)
+
+
+def _checked_correspondences(
+    points_query_px: np.ndarray, points_ref_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """float64 (M, 2) pixels and (M, 3) points; InvalidInputError if malformed."""
     pixels = np.asarray(points_query_px, dtype=np.float64)
     points = np.asarray(points_ref_cam, dtype=np.float64)
     if pixels.ndim != 2 or pixels.shape[1] != 2 or points.ndim != 2 or points.shape[1] != 3:
@@ -212,44 +238,49 @@ def estimate_relative_pose(
         raise InvalidInputError(f"{len(pixels)} query pixels but {len(points)} reference points")
     if not (np.all(np.isfinite(pixels)) and np.all(np.isfinite(points))):
         raise InvalidInputError("query pixels or reference points contain NaN or infinite values")
-    n_points = len(pixels)
-    if n_points < max(config.min_inliers, _MIN_POINTS_FOR_SOLVER):
-        return _rejected(n_points, f"too few correspondences ({n_points})")
+    return pixels, points
 
-    K = intrinsics.K
-    iterations = ransac_iterations(n_points, config)
+
+def _ransac_inliers(
+    points: np.ndarray,
+    pixels: np.ndarray,
+    K: np.ndarray,
+    config: PnpConfig,
+    rng: np.random.Generator,
+) -> np.ndarray | None:
+    """RANSAC's inlier mask (M,) bool, or None when it found no pose. The samples depend
+    on ``rng`` only (see the module docstring)."""
+    n_points = len(pixels)
     order = rng.permutation(n_points)
     cv2.setRNGSeed(int(rng.integers(2**31)))
-    try:
-        ok, _, _, inliers = cv2.solvePnPRansac(
-            points[order],
-            pixels[order],
-            K,
-            None,
-            iterationsCount=iterations,
-            reprojectionError=config.reprojection_error_px,
-            confidence=config.confidence,
-            flags=SOLVERS[config.minimal_solver],
-        )
-        if not ok or inliers is None or len(inliers) < _MIN_POINTS_FOR_SOLVER:
-            return _rejected(n_points, "PnP RANSAC found no pose")
-        mask = np.zeros(n_points, dtype=bool)
-        mask[order[inliers.ravel()]] = True
-        R_query_from_ref, t_query_from_ref, mask, errors_px = _refit(
-            points, pixels, mask, K, config
-        )
-    except cv2.error as exc:  # degenerate input (e.g. all points identical)
-        return _rejected(n_points, f"PnP failed: {str(exc).strip().splitlines()[-1]}")
-    if R_query_from_ref is None:
-        return _rejected(n_points, "PnP refit on the RANSAC inliers failed")
+    ok, _, _, inliers = cv2.solvePnPRansac(
+        points[order],
+        pixels[order],
+        K,
+        None,
+        iterationsCount=ransac_iterations(n_points, config),
+        reprojectionError=config.reprojection_error_px,
+        confidence=config.confidence,
+        flags=SOLVERS[config.minimal_solver],
+    )
+    if not ok or inliers is None or len(inliers) < _MIN_POINTS_FOR_SOLVER:
+        return None
+    mask = np.zeros(n_points, dtype=bool)
+    mask[order[inliers.ravel()]] = True
+    return mask
 
+
+def _judged(
+    T_ref_from_query: np.ndarray,
+    mask: np.ndarray,
+    errors_px: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+) -> RelativePose:
+    """Accept the pose, or reject it for too few inliers or too large a rotation."""
+    n_points = len(mask)
     n_inliers = int(mask.sum())
     mean_error = float(errors_px[mask].mean()) if n_inliers else float("nan")
-    T_query_from_ref = np.eye(4)
-    T_query_from_ref[:3, :3] = R_query_from_ref
-    T_query_from_ref[:3, 3] = t_query_from_ref
-    T_ref_from_query = invert_rigid(T_query_from_ref)
-
     if n_inliers < config.min_inliers:
         return _rejected(
             n_points,
