@@ -39,6 +39,9 @@ _COMMANDS = [
 
 
 def _register() -> None:
+    """Add every sub-command to ``app`` (once)."""
+    if app.registered_groups or app.registered_commands:
+        return
     for module_name, attr, name, _ in _GROUPS + _COMMANDS:
         module = importlib.import_module(module_name)
         obj = getattr(module, attr)
@@ -62,11 +65,25 @@ def _missing_extra_message(exc: ModuleNotFoundError, argv: list[str]) -> str | N
     )
 
 
+# typer ships its own copy of click (``typer._click``) or uses click itself, depending on
+# its version: take the exception class from typer's own BadParameter so both match.
+_CLICK_EXCEPTION = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+def _one_line(exc: Exception) -> str:
+    """``error: <command>: <message> (see <command> --help)`` in one line."""
+    message = " ".join(exc.format_message().split())
+    ctx = getattr(exc, "ctx", None)
+    if ctx is None:
+        return f"error: {message}"
+    return f"error: {ctx.command_path}: {message} (see {ctx.command_path} --help)"
+
+
 def main() -> None:
     """Entry point: run the CLI, turning a MonolocError into one line and exit code 1."""
     _register()
     try:
-        app(standalone_mode=False)
+        app(standalone_mode=False, prog_name="monoloc")
     except MonolocError as exc:
         typer.secho(f"error: {exc}", err=True, fg=typer.colors.RED)
         sys.exit(1)
@@ -81,13 +98,9 @@ def main() -> None:
         sys.exit(130)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
-    except Exception as exc:  # click usage errors carry their own exit code
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
-        raise
+    except _CLICK_EXCEPTION as exc:  # usage errors (exit 2) and other click errors
+        typer.secho(_one_line(exc), err=True, fg=typer.colors.RED)
+        sys.exit(exc.exit_code)
 
 
 if __name__ == "__main__":
