@@ -7,14 +7,16 @@
 * :func:`check_image` accepts only PNG and JPEG, by magic bytes (415), and reads the
   width and height from the PNG IHDR chunk or the JPEG SOF segment before anything is
   decoded: too many pixels -> 413, a broken header -> 422.
-* :func:`decode_gray` / :func:`decode_depth_png` decode (call them off the event loop).
+  An image narrower or lower than ``MIN_IMAGE_SIDE_PX`` is refused (422): ORB cannot place
+  a single keypoint inside its border.
+* :func:`decode_gray` / :func:`decode_depth_png` decode (call them off the event loop),
+  after :mod:`monoloc.server.encoded_image` has bounded the decoding work to the declared
+  size (a compression bomb is refused with 422 before OpenCV sees it).
 """
 
 from __future__ import annotations
 
 import json
-import struct
-from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -23,11 +25,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.server.api.errors import PayloadTooLargeError, UnsupportedMediaTypeError, error_body
+from monoloc.server.encoded_image import (
+    JPEG_SOI,
+    PNG_SIGNATURE,
+    ImageInfo,
+    bounded_for_decoding,
+    read_image_header,
+)
 
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-JPEG_MAGIC = b"\xff\xd8\xff"
-# JPEG start-of-frame markers carrying the image size (C4, C8 and CC are not frames).
-_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+# ORB's default border (edge threshold 31 px on each side) leaves no room for a keypoint in
+# a smaller image.
+MIN_IMAGE_SIDE_PX = 63
 
 
 class BodyTooLargeError(HTTPException):
@@ -95,56 +103,11 @@ class BodySizeLimitMiddleware:
             await self._refuse(send)
 
 
-@dataclass(frozen=True)
-class ImageInfo:
-    """What the header of an encoded image says: format, size, PNG bit depth/colour type."""
-
-    kind: Literal["png", "jpeg"]
-    width_px: int
-    height_px: int
-    bit_depth: int = 8
-    png_color_type: int | None = None
-
-
-def _png_info(data: bytes, what: str) -> ImageInfo:
-    # Signature (8), then the IHDR chunk: length (4), b"IHDR", width, height, depth, colour.
-    if len(data) < 33 or data[12:16] != b"IHDR":
-        raise InvalidInputError(f"{what}: PNG header is truncated or has no IHDR chunk")
-    width, height, depth, color = struct.unpack(">IIBB", data[16:26])
-    return ImageInfo("png", width, height, depth, color)
-
-
-def _jpeg_info(data: bytes, what: str) -> ImageInfo:
-    pos = 2
-    while pos + 4 <= len(data):
-        if data[pos] != 0xFF:
-            raise InvalidInputError(f"{what}: JPEG marker expected at byte {pos}")
-        marker = data[pos + 1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-            continue
-        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
-            pos += 2
-            continue
-        if marker in (0xD9, 0xDA):
-            break  # end of image / start of scan before any frame header
-        (length,) = struct.unpack(">H", data[pos + 2 : pos + 4])
-        if length < 2:
-            raise InvalidInputError(f"{what}: JPEG segment at byte {pos} has length {length}")
-        if marker in _SOF_MARKERS:
-            if pos + 9 > len(data):
-                break
-            depth, height, width = struct.unpack(">BHH", data[pos + 4 : pos + 9])
-            return ImageInfo("jpeg", width, height, depth)
-        pos += 2 + length
-    raise InvalidInputError(f"{what}: JPEG has no frame header (SOF) giving its size")
-
-
 def sniff_image(data: bytes, what: str) -> Literal["png", "jpeg"]:
     """'png' or 'jpeg' from the magic bytes; UnsupportedMediaTypeError otherwise."""
-    if data.startswith(PNG_MAGIC):
+    if data.startswith(PNG_SIGNATURE):
         return "png"
-    if data.startswith(JPEG_MAGIC):
+    if data.startswith(JPEG_SOI):
         return "jpeg"
     raise UnsupportedMediaTypeError(
         f"{what} is not a PNG or JPEG image (first bytes {data[:8]!r}); only PNG and JPEG "
@@ -154,10 +117,15 @@ def sniff_image(data: bytes, what: str) -> Literal["png", "jpeg"]:
 
 def check_image(data: bytes, what: str, max_pixels: int) -> ImageInfo:
     """Type (415) and size (413, 422) of an encoded image, from its header only."""
-    kind = sniff_image(data, what)
-    info = _png_info(data, what) if kind == "png" else _jpeg_info(data, what)
+    sniff_image(data, what)
+    info = read_image_header(data, what)
     if info.width_px <= 0 or info.height_px <= 0:
         raise InvalidInputError(f"{what}: header says {info.width_px}x{info.height_px} pixels")
+    if min(info.width_px, info.height_px) < MIN_IMAGE_SIDE_PX:
+        raise InvalidInputError(
+            f"{what} is {info.width_px}x{info.height_px} pixels; both sides must be at least "
+            f"{MIN_IMAGE_SIDE_PX} px"
+        )
     if info.width_px * info.height_px > max_pixels:
         raise PayloadTooLargeError(
             f"{what} is {info.width_px}x{info.height_px} = {info.width_px * info.height_px} "
@@ -171,6 +139,7 @@ def decode_gray(data: bytes, info: ImageInfo, what: str) -> np.ndarray:
     size its header announced."""
     import cv2
 
+    data = bounded_for_decoding(data, what)
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
     if image is None or image.shape != (info.height_px, info.width_px):
         raise InvalidInputError(f"{what}: the {info.kind.upper()} data cannot be decoded")
@@ -186,6 +155,7 @@ def decode_depth_png(data: bytes, info: ImageInfo, what: str) -> np.ndarray:
             f"{what} must be a 16-bit grayscale PNG (got {info.kind}, depth {info.bit_depth}, "
             f"PNG colour type {info.png_color_type})"
         )
+    data = bounded_for_decoding(data, what)
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None or image.dtype != np.uint16 or image.shape != (info.height_px, info.width_px):
         raise InvalidInputError(f"{what}: the PNG data cannot be decoded as 16-bit depth")

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.server.encoded_image import bounded_for_decoding
 
 _RANGE_RE = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*(?::\s*(-?\d*)\s*)?$")
 
@@ -73,12 +74,21 @@ def read_bytes(path: Path, what: str = "file") -> bytes:
     return data
 
 
+def _bounded(data: bytes, path: Path, what: str = "image") -> bytes:
+    """The bytes with their decoding work bounded to the declared size (encoded_image)."""
+    try:
+        return bounded_for_decoding(data, path.name)
+    except InvalidInputError as exc:
+        detail = str(exc).removeprefix(f"{path.name}: ")
+        raise InputFileError(path, f"unreadable {what} ({detail})") from exc
+
+
 def decode_gray(data: bytes, path: Path) -> np.ndarray:
     """Decode PNG/JPEG bytes to (H, W) uint8 grayscale (colour is converted with OpenCV's
     luma weights); InputFileError naming ``path`` if the bytes are not a readable image."""
     import cv2
 
-    buffer = np.frombuffer(data, dtype=np.uint8)
+    buffer = np.frombuffer(_bounded(data, path), dtype=np.uint8)
     image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
     if image is None or image.size == 0:
         raise InputFileError(path, "unreadable image (not a valid PNG/JPEG)")
@@ -96,7 +106,9 @@ def decode_depth(data: bytes, path: Path) -> np.ndarray:
     """Decode a 16-bit single-channel depth PNG to (H, W) uint16 (raw units)."""
     import cv2
 
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    image = cv2.imdecode(
+        np.frombuffer(_bounded(data, path, "depth image"), dtype=np.uint8), cv2.IMREAD_UNCHANGED
+    )
     if image is None or image.size == 0:
         raise InputFileError(path, "unreadable depth image (not a valid PNG)")
     if image.ndim != 2 or image.dtype != np.uint16:

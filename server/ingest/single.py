@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import check_rigid, planar_from_T_world_from_cam
+from monoloc.server.encoded_image import read_image_header
 from monoloc.server.entry_builder import BuildConfig, DepthSource, LidarSource, build_entry
 from monoloc.server.ingest.common import InputFileError, decode_depth, decode_gray, read_bytes
 from monoloc.server.storage import entries as entries_repo
@@ -49,18 +50,26 @@ def add_single_image(
     """
     if not image_bytes:
         raise InvalidInputError("the image is empty")
-    image = decode_gray(image_bytes, UPLOAD)
     T_world_from_cam = check_rigid(T_world_from_cam, "T_world_from_cam")
     with session_scope(session_factory) as session:
         record = maps_repo.get_map(session, map_id)
         vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
+    camera = intrinsics or record.camera
+    # The declared size is checked before decoding: a small file may declare a huge image.
+    declared = read_image_header(image_bytes, "image")
+    if (declared.width_px, declared.height_px) != (camera.width_px, camera.height_px):
+        raise InvalidInputError(
+            f"image is {declared.width_px}x{declared.height_px} pixels; the camera is "
+            f"{camera.width_px}x{camera.height_px}"
+        )
+    image = decode_gray(image_bytes, UPLOAD)
     vocabulary = Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
     entry = build_entry(
         image,
         hashlib.sha256(image_bytes).hexdigest(),
         T_world_from_cam,
         source,
-        intrinsics or record.camera,
+        camera,
         vocabulary,
         vocab.id,
         config,

@@ -115,7 +115,8 @@ def extract_features(image_gray: np.ndarray, config: OrbConfig = OrbConfig()) ->
     Raises InvalidInputError on a wrong dtype or shape.
     """
     gray = as_gray_uint8(image_gray)
-    if gray.size == 0:
+    if min(gray.shape) < 2 * config.edge_threshold + 1:
+        # No keypoint fits inside ORB's border (and OpenCV asserts on 1-pixel sides).
         return empty_features()
     if config.blur_ksize > 1:
         gray = cv2.GaussianBlur(gray, (config.blur_ksize, config.blur_ksize), 0)

@@ -41,9 +41,9 @@ def jpeg_bytes(width: int = 40, height: int = 30) -> bytes:
 
 def test_header_check_reads_size_without_decoding():
     assert check_image(png_header(640, 480), "x", 10**6).width_px == 640
-    info = check_image(jpeg_bytes(40, 30), "x", 10**6)
-    assert (info.kind, info.width_px, info.height_px) == ("jpeg", 40, 30)
-    huge = bytearray(jpeg_bytes(40, 30))
+    info = check_image(jpeg_bytes(80, 64), "x", 10**6)
+    assert (info.kind, info.width_px, info.height_px) == ("jpeg", 80, 64)
+    huge = bytearray(jpeg_bytes(80, 64))
     sof = huge.index(b"\xff\xc0")
     huge[sof + 5 : sof + 9] = struct.pack(">HH", 60000, 60000)
     with pytest.raises(PayloadTooLargeError, match="60000x60000"):
