@@ -1,9 +1,8 @@
-"""Texture generators: ``generate_texture(spec)`` makes the pixels of a TextureSpec.
+"""Facade textures of the city's buildings (kind ``facade``).
 
 Facades are built from real photographs (scikit-image samples) cropped, tiled and
 recoloured, with procedural windows, doors, shop signs with text, posters, grime and
-some plain walls; the ground gets asphalt with lane markings, paving slabs and kerbs.
-Every generator is deterministic in ``spec.seed``. Values are albedo in [0, 1] before
+some plain walls. Deterministic in ``spec.seed``; values are albedo in [0, 1] before
 conversion to uint8.
 """
 
@@ -11,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from monoloc.sim.scene import TextureLayers, TextureSpec
 from monoloc.sim.texture_tools import (
     PICTURE_PHOTOS,
     SHOP_WORDS,
@@ -22,18 +20,7 @@ from monoloc.sim.texture_tools import (
     smooth_noise,
     to_uint8,
 )
-from monoloc.sim.textures_street import GROUND_GENERATORS
-
-
-def generate_texture(spec: TextureSpec) -> TextureLayers:
-    """Pixels of ``spec`` (deterministic in ``spec.seed``)."""
-    from monoloc.core.errors import InvalidInputError
-
-    generator = GENERATORS.get(spec.kind) or GROUND_GENERATORS.get(spec.kind)
-    if generator is None:
-        raise InvalidInputError(f"unknown texture kind {spec.kind!r}")
-    rng = np.random.default_rng(spec.seed)
-    return generator(spec, rng)
+from monoloc.sim.textures import TextureLayers, TextureSpec
 
 
 def _wall_base(rng, w, h, ppm, plain: bool) -> np.ndarray:
@@ -288,6 +275,3 @@ def _door(img, rng, x, y, w, h, ppm):
             0.9 if tone < 0.4 else 0.1,
             rng,
         )
-
-
-GENERATORS = {"facade": facade}
