@@ -44,10 +44,13 @@ def main() -> None:
     _import_the_sim_package()
 
     from monoloc.sim.camera import Lighting, render
-    from monoloc.sim.city import build_city, parked_cars
-    from monoloc.sim.generate import GenerateConfig, plan_runs
+    from monoloc.sim.generate import GenerateConfig
     from monoloc.sim.lidar import firing_times_s, scan
-    from monoloc.sim.scene import TextureBank, concat_scenes
+    from monoloc.sim.scene import concat_scenes
+    from monoloc.sim.textures import TextureBank
+    from monoloc.sim.urban.city import build_city, parked_cars
+    from monoloc.sim.urban.runs import plan_runs
+    from monoloc.sim.urban.textures import URBAN_TEXTURES
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=40)
@@ -60,7 +63,7 @@ def main() -> None:
     plan = plan_runs(city, config)[0]
     scene = concat_scenes([city.static, parked_cars(city, 0)])
     build_s = time.perf_counter() - t0
-    bank = TextureBank()
+    bank = TextureBank(URBAN_TEXTURES)
     rig = config.rig
     T_v_cam, T_v_lidar = rig.T_vehicle_from_cam(), rig.T_vehicle_from_lidar()
     intrinsics = config.intrinsics()
@@ -151,14 +154,14 @@ def _indoor(
     import cv2
 
     from monoloc.sim.generate import GenerateConfig
-    from monoloc.sim.indoor import build_world
-    from monoloc.sim.indoor_generate import (
+    from monoloc.sim.indoor.generate import (
         indoor_config_for,
         render_rgbd,
         run_camera_config,
         run_scene,
     )
-    from monoloc.sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
+    from monoloc.sim.indoor.plan import T_world_from_cam_at, plan_indoor_runs
+    from monoloc.sim.indoor.world import build_world
 
     config = GenerateConfig(scenario="indoor", seed=seed, runs=("map", "train"))
     indoor = indoor_config_for(config)

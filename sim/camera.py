@@ -19,7 +19,8 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.render import Raster, RenderConfig, rasterize
-from monoloc.sim.scene import KIND_LAMP, Scene, TextureBank
+from monoloc.sim.scene import KIND_LAMP, Scene
+from monoloc.sim.textures import TextureBank
 
 LIGHTINGS = ("day", "dusk", "night")
 

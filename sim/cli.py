@@ -39,8 +39,9 @@ def generate(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
-    from monoloc.sim.generate import GenerateConfig, frames_per_second_note, generate_dataset
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
     from monoloc.sim.recording import RecordingErrors
+    from monoloc.sim.summary import frames_per_second_note
 
     config = GenerateConfig(
         scenario=scenario,

@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from monoloc.sim.scene import KIND_GLASS, Scene, TextureBank
+from monoloc.sim.scene import KIND_GLASS, Scene
+from monoloc.sim.textures import TextureBank
 
 
 def hdl64_elevations_deg() -> tuple[float, ...]:

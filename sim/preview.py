@@ -1,73 +1,28 @@
-"""A one-page look at a dataset: routes from above and a contact sheet of frames."""
+"""A one-page look at a dataset written by ``monoloc sim generate``: its dataset.json
+says which scenario wrote it, whose preview draws the page."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-import numpy as np
-
 from monoloc.core.errors import InvalidInputError, NotFoundError
-from monoloc.core.geometry import kitti_to_zup
+from monoloc.sim.indoor.preview import write_indoor_preview
+from monoloc.sim.urban.preview import write_urban_preview
 
 
 def write_preview(dataset: Path, out: Path, per_run: int = 4) -> Path:
     """Write ``out`` (PNG) for the dataset at ``dataset``; returns ``out``."""
-    import cv2
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from monoloc.sim.kitti_writer import read_poses
-
     dataset = Path(dataset)
     info_path = dataset / "dataset.json"
     if not info_path.exists():
         raise NotFoundError(f"{info_path} does not exist (not a sim dataset?)")
     try:
         info = json.loads(info_path.read_text())
-        sequences = info["sequences"]
-    except (ValueError, KeyError) as exc:
+    except ValueError as exc:
         raise InvalidInputError(f"{info_path}: not a valid dataset.json ({exc})") from exc
+    if not isinstance(info, dict) or "sequences" not in info:
+        raise InvalidInputError(f"{info_path}: not a valid dataset.json (no 'sequences')")
     if info.get("format") == "tum-rgbd":
-        from monoloc.sim.indoor_preview import write_indoor_preview
-
         return write_indoor_preview(dataset, info, out, per_run)
-    n = len(sequences)
-    fig = plt.figure(figsize=(4 + 3.2 * per_run, max(4.0, 1.1 * n + 1)), dpi=110)
-    grid = fig.add_gridspec(n, per_run + 2)
-    districts = sorted({seq.get("district", "main") for seq in sequences})
-    rows = np.array_split(np.arange(n), len(districts))
-    axes = {
-        d: fig.add_subplot(grid[r[0] : r[-1] + 1, :2]) for d, r in zip(districts, rows, strict=True)
-    }
-    for k, seq in enumerate(sequences):
-        poses = read_poses(dataset / "poses" / f"{seq['id']}.txt")
-        xy = kitti_to_zup(poses)[:, :2, 3]
-        ax_map = axes[seq.get("district", "main")]
-        ax_map.plot(
-            xy[:, 0],
-            xy[:, 1],
-            lw=1.2,
-            label=f"{seq['id']} {seq['run']} ({seq['lighting']['name']})",
-        )
-        ax_map.plot(xy[0, 0], xy[0, 1], "o", ms=3, color="k")
-        images = sorted((dataset / "sequences" / seq["id"] / "image_0").glob("*.png"))
-        picks = np.linspace(0, len(images) - 1, per_run).astype(int) if images else []
-        for j, idx in enumerate(picks):
-            ax = fig.add_subplot(grid[k, 2 + j])
-            ax.imshow(
-                cv2.imread(str(images[idx]), cv2.IMREAD_GRAYSCALE), cmap="gray", vmin=0, vmax=255
-            )
-            ax.set_axis_off()
-            ax.set_title(f"{seq['id']} {seq['run']} #{idx}", fontsize=7)
-    for district, ax_map in axes.items():
-        ax_map.set_aspect("equal", adjustable="datalim")
-        ax_map.set_title(f"{district} district: routes (z-up world, m)", fontsize=9)
-        ax_map.legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out)
-    plt.close(fig)
-    return out
+    return write_urban_preview(dataset, info, out, per_run)

@@ -18,7 +18,8 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.geometry import invert_rigid
-from monoloc.sim.scene import Scene, TextureBank
+from monoloc.sim.scene import Scene
+from monoloc.sim.textures import TextureBank
 
 
 @dataclass(frozen=True)

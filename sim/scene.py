@@ -8,20 +8,20 @@ text in a texture reads correctly. Texture pixel (x, y) (pixel centres at intege
 at ``s = (x + 0.5 - tex_offset_px[0]) / texels_per_m`` and likewise ``t`` with y. Several quads may
 share one texture with different offsets (a long wall cut into strips).
 
-Textures are :class:`TextureSpec` records: small, hashable and picklable; the pixels are
-made on demand by ``monoloc.sim.textures`` and cached in a :class:`TextureBank`, so a large city
-costs memory only for what a camera has recently seen, and output does not depend on the
-order in which textures are first used.
+Textures are ``monoloc.sim.textures.TextureSpec`` records: small, hashable and picklable;
+the pixels are made on demand and cached by a ``TextureBank`` (same module), so a large
+city costs memory only for what a camera has recently seen, and output does not depend
+on the order in which textures are first used.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.sim.textures import TextureSpec
 
 # Surface kinds: used by lighting (lamps glow at night) and by the LiDAR (reflectance).
 KIND_GROUND = 0
@@ -33,39 +33,6 @@ KIND_SIGN = 5
 KIND_FOLIAGE = 6
 KIND_LAMP = 7
 KIND_GLASS = 8
-
-
-@dataclass(frozen=True)
-class TextureSpec:
-    """How to make one texture: generator name in ``monoloc.sim.textures``, size, seed, params.
-
-    ``params`` is a tuple of (name, value) pairs so the spec stays hashable.
-    ``wrap``: the texture tiles beyond its edges (ground materials); otherwise its edge
-    pixels repeat.
-    """
-
-    kind: str
-    width_px: int
-    height_px: int
-    seed: int
-    params: tuple = ()
-    wrap: bool = False
-
-    def param(self, name: str, default=None):
-        for key, value in self.params:
-            if key == name:
-                return value
-        return default
-
-
-@dataclass(frozen=True)
-class TextureLayers:
-    """Generated pixels of one texture, each (H, W) uint8: albedo, and optional night
-    emission (lit windows, lamps) and alpha (255 opaque, 0 transparent)."""
-
-    albedo: np.ndarray
-    emission: np.ndarray | None = None
-    alpha: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -206,75 +173,3 @@ class SceneBuilder:
             light_positions=np.array([p for p, _ in lights]).reshape(-1, 3),
             light_intensities=np.array([i for _, i in lights], dtype=np.float64),
         )
-
-
-class TextureBank:
-    """Lazily generated texture pyramids with a memory bound (least recently used out).
-
-    ``get(spec, level, night)`` returns an (H, W, C) uint8 array whose channels are
-    albedo, then emission (only if ``night`` and the texture has one), then alpha (if it
-    has one), at pyramid level ``level`` (each level halves the size).
-    """
-
-    def __init__(self, max_bytes: int = 1_500_000_000) -> None:
-        self.max_bytes = max_bytes
-        self._layers: OrderedDict[TextureSpec, TextureLayers] = OrderedDict()
-        self._levels: OrderedDict[tuple, np.ndarray] = OrderedDict()
-        self._bytes = 0
-
-    def layers(self, spec: TextureSpec) -> TextureLayers:
-        if spec in self._layers:
-            self._layers.move_to_end(spec)
-            return self._layers[spec]
-        from monoloc.sim.textures import generate_texture
-
-        layers = generate_texture(spec)
-        self._layers[spec] = layers
-        self._account(
-            sum(a.nbytes for a in (layers.albedo, layers.emission, layers.alpha) if a is not None)
-        )
-        return layers
-
-    def get(self, spec: TextureSpec, level: int, night: bool = False) -> np.ndarray:
-        key = (spec, level, night)
-        if key in self._levels:
-            self._levels.move_to_end(key)
-            return self._levels[key]
-        if level == 0:
-            layers = self.layers(spec)
-            channels = [layers.albedo]
-            if night and layers.emission is not None:
-                channels.append(layers.emission)
-            if layers.alpha is not None:
-                channels.append(layers.alpha)
-            image = np.dstack(channels) if len(channels) > 1 else channels[0][:, :, None]
-        else:
-            import cv2
-
-            finer = self.get(spec, level - 1, night)
-            border = cv2.BORDER_WRAP if spec.wrap else cv2.BORDER_REFLECT_101
-            if min(finer.shape[:2]) < 2:
-                image = finer
-            else:
-                image = cv2.pyrDown(
-                    finer, borderType=border if not spec.wrap else cv2.BORDER_REFLECT_101
-                )
-                if image.ndim == 2:
-                    image = image[:, :, None]
-        self._levels[key] = image
-        self._account(image.nbytes)
-        return image
-
-    def _account(self, nbytes: int) -> None:
-        self._bytes += nbytes
-        while self._bytes > self.max_bytes and (len(self._levels) > 1 or len(self._layers) > 1):
-            if self._levels:
-                _, arr = self._levels.popitem(last=False)
-                self._bytes -= arr.nbytes
-            else:
-                _, layers = self._layers.popitem(last=False)
-                self._bytes -= sum(
-                    a.nbytes
-                    for a in (layers.albedo, layers.emission, layers.alpha)
-                    if a is not None
-                )

@@ -11,7 +11,8 @@ import math
 
 import numpy as np
 
-from monoloc.sim.scene import SceneBuilder, TextureSpec
+from monoloc.sim.scene import SceneBuilder
+from monoloc.sim.textures import TextureSpec
 
 UP = np.array([0.0, 0.0, 1.0])
 DOWN = -UP

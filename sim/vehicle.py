@@ -16,7 +16,7 @@ import numpy as np
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import R_world_from_cam_level, invert_rigid
-from monoloc.sim.routes import Path
+from monoloc.sim.path import Path
 
 
 @dataclass(frozen=True)

@@ -6,11 +6,15 @@ import pytest
 from monoloc.core.geometry import invert_rigid, kitti_to_zup
 from monoloc.sim import kitti_writer as kw
 from monoloc.sim.camera import Lighting, render
-from monoloc.sim.city import build_city, parked_cars
-from monoloc.sim.generate import GenerateConfig, kitti_world, plan_runs, true_camera_poses
-from monoloc.sim.generate_run import prepare_run_files, write_run_metadata
+from monoloc.sim.generate import GenerateConfig
 from monoloc.sim.recording import RecordingErrors
-from monoloc.sim.scene import TextureBank, concat_scenes
+from monoloc.sim.scene import concat_scenes
+from monoloc.sim.textures import TextureBank
+from monoloc.sim.urban.city import build_city, parked_cars
+from monoloc.sim.urban.info import kitti_world
+from monoloc.sim.urban.record import prepare_run_files, write_run_metadata
+from monoloc.sim.urban.runs import plan_runs, true_camera_poses
+from monoloc.sim.urban.textures import URBAN_TEXTURES
 
 CONFIG = GenerateConfig(seed=0, runs=("map", "query", "night", "offcenter"))
 
@@ -109,7 +113,7 @@ def test_day_frames_have_enough_orb_features(city_and_plans):
     city, plans = city_and_plans
     plan = plans["map"]
     scene = concat_scenes([city.static, parked_cars(city, 0)])
-    bank = TextureBank()
+    bank = TextureBank(URBAN_TEXTURES)
     poses = true_camera_poses(plan, CONFIG.rig)
     orb = cv2.ORB_create(1000)
     counts = []

@@ -7,12 +7,17 @@ import numpy as np
 import pytest
 
 from monoloc.core.geometry import invert_rigid
-from monoloc.sim import indoor_generate
 from monoloc.sim import tum_writer as tw
 from monoloc.sim.generate import GenerateConfig, generate_dataset
-from monoloc.sim.indoor import build_world
-from monoloc.sim.indoor_generate import indoor_config_for, render_rgbd, run_camera_config, run_scene
-from monoloc.sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
+from monoloc.sim.indoor import generate as indoor_generate
+from monoloc.sim.indoor.generate import (
+    indoor_config_for,
+    render_rgbd,
+    run_camera_config,
+    run_scene,
+)
+from monoloc.sim.indoor.plan import T_world_from_cam_at, plan_indoor_runs
+from monoloc.sim.indoor.world import build_world
 from monoloc.sim.recording import RecordingErrors
 
 SEED = 4

@@ -8,18 +8,19 @@ import pytest
 from monoloc.core.geometry import invert_rigid
 from monoloc.sim import tum_writer as tw
 from monoloc.sim.generate import GenerateConfig
-from monoloc.sim.indoor import build_world, room_bounds
-from monoloc.sim.indoor_generate import (
+from monoloc.sim.indoor.generate import (
     indoor_config_for,
     render_rgbd,
     run_camera_config,
     run_scene,
     write_run_metadata,
 )
-from monoloc.sim.indoor_infield import obstacles_scene
-from monoloc.sim.indoor_plan import T_world_from_cam_at, plan_indoor_runs
-from monoloc.sim.indoor_sensors import IndoorErrors
-from monoloc.sim.indoor_track import centre_line, curvature_closed, distance_to_line
+from monoloc.sim.indoor.infield import obstacles_scene
+from monoloc.sim.indoor.plan import T_world_from_cam_at, plan_indoor_runs
+from monoloc.sim.indoor.room import room_bounds
+from monoloc.sim.indoor.sensors import IndoorErrors
+from monoloc.sim.indoor.track import centre_line, curvature_closed, distance_to_line
+from monoloc.sim.indoor.world import build_world
 from monoloc.sim.recording import RecordingErrors
 from monoloc.sim.scene import KIND_GROUND
 

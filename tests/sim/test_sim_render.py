@@ -3,10 +3,10 @@ import pytest
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.geometry import T_world_from_cam_planar
-from monoloc.sim import textures
 from monoloc.sim.render import rasterize
-from monoloc.sim.scene import KIND_WALL, SceneBuilder, TextureBank, TextureLayers, TextureSpec
+from monoloc.sim.scene import KIND_WALL, SceneBuilder
 from monoloc.sim.shapes import add_wall
+from monoloc.sim.textures import TextureBank, TextureLayers, TextureSpec
 
 K = CameraIntrinsics(fx=200.0, fy=200.0, cx=79.5, cy=59.5, width_px=160, height_px=120)
 
@@ -19,8 +19,7 @@ def _halves(spec, rng):
 
 
 @pytest.fixture
-def halves_texture(monkeypatch):
-    monkeypatch.setitem(textures.GENERATORS, "test_halves", _halves)
+def halves_texture():
     return TextureSpec("test_halves", 100, 50, seed=0)
 
 
@@ -52,7 +51,7 @@ def test_depth_is_exact_on_a_tilted_wall(halves_texture):
 def test_texture_is_not_mirrored_and_nearer_quad_occludes(halves_texture):
     scene = _wall_scene(halves_texture)
     T = T_world_from_cam_planar(0.0, 0.0, 0.0, 1.0)
-    image = rasterize(scene, TextureBank(), T, K).albedo
+    image = rasterize(scene, TextureBank({"test_halves": _halves}), T, K).albedo
     # The wall's texture column 0 is its left end seen from the front (y = +5, image left).
     assert image[60, 20] > 200 and image[60, 140] < 50
     b = SceneBuilder()

@@ -2,39 +2,49 @@
 written in the TUM RGB-D layout (``monoloc.sim.tum_writer``), one folder per run.
 
 World frame of every ``groundtruth.txt``: the motion-capture frame, z up, origin on the
-floor at the centre of the main room (``monoloc.sim.indoor``); all runs share it. Generation is
+floor at the centre of the main room (``monoloc.sim.indoor.room``); all runs share it. Generation is
 deterministic in the seed: the same config gives the same bytes, whatever the number of
 worker processes.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from monoloc.sim import tum_writer as tw
-from monoloc.sim.indoor_plan import (
+from monoloc.sim.camera import CameraConfig, auto_exposure, expose, shade
+from monoloc.sim.indoor.infield import obstacles_scene
+from monoloc.sim.indoor.info import dataset_info
+from monoloc.sim.indoor.plan import (
     IndoorConfig,
     IndoorRunPlan,
     T_world_from_cam_at,
     indoor_runs,
     plan_indoor_runs,
 )
-from monoloc.sim.indoor_sensors import IndoorErrors, mocap_noise, noisy_depth
+from monoloc.sim.indoor.sensors import IndoorErrors, mocap_noise, noisy_depth
+from monoloc.sim.indoor.textures import INDOOR_TEXTURES
+from monoloc.sim.indoor.world import build_world
+from monoloc.sim.recording import RecordingErrors, measured_signals
+from monoloc.sim.render import rasterize
+from monoloc.sim.scene import concat_scenes
+from monoloc.sim.summary import DatasetSummary, SequenceSummary
+from monoloc.sim.textures import TextureBank
 
 CHUNK_FRAMES = 25
 
 
 def indoor_config_for(config) -> IndoorConfig:
-    """The IndoorConfig of a ``monoloc.sim.generate.GenerateConfig``: its ``indoor`` field, else
-    the size preset, with every error off when ``errors`` is ``RecordingErrors.none()``
+    """The IndoorConfig of a ``monoloc.sim.generate.GenerateConfig``: its ``indoor`` field,
+    else the size preset, with every error off when ``errors`` is ``RecordingErrors.none()``
     (the CLI's --no-errors); ``image_scale`` scales the camera."""
-    from monoloc.sim.recording import RecordingErrors
-
     indoor = config.indoor
     if indoor is None:
         exact = config.errors == RecordingErrors.none()
@@ -48,9 +58,6 @@ def render_rgbd(scene, bank, T_rgb, T_depth, intrinsics, lighting, camera, error
     """One RGB-D frame: image (H, W) uint8 seen from ``T_rgb`` (T_world_from_cam), the
     exact depth (H, W) float32 (inf: nothing) seen from ``T_depth``, and the depth the
     sensor reports (float32 m, 0 = none)."""
-    from monoloc.sim.camera import auto_exposure, expose, shade
-    from monoloc.sim.render import rasterize
-
     raster = rasterize(scene, bank, T_rgb, intrinsics, render_cfg, night=lighting.night)
     radiance = shade(raster, scene, T_rgb, intrinsics, lighting)
     image = expose(radiance, auto_exposure(radiance, camera), camera, rng)
@@ -67,8 +74,6 @@ def _source(config, plan: IndoorRunPlan) -> str:
 
 def write_run_metadata(config, indoor: IndoorConfig, plan: IndoorRunPlan, out_dir: Path) -> None:
     """rgb.txt, depth.txt, groundtruth.txt, vehicle.txt and camera.json of one run."""
-    from monoloc.sim.recording import RecordingErrors, measured_signals
-
     run_dir = Path(out_dir) / plan.run
     for sub in ("rgb", "depth"):
         (run_dir / sub).mkdir(parents=True, exist_ok=True)
@@ -126,11 +131,6 @@ _STATE: dict = {}
 
 def run_scene(config, indoor: IndoorConfig, plan: IndoorRunPlan):
     """World, per-(room, obstacle variant) scene and texture bank of this process."""
-    from monoloc.sim.indoor import build_world
-    from monoloc.sim.indoor_infield import obstacles_scene
-    from monoloc.sim.indoor_textures_floor import IndoorTextureBank
-    from monoloc.sim.scene import concat_scenes
-
     key = (config.seed, indoor.main_room, indoor.train_room)
     if _STATE.get("key") != key:
         _STATE.clear()
@@ -138,7 +138,7 @@ def run_scene(config, indoor: IndoorConfig, plan: IndoorRunPlan):
             key=key,
             world=build_world(indoor.rooms(), config.seed),
             scenes={},
-            bank=IndoorTextureBank(max_bytes=600_000_000),
+            bank=TextureBank(INDOOR_TEXTURES, max_bytes=600_000_000),
         )
     scene_key = (plan.room, plan.obstacles_variant)
     if scene_key not in _STATE["scenes"]:
@@ -155,8 +155,6 @@ def run_scene(config, indoor: IndoorConfig, plan: IndoorRunPlan):
 
 def run_camera_config(indoor: IndoorConfig, plan: IndoorRunPlan):
     """The run's camera settings: its exposure offset, noise on or off."""
-    from monoloc.sim.camera import CameraConfig
-
     e = indoor.errors
     cam = indoor.camera
     bias = (
@@ -204,12 +202,9 @@ def render_chunk(
 
 def generate_indoor_dataset(
     config, out_dir: Path, progress: Callable[[str, int, int], None] | None = None
-):
+) -> DatasetSummary:
     """Write the indoor dataset of a ``GenerateConfig`` under ``out_dir``; returns a
-    ``monoloc.sim.generate.DatasetSummary``."""
-    from monoloc.sim.generate import DatasetSummary, SequenceSummary
-    from monoloc.sim.indoor import build_world
-
+    ``monoloc.sim.summary.DatasetSummary``."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
     indoor = indoor_config_for(config)
@@ -235,9 +230,6 @@ def generate_indoor_dataset(
             render_chunk(config, indoor, plan, a, b, out_dir)
             report(plan, a, b)
     else:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max_workers=config.workers, mp_context=ctx) as pool:
             futures = {
@@ -247,8 +239,6 @@ def generate_indoor_dataset(
             for fut in as_completed(futures):
                 fut.result()
                 report(*futures[fut])
-    from monoloc.sim.indoor_info import dataset_info
-
     tw.write_dataset_json(out_dir, dataset_info(config, indoor, world, plans))
     summaries = [
         SequenceSummary(p.run, p.run, p.lighting.name, len(p.rgb_times_s), p.route_length_m)

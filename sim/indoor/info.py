@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict
 
-from monoloc.sim.indoor_track import lap_length_m
+from monoloc.sim.indoor.track import lap_length_m
 from monoloc.sim.tum_writer import DEPTH_SCALE_PER_M
 
 WORLD_FRAME = (

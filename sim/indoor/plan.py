@@ -28,15 +28,18 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.camera import CameraConfig, Lighting
-from monoloc.sim.indoor import SIZE_PRESETS, IndoorWorld, RoomConfig, room_configs
-from monoloc.sim.indoor_sensors import D435_COLOR, IndoorErrors, IndoorRig
-from monoloc.sim.indoor_track import lap_length_m, lap_path, wandering_offset
+from monoloc.sim.indoor.room import SIZE_PRESETS, RoomConfig, room_configs
+from monoloc.sim.indoor.sensors import D435_COLOR, IndoorErrors, IndoorRig
+from monoloc.sim.indoor.track import lap_length_m, lap_path
+from monoloc.sim.indoor.world import IndoorWorld
+from monoloc.sim.path import offset_path, wandering_offset
 from monoloc.sim.render import RenderConfig
-from monoloc.sim.routes import offset_path
 from monoloc.sim.vehicle import VehicleConfig, VehicleStates, drive
 
 INDOOR_RUN_KINDS = ("map", "query", "train", "offcenter")
 _OUTDOOR_DEFAULT_RUNS = ("map", "query", "train", "night", "offcenter")
+# Query and training drives leave the centre line in swerves of 5 to 15 m of track.
+SWERVE_WAVELENGTH_M = (5.0, 15.0)
 
 
 def indoor_runs(runs: tuple[str, ...]) -> tuple[str, ...]:
@@ -173,7 +176,11 @@ def plan_indoor_runs(
             lighting, variant = lab_lighting(_rng(seed, kind, 1)), 1
         elif kind == "train":
             offsets = wandering_offset(
-                path, rng, config.query_max_offset_m, config.query_max_heading_rad
+                path,
+                rng,
+                config.query_max_offset_m,
+                config.query_max_heading_rad,
+                SWERVE_WAVELENGTH_M,
             )
             ramp = np.clip((path.s_m - lap_length_m(track)) / 2.0, 0.0, 1.0)  # from lap 2
             target = offset_path(path, offsets * ramp, step_m=0.02)
@@ -222,7 +229,9 @@ def plan_indoor_runs(
 
 
 def _offset(path, rng, config: IndoorConfig):
-    offsets = wandering_offset(path, rng, config.query_max_offset_m, config.query_max_heading_rad)
+    offsets = wandering_offset(
+        path, rng, config.query_max_offset_m, config.query_max_heading_rad, SWERVE_WAVELENGTH_M
+    )
     return offset_path(path, offsets, step_m=0.02)
 
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from monoloc.sim.indoor_canvas import BOARD_LINES, Canvas, word
-from monoloc.sim.indoor_units import (
+from monoloc.sim.indoor.canvas import BOARD_LINES, Canvas, word
+from monoloc.sim.indoor.units import (
     cabinet,
     lockers,
     low_clutter,
@@ -24,8 +24,8 @@ from monoloc.sim.indoor_units import (
     socket,
     storage,
 )
-from monoloc.sim.scene import TextureLayers, TextureSpec
 from monoloc.sim.texture_tools import material, smooth_noise, to_uint8
+from monoloc.sim.textures import TextureLayers, TextureSpec
 
 WALL_STYLES = (
     "shelf",

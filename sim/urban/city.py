@@ -16,8 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.sim.city_blocks import build_district_scene
 from monoloc.sim.scene import Scene, SceneBuilder, concat_scenes
+from monoloc.sim.urban.district import build_district_scene
+from monoloc.sim.urban.street_grid import StreetGrid, make_grid
+from monoloc.sim.urban.street_props import add_car
 
 SIZE_PRESETS = {"small": (2, 2), "medium": (3, 3), "large": (5, 4)}
 
@@ -59,42 +61,6 @@ class CityConfig:
 
 
 @dataclass(frozen=True)
-class StreetGrid:
-    """A district's streets. Streets run along y at x = xs[i] and along x at y = ys[j];
-    road_w_* are carriageway widths, side_w_* sidewalk widths, parking_* whether the
-    street has parking lanes; node (i, j) is the intersection (xs[i], ys[j])."""
-
-    name: str
-    xs: np.ndarray
-    ys: np.ndarray
-    road_w_x: np.ndarray
-    road_w_y: np.ndarray
-    side_w_x: np.ndarray
-    side_w_y: np.ndarray
-    parking_x: np.ndarray
-    parking_y: np.ndarray
-
-    def node_xy(self, node: tuple[int, int]) -> np.ndarray:
-        return np.array([self.xs[node[0]], self.ys[node[1]]])
-
-    def neighbours(self, node: tuple[int, int]) -> list[tuple[int, int]]:
-        i, j = node
-        out = [(i + di, j + dj) for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1))]
-        return [(a, b) for a, b in out if 0 <= a < len(self.xs) and 0 <= b < len(self.ys)]
-
-    def road_width(self, a: tuple[int, int], b: tuple[int, int]) -> float:
-        """Carriageway width of the street segment between adjacent nodes a and b."""
-        return float(self.road_w_y[a[1]] if a[1] == b[1] else self.road_w_x[a[0]])
-
-    def has_parking(self, a: tuple[int, int], b: tuple[int, int]) -> bool:
-        return bool(self.parking_y[a[1]] if a[1] == b[1] else self.parking_x[a[0]])
-
-    def bounds(self) -> tuple[float, float, float, float]:
-        """(x_min, y_min, x_max, y_max) of the street centre lines."""
-        return float(self.xs[0]), float(self.ys[0]), float(self.xs[-1]), float(self.ys[-1])
-
-
-@dataclass(frozen=True)
 class ParkingSpots:
     """Where cars may park: (N, 3) array of (x, y, yaw_rad) car centres, z-up world."""
 
@@ -110,27 +76,6 @@ class City:
     static: Scene
     grids: dict[str, StreetGrid]
     parking: ParkingSpots
-
-
-def make_grid(
-    config: CityConfig,
-    rng: np.random.Generator,
-    name: str,
-    blocks: tuple[int, int],
-    origin_xy: tuple[float, float],
-) -> StreetGrid:
-    """Random street positions and widths for a district of ``blocks`` (bx, by)."""
-    lane2 = 2 * config.lane_width_m
-    arrays = {}
-    for axis, n, o in (("x", blocks[0], origin_xy[0]), ("y", blocks[1], origin_xy[1])):
-        lengths = rng.uniform(*config.block_length_m, size=n)
-        parking = rng.random(n + 1) < config.parking_street_fraction
-        road_w = lane2 + np.where(parking, 2 * config.parking_lane_width_m, 0.0)
-        arrays[f"{axis}s"] = o + np.concatenate([[0.0], np.cumsum(lengths)])
-        arrays[f"road_w_{axis}"] = road_w
-        arrays[f"side_w_{axis}"] = rng.uniform(*config.sidewalk_width_m, size=n + 1)
-        arrays[f"parking_{axis}"] = parking
-    return StreetGrid(name=name, **arrays)
 
 
 def build_city(config: CityConfig, seed: int) -> City:
@@ -159,8 +104,6 @@ def parked_cars(city: City, variant: int, change_fraction: float = 0.3) -> Scene
     """The parked cars of one run. ``variant`` 0 is the reference arrangement; another
     variant re-draws each spot with probability ``change_fraction`` (moved, removed, a
     different car, or a new one), as happens between two drives of the same street."""
-    from monoloc.sim.street_props import add_car
-
     poses = city.parking.poses
     n = len(poses)
     base = np.random.default_rng([city.seed, 2])

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.errors import NotFoundError
+from monoloc.sim import tum_writer as tw
+from monoloc.sim.indoor.track import TrackShape, centre_line
 
 
 def write_indoor_preview(dataset: Path, info: dict, out: Path, per_run: int = 4) -> Path:
@@ -18,9 +20,6 @@ def write_indoor_preview(dataset: Path, info: dict, out: Path, per_run: int = 4)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from monoloc.sim import tum_writer as tw
-    from monoloc.sim.indoor_track import TrackShape, centre_line
 
     dataset = Path(dataset)
     sequences = info["sequences"]

@@ -1,6 +1,6 @@
 """Painters of furniture-like units on an indoor canvas: shelves full of books, binders
 and boxes, cabinets, lockers, stacked storage bins, things on the floor against a wall,
-posters, sockets and radiators. Used on walls (``monoloc.sim.indoor_textures``) and on the
+posters, sockets and radiators. Used on walls (``monoloc.sim.indoor.wall_textures``) and on the
 fronts of furniture boxes (a canvas lower than 2.2 m is a furniture front: units fill
 it to the top)."""
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from monoloc.sim.indoor_canvas import Canvas, word
+from monoloc.sim.indoor.canvas import Canvas, word
 
 
 def _top(c: Canvas, rng, low: float, high: float) -> float:

@@ -18,14 +18,9 @@ from monoloc.sim.scene import (
     KIND_POLE,
     KIND_SIGN,
     SceneBuilder,
-    TextureSpec,
 )
 from monoloc.sim.shapes import add_billboard, add_box, footprint_corners, texture_size_px
-
-
-def texture_seed(rng: np.random.Generator) -> int:
-    """A texture's own seed, drawn from the scene's generator."""
-    return int(rng.integers(0, 2**31))
+from monoloc.sim.textures import TextureSpec, texture_seed
 
 
 def add_street_furniture(b, rng, config, start, end, normal, z, walk_w):

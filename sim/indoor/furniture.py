@@ -1,7 +1,7 @@
 """Furniture of an indoor room, as textured boxes: shelving units, cabinets and lockers
-against the walls (fronts painted like the wall sections of ``monoloc.sim.indoor_textures``),
+against the walls (fronts painted like the wall sections of ``monoloc.sim.indoor.wall_textures``),
 boxes, crates, bins and chairs on the floor along the walls. The infield and the
-obstacles beside the track are in ``monoloc.sim.indoor_infield``.
+obstacles beside the track are in ``monoloc.sim.indoor.infield``.
 """
 
 from __future__ import annotations
@@ -10,22 +10,19 @@ import math
 
 import numpy as np
 
-from monoloc.sim.scene import KIND_WALL, SceneBuilder, TextureSpec
+from monoloc.sim.scene import KIND_WALL, SceneBuilder
 from monoloc.sim.shapes import add_box, add_split_quad, footprint_corners, texture_size_px
+from monoloc.sim.textures import TextureSpec, texture_seed
 
 _FRONT_PPM = 300.0
 _SIDE_PPM = 250.0
-
-
-def _seed(rng: np.random.Generator) -> int:
-    return int(rng.integers(0, 2**31))
 
 
 def _surface(rng, width_m, height_m, style, ppm=_SIDE_PPM) -> TextureSpec:
     return TextureSpec(
         "indoor_surface",
         *texture_size_px(width_m, height_m, ppm),
-        seed=_seed(rng),
+        seed=texture_seed(rng),
         params=(("ppm", ppm), ("style", style)),
     )
 
@@ -34,7 +31,7 @@ def _front(rng, width_m, height_m, style, tone) -> TextureSpec:
     return TextureSpec(
         "indoor_wall",
         *texture_size_px(width_m, height_m, _FRONT_PPM),
-        seed=_seed(rng),
+        seed=texture_seed(rng),
         params=(
             ("ppm", _FRONT_PPM),
             ("paint", round(float(tone), 4)),

@@ -21,7 +21,6 @@ from monoloc.core.geometry import R_world_from_cam_level
 
 # RealSense D435 colour stream at 640x480 (depth registered to it).
 D435_COLOR = CameraIntrinsics(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width_px=640, height_px=480)
-TUM_DEPTH_SCALE_PER_M = 5000.0
 
 
 @dataclass(frozen=True)

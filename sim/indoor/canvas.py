@@ -1,8 +1,9 @@
 """Drawing in metres on an indoor texture: a wall (or furniture front) seen from the
 front, x to the right from its left edge, z up from its bottom edge.
 
-Images are float32 albedo in [0, 1] (as in ``monoloc.sim.texture_tools``); ``Canvas`` converts
-metres to pixels so that the painters in ``monoloc.sim.indoor_textures`` read like a floor plan.
+Images are float32 albedo in [0, 1] (as in ``monoloc.sim.texture_tools``); ``Canvas``
+converts metres to pixels so that the painters in ``monoloc.sim.indoor.wall_textures``
+read like a floor plan.
 """
 
 from __future__ import annotations

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from monoloc.sim.scene import KIND_WALL, TextureSpec
+from monoloc.sim.scene import KIND_WALL
 from monoloc.sim.shapes import add_wall, texture_size_px
-from monoloc.sim.street_props import texture_seed
+from monoloc.sim.textures import TextureSpec, texture_seed
 
 WALL_FOOT_M = -0.3
 

@@ -1,5 +1,6 @@
 """Builds one district's static scene: ground, roads, sidewalks, and (through
-sim.city_buildings and monoloc.sim.street_props) buildings, furniture and parked cars.
+``monoloc.sim.urban.buildings`` and ``monoloc.sim.urban.street_props``) buildings and
+street furniture.
 
 Heights: carriageway at z = 0, sidewalks and block interiors at the kerb height; walls
 reach below the ground so that no crack opens at their foot.
@@ -12,17 +13,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from monoloc.sim.city_buildings import WALL_FOOT_M, add_building, add_frontage
-from monoloc.sim.scene import (
-    KIND_GROUND,
-    KIND_ROAD,
-    KIND_WALL,
-    Scene,
-    SceneBuilder,
-    TextureSpec,
-)
+from monoloc.sim.scene import KIND_GROUND, KIND_ROAD, KIND_WALL, Scene, SceneBuilder
 from monoloc.sim.shapes import add_split_quad, add_wall, texture_size_px
-from monoloc.sim.street_props import add_street_furniture, texture_seed
+from monoloc.sim.textures import TextureSpec, texture_seed
+from monoloc.sim.urban.buildings import WALL_FOOT_M, add_building, add_frontage
+from monoloc.sim.urban.street_props import add_street_furniture
 
 KERB_M = 0.12
 UPV = np.array([0.0, 0.0, 1.0])

@@ -15,16 +15,17 @@ room, x along its long side, z up.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from monoloc.core.errors import InvalidInputError
-from monoloc.sim.indoor_furniture import add_furniture
-from monoloc.sim.indoor_infield import add_infield, obstacle_slots
-from monoloc.sim.indoor_track import TrackShape, make_track
-from monoloc.sim.scene import KIND_GROUND, KIND_LAMP, KIND_WALL, Scene, SceneBuilder, TextureSpec
+from monoloc.sim.indoor.furniture import add_furniture
+from monoloc.sim.indoor.infield import add_infield, obstacle_slots
+from monoloc.sim.indoor.room import RoomConfig, lamp_positions, room_bounds
+from monoloc.sim.indoor.track import TrackShape, make_track
+from monoloc.sim.scene import KIND_GROUND, KIND_LAMP, KIND_WALL, Scene, SceneBuilder
 from monoloc.sim.shapes import add_split_quad, add_wall, texture_size_px
+from monoloc.sim.textures import TextureSpec, texture_seed
 
 # Section styles of non-plain walls and their weights.
 _STYLE_WEIGHTS = {
@@ -49,38 +50,6 @@ _FLOOR_TONES = {
 
 
 @dataclass(frozen=True)
-class RoomConfig:
-    """One room: size (x, y) and height in metres, centre in the world; the track's
-    width, its clearance from the walls, tightest turn and twistiness; how much of the
-    wall perimeter is bare paint; numbers of furniture pieces, infield objects and
-    movable obstacles; texture resolutions (texels per metre)."""
-
-    size_m: tuple[float, float] = (8.0, 6.0)
-    height_m: float = 2.7
-    centre_xy: tuple[float, float] = (0.0, 0.0)
-    track_width_m: float = 0.7
-    clearance_m: float = 1.15
-    min_turn_radius_m: float = 0.8
-    twist: float = 1.0
-    plain_wall_fraction: float = 0.15
-    doors: int = 2
-    furniture: int = 4
-    infield_objects: int = 3
-    obstacles: int = 6
-    wall_ppm: float = 300.0
-    floor_ppm: float = 350.0
-    ceiling_ppm: float = 60.0
-
-
-SIZE_PRESETS = {
-    "small": ((8.0, 6.0), 1, 1.0),
-    "medium": ((10.0, 7.0), 2, 1.2),
-    "large": ((12.0, 9.0), 3, 1.5),
-}
-TRAIN_ROOM_CENTRE_XY = (60.0, 0.0)
-
-
-@dataclass(frozen=True)
 class Room:
     """A built room: its config, track, static scene and slots (N, 3) of (x, y, yaw)
     where obstacles may stand."""
@@ -99,22 +68,6 @@ class IndoorWorld:
     rooms: dict[str, Room] = field(repr=False)
 
 
-def room_configs(size: str) -> dict[str, RoomConfig]:
-    """Main and training rooms of a size preset (small 8 x 6 m, medium 10 x 7 m, large
-    12 x 9 m; the training room is a little smaller with its own layout)."""
-    if size not in SIZE_PRESETS:
-        raise InvalidInputError(f"unknown size {size!r}; use one of {sorted(SIZE_PRESETS)}")
-    room, _, twist = SIZE_PRESETS[size]
-    main = RoomConfig(size_m=room, twist=twist)
-    train = replace(
-        main,
-        size_m=(room[0] - 1.0, room[1]),
-        centre_xy=TRAIN_ROOM_CENTRE_XY,
-        twist=twist * 1.2,
-    )
-    return {"main": main, "train": train}
-
-
 def build_world(configs: dict[str, RoomConfig], seed: int) -> IndoorWorld:
     """All rooms, deterministic in ``seed``."""
     rooms = {
@@ -122,10 +75,6 @@ def build_world(configs: dict[str, RoomConfig], seed: int) -> IndoorWorld:
         for k, (name, config) in enumerate(configs.items())
     }
     return IndoorWorld(seed=seed, rooms=rooms)
-
-
-def _seed(rng: np.random.Generator) -> int:
-    return int(rng.integers(0, 2**31))
 
 
 def build_room(name: str, config: RoomConfig, seed: int) -> Room:
@@ -150,23 +99,6 @@ def build_room(name: str, config: RoomConfig, seed: int) -> Room:
     return Room(name, config, track, b.build(), slots, floor_style)
 
 
-def room_bounds(config: RoomConfig) -> tuple[float, float, float, float]:
-    """(x_min, y_min, x_max, y_max) of the room's floor."""
-    cx, cy = config.centre_xy
-    w, d = config.size_m
-    return cx - w / 2, cy - d / 2, cx + w / 2, cy + d / 2
-
-
-def lamp_positions(config: RoomConfig) -> list[tuple[float, float]]:
-    x0, y0, x1, y1 = room_bounds(config)
-    nx, ny = max(1, round((x1 - x0) / 2.5)), max(1, round((y1 - y0) / 2.5))
-    return [
-        (x0 + (i + 0.5) * (x1 - x0) / nx, y0 + (j + 0.5) * (y1 - y0) / ny)
-        for i in range(nx)
-        for j in range(ny)
-    ]
-
-
 def _floor_and_ceiling(b: SceneBuilder, rng, config: RoomConfig, track, floor_style) -> None:
     x0, y0, x1, y1 = room_bounds(config)
     w, d = x1 - x0, y1 - y0
@@ -176,7 +108,7 @@ def _floor_and_ceiling(b: SceneBuilder, rng, config: RoomConfig, track, floor_st
     spec = TextureSpec(
         "indoor_floor",
         *texture_size_px(w, d, ppm),
-        seed=_seed(rng),
+        seed=texture_seed(rng),
         params=(
             ("ppm", ppm),
             ("style", floor_style),
@@ -195,7 +127,7 @@ def _floor_and_ceiling(b: SceneBuilder, rng, config: RoomConfig, track, floor_st
     ceil = TextureSpec(
         "indoor_ceiling",
         *texture_size_px(w, d, config.ceiling_ppm),
-        seed=_seed(rng),
+        seed=texture_seed(rng),
         params=(
             ("ppm", config.ceiling_ppm),
             ("x_min", x0),
@@ -284,7 +216,7 @@ def _walls(b: SceneBuilder, rng, config: RoomConfig) -> list[WallLayout]:
         spec = TextureSpec(
             "indoor_wall",
             *texture_size_px(length, config.height_m, config.wall_ppm),
-            seed=_seed(rng),
+            seed=texture_seed(rng),
             params=(
                 ("ppm", config.wall_ppm),
                 ("paint", round(float(paint * rng.uniform(0.93, 1.07)), 4)),

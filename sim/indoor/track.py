@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.sim.routes import Path, resample
+from monoloc.sim.path import Path, resample
 
 _SAMPLES = 1440
 
@@ -144,30 +144,6 @@ def lap_path(shape: TrackShape, laps: float, step_m: float = 0.02) -> Path:
 def lap_length_m(shape: TrackShape) -> float:
     loop = centre_line(shape)
     return float(np.sum(np.linalg.norm(np.diff(np.vstack([loop, loop[:1]]), axis=0), axis=1)))
-
-
-def wandering_offset(
-    path: Path,
-    rng: np.random.Generator,
-    max_offset_m: float,
-    max_heading_rad: float = math.radians(5.0),
-    wavelength_m: tuple[float, float] = (5.0, 15.0),
-) -> np.ndarray:
-    """(N,) smooth lateral offsets within +-max_offset_m whose slope (heading deviation
-    from the centre line) stays within +-max_heading_rad."""
-    s = path.s_m
-    offset = np.zeros_like(s)
-    for _ in range(4):
-        wavelength = rng.uniform(*wavelength_m)
-        offset += rng.uniform(0.3, 1.0) * np.sin(
-            2 * np.pi * s / wavelength + rng.uniform(0, 2 * np.pi)
-        )
-    offset += rng.uniform(-0.5, 0.5)
-    offset *= max_offset_m / max(np.max(np.abs(offset)), 1e-9)
-    slope = np.max(np.abs(np.gradient(offset, s))) if len(s) > 1 else 0.0
-    if slope > max_heading_rad:
-        offset *= max_heading_rad / slope
-    return offset
 
 
 def distance_to_line(points_xy: np.ndarray, line_xy: np.ndarray) -> np.ndarray:

@@ -9,27 +9,12 @@ circular arcs at the turns, resampled every ``step_m``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.sim.city import StreetGrid
-
-
-@dataclass(frozen=True)
-class Path:
-    """A planar path: xy (N, 2) metres, heading_rad (N,), curvature (N,) 1/m (left
-    positive), s_m (N,) arclength."""
-
-    xy: np.ndarray
-    heading_rad: np.ndarray
-    curvature: np.ndarray
-    s_m: np.ndarray
-
-    @property
-    def length_m(self) -> float:
-        return float(self.s_m[-1])
+from monoloc.sim.path import Path, resample
+from monoloc.sim.urban.street_grid import StreetGrid
 
 
 def plan_route(
@@ -114,47 +99,3 @@ def _intersect(p1, d1, p2, d2):
         return None
     t = ((p2[0] - p1[0]) * d2[1] - (p2[1] - p1[1]) * d2[0]) / den
     return p1 + t * d1
-
-
-def resample(poly: np.ndarray, step_m: float) -> Path:
-    """Resample a polyline (N, 2) at constant arclength; headings and curvature from
-    finite differences."""
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    keep = np.concatenate([[True], seg > 1e-9])
-    poly = poly[keep]
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
-    s_new = np.arange(0.0, s[-1], step_m)
-    xy = np.stack([np.interp(s_new, s, poly[:, 0]), np.interp(s_new, s, poly[:, 1])], axis=1)
-    d = np.gradient(xy, axis=0)
-    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-    curvature = np.gradient(heading) / step_m
-    return Path(xy=xy, heading_rad=heading, curvature=curvature, s_m=s_new)
-
-
-def offset_path(path: Path, offset_m: np.ndarray, step_m: float = 0.25) -> Path:
-    """``path`` shifted left by ``offset_m`` (N,) metres (negative: right)."""
-    normal = np.stack([-np.sin(path.heading_rad), np.cos(path.heading_rad)], axis=1)
-    return resample(path.xy + normal * offset_m[:, None], step_m)
-
-
-def wandering_offset(
-    path: Path,
-    rng: np.random.Generator,
-    max_offset_m: float = 1.5,
-    max_heading_rad: float = math.radians(5.0),
-) -> np.ndarray:
-    """(N,) smooth lateral offsets within +-max_offset_m whose slope stays within
-    +-max_heading_rad: a driver who does not keep to the lane centre."""
-    s = path.s_m
-    offset = np.zeros_like(s)
-    for _ in range(4):
-        wavelength = rng.uniform(60.0, 250.0)
-        offset += rng.uniform(0.3, 1.0) * np.sin(
-            2 * np.pi * s / wavelength + rng.uniform(0, 2 * np.pi)
-        )
-    offset += rng.uniform(-0.5, 0.5)
-    offset *= max_offset_m / max(np.max(np.abs(offset)), 1e-9)
-    slope = np.max(np.abs(np.gradient(offset, s))) if len(s) > 1 else 0.0
-    if slope > max_heading_rad * 0.8:
-        offset *= max_heading_rad * 0.8 / slope
-    return offset

@@ -10,8 +10,9 @@ import math
 
 import numpy as np
 
-from monoloc.sim.indoor_furniture import add_chair, add_textured_box, add_underside
-from monoloc.sim.indoor_track import centre_line, distance_to_line, inside_loop
+from monoloc.sim.indoor.furniture import add_chair, add_textured_box, add_underside
+from monoloc.sim.indoor.room import room_bounds
+from monoloc.sim.indoor.track import centre_line, distance_to_line, inside_loop
 from monoloc.sim.scene import KIND_CAR, Scene, SceneBuilder
 from monoloc.sim.shapes import footprint_corners
 
@@ -19,8 +20,6 @@ from monoloc.sim.shapes import footprint_corners
 def _free_spot(rng, config, loop, radius, inside, placed, margin=0.3, tries=200):
     """A random floor point at least ``margin`` + radius from the track edge, inside or
     outside the loop, not overlapping ``placed`` circles (x, y, r); None if none."""
-    from monoloc.sim.indoor import room_bounds
-
     x0, y0, x1, y1 = room_bounds(config)
     for _ in range(tries):
         p = np.array(

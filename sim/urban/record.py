@@ -1,5 +1,6 @@
-"""Per-run work of ``monoloc.sim.generate``: the measured values a run writes, and rendering a
-chunk of its frames (run in worker processes; each keeps its city and texture cache)."""
+"""Recording one urban run: the measured values its files carry, its metadata files, and
+rendering a chunk of its frames (run in worker processes; each keeps its city and
+texture cache)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,14 @@ import numpy as np
 
 from monoloc.core.geometry import invert_rigid
 from monoloc.sim import kitti_writer as kw
+from monoloc.sim.camera import CameraConfig, render
+from monoloc.sim.lidar import firing_times_s, scan
 from monoloc.sim.recording import apply_pose_errors, measured_signals, perturb_calibration
+from monoloc.sim.scene import concat_scenes
+from monoloc.sim.textures import TextureBank
+from monoloc.sim.urban.city import build_city, parked_cars
+from monoloc.sim.urban.runs import true_camera_poses
+from monoloc.sim.urban.textures import URBAN_TEXTURES
 
 
 @dataclass(frozen=True)
@@ -26,8 +34,6 @@ class WrittenRun:
 
 def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
     """Decide the measured values of a run (deterministic in its seed)."""
-    from monoloc.sim.generate import true_camera_poses
-
     rng = np.random.default_rng([plan.seed, 1])
     errors = config.errors
     T_true = true_camera_poses(plan, config.rig)
@@ -58,15 +64,12 @@ _STATE: dict = {}
 
 def _world(config, plan):
     """City, per-variant scene and texture bank of this process (built once)."""
-    from monoloc.sim.city import build_city, parked_cars
-    from monoloc.sim.scene import TextureBank, concat_scenes
-
     key = (config.seed, config.city_config())
     if _STATE.get("key") != key:
         _STATE.clear()
         _STATE["key"] = key
         _STATE["city"] = build_city(config.city_config(), config.seed)
-        _STATE["bank"] = TextureBank(max_bytes=700_000_000)
+        _STATE["bank"] = TextureBank(URBAN_TEXTURES, max_bytes=700_000_000)
         _STATE["scenes"] = {}
     city = _STATE["city"]
     if plan.car_variant not in _STATE["scenes"]:
@@ -79,9 +82,6 @@ def _world(config, plan):
 def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
     """Render and write frames [first, last) of ``plan``."""
     import cv2
-
-    from monoloc.sim.camera import CameraConfig, render
-    from monoloc.sim.lidar import firing_times_s, scan
 
     cv2.setNumThreads(1)
     scene, bank = _world(config, plan)

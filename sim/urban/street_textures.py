@@ -1,11 +1,11 @@
 """Texture generators for the street: asphalt, markings, paving, kerbs, vegetation,
-cars, poles, lamps and signs. See ``monoloc.sim.textures`` for the conventions."""
+cars, poles, lamps and signs. Deterministic in ``spec.seed``; values are albedo in
+[0, 1] before conversion to uint8 (``monoloc.sim.texture_tools``)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from monoloc.sim.scene import TextureLayers, TextureSpec
 from monoloc.sim.texture_tools import (
     PICTURE_PHOTOS,
     SHOP_WORDS,
@@ -16,6 +16,7 @@ from monoloc.sim.texture_tools import (
     smooth_noise,
     to_uint8,
 )
+from monoloc.sim.textures import TextureLayers, TextureSpec
 
 
 def _asphalt(rng, w, h, ppm) -> np.ndarray:
@@ -300,17 +301,3 @@ def foliage(spec: TextureSpec, rng: np.random.Generator) -> TextureLayers:
         cv2.circle(blob, (int(cx), int(cy)), int(r), 1.0, -1)
     ragged = blob * (0.6 + 0.4 * smooth_noise(rng, w, h, 0.15 * ppm)) > 0.45
     return TextureLayers(albedo=to_uint8(leaves), alpha=to_uint8(ragged.astype(np.float32)))
-
-
-GROUND_GENERATORS = {
-    "road": road,
-    "asphalt": asphalt,
-    "sidewalk": sidewalk,
-    "kerb": kerb,
-    "lawn": lawn,
-    "car": car,
-    "metal": metal,
-    "lamp": lamp,
-    "sign": sign,
-    "foliage": foliage,
-}
