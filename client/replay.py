@@ -3,20 +3,20 @@
 KITTI odometry (``image_0/``, ``times.txt``, ``vehicle.txt``, ``../../poses/NN.txt``) and
 TUM RGB-D (``rgb.txt``, ``groundtruth.txt``, ``vehicle.txt``). ``vehicle.txt`` holds one
 line per frame: ``t speed_mps yaw_rate_radps``. A KITTI sequence without it gets speed
-and yaw rate derived from its poses plus configurable noise, and says so.
+and yaw rate derived from its poses plus configurable noise, and says so. The files'
+formats are ``monoloc.core.formats``; this module aligns them into a run.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.core.formats import kitti, tum, vehicle
 from monoloc.core.geometry import (
-    R_from_quaternion_xyzw,
     kitti_to_zup,
     planar_from_T_world_from_cam,
     wrap_angle,
@@ -81,22 +81,6 @@ def parse_frames(text: str | None) -> slice:
     return slice(parts[0], parts[1])
 
 
-def _load_table(path: Path, columns: int) -> np.ndarray:
-    rows = []
-    for line_no, line in enumerate(path.read_text().splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        try:
-            values = [float(v) for v in line.split()[:columns]]
-        except ValueError as exc:
-            raise InvalidInputError(f"{path}:{line_no}: not a number: {line!r}") from exc
-        if len(values) != columns or not all(math.isfinite(v) for v in values):
-            raise InvalidInputError(f"{path}:{line_no}: expected {columns} finite numbers")
-        rows.append(values)
-    return np.array(rows, dtype=np.float64).reshape(-1, columns)
-
-
 def signals_from_truth(
     timestamps_s: np.ndarray, truth_world: np.ndarray, noise: SignalNoise
 ) -> np.ndarray:
@@ -116,22 +100,22 @@ def signals_from_truth(
 
 
 def _vehicle_signals(path: Path, timestamps_s: np.ndarray) -> np.ndarray:
-    """(speed_mps, yaw_rate_radps) (N, 2) from ``t speed yaw_rate`` lines, one per frame,
-    whose times match the frames' (within a quarter of the frame period)."""
-    table = _load_table(path, 3)
+    """(speed_mps, yaw_rate_radps) (N, 2) from vehicle.txt, one line per frame, whose times
+    match the frames' (within a quarter of the frame period)."""
+    signals = vehicle.read_vehicle(path)
     n = len(timestamps_s)
-    if len(table) != n:
-        raise InvalidInputError(f"{path}: {len(table)} lines for {n} frames")
+    if len(signals) != n:
+        raise InvalidInputError(f"{path}: {len(signals)} lines for {n} frames")
     period = float(np.median(np.diff(timestamps_s))) if n > 1 else 0.0
     tolerance = max(0.25 * period, 1e-3)
-    off = np.abs(table[:, 0] - timestamps_s)
+    off = np.abs(signals.timestamps_s - timestamps_s)
     if n and off.max() > tolerance:
         row = int(np.flatnonzero(off > tolerance)[0])
         raise InvalidInputError(
-            f"{path}: data row {row + 1} has time {table[row, 0]:.6f} s but frame {row} is "
-            f"at {timestamps_s[row]:.6f} s"
+            f"{path}: data row {row + 1} has time {signals.timestamps_s[row]:.6f} s but frame "
+            f"{row} is at {timestamps_s[row]:.6f} s"
         )
-    return table[:, 1:3]
+    return np.column_stack([signals.speed_mps, signals.yaw_rate_radps])
 
 
 def _check_images_exist(paths: list[Path], listing: Path) -> None:
@@ -156,23 +140,23 @@ def read_kitti_run(
     times_path = seq_dir / "times.txt"
     if not times_path.exists():
         raise NotFoundError(f"{times_path} does not exist")
-    times = _load_table(times_path, 1)[:, 0]
+    times = kitti.read_times(times_path)
     if len(times) != len(images):
         raise InvalidInputError(f"{times_path}: {len(times)} lines for {len(images)} images")
     seq_name = seq_dir.name
     poses_path = seq_dir.parent.parent / "poses" / f"{seq_name}.txt"
     truth = None
     if poses_path.exists():
-        rows = _load_table(poses_path, 12)
-        if len(rows) != len(images):
-            raise InvalidInputError(f"{poses_path}: {len(rows)} poses for {len(images)} images")
-        T = np.tile(np.eye(4), (len(rows), 1, 1))
-        T[:, :3, :] = rows.reshape(-1, 3, 4)
-        truth = planar_from_T_world_from_cam(kitti_to_zup(T))
+        T_kittiworld_from_cam = kitti.read_poses(poses_path)
+        if len(T_kittiworld_from_cam) != len(images):
+            raise InvalidInputError(
+                f"{poses_path}: {len(T_kittiworld_from_cam)} poses for {len(images)} images"
+            )
+        truth = planar_from_T_world_from_cam(kitti_to_zup(T_kittiworld_from_cam))
     notes = []
-    vehicle = seq_dir / "vehicle.txt"
-    if vehicle.exists():
-        signals = _vehicle_signals(vehicle, times)
+    vehicle_path = seq_dir / "vehicle.txt"
+    if vehicle_path.exists():
+        signals = _vehicle_signals(vehicle_path, times)
     elif truth is not None:
         signals = signals_from_truth(times, truth, noise)
         notes.append(
@@ -190,43 +174,26 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
     rgb_path = root / "rgb.txt"
     if not rgb_path.exists():
         raise NotFoundError(f"{rgb_path} does not exist")
-    times, images = [], []
-    for line_no, line in enumerate(rgb_path.read_text().splitlines(), start=1):
-        if not line.strip() or line.startswith("#"):
-            continue
-        parts = line.split()
-        if len(parts) < 2:
-            raise InvalidInputError(f"{rgb_path}:{line_no}: expected 'timestamp filename'")
-        try:
-            times.append(float(parts[0]))
-        except ValueError as exc:
-            raise InvalidInputError(f"{rgb_path}:{line_no}: not a timestamp: {parts[0]!r}") from exc
-        images.append(root / parts[1])
-    if not images:
-        raise InvalidInputError(f"{rgb_path} lists no frames")
+    times_arr, names = tum.read_file_list(rgb_path)
+    images = [root / name for name in names]
     _check_images_exist(images, rgb_path)
-    times_arr = np.array(times)
     truth = None
     gt_path = root / "groundtruth.txt"
     if gt_path.exists():
-        gt = _load_table(gt_path, 8)
-        if len(gt) == 0:
-            raise InvalidInputError(f"{gt_path} holds no poses")
-        idx = np.clip(np.searchsorted(gt[:, 0], times_arr), 1, len(gt) - 1)
+        gt = tum.read_trajectory(gt_path)
+        gt_t = gt.timestamps_s
+        idx = np.clip(np.searchsorted(gt_t, times_arr), 1, len(gt_t) - 1)
         nearest = np.where(
-            np.abs(gt[idx - 1, 0] - times_arr) <= np.abs(gt[idx, 0] - times_arr), idx - 1, idx
+            np.abs(gt_t[idx - 1] - times_arr) <= np.abs(gt_t[idx] - times_arr), idx - 1, idx
         )
-        if np.any(np.abs(gt[nearest, 0] - times_arr) > max_dt_s):
+        if np.any(np.abs(gt_t[nearest] - times_arr) > max_dt_s):
             raise InvalidInputError(f"{gt_path}: no ground truth within {max_dt_s} s of a frame")
-        T = np.tile(np.eye(4), (len(times), 1, 1))
-        for i, row in enumerate(gt[nearest]):
-            T[i, :3, :3] = R_from_quaternion_xyzw(row[4:8])
-            T[i, :3, 3] = row[1:4]
+        T = gt.T_world_from_cam[nearest]
         truth = planar_from_T_world_from_cam(T)
-    vehicle = root / "vehicle.txt"
-    if not vehicle.exists():
-        raise NotFoundError(f"{vehicle} does not exist")
-    signals = _vehicle_signals(vehicle, times_arr)
+    vehicle_path = root / "vehicle.txt"
+    if not vehicle_path.exists():
+        raise NotFoundError(f"{vehicle_path} does not exist")
+    signals = _vehicle_signals(vehicle_path, times_arr)
     return ReplayRun(f"tum:{root.name}", images, times_arr, signals, truth, [])
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -10,12 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.core.geometry import (
-    T_world_from_cam_planar,
-    quaternion_xyzw_from_R,
-    wrap_angle,
-    zup_to_kitti,
-)
+from monoloc.core.formats import kitti, tum
+from monoloc.core.geometry import T_world_from_cam_planar, wrap_angle, zup_to_kitti
 
 
 def poses_from_planar(planar_world: np.ndarray, height_m: float = 0.0) -> np.ndarray:
@@ -27,41 +22,22 @@ def poses_from_planar(planar_world: np.ndarray, height_m: float = 0.0) -> np.nda
     )
 
 
-def write_tum(
-    stream: io.TextIOBase, timestamps_s: np.ndarray, T_world_from_cam: np.ndarray
-) -> None:
-    """TUM lines ``t x y z qx qy qz qw`` of T_world_from_cam (z-up world)."""
-    if len(timestamps_s) != len(T_world_from_cam):
-        raise InvalidInputError("timestamps and poses differ in length")
-    for t, T in zip(timestamps_s, T_world_from_cam, strict=True):
-        q = quaternion_xyzw_from_R(T[:3, :3])
-        values = [*T[:3, 3], *q]
-        stream.write(f"{t:.6f} " + " ".join(f"{v:.9f}" for v in values) + "\n")
-
-
-def write_kitti(stream: io.TextIOBase, T_world_from_cam: np.ndarray) -> None:
-    """KITTI lines (3x4 row-major) in KITTI's own world convention (y down, z forward).
-
-    The z-up world maps back to KITTI's through monoloc.core.geometry.zup_to_kitti, so the file
-    compares directly with the dataset's poses/NN.txt.
-    """
-    for T in T_world_from_cam:
-        T_kitti = zup_to_kitti(T)
-        stream.write(" ".join(f"{v:.9e}" for v in T_kitti[:3, :].reshape(-1)) + "\n")
-
-
 def write_trajectory_files(
     out_prefix: Path, timestamps_s: np.ndarray, planar_world: np.ndarray, height_m: float = 0.0
 ) -> tuple[Path, Path]:
-    """Write ``<prefix>.tum.txt`` and ``<prefix>.kitti.txt``; returns both paths."""
+    """Write ``<prefix>.tum.txt`` (TUM: t x y z qx qy qz qw of T_world_from_cam, z-up world)
+    and ``<prefix>.kitti.txt`` (KITTI: 3x4 T_kittiworld_from_cam per line), both readable
+    by evo; returns both paths."""
     poses = poses_from_planar(np.asarray(planar_world), height_m)
     out_prefix.parent.mkdir(parents=True, exist_ok=True)
     tum_path = out_prefix.with_name(out_prefix.name + ".tum.txt")
     kitti_path = out_prefix.with_name(out_prefix.name + ".kitti.txt")
     with open(tum_path, "w") as fh:
-        write_tum(fh, np.asarray(timestamps_s), poses)
+        tum.write_trajectory(fh, np.asarray(timestamps_s), poses)
     with open(kitti_path, "w") as fh:
-        write_kitti(fh, poses)
+        # KITTI's own world (y down, z forward), so the file compares directly with the
+        # dataset's poses/NN.txt
+        kitti.write_poses(fh, zup_to_kitti(poses))
     return tum_path, kitti_path
 
 

@@ -8,6 +8,7 @@ import numpy as np
 from rich.table import Table
 
 from monoloc.client.drive import DriveResult
+from monoloc.core.formats import kitti
 
 PAPER_RMSE_M = 0.313
 
@@ -91,7 +92,7 @@ def make_plots(out: Path, client, map_id: int, dataset, results: dict[str, Drive
     frame = len(query) // 2
     answer = client.localize(map_id, query.image_paths[frame].read_bytes()).raw
     map_seq = dataset.root / "sequences" / dataset.sequences["map"]
-    times = np.loadtxt(map_seq / "times.txt").reshape(-1)
+    times = kitti.read_times(map_seq / "times.txt")
     by_id = {e["id"]: e for e in entries}
     shown = []
     for item in answer.get("retrieved", [])[:3]:

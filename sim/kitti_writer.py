@@ -1,4 +1,5 @@
-"""Writers (and small readers, for round trips in tests) of the KITTI odometry layout.
+"""Writers (and the binary readers tests use) of the KITTI odometry layout; the text
+files' formats are ``monoloc.core.formats.kitti`` and ``monoloc.core.formats.vehicle``.
 
 <root>/sequences/NN/image_0/%06d.png   uint8 gray
 <root>/sequences/NN/velodyne/%06d.bin  float32 (x, y, z, reflectance), LiDAR frame
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.formats import kitti, vehicle
 
 KITTI_STEREO_BASELINE_M = 0.5371657
 KITTI_COLOUR_OFFSET_M = -0.0598  # camera 2 sits ~6 cm left of camera 0 in KITTI
@@ -45,66 +47,30 @@ def projection_matrices(K: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def _row(values: np.ndarray) -> str:
-    return " ".join(f"{v + 0.0:.12e}" for v in np.asarray(values, dtype=np.float64).ravel())
-
-
 def write_calib(path: Path, K: np.ndarray, T_cam_from_lidar: np.ndarray) -> None:
     """calib.txt: ``P0: 12 numbers`` ... ``P3:``, ``Tr: 12 numbers``."""
-    lines = [f"P{i}: {_row(P)}" for i, P in enumerate(projection_matrices(K))]
-    lines.append(f"Tr: {_row(T_cam_from_lidar[:3, :4])}")
-    Path(path).write_text("\n".join(lines) + "\n")
-
-
-def read_calib(path: Path) -> dict[str, np.ndarray]:
-    """calib.txt -> {"P0": (3, 4), ..., "Tr": (4, 4)}."""
-    out: dict[str, np.ndarray] = {}
-    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        key, _, rest = line.partition(":")
-        values = np.array(rest.split(), dtype=np.float64)
-        if values.size != 12:
-            raise InvalidInputError(f"{path}:{n}: expected 12 numbers after {key!r}")
-        matrix = values.reshape(3, 4)
-        if key == "Tr":
-            matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
-        out[key] = matrix
-    return out
+    with open(path, "w") as handle:
+        kitti.write_calib(handle, kitti.KittiCalib(tuple(projection_matrices(K)), T_cam_from_lidar))
 
 
 def write_poses(path: Path, T_world_from_cam: np.ndarray) -> None:
     """(n, 4, 4) poses -> one line of 12 numbers (3x4 row-major) per frame."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(path, np.asarray(T_world_from_cam)[:, :3, :4].reshape(-1, 12), fmt="%.9e")
-
-
-def read_poses(path: Path) -> np.ndarray:
-    """poses/NN.txt -> (n, 4, 4) T_world_from_cam0."""
-    values = np.loadtxt(path, ndmin=2)
-    if values.shape[1] != 12:
-        raise InvalidInputError(f"{path}: expected 12 numbers per line, got {values.shape[1]}")
-    T = np.tile(np.eye(4), (len(values), 1, 1))
-    T[:, :3, :4] = values.reshape(-1, 3, 4)
-    return T
+    with open(path, "w") as handle:
+        kitti.write_poses(handle, T_world_from_cam)
 
 
 def write_times(path: Path, times_s: np.ndarray) -> None:
-    np.savetxt(path, np.asarray(times_s).reshape(-1, 1), fmt="%e")
+    with open(path, "w") as handle:
+        kitti.write_times(handle, times_s)
 
 
 def write_vehicle(
     path: Path, times_s: np.ndarray, speed_mps: np.ndarray, yaw_rate_radps: np.ndarray
 ) -> None:
     """vehicle.txt: ``t speed_mps yaw_rate_radps`` per frame."""
-    np.savetxt(
-        path, np.column_stack([times_s, speed_mps, yaw_rate_radps]), fmt=["%.6f", "%.6f", "%.7f"]
-    )
-
-
-def read_vehicle(path: Path) -> np.ndarray:
-    """vehicle.txt -> (n, 3) t, speed, yaw rate."""
-    return np.loadtxt(path, ndmin=2)
+    with open(path, "w") as handle:
+        vehicle.write_vehicle(handle, times_s, speed_mps, yaw_rate_radps)
 
 
 def write_image(path: Path, image: np.ndarray) -> None:

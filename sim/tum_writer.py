@@ -1,5 +1,5 @@
-"""Writers (and small readers, for round trips in tests and the preview) of the TUM RGB-D
-layout, one folder per run::
+"""Writers (and the depth reader tests use) of the TUM RGB-D layout, one folder per run;
+the text files' formats are ``monoloc.core.formats.tum`` and ``monoloc.core.formats.vehicle``::
 
     <root>/<run>/rgb/<t>.png        8-bit colour PNG (the sim renders monochrome: three
                                     identical channels)
@@ -11,7 +11,7 @@ layout, one folder per run::
                                     (OpenCV camera axes) at the motion capture's stamps
     <root>/<run>/vehicle.txt        "t speed_mps yaw_rate_radps" at the rgb stamps
     <root>/<run>/camera.json        fx, fy, cx, cy, width, height, depth_scale_per_m
-    <root>/dataset.json             what each run is (see monoloc.sim.indoor_generate)
+    <root>/dataset.json             what each run is (see monoloc.sim.indoor.generate)
 
 Timestamps are seconds on one clock (as TUM's, Unix-like), written with 6 decimals;
 an image's file name is its stamp exactly as listed.
@@ -26,58 +26,32 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.formats import tum, vehicle
 from monoloc.core.geometry import R_from_quaternion_xyzw, quaternion_xyzw_from_R
 
 DEPTH_SCALE_PER_M = 5000.0
 
 
-def stamp_text(t_s: float) -> str:
-    return f"{t_s:.6f}"
-
-
 def write_file_list(path: Path, what: str, source: str, stamps_s, rel_paths) -> None:
     """rgb.txt / depth.txt with TUM's header (``what``: 'color images' | 'depth maps')."""
-    lines = [f"# {what}", f"# file: '{source}'", "# timestamp filename"]
-    lines += [f"{stamp_text(t)} {p}" for t, p in zip(stamps_s, rel_paths, strict=True)]
-    Path(path).write_text("\n".join(lines) + "\n")
-
-
-def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
-    """rgb.txt / depth.txt -> (stamps (N,), relative paths)."""
-    stamps, files = [], []
-    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
-        if not line.strip() or line.startswith("#"):
-            continue
-        parts = line.split()
-        if len(parts) != 2:
-            raise InvalidInputError(f"{path}:{n}: expected 'timestamp filename'")
-        stamps.append(float(parts[0]))
-        files.append(parts[1])
-    return np.array(stamps), files
+    with open(path, "w") as handle:
+        tum.write_file_list(
+            handle, stamps_s, rel_paths, comments=[what, f"file: '{source}'", "timestamp filename"]
+        )
 
 
 def write_ground_truth(path: Path, source: str, stamps_s, T_world_from_cam) -> None:
     """groundtruth.txt: one ``t tx ty tz qx qy qz qw`` line per (4, 4) pose."""
-    lines = ["# ground truth trajectory", f"# file: '{source}'", "# timestamp tx ty tz qx qy qz qw"]
-    for t, T in zip(stamps_s, T_world_from_cam, strict=True):
-        q = quaternion_xyzw_from_R(T[:3, :3])
-        x, y, z = T[:3, 3]
-        lines.append(
-            f"{stamp_text(t)} {x:.6f} {y:.6f} {z:.6f} {q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}"
+    header = ["ground truth trajectory", f"file: '{source}'", "timestamp tx ty tz qx qy qz qw"]
+    with open(path, "w") as handle:
+        tum.write_trajectory(
+            handle,
+            stamps_s,
+            T_world_from_cam,
+            comments=header,
+            position_decimals=6,
+            quaternion_decimals=7,
         )
-    Path(path).write_text("\n".join(lines) + "\n")
-
-
-def read_ground_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """groundtruth.txt -> (stamps (N,), T_world_from_cam (N, 4, 4))."""
-    rows = np.loadtxt(path, comments="#", ndmin=2)
-    if rows.shape[1] != 8:
-        raise InvalidInputError(f"{path}: expected 8 numbers per line, got {rows.shape[1]}")
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    for i, row in enumerate(rows):
-        T[i, :3, :3] = R_from_quaternion_xyzw(row[4:8])
-        T[i, :3, 3] = row[1:4]
-    return rows[:, 0], T
 
 
 def pose_at(stamps_s: np.ndarray, T_world_from_cam: np.ndarray, t_s: float) -> np.ndarray:
@@ -106,16 +80,8 @@ def pose_at(stamps_s: np.ndarray, T_world_from_cam: np.ndarray, t_s: float) -> n
 
 def write_vehicle(path: Path, stamps_s, speed_mps, yaw_rate_radps) -> None:
     """vehicle.txt: ``t speed_mps yaw_rate_radps`` per rgb frame."""
-    lines = [
-        f"{stamp_text(t)} {v:.6f} {w:.7f}"
-        for t, v, w in zip(stamps_s, speed_mps, yaw_rate_radps, strict=True)
-    ]
-    Path(path).write_text("\n".join(lines) + "\n")
-
-
-def read_vehicle(path: Path) -> np.ndarray:
-    """vehicle.txt -> (n, 3) t, speed, yaw rate."""
-    return np.loadtxt(path, ndmin=2)
+    with open(path, "w") as handle:
+        vehicle.write_vehicle(handle, stamps_s, speed_mps, yaw_rate_radps)
 
 
 def write_camera_json(path: Path, intrinsics: CameraIntrinsics, extra: dict) -> None:

@@ -7,6 +7,8 @@ exits non-zero.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 
 class MonolocError(Exception):
     """Base of every error monoloc raises on purpose."""
@@ -30,3 +32,14 @@ class ConflictError(MonolocError):
     """The request contradicts what is stored (duplicate name, wrong state)."""
 
     http_status = 409
+
+
+class InputFileError(InvalidInputError):
+    """A file is missing or malformed. The message starts with ``path:line:`` (line
+    omitted when the whole file is at fault) so editors and people can jump to it."""
+
+    def __init__(self, path: Path | str, message: str, line: int | None = None) -> None:
+        self.path = Path(path)
+        self.line = line
+        where = f"{self.path}:{line}" if line is not None else f"{self.path}"
+        super().__init__(f"{where}: {message}")

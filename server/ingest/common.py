@@ -1,5 +1,6 @@
-"""What the dataset readers share: the error that names file and line, frame ranges,
-the loaded-frame record the ingestion pipeline consumes, and image decoding.
+"""What the dataset readers share: frame ranges, the loaded-frame record the ingestion
+pipeline consumes, and image decoding. (The text files' formats are
+``monoloc.core.formats``; their errors, ``InputFileError``, name the file and line.)
 
 A reader (``kitti.read_kitti_sequence``, ``tum.read_tum_run``) validates a recording's
 metadata completely when it is opened and returns a *source*: an object with
@@ -17,21 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from monoloc.core.errors import InvalidInputError
+from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.server.encoded_image import bounded_for_decoding
 
 _RANGE_RE = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*(?::\s*(-?\d*)\s*)?$")
-
-
-class InputFileError(InvalidInputError):
-    """A dataset file is missing or malformed. The message starts with ``path:line:``
-    (line omitted when the whole file is at fault) so editors and people can jump to it."""
-
-    def __init__(self, path: Path | str, message: str, line: int | None = None) -> None:
-        self.path = Path(path)
-        self.line = line
-        where = f"{self.path}:{line}" if line is not None else f"{self.path}"
-        super().__init__(f"{where}: {message}")
 
 
 def parse_frame_range(text: str | None) -> slice | None:
@@ -131,32 +121,3 @@ def png_size(path: Path) -> tuple[int, int]:
     if width <= 0 or height <= 0:
         raise InputFileError(path, f"PNG header gives an empty image ({width}x{height})")
     return width, height
-
-
-def read_number_rows(path: Path, n_columns: int, what: str) -> tuple[np.ndarray, list[int]]:
-    """Rows of ``n_columns`` finite floats from a text file (blank lines and lines starting
-    with '#' ignored). Returns ((N, n_columns) float64, the 1-based line number of each
-    row). InputFileError naming the line on a wrong count or a non-finite value."""
-    try:
-        text = Path(path).read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(path, f"cannot read {what}: {exc}") from exc
-    rows, line_numbers = [], []
-    for number, line in enumerate(text.splitlines(), start=1):
-        stripped = line.strip()
-        if not stripped or stripped.startswith("#"):
-            continue
-        fields = stripped.split()
-        if len(fields) != n_columns:
-            raise InputFileError(
-                path, f"{what} has {len(fields)} values, expected {n_columns}", number
-            )
-        try:
-            values = [float(f) for f in fields]
-        except ValueError as exc:
-            raise InputFileError(path, f"{what} is not numeric ({exc})", number) from exc
-        if not all(np.isfinite(values)):
-            raise InputFileError(path, f"{what} contains NaN or infinite values", number)
-        rows.append(values)
-        line_numbers.append(number)
-    return np.asarray(rows, dtype=np.float64).reshape(-1, n_columns), line_numbers

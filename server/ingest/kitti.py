@@ -14,7 +14,8 @@ present, else ``<seq>/../../poses/NN.txt``.
 
 Everything but the image and scan contents is validated when the sequence is opened,
 before anything is written: calib.txt (P0 a 3x4 pinhole matrix, Tr a 3x4 rigid
-transform), one finite rigid pose per line, as many timestamps as poses, and every
+transform), one finite rigid pose per line (the text formats are
+``monoloc.core.formats.kitti``), as many timestamps as poses, and every
 image and scan file of the whole sequence present (non-empty; scans a whole number of
 16-byte points). Frame counts must agree across poses, times, image_0 and velodyne.
 Errors name the file and the line.
@@ -35,16 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
-from monoloc.core.errors import InvalidInputError
-from monoloc.core.geometry import check_rigid, kitti_to_zup
-from monoloc.server.ingest.common import (
-    InputFileError,
-    LoadedFrame,
-    decode_gray,
-    png_size,
-    read_bytes,
-    read_number_rows,
-)
+from monoloc.core.errors import InputFileError, InvalidInputError
+from monoloc.core.formats import kitti as kitti_format
+from monoloc.core.geometry import kitti_to_zup
+from monoloc.server.ingest.common import LoadedFrame, decode_gray, png_size, read_bytes
 
 LIDAR_POINT_BYTES = 16  # float32 x, y, z, reflectance
 
@@ -123,58 +118,15 @@ def read_scan(path: Path) -> np.ndarray:
     return points if finite.all() else points[finite]
 
 
-def _calib_fields(path: Path) -> dict[str, tuple[int, list[str]]]:
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(path, f"cannot read calibration: {exc}") from exc
-    fields: dict[str, tuple[int, list[str]]] = {}
-    for number, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        key, sep, rest = line.partition(":")
-        if not sep:
-            raise InputFileError(path, "expected 'NAME: numbers'", number)
-        fields[key.strip()] = (number, rest.split())
-    return fields
-
-
-def _matrix_3x4(path: Path, fields: dict, key: str) -> np.ndarray:
-    if key not in fields:
-        raise InputFileError(path, f"no {key} line (KITTI calib.txt needs P0 and Tr)")
-    number, values = fields[key]
-    if len(values) != 12:
-        raise InputFileError(path, f"{key} has {len(values)} numbers, expected 12 (3x4)", number)
-    try:
-        matrix = np.array([float(v) for v in values]).reshape(3, 4)
-    except ValueError as exc:
-        raise InputFileError(path, f"{key} is not numeric ({exc})", number) from exc
-    if not np.all(np.isfinite(matrix)):
-        raise InputFileError(path, f"{key} contains NaN or infinite values", number)
-    return matrix
-
-
 def read_kitti_calibration(path: Path) -> KittiCalibration:
-    """Parse a KITTI odometry calib.txt (P0 -> intrinsics; Tr -> T_cam_from_lidar)."""
+    """A KITTI odometry calib.txt: P0 -> intrinsics; Tr -> T_cam_from_lidar."""
     path = Path(path)
     if not path.is_file():
         raise InputFileError(path, "calibration file is missing")
-    fields = _calib_fields(path)
-    P0 = _matrix_3x4(path, fields, "P0")
-    line_p0 = fields["P0"][0]
-    fx, fy, cx, cy = P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2]
-    pinhole = abs(P0[0, 1]) < 1e-9 and abs(P0[1, 0]) < 1e-9 and np.allclose(P0[2, :3], [0, 0, 1])
-    if not pinhole or fx <= 0 or fy <= 0:
-        raise InputFileError(
-            path, "P0 is not a pinhole camera matrix [fx 0 cx tx; 0 fy cy ty; 0 0 1 tz]", line_p0
-        )
-    Tr = np.eye(4)
-    Tr[:3] = _matrix_3x4(path, fields, "Tr")
-    try:
-        check_rigid(Tr, "Tr", tol=1e-3)
-    except InvalidInputError as exc:
-        raise InputFileError(path, f"Tr is not a rigid transform ({exc})", fields["Tr"][0]) from exc
-    return KittiCalibration(float(fx), float(fy), float(cx), float(cy), Tr)
+    calib = kitti_format.read_calib(path)
+    P0 = calib.P_image_from_cam0[0]
+    fx, fy, cx, cy = (float(v) for v in (P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2]))
+    return KittiCalibration(fx, fy, cx, cy, calib.T_cam0_from_lidar)
 
 
 def read_kitti_poses(path: Path) -> np.ndarray:
@@ -182,17 +134,7 @@ def read_kitti_poses(path: Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputFileError(path, "poses file is missing (KITTI poses/NN.txt)")
-    rows, lines = read_number_rows(path, 12, "pose")
-    poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    poses[:, :3, :] = rows.reshape(-1, 3, 4)
-    for pose, number in zip(poses, lines, strict=True):
-        try:
-            check_rigid(pose, "pose", tol=1e-3)
-        except InvalidInputError as exc:
-            raise InputFileError(path, f"pose is not rigid ({exc})", number) from exc
-    if len(poses) == 0:
-        raise InputFileError(path, "no poses")
-    return poses
+    return kitti_format.read_poses(path)
 
 
 def _resolve(root: Path, sequence: str | None) -> tuple[Path, str, Path]:
@@ -259,7 +201,7 @@ def read_kitti_sequence(
     times_path = folder / "times.txt"
     if not times_path.is_file():
         raise InputFileError(times_path, "times file is missing")
-    times, _ = read_number_rows(times_path, 1, "timestamp")
+    times = kitti_format.read_times(times_path)
     if len(times) != n:
         raise InputFileError(
             times_path, f"has {len(times)} timestamps but {poses_path} has {n} poses"
@@ -278,7 +220,7 @@ def read_kitti_sequence(
     selected = [
         KittiFrame(
             index=i,
-            timestamp_s=float(times[i, 0]),
+            timestamp_s=float(times[i]),
             image_path=folder / "image_0" / f"{i:06d}.png",
             scan_path=folder / "velodyne" / f"{i:06d}.bin",
             T_world_from_cam=T_world_from_cam[i],

@@ -19,9 +19,9 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.camera import KITTI_CAM0, CameraIntrinsics
-from monoloc.core.errors import InvalidInputError
+from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.prior import RetrievalPrior
-from monoloc.server.ingest.common import InputFileError, png_size
+from monoloc.server.ingest.common import png_size
 from monoloc.server.ingest.pipeline import IngestConfig, IngestSummary, ingest_run
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo

@@ -36,10 +36,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from monoloc.core.errors import InvalidInputError
+from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
-from monoloc.server.ingest.common import InputFileError, read_bytes
+from monoloc.server.ingest.common import read_bytes
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo

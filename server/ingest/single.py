@@ -14,11 +14,11 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.camera import CameraIntrinsics
-from monoloc.core.errors import InvalidInputError
+from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import check_rigid, planar_from_T_world_from_cam
 from monoloc.server.encoded_image import read_image_header
 from monoloc.server.entry_builder import BuildConfig, DepthSource, LidarSource, build_entry
-from monoloc.server.ingest.common import InputFileError, decode_depth, decode_gray, read_bytes
+from monoloc.server.ingest.common import decode_depth, decode_gray, read_bytes
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope

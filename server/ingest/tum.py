@@ -1,6 +1,6 @@
 """Reader of TUM RGB-D runs (and of the sim's indoor output, which has the same layout).
 
-Layout::
+Layout (the text files' formats are ``monoloc.core.formats.tum``)::
 
     <root>/rgb.txt           "timestamp path" per line ('#' comments), paths relative to root
     <root>/depth.txt         same, 16-bit depth PNGs registered to the colour image
@@ -38,16 +38,15 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
-from monoloc.core.errors import InvalidInputError
+from monoloc.core.errors import InputFileError, InvalidInputError
+from monoloc.core.formats import tum as tum_format
 from monoloc.core.geometry import R_from_quaternion_xyzw, kitti_to_zup
 from monoloc.server.ingest.common import (
-    InputFileError,
     LoadedFrame,
     decode_depth,
     decode_gray,
     png_size,
     read_bytes,
-    read_number_rows,
 )
 
 TUM_DEPTH_SCALE_PER_M = 5000.0
@@ -103,32 +102,8 @@ class TumRun:
 def read_file_list(path: Path) -> tuple[np.ndarray, list[Path]]:
     """rgb.txt / depth.txt -> (timestamps (N,), absolute paths); every file must exist."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(path, f"cannot read file list: {exc}") from exc
-    stamps, files = [], []
-    for number, line in enumerate(lines, start=1):
-        stripped = line.strip()
-        if not stripped or stripped.startswith("#"):
-            continue
-        fields = stripped.split()
-        if len(fields) < 2:
-            raise InputFileError(path, "expected 'timestamp filename'", number)
-        try:
-            stamp = float(fields[0])
-        except ValueError as exc:
-            raise InputFileError(path, f"timestamp {fields[0]!r} is not a number", number) from exc
-        if not np.isfinite(stamp):
-            raise InputFileError(path, "timestamp is not finite", number)
-        file = path.parent / fields[1]
-        if not file.is_file():
-            raise InputFileError(path, f"lists {fields[1]}, which does not exist", number)
-        stamps.append(stamp)
-        files.append(file)
-    if not files:
-        raise InputFileError(path, "lists no files")
-    return np.asarray(stamps), files
+    stamps, names = tum_format.read_file_list(path, root=path.parent)
+    return stamps, [path.parent / name for name in names]
 
 
 def associate(
@@ -200,20 +175,16 @@ def ground_truth_at(
 
 
 def read_ground_truth(path: Path) -> np.ndarray:
-    """groundtruth.txt -> (N, 8) rows sorted by time, quaternions normalised."""
+    """groundtruth.txt -> (N, 8) rows (t tx ty tz qx qy qz qw) sorted by time, quaternions
+    normalised."""
     path = Path(path)
     if not path.is_file():
         raise InputFileError(path, "ground-truth file is missing")
-    rows, lines = read_number_rows(path, 8, "ground-truth pose")
-    norms = np.linalg.norm(rows[:, 4:8], axis=1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > 0.01)
-    if len(bad):
-        raise InputFileError(
-            path, f"quaternion norm {norms[bad[0]]:.4f} is not 1 (qx qy qz qw)", lines[bad[0]]
-        )
-    if len(rows) == 0:
-        raise InputFileError(path, "no ground-truth poses")
-    rows[:, 4:8] /= norms[:, None]
+    gt = tum_format.read_trajectory(path)
+    q = gt.q_world_from_cam_xyzw
+    rows = np.column_stack(
+        [gt.timestamps_s, gt.position_world_m, q / np.linalg.norm(q, axis=1)[:, None]]
+    )
     return rows[np.argsort(rows[:, 0], kind="stable")]
 
 

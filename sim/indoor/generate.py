@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monoloc.core.formats import tum
 from monoloc.sim import tum_writer as tw
 from monoloc.sim.camera import CameraConfig, auto_exposure, expose, shade
 from monoloc.sim.indoor.infield import obstacles_scene
@@ -85,14 +86,14 @@ def write_run_metadata(config, indoor: IndoorConfig, plan: IndoorRunPlan, out_di
         "color images",
         source,
         rgb_stamps,
-        [f"rgb/{tw.stamp_text(t)}.png" for t in rgb_stamps],
+        [f"rgb/{tum.stamp_text(t)}.png" for t in rgb_stamps],
     )
     tw.write_file_list(
         run_dir / "depth.txt",
         "depth maps",
         source,
         depth_stamps,
-        [f"depth/{tw.stamp_text(t)}.png" for t in depth_stamps],
+        [f"depth/{tum.stamp_text(t)}.png" for t in depth_stamps],
     )
     rng = np.random.default_rng([plan.seed, 1])
     e = indoor.errors
@@ -194,8 +195,8 @@ def render_chunk(
             indoor.render,
             rng,
         )
-        rgb_stamp = tw.stamp_text(plan.stamp0_s + plan.rgb_times_s[k])
-        depth_stamp = tw.stamp_text(plan.stamp0_s + plan.depth_times_s[k])
+        rgb_stamp = tum.stamp_text(plan.stamp0_s + plan.rgb_times_s[k])
+        depth_stamp = tum.stamp_text(plan.stamp0_s + plan.depth_times_s[k])
         tw.write_rgb(run_dir / "rgb" / f"{rgb_stamp}.png", image)
         tw.write_depth(run_dir / "depth" / f"{depth_stamp}.png", depth)
 

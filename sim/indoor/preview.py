@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.errors import NotFoundError
+from monoloc.core.formats import tum
 from monoloc.sim import tum_writer as tw
 from monoloc.sim.indoor.track import TrackShape, centre_line
 
@@ -59,12 +60,12 @@ def write_indoor_preview(dataset: Path, info: dict, out: Path, per_run: int = 4)
         run_dir = dataset / seq.get("path", seq["id"])
         if not (run_dir / "rgb.txt").exists():
             raise NotFoundError(f"{run_dir / 'rgb.txt'} does not exist")
-        _, T = tw.read_ground_truth(run_dir / "groundtruth.txt")
+        T = tum.read_trajectory(run_dir / "groundtruth.txt").T_world_from_cam
         ax_map = axes[seq["room"]]
         ax_map.plot(T[:, 0, 3], T[:, 1, 3], lw=1.0, label=f"{seq['id']} ({seq['frames']} frames)")
         ax_map.plot(T[0, 0, 3], T[0, 1, 3], "o", ms=3, color="k")
-        _, rgb = tw.read_file_list(run_dir / "rgb.txt")
-        _, depth = tw.read_file_list(run_dir / "depth.txt")
+        _, rgb = tum.read_file_list(run_dir / "rgb.txt")
+        _, depth = tum.read_file_list(run_dir / "depth.txt")
         picks = np.linspace(0, len(rgb) - 1, per_run).astype(int)
         for j, idx in enumerate(picks):
             ax = fig.add_subplot(grid[k, 2 + j])

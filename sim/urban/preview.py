@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from monoloc.core.formats.kitti import read_poses
 from monoloc.core.geometry import kitti_to_zup
-from monoloc.sim.kitti_writer import read_poses
 
 
 def write_urban_preview(dataset: Path, info: dict, out: Path, per_run: int = 4) -> Path:

@@ -4,28 +4,24 @@ import math
 import numpy as np
 import pytest
 
-from monoloc.client.trajectory import (
-    poses_from_planar,
-    trajectory_metrics,
-    write_kitti,
-    write_trajectory_files,
-    write_tum,
-)
+from monoloc.client.trajectory import poses_from_planar, trajectory_metrics, write_trajectory_files
 from monoloc.core.errors import InvalidInputError
-from monoloc.core.geometry import kitti_to_zup, planar_from_T_world_from_cam
+from monoloc.core.formats.kitti import write_poses
+from monoloc.core.formats.tum import write_trajectory
+from monoloc.core.geometry import kitti_to_zup, planar_from_T_world_from_cam, zup_to_kitti
 
 
 def test_tum_and_kitti_round_trip_through_text():
     planar = np.array([[1.0, 2.0, 0.3], [4.0, -1.0, -2.9]])
     poses = poses_from_planar(planar, height_m=1.65)
     buf = io.StringIO()
-    write_tum(buf, np.array([0.0, 0.1]), poses)
+    write_trajectory(buf, np.array([0.0, 0.1]), poses)
     rows = np.loadtxt(io.StringIO(buf.getvalue()))
     assert rows.shape == (2, 8)
     assert np.allclose(rows[:, 1:4], poses[:, :3, 3])
     assert np.allclose(np.linalg.norm(rows[:, 4:], axis=1), 1.0)
     buf = io.StringIO()
-    write_kitti(buf, poses)
+    write_poses(buf, zup_to_kitti(poses))
     kitti = np.loadtxt(io.StringIO(buf.getvalue())).reshape(-1, 3, 4)
     T = np.tile(np.eye(4), (2, 1, 1))
     T[:, :3, :] = kitti

@@ -3,6 +3,8 @@ import hashlib
 import numpy as np
 
 from monoloc.core.camera import KITTI_CAM0
+from monoloc.core.formats import kitti
+from monoloc.core.formats.vehicle import read_vehicle
 from monoloc.core.geometry import invert_rigid
 from monoloc.sim import kitti_writer as kw
 from monoloc.sim.generate import GenerateConfig, generate_dataset
@@ -49,14 +51,14 @@ def test_files_follow_the_kitti_layout(exact_dataset, tiny_config):
         assert [ln.split(":")[0] for ln in lines] == ["P0", "P1", "P2", "P3", "Tr"]
         assert all(len(ln.split()) == 13 for ln in lines)
         assert np.loadtxt(d / "times.txt").shape == (n,)
-        assert kw.read_vehicle(d / "vehicle.txt").shape == (n, 3)
-        assert kw.read_poses(root / "poses" / f"{seq['id']}.txt").shape == (n, 4, 4)
+        assert len(read_vehicle(d / "vehicle.txt")) == n
+        assert kitti.read_poses(root / "poses" / f"{seq['id']}.txt").shape == (n, 4, 4)
         import cv2
 
         image = cv2.imread(str(d / "image_0" / "000000.png"), cv2.IMREAD_UNCHANGED)
         k = KITTI_CAM0.scaled(tiny_config.image_scale)
         assert image.dtype == np.uint8 and image.shape == (k.height_px, k.width_px)
-    assert np.allclose(kw.read_poses(root / "poses" / "00.txt")[0], np.eye(4), atol=1e-8)
+    assert np.allclose(kitti.read_poses(root / "poses" / "00.txt")[0], np.eye(4), atol=1e-8)
 
 
 def test_lidar_agrees_with_rendered_depth(exact_dataset):
@@ -66,13 +68,14 @@ def test_lidar_agrees_with_rendered_depth(exact_dataset):
     5 cm for at least 95 % of points (the LiDAR has 2 cm range noise)."""
     root, info = exact_dataset
     d = kw.sequence_dir(root, "00")
-    calib = kw.read_calib(d / "calib.txt")
+    calib = kitti.read_calib(d / "calib.txt")
+    Tr, P0 = calib.T_cam0_from_lidar, calib.P_image_from_cam0[0]
     checked, agree = 0, 0
     for k in range(4):
         pts = kw.read_velodyne(d / "velodyne" / f"{k:06d}.bin")[:, :3].astype(np.float64)
-        cam = pts @ calib["Tr"][:3, :3].T + calib["Tr"][:3, 3]
+        cam = pts @ Tr[:3, :3].T + Tr[:3, 3]
         cam = cam[cam[:, 2] > 1.0]
-        u, v, z = _project(cam, calib["P0"])
+        u, v, z = _project(cam, P0)
         depth = kw.read_depth(d / "depth" / f"{k:06d}.png")
         ok, z_img, smooth = _interp_depth(depth, u, v)
         err = np.abs(z_img - z[ok])[smooth]
@@ -88,9 +91,9 @@ def test_written_poses_reproduce_the_rendered_views(exact_dataset):
     in frame 3 is the predicted one."""
     root, _ = exact_dataset
     d = kw.sequence_dir(root, "00")
-    P0 = kw.read_calib(d / "calib.txt")["P0"]
+    P0 = kitti.read_calib(d / "calib.txt").P_image_from_cam0[0]
     K = P0[:, :3]
-    poses = kw.read_poses(root / "poses" / "00.txt")
+    poses = kitti.read_poses(root / "poses" / "00.txt")
     d0, d3 = (kw.read_depth(d / "depth" / f"{k:06d}.png") for k in (0, 3))
     v, u = np.mgrid[0 : d0.shape[0] : 3, 0 : d0.shape[1] : 3]
     z = d0[v, u]

@@ -6,6 +6,8 @@ import json
 import numpy as np
 import pytest
 
+from monoloc.core.formats import tum
+from monoloc.core.formats.vehicle import read_vehicle
 from monoloc.core.geometry import invert_rigid
 from monoloc.sim import tum_writer as tw
 from monoloc.sim.generate import GenerateConfig, generate_dataset
@@ -60,14 +62,15 @@ def test_runs_follow_the_tum_layout(noisy_dataset):
     for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
         head = (run / name).read_text().splitlines()[:3]
         assert all(line.startswith("#") for line in head), name
-    rgb_t, rgb_files = tw.read_file_list(run / "rgb.txt")
-    depth_t, depth_files = tw.read_file_list(run / "depth.txt")
-    gt_t, T = tw.read_ground_truth(run / "groundtruth.txt")
-    vehicle = tw.read_vehicle(run / "vehicle.txt")
+    rgb_t, rgb_files = tum.read_file_list(run / "rgb.txt")
+    depth_t, depth_files = tum.read_file_list(run / "depth.txt")
+    gt = tum.read_trajectory(run / "groundtruth.txt")
+    gt_t, T = gt.timestamps_s, gt.T_world_from_cam
+    signals = read_vehicle(run / "vehicle.txt")
     n = info["sequences"][0]["frames"]
-    assert len(rgb_t) == len(depth_t) == len(vehicle) == n == 4
+    assert len(rgb_t) == len(depth_t) == len(signals) == n == 4
     assert all((run / f).is_file() for f in rgb_files + depth_files)
-    assert rgb_files[0] == f"rgb/{tw.stamp_text(rgb_t[0])}.png"
+    assert rgb_files[0] == f"rgb/{tum.stamp_text(rgb_t[0])}.png"
     for stamps in (rgb_t, depth_t, gt_t):
         assert np.all(np.diff(stamps) > 0)
     # Depth is stamped a few ms off the colour image, within TUM's association tolerance.
@@ -75,7 +78,7 @@ def test_runs_follow_the_tum_layout(noisy_dataset):
     assert np.all(np.abs(offset) < 0.02) and np.abs(offset).max() > 1e-4
     assert gt_t[0] <= min(rgb_t[0], depth_t[0]) and gt_t[-1] >= max(rgb_t[-1], depth_t[-1])
     assert np.all(np.diff(gt_t) < 0.006)  # 200 Hz motion capture
-    assert np.allclose(vehicle[:, 0], rgb_t, atol=1e-6)
+    assert np.allclose(signals.timestamps_s, rgb_t, atol=1e-6)
     assert np.allclose(np.linalg.det(T[:, :3, :3]), 1.0)
     camera = json.loads((run / "camera.json").read_text())
     assert camera["depth_scale_per_m"] == 5000 and camera["world_frame"] == "z-up"
@@ -94,7 +97,7 @@ def test_depth_png_is_the_rendered_depth_up_to_quantisation(exact_dataset):
     root, _ = exact_dataset
     indoor, plan = _plan(EXACT, "map")
     scene, bank = run_scene(EXACT, indoor, plan)
-    _, depth_files = tw.read_file_list(root / "map" / "depth.txt")
+    _, depth_files = tum.read_file_list(root / "map" / "depth.txt")
     for k in (0, 3):
         T = T_world_from_cam_at(plan, indoor.rig, plan.depth_times_s[k : k + 1])[0]
         _, true_m, _ = render_rgbd(
@@ -122,7 +125,7 @@ def test_depth_noise_grows_with_depth_squared(noisy_dataset):
     root, _ = noisy_dataset
     indoor, plan = _plan(NOISY, "map")
     scene, bank = run_scene(NOISY, indoor, plan)
-    _, depth_files = tw.read_file_list(root / "map" / "depth.txt")
+    _, depth_files = tum.read_file_list(root / "map" / "depth.txt")
     T = T_world_from_cam_at(plan, indoor.rig, plan.depth_times_s[:1])[0]
     _, true_m, _ = render_rgbd(
         scene,
@@ -178,8 +181,9 @@ def test_written_poses_reproduce_the_views(exact_dataset):
     run = root / "query"
     camera = json.loads((run / "camera.json").read_text())
     K = np.array([[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1]])
-    gt_t, T_gt = tw.read_ground_truth(run / "groundtruth.txt")
-    stamps, files = tw.read_file_list(run / "depth.txt")
+    gt = tum.read_trajectory(run / "groundtruth.txt")
+    gt_t, T_gt = gt.timestamps_s, gt.T_world_from_cam
+    stamps, files = tum.read_file_list(run / "depth.txt")
     d0, d3 = (tw.read_depth(run / files[k]) for k in (0, 3))
     T0, T3 = (tw.pose_at(gt_t, T_gt, stamps[k]) for k in (0, 3))
     assert np.linalg.norm(T3[:3, 3] - T0[:3, 3]) > 0.1  # the car moved
@@ -231,7 +235,7 @@ def test_cli_generates_and_previews(tmp_path):
     args = ["generate", "--scenario", "indoor", "--seed", str(SEED), "--out", str(out)]
     result = runner.invoke(app, [*args, "--runs", "map", "--frames", "2", "--scale", "0.25"])
     assert result.exit_code == 0, result.output
-    assert len(tw.read_file_list(out / "map" / "rgb.txt")[0]) == 2
+    assert len(tum.read_file_list(out / "map" / "rgb.txt")[0]) == 2
     result = runner.invoke(app, ["preview", str(out)])
     assert result.exit_code == 0, result.output
     import cv2
@@ -244,12 +248,13 @@ def test_cli_generates_and_previews(tmp_path):
 def test_server_tum_reader_reads_the_output(noisy_dataset):
     """The contract: monoloc's own TUM reader associates every frame and gets the
     camera and the ground truth."""
-    tum = pytest.importorskip("monoloc.server.ingest.tum")
+    server_tum = pytest.importorskip("monoloc.server.ingest.tum")
     root, info = noisy_dataset
-    run = tum.read_tum_run(root / "map")
+    run = server_tum.read_tum_run(root / "map")
     assert run.n_frames == info["sequences"][0]["frames"] and not run.read_skips
     assert run.intrinsics.fx == pytest.approx(307.5) and run.depth_scale_per_m == 5000
-    gt_t, T_gt = tw.read_ground_truth(root / "map" / "groundtruth.txt")
+    gt = tum.read_trajectory(root / "map" / "groundtruth.txt")
+    gt_t, T_gt = gt.timestamps_s, gt.T_world_from_cam
     frame = run.frames[-1]
     assert np.allclose(frame.T_world_from_cam, tw.pose_at(gt_t, T_gt, frame.timestamp_s), atol=1e-5)
 

@@ -5,6 +5,8 @@ import math
 import numpy as np
 import pytest
 
+from monoloc.core.formats import tum
+from monoloc.core.formats.vehicle import read_vehicle
 from monoloc.core.geometry import invert_rigid
 from monoloc.sim import tum_writer as tw
 from monoloc.sim.generate import GenerateConfig
@@ -93,12 +95,13 @@ def _integration_errors(tmp_path, indoor, plan, window=45):
     (3 s) against the rear-axle path recovered from groundtruth.txt."""
     write_run_metadata(CONFIG, indoor, plan, tmp_path)
     run = tmp_path / plan.run
-    signals = tw.read_vehicle(run / "vehicle.txt")
-    gt_t, T_gt = tw.read_ground_truth(run / "groundtruth.txt")
-    T_cam = np.stack([tw.pose_at(gt_t, T_gt, t) for t in signals[:, 0]])
+    signals = read_vehicle(run / "vehicle.txt")
+    gt = tum.read_trajectory(run / "groundtruth.txt")
+    gt_t, T_gt = gt.timestamps_s, gt.T_world_from_cam
+    T_cam = np.stack([tw.pose_at(gt_t, T_gt, t) for t in signals.timestamps_s])
     T_vehicle = T_cam @ invert_rigid(indoor.rig.T_vehicle_from_cam())
     yaw = np.arctan2(T_vehicle[:, 1, 0], T_vehicle[:, 0, 0])
-    t, v, w = signals[:, 0], signals[:, 1], signals[:, 2]
+    t, v, w = signals.timestamps_s, signals.speed_mps, signals.yaw_rate_radps
     errors = []
     for start in range(0, len(t) - window, window):
         x, y, psi = T_vehicle[start, 0, 3], T_vehicle[start, 1, 3], yaw[start]

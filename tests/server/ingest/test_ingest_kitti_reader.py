@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from monoloc.core.errors import InvalidInputError
+from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import kitti_to_zup
-from monoloc.server.ingest.common import InputFileError, parse_frame_range
+from monoloc.server.ingest.common import parse_frame_range
 from monoloc.server.ingest.kitti import read_kitti_sequence
 
 

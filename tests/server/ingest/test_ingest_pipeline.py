@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from monoloc.core.errors import InputFileError
 from monoloc.core.geometry import zup_to_kitti
-from monoloc.server.ingest.common import InputFileError
 from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import IngestConfig, ingest_run
 from monoloc.server.storage import entries as entries_repo
