@@ -62,7 +62,7 @@ def calibrate_on(train, vocabulary):
     """The measurement model fitted on a training run (KittiSequence / TumRun), each frame
     read once, exactly as the server's calibration job does."""
     from monoloc.server.calibrate import CalibrationConfig, calibrate
-    from monoloc.server.calibrate_jobs import training_frames
+    from monoloc.server.jobs.calibration import training_frames
 
     return calibrate(
         training_frames(train),

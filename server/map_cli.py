@@ -181,9 +181,9 @@ def map_vocab(
     """Train a vocabulary (k=64) from a run and/or switch the map to it (a recorded job:
     every entry's VLAD and code is recomputed)."""
     from monoloc.server.ingest.common import parse_frame_range
-    from monoloc.server.ingest.jobs import run_vocabulary_job
     from monoloc.server.ingest.manage import open_source
     from monoloc.server.ingest.report import progress_bar
+    from monoloc.server.jobs.vocabulary import run_vocabulary_job
 
     _, factory = open_database(ctx)
     if (train_from is None) == (vocabulary is None):
@@ -232,10 +232,10 @@ def map_calibrate(
     """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
     store it with its provenance (a recorded job; the run is not added to the map)."""
     from monoloc.server.calibrate import CalibrationConfig
-    from monoloc.server.calibrate_jobs import describe_calibration, run_calibration_job
     from monoloc.server.ingest.common import parse_frame_range
     from monoloc.server.ingest.manage import open_source
     from monoloc.server.ingest.report import progress_bar
+    from monoloc.server.jobs.calibration import describe_calibration, run_calibration_job
 
     _, factory = open_database(ctx)
     config = CalibrationConfig(k=k)

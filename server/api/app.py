@@ -86,11 +86,11 @@ def _limit_threads(settings: Settings):
 def _start(settings: Settings, metrics: Metrics) -> AppState:
     """Blocking start-up work (run in a thread by the lifespan)."""
     from monoloc.server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
-    from monoloc.server.api.job_handlers import HANDLERS
-    from monoloc.server.api.jobs import JobRunner
+    from monoloc.server.jobs.handlers import HANDLERS
+    from monoloc.server.jobs.runner import JobRunner
+    from monoloc.server.jobs.store import mark_interrupted_jobs
     from monoloc.server.runtime import MapRegistry
     from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
-    from monoloc.server.storage.jobs import mark_interrupted_jobs
     from monoloc.server.storage.migrate import upgrade_database
     from monoloc.server.vision.warmup import warm_up
 

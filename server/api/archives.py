@@ -12,7 +12,6 @@ the destination directory, which the caller deletes on any error.
 
 from __future__ import annotations
 
-import shutil
 import stat
 import tarfile
 import zipfile
@@ -199,20 +198,3 @@ def save_file_set(
         fileobj.seek(0)
         writer.add_file(path, size, fileobj)
     return Unpacked(writer.n_files, writer.total_bytes)
-
-
-def dataset_root(dest: Path) -> Path:
-    """``dest``, or the directory it wraps when it holds a single directory and nothing
-    else (archives usually contain one top-level folder)."""
-    root = dest
-    for _ in range(4):
-        children = [c for c in root.iterdir() if not c.name.startswith(".")]
-        if len(children) != 1 or not children[0].is_dir():
-            break
-        root = children[0]
-    return root
-
-
-def remove_tree(path: Path) -> None:
-    """Delete an upload directory (missing is fine)."""
-    shutil.rmtree(path, ignore_errors=True)

@@ -17,7 +17,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.api.archives import remove_tree
+from monoloc.server.jobs.uploads import remove_tree
 from monoloc.server.settings import Settings
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.keys import KEY_PREFIX, PREFIX_CHARS, hash_api_key

@@ -29,8 +29,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from starlette.requests import HTTPConnection
 
 from monoloc.server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
-from monoloc.server.api.jobs import JobRunner
 from monoloc.server.api.metrics import Metrics
+from monoloc.server.jobs.runner import JobRunner
 from monoloc.server.runtime import MapRegistry
 from monoloc.server.settings import Settings
 from monoloc.server.storage.db import session_scope

@@ -22,17 +22,10 @@ from fastapi import File, Form, UploadFile
 from sqlalchemy.orm import Session
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.api.archives import (
-    ArchiveLimits,
-    Unpacked,
-    dataset_root,
-    remove_tree,
-    save_file_set,
-    unpack_archive,
-)
+from monoloc.server.api.archives import ArchiveLimits, Unpacked, save_file_set, unpack_archive
 from monoloc.server.api.bootstrap import INCOMING_PREFIX, uploads_dir
 from monoloc.server.api.deps import AppState
-from monoloc.server.api.job_handlers import open_source
+from monoloc.server.jobs.uploads import dataset_root, open_source, remove_tree
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import JobRecord

@@ -1,6 +1,6 @@
 """Ingestion of recordings into maps: readers (``kitti``, ``tum``), the pipeline
 (``pipeline.ingest_run``), single images (``single``), vocabularies (``vocab``) and
-the typed operations behind the CLI (``manage``, ``jobs``, ``report``).
+the typed operations behind the CLI (``manage``, ``report``).
 
 Nothing is imported here so that ``import monoloc.server.ingest`` stays cheap.
 """

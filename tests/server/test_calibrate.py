@@ -162,8 +162,8 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     from typer.testing import CliRunner
 
     from monoloc import cli
+    from monoloc.server.jobs import store as jobs_repo
     from monoloc.server.settings import Settings
-    from monoloc.server.storage import jobs as jobs_repo
     from monoloc.server.storage import maps as maps_repo
     from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
 

@@ -36,8 +36,8 @@ from monoloc.server.api.uploads import (
     upload_name,
 )
 from monoloc.server.calibrate import CalibrationConfig, check_run_length
-from monoloc.server.calibrate_jobs import JOB_KIND
-from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.jobs import store as jobs_repo
+from monoloc.server.jobs.calibration import JOB_KIND
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.records import JobRecord
 

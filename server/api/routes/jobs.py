@@ -10,7 +10,7 @@ from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import MapWriteKey, SessionDep, StateDep
 from monoloc.server.api.schemas import JobList, JobPublic
-from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.jobs import store as jobs_repo
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

@@ -11,8 +11,8 @@ from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AdminKey, LocalizeKey, RegistryDep, SessionDep, StateDep
 from monoloc.server.api.schemas import JobPublic, MapCreate, MapDetail, MapList, VocabularyJobCreate
+from monoloc.server.jobs import store as jobs_repo
 from monoloc.server.storage import entries as entries_repo
-from monoloc.server.storage import jobs as jobs_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
 

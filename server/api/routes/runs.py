@@ -34,7 +34,7 @@ from monoloc.server.api.uploads import (
     store_upload,
     upload_name,
 )
-from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.jobs import store as jobs_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.entry_checks import normalise_tags

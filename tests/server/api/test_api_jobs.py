@@ -57,7 +57,7 @@ def test_interrupted_ingestion_resumes_without_duplicates(sim_dataset, tmp_path,
             assert time.monotonic() < deadline
             time.sleep(0.02)
     # Shutdown asked the job to stop: it committed what it had and is 'interrupted'.
-    from monoloc.server.storage import jobs as jobs_repo
+    from monoloc.server.jobs import store as jobs_repo
     from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
 
     engine = create_engine_for(settings)

@@ -4,6 +4,7 @@ from sqlalchemy import func, select
 
 from monoloc.core.camera import KITTI_CAM0
 from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
+from monoloc.server.jobs.store import create_job, get_job
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.entries import (
     add_entry,
@@ -17,7 +18,6 @@ from monoloc.server.storage.entries import (
     tag_counts,
     update_entry_vlad,
 )
-from monoloc.server.storage.jobs import create_job, get_job
 from monoloc.server.storage.maps import (
     create_map,
     delete_map,

@@ -1,14 +1,14 @@
 import pytest
 
 from monoloc.core.errors import ConflictError, InvalidInputError
-from monoloc.server.storage.db import session_scope
-from monoloc.server.storage.jobs import (
+from monoloc.server.jobs.store import (
     create_job,
     get_job,
     list_jobs,
     mark_interrupted_jobs,
     update_job,
 )
+from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.keys import (
     create_api_key,
     list_api_keys,

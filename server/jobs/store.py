@@ -1,5 +1,5 @@
-"""Repository of durable jobs (ingestion, vocabulary change, ...): state, progress,
-message, error, result. Never commits.
+"""The durable store of jobs: the SQL of the ``jobs`` table (state, progress, message,
+error, result of each ingestion, vocabulary change, calibration). Never commits.
 
 Job states: queued -> running -> done | failed | interrupted. An interrupted or failed
 job may be queued or run again (resumed); done is final. On start-up the server calls

@@ -1,11 +1,12 @@
-"""Calibration of a map from a training run, at the edges of ``monoloc.server.calibrate``: read
-the run's frames, fit the measurement model, store it (with its provenance) on the map.
+"""The ``calibrate`` job kind: fit a map's measurement model on a training run (METHOD.md
+section 7) and store it, with its provenance, on the map. At the edges of
+``monoloc.server.calibrate``: read the run's frames, fit, store.
 
-The HTTP job handler (``monoloc.server.api.job_handlers.run_calibration``) and ``monoloc map
-calibrate`` (:func:`run_calibration_job`, recorded as a job row like the CLI's
-vocabulary job) both end in :func:`calibrate_map`. The training run is never added to
-the map: its temporary map lives in memory only. Calibrating again replaces the stored
-parameters, so an interrupted calibration is resumed by running it again.
+The job runner (:func:`run_calibration`, a training run uploaded over HTTP) and
+``monoloc map calibrate`` (:func:`run_calibration_job`, recorded as a job row like the
+CLI's vocabulary job) both end in :func:`calibrate_map`. The training run is never
+added to the map: its temporary map lives in memory only. Calibrating again replaces
+the stored parameters, so an interrupted calibration is resumed by running it again.
 """
 
 from __future__ import annotations
@@ -21,11 +22,14 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.errors import ConflictError
 from monoloc.server.calibrate import CalibrationConfig, TrainingFrame, calibrate, check_run_length
-from monoloc.server.job_progress import progress_recorder, update_job_now
-from monoloc.server.storage import jobs as jobs_repo
+from monoloc.server.ingest.manage import find_map
+from monoloc.server.jobs.context import JobContext, JobInterruptedError
+from monoloc.server.jobs.lifecycle import run_recorded_job
+from monoloc.server.jobs.uploads import dataset_root, open_source
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import JobRecord
+from monoloc.server.vision.vocabulary import Vocabulary
 
 JOB_KIND = "calibrate"
 
@@ -37,9 +41,7 @@ def training_frames(source) -> Iterator[TrainingFrame]:
         yield TrainingFrame(loaded.image_gray, frame.T_world_from_cam, loaded.source)
 
 
-def _map_vocabulary(session_factory: sessionmaker[Session], map_id: int):
-    from monoloc.server.vision.vocabulary import Vocabulary
-
+def _map_vocabulary(session_factory: sessionmaker[Session], map_id: int) -> Vocabulary:
     with session_scope(session_factory) as session:
         record = maps_repo.get_map(session, map_id)
         vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
@@ -121,7 +123,8 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
     return lines
 
 
-_update = update_job_now
+def _frame_of(done: int, total: int) -> str:
+    return f"frame {done} of {total}"
 
 
 def run_calibration_job(
@@ -136,8 +139,6 @@ def run_calibration_job(
 ) -> tuple[JobRecord, dict[str, Any]]:
     """:func:`calibrate_map` recorded as a job (state, progress, error, result) for the
     CLI. ``params`` describe the run for the job row (format, path, frames, ...)."""
-    from monoloc.server.ingest.manage import find_map
-
     record = find_map(session_factory, map_ref)
     job_params = {
         **(params or {}),
@@ -146,17 +147,9 @@ def run_calibration_job(
         "seed": seed,
         "upload": False,
     }
-    with session_scope(session_factory) as session:
-        job = jobs_repo.create_job(
-            session, JOB_KIND, map_id=record.id, params=job_params, message="queued"
-        )
-    _update(session_factory, job.id, state="running", message="calibrating")
-    report = progress_recorder(
-        session_factory, job.id, lambda done, total: f"frame {done} of {total}", progress
-    )
 
-    try:
-        calibration = calibrate_map(
+    def work(job: JobRecord, report: Callable[[int, int], None]) -> dict[str, Any]:
+        return calibrate_map(
             session_factory,
             record.id,
             source,
@@ -165,17 +158,60 @@ def run_calibration_job(
             job_id=job.id,
             progress=report,
         )
-    except BaseException as exc:
-        state = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        _update(session_factory, job.id, state=state, error=str(exc) or type(exc).__name__)
-        raise
-    job = _update(
-        session_factory, job.id, state="done", message="done", result=job_result(calibration)
+
+    return run_recorded_job(
+        session_factory,
+        JOB_KIND,
+        map_id=record.id,
+        params=job_params,
+        started="calibrating",
+        describe_progress=_frame_of,
+        work=work,
+        result_of=job_result,
+        progress=progress,
     )
-    return job, calibration
 
 
 def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
     """What a calibration job records as its result: the model and its provenance."""
     keys = ("mu1", "Sigma1", "mu2", "Sigma2", "outlier_log_density", "provenance")
     return {key: calibration.get(key) for key in keys}
+
+
+def run_calibration(ctx: JobContext) -> dict[str, Any]:
+    """Fit the measurement model on the uploaded training run (its own intrinsics, the
+    map's vocabulary) and store it on the map; the run is not added to the map. A stop
+    request ends the job ``interrupted``; resuming it calibrates again from the start."""
+    job = ctx.job
+    if job.map_id is None:
+        raise ConflictError(f"the map of job {job.id} was deleted")
+    upload = ctx.upload_dir()
+    if upload is None:
+        raise ConflictError(
+            f"job {job.id} was started by `monoloc map calibrate` (no upload): run it again"
+        )
+    if not upload.is_dir():
+        raise ConflictError(f"the upload of job {job.id} is gone; upload the run again")
+    params = job.params
+    source = open_source(
+        params["format"], dataset_root(upload), params.get("sequence"), params.get("frames")
+    )
+
+    def progress(done: int, total: int) -> None:
+        if ctx.should_stop():
+            raise JobInterruptedError(
+                f"stopped at frame {done} of {total}; resume to calibrate again"
+            )
+        ctx.progress(done / max(total, 1), _frame_of(done, total), force=done == total)
+
+    calibration = calibrate_map(
+        ctx.sessions,
+        job.map_id,
+        source,
+        config=CalibrationConfig(k=int(params.get("k", CalibrationConfig.k))),
+        seed=int(params.get("seed", 0)),
+        job_id=job.id,
+        source_name=params.get("source_name") or "upload",
+        progress=progress,
+    )
+    return job_result(calibration)
