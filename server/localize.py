@@ -5,12 +5,14 @@ image -> blur + ORB -> VLAD -> k-NN retrieval -> per entry: Hamming matching + P
 The map's data come in through two arguments (the index and an entry lookup), so this
 module does no I/O and can run against a database, a test fixture or a benchmark.
 
-``LocalizeConfig.pipeline = "paper"`` runs the paper-faithful baseline instead of
-monoloc's fast paths, for benchmarks: exact float k-NN over every VLAD of the index (no
-Hamming shortlist; with a prior, over every entry inside it; exhaustive while the index
-is flat, i.e. below ``IndexConfig.ivf_min_entries`` entries) and OpenCV brute-force
-matching per reference (``match_descriptors_bruteforce``, same match rule). Features,
-VLAD, PnP and the answer are the same.
+How entries are retrieved and matched is a named :class:`Preset` (``PRESETS``, picked by
+``LocalizeConfig.pipeline``; hloc's ``confs`` are the model). ``"monoloc"`` is the fast
+path: the index's Hamming shortlist re-ranked by exact float VLAD distance, and the
+numba Hamming matcher. ``"paper"`` is the paper-faithful baseline, for benchmarks: exact
+float k-NN over every VLAD of the index (no Hamming shortlist; with a prior, over every
+entry inside it; exhaustive while the index is flat, i.e. below
+``IndexConfig.ivf_min_entries`` entries) and OpenCV brute-force matching per reference
+(same match rule). Features, VLAD, PnP and the answer are the same for both.
 """
 
 from __future__ import annotations
@@ -27,21 +29,76 @@ from monoloc.core.geometry import planar_from_T_world_from_cam
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
-from monoloc.server.vision.features import OrbConfig, extract_features
+from monoloc.server.vision.features import Features, OrbConfig, extract_features
 from monoloc.server.vision.hypothesis import compose_hypothesis
-from monoloc.server.vision.matching import MatchConfig, match_against_references
+from monoloc.server.vision.matching import (
+    MatchConfig,
+    match_against_references,
+    match_against_references_bruteforce,
+)
 from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
+Retrieve = Callable[
+    [RetrievalIndex, np.ndarray, np.ndarray, int, RetrievalPrior | None], SearchResult
+]
+Match = Callable[[np.ndarray, Sequence[np.ndarray], MatchConfig], list[np.ndarray]]
+
+
+def retrieve_shortlist(
+    index: RetrievalIndex,
+    vlad: np.ndarray,
+    code: np.ndarray,
+    k: int,
+    prior: RetrievalPrior | None,
+) -> SearchResult:
+    """Top-k by the index's own search: Hamming shortlist of the binary codes, exact float
+    re-rank (vlad (2048,) float32, code (256,) uint8)."""
+    return index.search(vlad, code, k, prior)
+
+
+def retrieve_exhaustive(
+    index: RetrievalIndex,
+    vlad: np.ndarray,
+    code: np.ndarray,
+    k: int,
+    prior: RetrievalPrior | None,
+) -> SearchResult:
+    """Top-k by exact float VLAD distance over every entry: the index ranks them all."""
+    found = index.search(vlad, code, max(len(index), 1), prior)
+    return SearchResult(found.entry_ids[:k], found.distances[:k])
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named localization pipeline: how entries are retrieved and how the query's
+    descriptors are matched against theirs (one (K_r, 2) int32 array per reference)."""
+
+    retrieve: Retrieve
+    match: Match
+
+
+PresetName = Literal["monoloc", "paper"]
+PRESETS: dict[PresetName, Preset] = {
+    "monoloc": Preset(retrieve_shortlist, match_against_references),
+    "paper": Preset(retrieve_exhaustive, match_against_references_bruteforce),
+}
+
 
 @dataclass(frozen=True)
 class LocalizeConfig:
+    """Settings of :func:`localize_frame`; ``pipeline`` names its preset in ``PRESETS``."""
+
     orb: OrbConfig = field(default_factory=OrbConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
     pnp: PnpConfig = field(default_factory=PnpConfig)
     k: int = 10
-    pipeline: Literal["monoloc", "paper"] = "monoloc"  # see the module docstring
+    pipeline: PresetName = "monoloc"
+
+    @property
+    def preset(self) -> Preset:
+        return PRESETS[self.pipeline]
 
 
 @dataclass(frozen=True)
@@ -94,6 +151,21 @@ class LocalizationResult:
 EntryLookup = Callable[[Sequence[int]], Sequence[ReferenceEntry]]
 
 
+class _Laps:
+    """Milliseconds per stage: each ``lap(name)`` times the stage that just ended."""
+
+    def __init__(self) -> None:
+        self.start = self.clock = time.perf_counter()
+        self.ms: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.ms[name], self.clock = (now - self.clock) * 1e3, now
+
+    def total(self) -> dict[str, float]:
+        return {**self.ms, "total": (time.perf_counter() - self.start) * 1e3}
+
+
 def localize_frame(
     image_gray: np.ndarray,
     intrinsics: CameraIntrinsics,
@@ -106,55 +178,50 @@ def localize_frame(
     k: int | None = None,
 ) -> LocalizationResult:
     """Hypotheses for one grayscale frame (H, W) uint8 taken with ``intrinsics``."""
-    timings: dict[str, float] = {}
-    clock = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        timings[name] = (now - clock) * 1e3
-        clock = now
-
-    start = clock
+    laps, preset = _Laps(), config.preset
     features = extract_features(image_gray, config.orb)
-    lap("features")
+    laps.lap("features")
     vlad = compute_vlad(features.descriptors, vocabulary)
     code = vlad_binary_code(vlad)
-    lap("vlad")
-    k = k or config.k
-    if config.pipeline == "paper":
-        # k = every entry: the index ranks them all by exact float VLAD distance.
-        found = index.search(vlad, code, max(len(index), 1), prior)
-        found = SearchResult(found.entry_ids[:k], found.distances[:k])
-    else:
-        found = index.search(vlad, code, k, prior)
-    lap("retrieval")
-    entries = list(lookup_entries(found.entry_ids.tolist()))
-    by_id = {e.entry_id: e for e in entries}
+    laps.lap("vlad")
+    found = preset.retrieve(index, vlad, code, k or config.k, prior)
+    laps.lap("retrieval")
+    by_id = {e.entry_id: e for e in lookup_entries(found.entry_ids.tolist())}
     refs = [by_id[i] for i in found.entry_ids.tolist() if i in by_id]
+    laps.lap("lookup")
+    matches = preset.match(features.descriptors, [r.descriptors for r in refs], config.match)
+    laps.lap("matching")
     e_vlad = dict(zip(found.entry_ids.tolist(), found.distances.tolist(), strict=True))
-    lap("lookup")
-    if config.pipeline == "paper":
-        from monoloc.server.vision.matching import match_descriptors_bruteforce
+    hypotheses, rejected = _pose_hypotheses(
+        features, refs, matches, e_vlad, intrinsics, config.pnp, rng
+    )
+    laps.lap("pnp")
+    return LocalizationResult(
+        hypotheses=hypotheses,
+        retrieved_ids=found.entry_ids,
+        retrieved_distances=found.distances,
+        rejected=rejected,
+        n_features=len(features.descriptors),
+        timings_ms=laps.total(),
+    )
 
-        matches = [
-            match_descriptors_bruteforce(features.descriptors, r.descriptors, config.match)
-            for r in refs
-        ]
-    else:
-        matches = match_against_references(
-            features.descriptors, [r.descriptors for r in refs], config.match
-        )
-    lap("matching")
+
+def _pose_hypotheses(
+    features: Features,
+    refs: Sequence[ReferenceEntry],
+    matches: Sequence[np.ndarray],
+    e_vlad: dict[int, float],
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    rng: np.random.Generator,
+) -> tuple[list[PoseHypothesis], list[tuple[int, str]]]:
+    """PnP RANSAC against each reference in turn (its (K, 2) query/reference index pairs):
+    the accepted hypotheses, and (entry id, reason) of the rejected references."""
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
     for ref, pairs in zip(refs, matches, strict=True):
         rel = estimate_relative_pose(
-            features.keypoints_px[pairs[:, 0]],
-            ref.points_cam[pairs[:, 1]],
-            intrinsics,
-            config.pnp,
-            rng,
+            features.keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]], intrinsics, config, rng
         )
         if not rel.accepted:
             rejected.append((ref.entry_id, rel.reject_reason or "rejected"))
@@ -172,13 +239,4 @@ def localize_frame(
                 reprojection_error_px=rel.reprojection_error_px,
             )
         )
-    lap("pnp")
-    timings["total"] = (time.perf_counter() - start) * 1e3
-    return LocalizationResult(
-        hypotheses=hypotheses,
-        retrieved_ids=found.entry_ids,
-        retrieved_distances=found.distances,
-        rejected=rejected,
-        n_features=len(features.descriptors),
-        timings_ms=timings,
-    )
+    return hypotheses, rejected

@@ -92,11 +92,14 @@ class Settings(BaseSettings):
         description="Serve /metrics without an API key (only for a private scrape network); "
         "otherwise it needs an admin key.",
     )
+    # The names of monoloc.server.localize.PRESETS (not imported: it loads OpenCV).
     localize_pipeline: Literal["monoloc", "paper"] = Field(
         default="monoloc",
-        description="'monoloc': binary-shortlist retrieval and FAISS Hamming matching; "
-        "'paper': the paper-faithful baseline (exact float k-NN over all VLADs, OpenCV "
-        "brute-force matching), same answers, for benchmarks (server.localize).",
+        description="Localization preset (server.localize.PRESETS). 'monoloc': Hamming "
+        "shortlist of the binary codes re-ranked by exact float VLAD distance, and numba "
+        "Hamming matching; 'paper': the paper-faithful baseline (exact float k-NN over "
+        "every VLAD of the index, OpenCV brute-force matching per entry), same answers, "
+        "for benchmarks.",
     )
     localize_seed: int | None = Field(
         default=None,

@@ -3,13 +3,12 @@ every route documents."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from monoloc.core.camera import CameraIntrinsics
 from monoloc.server.api import schemas as s
-from monoloc.server.api.schemas_admin import KeyPublic
 from monoloc.server.api.schemas_localize import (
     HypothesisPublic,
     LocalizeResponse,
@@ -18,11 +17,9 @@ from monoloc.server.api.schemas_localize import (
 )
 from monoloc.server.localize import LocalizationResult, PoseHypothesis
 from monoloc.server.storage.records import (
-    ApiKeyRecord,
     EntrySummary,
     JobRecord,
     MapRecord,
-    RunRecord,
     VocabularyRecord,
 )
 
@@ -45,7 +42,6 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
         413: ("payload_too_large", "request body exceeds the limit of 536870912 bytes"),
         415: ("unsupported_media_type", "image is not a PNG or JPEG image"),
         422: ("invalid_input", "T_world_from_cam: expected 12 (3x4) or 16 (4x4) numbers"),
-        501: ("not_available", "calibration training is not available in this build"),
     }
     return {
         status: {
@@ -59,10 +55,6 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
 AUTH_ERRORS = error_responses(401, 403)
 
 
-def camera(c: CameraIntrinsics) -> s.Camera:
-    return s.Camera(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, width_px=c.width_px, height_px=c.height_px)
-
-
 def vocabulary(v: VocabularyRecord) -> s.VocabularyPublic:
     return s.VocabularyPublic(
         id=v.id, hash=v.version_hash, n_words=v.n_words, description=v.description
@@ -73,7 +65,7 @@ def map_public(m: MapRecord, vocab: VocabularyRecord) -> s.MapPublic:
     return s.MapPublic(
         id=m.id,
         name=m.name,
-        camera=camera(m.camera),
+        camera=s.Camera.model_validate(m.camera),
         vocabulary=vocabulary(vocab),
         version=m.version,
         n_entries=m.n_entries,
@@ -114,53 +106,9 @@ def entry_detail(e: EntrySummary, T_world_from_cam: np.ndarray) -> s.EntryDetail
     )
 
 
-def run_public(r: RunRecord) -> s.RunPublic:
-    return s.RunPublic(
-        id=r.id,
-        map_id=r.map_id,
-        kind=r.kind,
-        source_format=r.source_format,
-        source_name=r.source_name,
-        status=r.status,
-        frames_total=r.frames_total,
-        frames_done=r.frames_done,
-        entries_added=r.entries_added,
-        frames_skipped=r.frames_skipped,
-        skip_reasons=r.skip_reasons,
-        error=r.error,
-        created_at=r.created_at,
-        updated_at=r.updated_at,
-    )
-
-
 def job_public(j: JobRecord) -> s.JobPublic:
     params = {k: v for k, v in j.params.items() if k not in _PRIVATE_PARAMS}
-    return s.JobPublic(
-        id=j.id,
-        kind=j.kind,
-        map_id=j.map_id,
-        run_id=j.run_id,
-        state=j.state,
-        progress=j.progress,
-        message=j.message,
-        error=j.error,
-        params=params,
-        result=j.result,
-        created_at=j.created_at,
-        updated_at=j.updated_at,
-        finished_at=j.finished_at,
-    )
-
-
-def key_public(k: ApiKeyRecord) -> KeyPublic:
-    return KeyPublic(
-        id=k.id,
-        name=k.name,
-        prefix=k.prefix,
-        scopes=sorted(k.scopes),
-        created_at=k.created_at,
-        revoked_at=k.revoked_at,
-    )
+    return s.JobPublic.model_validate(replace(j, params=params))
 
 
 def hypothesis(h: PoseHypothesis) -> HypothesisPublic:

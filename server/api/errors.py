@@ -1,7 +1,7 @@
 """Every error the API answers is JSON: ``{"error": {"code": ..., "message": ...}}``.
 
 ``MonolocError`` subclasses carry their HTTP status (``http_status``); this module adds
-the few that only the API raises (401, 403, 413, 415, 400, 501, 503) and the handlers
+the few that only the API raises (401, 403, 413, 415, 400, 503) and the handlers
 that turn them, FastAPI's validation errors and Starlette's HTTP exceptions into that
 shape. The code is a short snake_case name a client can switch on.
 """
@@ -71,12 +71,6 @@ class UnsupportedMediaTypeError(MonolocError):
     http_status = 415
 
 
-class NotAvailableError(MonolocError):
-    """The capability exists in the API but not (yet) in this server build."""
-
-    http_status = 501
-
-
 class NotReadyError(MonolocError):
     """The server is starting or stopping."""
 
@@ -103,7 +97,8 @@ def error_response(status: int, code: str, message: str, **extra: Any) -> JSONRe
     return JSONResponse(error_body(code, message, **extra), status_code=status, headers=headers)
 
 
-def _describe_validation(errors: list[dict[str, Any]]) -> str:
+def describe_validation(errors: list[dict[str, Any]]) -> str:
+    """One line naming the first few invalid fields (pydantic's ``errors()``)."""
     parts = []
     for err in errors[:5]:
         where = ".".join(str(p) for p in err.get("loc", ()) if p not in ("body", "query"))
@@ -134,7 +129,7 @@ async def _validation_error(_conn: Request | WebSocket, exc: Exception) -> JSONR
     assert isinstance(exc, RequestValidationError)
     errors = jsonable_encoder(exc.errors(), exclude={"input", "ctx", "url"})
     return error_response(
-        422, "validation_error", _describe_validation(list(exc.errors())), details=errors
+        422, "validation_error", describe_validation(list(exc.errors())), details=errors
     )
 
 

@@ -21,6 +21,11 @@ def example(**values: Any) -> ConfigDict:
     return ConfigDict(json_schema_extra={"examples": [values]})
 
 
+def record_example(**values: Any) -> ConfigDict:
+    """``example`` of a response built from a storage record: ``X.model_validate(record)``."""
+    return ConfigDict(from_attributes=True, json_schema_extra={"examples": [values]})
+
+
 class ErrorDetail(BaseModel):
     code: str
     message: str
@@ -34,7 +39,7 @@ class ErrorResponse(BaseModel):
 class Camera(BaseModel):
     """Pinhole intrinsics in pixels of the map's camera."""
 
-    model_config = example(
+    model_config = record_example(
         fx=718.856, fy=718.856, cx=607.1928, cy=185.2157, width_px=1241, height_px=376
     )
     fx: float = Field(gt=0)
@@ -198,7 +203,7 @@ _RUN_EXAMPLE = dict(
 
 
 class RunPublic(BaseModel):
-    model_config = example(**_RUN_EXAMPLE)
+    model_config = record_example(**_RUN_EXAMPLE)
     id: int
     map_id: int
     kind: str
@@ -233,7 +238,7 @@ _JOB_EXAMPLE = dict(
 
 
 class JobPublic(BaseModel):
-    model_config = example(**_JOB_EXAMPLE)
+    model_config = record_example(**_JOB_EXAMPLE)
     id: int
     kind: str
     map_id: int | None

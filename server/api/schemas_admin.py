@@ -3,12 +3,13 @@ each with an OpenAPI example; the conventions of server/api/schemas.py."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 
-from monoloc.server.api.schemas import TIME_EXAMPLE, example
+from monoloc.server.api.schemas import TIME_EXAMPLE, example, record_example
 from monoloc.server.storage.keys import SCOPES
 
 Scope = Literal["localize", "map:write", "admin"]
@@ -32,13 +33,18 @@ _KEY_EXAMPLE = dict(
 
 
 class KeyPublic(BaseModel):
-    model_config = example(**_KEY_EXAMPLE)
+    model_config = record_example(**_KEY_EXAMPLE)
     id: int
     name: str
     prefix: str
     scopes: list[str]
     created_at: datetime
     revoked_at: datetime | None
+
+    @field_validator("scopes", mode="before")
+    @classmethod
+    def _sorted(cls, scopes: Iterable[str]) -> list[str]:
+        return sorted(scopes)  # a record holds them as a set
 
 
 class KeyCreated(KeyPublic):

@@ -1,10 +1,160 @@
-"""Bodies of the localization answers (HTTP and WebSocket stream), with examples."""
+"""The options of one query (form fields, query parameters or a stream frame's header)
+and the bodies of the localization answers (HTTP and WebSocket stream), with examples."""
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+import math
+from collections.abc import Mapping
+from typing import Any, Self
 
-from monoloc.server.api.schemas import PlanarPose
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
+
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.prior import RetrievalPrior
+from monoloc.server.api.errors import describe_validation
+from monoloc.server.api.schemas import ErrorDetail, PlanarPose
+
+MAX_K = 100
+_FOCAL = ("fx", "fy", "cx", "cy")
+_PRIOR = ("prior_x_m", "prior_y_m", "prior_radius_m")
+_YAW = ("prior_yaw_rad", "prior_yaw_tolerance_rad")
+
+
+def _finite(name: str, value: float) -> float:
+    if not math.isfinite(value):
+        raise InvalidInputError(f"{name} must be finite, got {value!r}")
+    return value
+
+
+class LocalizeOptions(BaseModel):
+    """Optional inputs of one query: intrinsics (fx, fy, cx, cy: all or none), a retrieval
+    prior (prior_x_m, prior_y_m, prior_radius_m: all or none; prior_yaw_rad with
+    prior_yaw_tolerance_rad), k and seed. Out of range or incomplete: 422 invalid_input."""
+
+    # The checks raise InvalidInputError, not ValueError: pydantic lets it through, so a
+    # value out of range answers 422 invalid_input with the check's message, like any other
+    # bad input. A value of the wrong type stays a pydantic error: a form's 422
+    # validation_error, or InvalidInputError from ``parse``.
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                dict(prior_x_m=12.5, prior_y_m=3.2, prior_radius_m=20.0, k=10, seed=2718281828)
+            ]
+        }
+    )
+    fx: float | None = Field(
+        default=None,
+        description="Focal length x (px); fx, fy, cx, cy all or none (none: the map's camera).",
+        examples=[718.856],
+    )
+    fy: float | None = Field(default=None, description="Focal length y (px).", examples=[718.856])
+    cx: float | None = Field(default=None, description="Principal point x (px).", examples=[607.2])
+    cy: float | None = Field(default=None, description="Principal point y (px).", examples=[185.2])
+    prior_x_m: float | None = Field(
+        default=None,
+        description="Prior position x (m); with prior_y_m and prior_radius_m.",
+        examples=[12.5],
+    )
+    prior_y_m: float | None = Field(
+        default=None, description="Prior position y (m).", examples=[3.2]
+    )
+    prior_radius_m: float | None = Field(
+        default=None,
+        description="Only entries within this distance (m, > 0) of the prior position compete.",
+        examples=[20.0],
+    )
+    prior_yaw_rad: float | None = Field(
+        default=None, description="Prior heading; with prior_yaw_tolerance_rad.", examples=[0.0]
+    )
+    prior_yaw_tolerance_rad: float | None = Field(
+        default=None,
+        description="Only entries whose heading is within this (rad, > 0) of prior_yaw_rad "
+        "compete.",
+        examples=[0.5],
+    )
+    k: int | None = Field(
+        default=None,
+        description="Entries to retrieve (default 10).",
+        json_schema_extra={"minimum": 1, "maximum": MAX_K},
+        examples=[10],
+    )
+    seed: int | None = Field(
+        default=None,
+        description="RANSAC seed, below 2^63 (default: server draws one; the answer reports it).",
+        json_schema_extra={"minimum": 0},
+        examples=[2718281828],
+    )
+    _prior: RetrievalPrior | None = PrivateAttr(default=None)
+
+    @property
+    def focal(self) -> tuple[float, float, float, float] | None:
+        """(fx, fy, cx, cy) in pixels, or None: the map's camera."""
+        if self.fx is None or self.fy is None or self.cx is None or self.cy is None:
+            return None  # all or none: see _check_focal
+        return (self.fx, self.fy, self.cx, self.cy)
+
+    @property
+    def prior(self) -> RetrievalPrior | None:
+        """The retrieval prior built from the prior_* fields, or None."""
+        return self._prior
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        self._check_focal()
+        self._prior = self._build_prior()
+        if self.k is not None and not 1 <= self.k <= MAX_K:
+            raise InvalidInputError(f"k must be an integer in 1..{MAX_K}, got {self.k!r}")
+        if self.seed is not None and not 0 <= self.seed < 2**63:
+            raise InvalidInputError(f"seed must be an integer in [0, 2^63), got {self.seed!r}")
+        return self
+
+    def _given(self, names: tuple[str, ...]) -> list[str]:
+        return [n for n in names if getattr(self, n) is not None]
+
+    def _check_focal(self) -> None:
+        given = self._given(_FOCAL)
+        if given and len(given) != 4:
+            raise InvalidInputError(f"give all of fx, fy, cx, cy or none (got only {given})")
+        if given:
+            fx, fy, _, _ = (_finite(n, getattr(self, n)) for n in _FOCAL)
+            if fx <= 0 or fy <= 0:
+                raise InvalidInputError(f"fx and fy must be positive, got {fx}, {fy}")
+
+    def _build_prior(self) -> RetrievalPrior | None:
+        got_pos, got_yaw = self._given(_PRIOR), self._given(_YAW)
+        if not got_pos and not got_yaw:
+            return None
+        if len(got_pos) != 3:
+            raise InvalidInputError(
+                f"a prior needs prior_x_m, prior_y_m and prior_radius_m (got {got_pos + got_yaw})"
+            )
+        if len(got_yaw) == 1:
+            raise InvalidInputError("give prior_yaw_rad and prior_yaw_tolerance_rad together")
+        x, y, r = (_finite(n, getattr(self, n)) for n in _PRIOR)
+        if r <= 0:
+            raise InvalidInputError(f"prior_radius_m must be positive, got {r}")
+        if not got_yaw:
+            return RetrievalPrior(x, y, r)
+        yaw, tol = (_finite(n, getattr(self, n)) for n in _YAW)
+        if tol <= 0:
+            raise InvalidInputError(f"prior_yaw_tolerance_rad must be positive, got {tol}")
+        return RetrievalPrior(x, y, r, yaw, tol)
+
+    @classmethod
+    def parse(cls, values: Mapping[str, Any]) -> LocalizeOptions:
+        """Options from flat values (query parameters, a stream header's fields); None and
+        "" count as absent, extra names are ignored. Every error is InvalidInputError."""
+        present = {n: v for n, v in values.items() if v is not None and v != ""}
+        try:
+            return cls.model_validate(present)
+        except ValidationError as exc:
+            raise InvalidInputError(describe_validation(exc.errors())) from exc
+
+    def over(self, fallback: Mapping[str, Any]) -> LocalizeOptions:
+        """These options, each one not given taken from ``fallback`` (query parameters)."""
+        values = {n: fallback.get(n) for n in type(self).model_fields}
+        return self.parse(values | self.model_dump(exclude_none=True))
+
 
 _HYPOTHESIS = dict(
     entry_id=42,
@@ -108,6 +258,8 @@ class StreamAnswer(LocalizeResponse):
 
 
 class StreamDropped(BaseModel):
+    """A frame dropped unprocessed: newer frames arrived while it waited."""
+
     model_config = ConfigDict(
         json_schema_extra={"examples": [{"seq": 18, "t": 1.8, "dropped": True, "reason": "stale"}]}
     )
@@ -115,3 +267,26 @@ class StreamDropped(BaseModel):
     t: float | None = None
     dropped: bool = True
     reason: str = "stale"
+
+
+class StreamError(BaseModel):
+    """A frame that could not be processed. ``t`` is left out (unset) when the frame's
+    header was rejected: ``seq`` is then null if it could not be read."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "seq": 19,
+                    "t": 1.9,
+                    "error": {
+                        "code": "unsupported_media_type",
+                        "message": "image is not a PNG or JPEG image",
+                    },
+                }
+            ]
+        }
+    )
+    seq: int | None
+    t: float | None = None
+    error: ErrorDetail

@@ -152,6 +152,14 @@ def match_against_references(
     return [_match_words(query_words, ref_desc, config, scratch) for ref_desc in ref_arrays]
 
 
+def match_against_references_bruteforce(
+    query_desc: np.ndarray, refs: Sequence[np.ndarray], config: MatchConfig = MatchConfig()
+) -> list[np.ndarray]:
+    """Baseline of :func:`match_against_references`: one OpenCV brute-force matcher per
+    reference (:func:`match_descriptors_bruteforce`), same output."""
+    return [match_descriptors_bruteforce(query_desc, ref_desc, config) for ref_desc in refs]
+
+
 def match_descriptors_bruteforce(
     query_desc: np.ndarray, ref_desc: np.ndarray, config: MatchConfig = MatchConfig()
 ) -> np.ndarray:

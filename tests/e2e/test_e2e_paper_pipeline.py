@@ -13,10 +13,15 @@ from monoloc.client.replay import read_run
 
 
 def test_setting_reads_the_environment_and_refuses_unknown_pipelines(monkeypatch, tmp_path):
+    from typing import get_args
+
     from pydantic import ValidationError
 
+    from monoloc.server.localize import PRESETS, PresetName
     from monoloc.server.settings import Settings
 
+    choices = get_args(Settings.model_fields["localize_pipeline"].annotation)
+    assert set(choices) == set(get_args(PresetName)) == set(PRESETS)  # one name, one preset
     assert Settings(data_dir=tmp_path).localize_pipeline == "monoloc"
     monkeypatch.setenv("MONOLOC_LOCALIZE_PIPELINE", "paper")
     assert Settings(data_dir=tmp_path).localize_pipeline == "paper"

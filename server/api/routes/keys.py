@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
-from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AdminKey, SessionDep
 from monoloc.server.api.schemas_admin import KeyCreate, KeyCreated, KeyList, KeyPublic
@@ -24,13 +23,13 @@ def create_key(body: KeyCreate, session: SessionDep, _key: AdminKey) -> KeyCreat
     """Only a hash is stored: copy ``key`` from this answer, it is not shown again."""
     record, plaintext = keys_repo.create_api_key(session, body.name, body.scopes)
     session.commit()
-    return KeyCreated(**convert.key_public(record).model_dump(), key=plaintext)
+    return KeyCreated(**KeyPublic.model_validate(record).model_dump(), key=plaintext)
 
 
 @router.get("", response_model=KeyList, responses=AUTH_ERRORS, summary="List API keys")
 def list_keys(session: SessionDep, _key: AdminKey, include_revoked: bool = True) -> KeyList:
     keys = keys_repo.list_api_keys(session, include_revoked=include_revoked)
-    return KeyList(items=[convert.key_public(k) for k in keys])
+    return KeyList(items=[KeyPublic.model_validate(k) for k in keys])
 
 
 @router.delete(
@@ -43,4 +42,4 @@ def revoke_key(key_id: int, session: SessionDep, _key: AdminKey) -> KeyPublic:
     """Takes effect on the next request (idempotent)."""
     record = keys_repo.revoke_api_key(session, key_id)
     session.commit()
-    return convert.key_public(record)
+    return KeyPublic.model_validate(record)

@@ -127,7 +127,7 @@ async def upload_run(
     state.jobs.submit(job.id)
     return UploadAccepted(
         job=convert.job_public(job),
-        run=convert.run_public(run),
+        run=RunPublic.model_validate(run),
         n_files=unpacked.n_files,
         total_bytes=unpacked.total_bytes,
     )
@@ -141,7 +141,7 @@ async def upload_run(
 )
 def list_runs(map_id: int, session: SessionDep, _key: MapWriteKey) -> list[RunPublic]:
     maps_repo.get_map(session, map_id)
-    return [convert.run_public(r) for r in runs_repo.list_runs(session, map_id)]
+    return [RunPublic.model_validate(r) for r in runs_repo.list_runs(session, map_id)]
 
 
 @router.get(
@@ -156,4 +156,4 @@ def get_run(map_id: int, run_id: int, session: SessionDep, _key: MapWriteKey) ->
         from monoloc.core.errors import NotFoundError
 
         raise NotFoundError(f"run {run_id} does not exist in map {map_id}")
-    return convert.run_public(run)
+    return RunPublic.model_validate(run)

@@ -9,10 +9,14 @@ encoded image (PNG/JPEG). Header: ``{"seq": int, "t": float, "prior": {"x_m", "y
 "radius_m", "yaw_rad"?, "yaw_tolerance_rad"?}?, "k": int?, "seed": int?,
 "intrinsics": {"fx", "fy", "cx", "cy"}?}``.
 
-Out: one JSON text message per frame, in the order the frames arrived: the localize
-answer plus ``seq`` and ``t``; or ``{"seq", "t", "dropped": true, "reason": "stale"}``;
-or ``{"seq", "error": {"code", "message"}}`` for a frame that could not be processed
-(a header without a readable ``seq`` gets ``"seq": null``).
+Header fields are checked as the localize route's form (``LocalizeOptions``).
+
+Out: one JSON text message per frame, in the order the frames arrived (schemas in
+server/api/schemas_localize.py): ``StreamAnswer``, the localize answer plus ``seq`` and
+``t``; or ``StreamDropped``, ``{"seq", "t", "dropped": true, "reason": "stale"}``; or
+``StreamError``, ``{"seq", "t", "error": {"code", "message"}}`` for a frame that could
+not be processed (without ``t`` if its header was rejected; a header without a readable
+``seq`` gets ``"seq": null``).
 
 Back-pressure: at most ``stream_max_pending_frames`` frames wait for processing. When
 another arrives, the oldest waiting frame is dropped (its image freed at once) and
@@ -35,7 +39,14 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from monoloc.core.errors import InvalidInputError, MonolocError
 from monoloc.server.api.deps import AppState, StateDep, StreamKey
 from monoloc.server.api.errors import error_code
-from monoloc.server.api.localizing import localize_bytes, parse_options
+from monoloc.server.api.localizing import localize_bytes
+from monoloc.server.api.schemas import ErrorDetail
+from monoloc.server.api.schemas_localize import (
+    LocalizeOptions,
+    StreamAnswer,
+    StreamDropped,
+    StreamError,
+)
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["stream"])
@@ -47,56 +58,50 @@ class _Item:
     seq: int | None
     t: float | None
     data: bytes | None = None  # None: dropped (or an error)
-    options: Any = None
-    error: dict[str, str] | None = None
+    options: LocalizeOptions | None = None
+    error: ErrorDetail | None = None
+
+
+def _rejected(message: str) -> _Item:
+    return _Item(None, None, error=ErrorDetail(code="invalid_input", message=message))
 
 
 def parse_message(message: bytes) -> _Item:
     """Split one binary frame message; an _Item with ``error`` set if malformed."""
     if len(message) < 4:
-        return _Item(
-            None,
-            None,
-            error={
-                "code": "invalid_input",
-                "message": "message shorter than its 4-byte header length",
-            },
-        )
+        return _rejected("message shorter than its 4-byte header length")
     (n,) = struct.unpack(">I", message[:4])
     if n > MAX_HEADER_BYTES or 4 + n > len(message):
-        return _Item(
-            None,
-            None,
-            error={"code": "invalid_input", "message": f"header length {n} is out of range"},
-        )
+        return _rejected(f"header length {n} is out of range")
     try:
         header = json.loads(message[4 : 4 + n].decode("utf-8"))
         if not isinstance(header, dict):
             raise ValueError("the header is not a JSON object")
     except (UnicodeDecodeError, ValueError) as exc:
-        return _Item(None, None, error={"code": "invalid_input", "message": f"bad header: {exc}"})
+        return _rejected(f"bad header: {exc}")
     seq, t = header.get("seq"), header.get("t")
     if not isinstance(seq, int) or isinstance(seq, bool):
-        return _Item(
-            None,
-            None,
-            error={"code": "invalid_input", "message": "the header needs an integer 'seq'"},
-        )
+        return _rejected("the header needs an integer 'seq'")
     item = _Item(seq, float(t) if isinstance(t, int | float) else None)
     try:
-        prior = header.get("prior") or {}
-        intrinsics = header.get("intrinsics") or {}
-        if not isinstance(prior, dict) or not isinstance(intrinsics, dict):
-            raise InvalidInputError("'prior' and 'intrinsics' must be objects")
-        fields = {f"prior_{k}": v for k, v in prior.items()}
-        fields.update({k: intrinsics.get(k) for k in ("fx", "fy", "cx", "cy")})
-        fields.update(k=header.get("k"), seed=header.get("seed"))
-        item.options = parse_options(fields)
+        item.options = LocalizeOptions.parse(_option_fields(header))
     except MonolocError as exc:
-        item.error = {"code": error_code(exc), "message": str(exc)}
+        item.error = ErrorDetail(code=error_code(exc), message=str(exc))
         return item
     item.data = message[4 + n :]
     return item
+
+
+def _option_fields(header: dict[str, Any]) -> dict[str, Any]:
+    """The header's options as LocalizeOptions' flat fields (``prior.x_m`` -> ``prior_x_m``)."""
+    prior = header.get("prior") or {}
+    intrinsics = header.get("intrinsics") or {}
+    if not isinstance(prior, dict) or not isinstance(intrinsics, dict):
+        raise InvalidInputError("'prior' and 'intrinsics' must be objects")
+    fields = {f"prior_{k}": v for k, v in prior.items()}
+    fields.update({k: intrinsics.get(k) for k in ("fx", "fy", "cx", "cy")})
+    fields.update(k=header.get("k"), seed=header.get("seed"))
+    return fields
 
 
 class _Session:
@@ -125,14 +130,7 @@ class _Session:
                 return
             data = message.get("bytes")
             if data is None:
-                item = _Item(
-                    None,
-                    None,
-                    error={
-                        "code": "invalid_input",
-                        "message": "send binary messages (header + image)",
-                    },
-                )
+                item = _rejected("send binary messages (header + image)")
             else:
                 item = parse_message(data)
             self.push(item)
@@ -140,29 +138,31 @@ class _Session:
                 await self.ws.close(code=1008, reason="too many frames in flight")
                 return
 
-    async def answer(self, item: _Item) -> dict[str, Any]:
+    async def answer(self, item: _Item) -> StreamAnswer | StreamDropped | StreamError:
         metrics = self.state.metrics.stream_frames
         if item.error is not None:
             metrics.inc("error")
-            return {"seq": item.seq, "error": item.error}
-        if item.data is None:
+            return StreamError(seq=item.seq, error=item.error)  # no t: the header was rejected
+        if item.data is None or item.options is None:
             metrics.inc("dropped")
-            return {"seq": item.seq, "t": item.t, "dropped": True, "reason": "stale"}
+            return StreamDropped(seq=item.seq, t=item.t)
         data, item.data = item.data, None
         self.waiting -= 1
         try:
             result = await localize_bytes(self.state, self.map_id, data, item.options)
         except MonolocError as exc:
             metrics.inc("error")
-            error = {"code": error_code(exc), "message": str(exc)}
-            return {"seq": item.seq, "t": item.t, "error": error}
+            error = ErrorDetail(code=error_code(exc), message=str(exc))
+            return StreamError(seq=item.seq, t=item.t, error=error)
         except Exception:  # a bug: answer this frame, keep serving the vehicle
             log.exception("stream of map %s: frame %s failed", self.map_id, item.seq)
             metrics.inc("error")
-            error = {"code": "internal_error", "message": "internal error (see the server log)"}
-            return {"seq": item.seq, "t": item.t, "error": error}
+            error = ErrorDetail(
+                code="internal_error", message="internal error (see the server log)"
+            )
+            return StreamError(seq=item.seq, t=item.t, error=error)
         metrics.inc("answered")
-        return {**result.model_dump(mode="json"), "seq": item.seq, "t": item.t}
+        return StreamAnswer(**result.model_dump(), seq=item.seq, t=item.t)
 
     async def send_loop(self, scope: anyio.CancelScope) -> None:
         while True:
@@ -171,8 +171,10 @@ class _Session:
                 self.wake = anyio.Event()
             answer = await self.answer(self.queue[0])
             self.queue.popleft()
+            # exclude_unset: an error answer leaves out the t it was not given
+            body = answer.model_dump(mode="json", exclude_unset=isinstance(answer, StreamError))
             try:
-                await self.ws.send_text(json.dumps(answer))
+                await self.ws.send_text(json.dumps(body))
             except Exception:  # the client went away: nobody to answer
                 scope.cancel()
                 return

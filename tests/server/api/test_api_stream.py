@@ -41,6 +41,7 @@ def test_round_trip_in_order_with_errors_in_place(sim_dataset, map_copy):
     assert [a["seq"] for a in answers] == [0, None, 1, 2, 3, 4]
     assert answers[1]["error"]["code"] == "invalid_input"
     assert answers[2]["error"]["code"] == "unsupported_media_type"
+    assert "t" not in answers[1] and answers[2]["t"] == pytest.approx(0.1)  # t once queued
     for answer, frame in zip([answers[0], *answers[3:]], frames, strict=True):
         truth = planar_from_T_world_from_cam(ground_truth(sim_dataset, "01", frame))
         assert answer["hypotheses"], (frame, answer["rejected_entries"], answer["n_features"])
