@@ -1,5 +1,6 @@
 """monoloc client: the light on-vehicle library (numpy + httpx only).
 
-Particle filter, motion and measurement models, planar geometry, and the API client.
+Particle filter and motion model, the vehicle's loop (tracking) fed by a Localizer (HTTP
+or WebSocket stream here; in process: monoloc.server.localizer), and the API client.
 Nothing here imports OpenCV, FAISS, FastAPI or SQLAlchemy.
 """

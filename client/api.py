@@ -34,12 +34,39 @@ class ServerError(MonolocError):
 
 @dataclass(frozen=True)
 class LocalizeAnswer:
-    """The server's answer for one frame."""
+    """The server's answer for one frame. A frame the stream dropped (``dropped``) or
+    could not process (``error``: "code: message") has no hypotheses."""
 
     hypotheses: Hypotheses
     map_version: int | None
     timings_ms: dict[str, float]
     raw: dict
+    dropped: bool = False
+    error: str | None = None
+
+    @property
+    def best_pose_world(self) -> np.ndarray:
+        """Pose (3,) of the hypothesis with the most PnP inliers; NaN without one."""
+        hyps = self.raw.get("hypotheses") or []
+        if not hyps:
+            return np.full(3, np.nan)
+        best = max(hyps, key=lambda h: h.get("n_inliers", 0))
+        return np.array([best["pose"]["x_m"], best["pose"]["y_m"], best["pose"]["yaw_rad"]])
+
+    @classmethod
+    def from_stream(cls, data: dict) -> LocalizeAnswer:
+        """One answer of the WebSocket stream: a localize answer, a dropped frame or a
+        frame the server answered with an error."""
+        if data.get("dropped"):
+            return cls(Hypotheses.empty(), None, {}, data, dropped=True)
+        if "error" in data:
+            err = data["error"]
+            if isinstance(err, dict):
+                message = f"{err.get('code', 'error')}: {err.get('message', '')}"
+            else:
+                message = str(err)
+            return cls(Hypotheses.empty(), None, {}, data, error=message)
+        return cls.from_json(data)
 
     @classmethod
     def from_json(cls, data: dict) -> LocalizeAnswer:
@@ -318,10 +345,3 @@ class FrameStream:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def check_image_bytes(data: bytes, name: str) -> bytes:
-    """Refuse anything that is not PNG or JPEG before sending it."""
-    if not (data.startswith(b"\x89PNG\r\n\x1a\n") or data.startswith(b"\xff\xd8\xff")):
-        raise InvalidInputError(f"{name} is not a PNG or JPEG image")
-    return data

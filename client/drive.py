@@ -1,12 +1,11 @@
-"""Replay a run against the map server: stream frames, run the filter, score the result.
+"""Replay a run against the map server over the WebSocket stream, through the vehicle's
+loop (monoloc.client.tracking), and score the result.
 
-For each frame: predict the particles with the measured speed and yaw rate, send the
-frame with the filter's prior (a disc around the predicted pose whose radius grows with
-the filter's uncertainty; no prior while uninitialised or lost), then update with the
-server's hypotheses. In real-time mode frames are sent at their recorded times and the
-server may drop stale ones; a dropped frame, like a frame the server answered with an
-error, is a prediction-only step. Every frame gets exactly one answer, in order; an
-answer out of order is an error (the stream guarantees the order).
+Every frame goes out with the filter's prior (moved to the frame's time) and is answered
+once, in order; an answer out of order is an error (the stream guarantees the order).
+In real-time mode frames are sent at their recorded times from a thread and the server
+may drop stale ones; a dropped frame, like a frame the server answered with an error, is
+a prediction-only step.
 """
 
 from __future__ import annotations
@@ -20,24 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, ServerError
-from monoloc.client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient
+from monoloc.client.localizer import StreamLocalizer, check_answer_seq
+from monoloc.client.particle_filter import FilterConfig
 from monoloc.client.replay import ReplayRun
+from monoloc.client.tracking import PriorConfig, Tracker, track
 from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics, write_trajectory_files
 from monoloc.core.errors import InvalidInputError
-from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.measurement import MeasurementModel
 from monoloc.core.prior import RetrievalPrior
-
-
-@dataclass(frozen=True)
-class PriorConfig:
-    """How the filter's estimate becomes the retrieval prior."""
-
-    sigma_multiplier: float = 3.0
-    margin_m: float = 5.0
-    min_radius_m: float = 8.0
-    max_radius_m: float = 60.0
-    yaw_margin_rad: float = math.radians(25.0)
 
 
 @dataclass(frozen=True)
@@ -74,41 +64,66 @@ class DriveResult:
         return len(self.estimates_world) / self.wall_s if self.wall_s > 0 else math.inf
 
 
-def prior_from_filter(pf: ParticleFilter, config: PriorConfig) -> RetrievalPrior | None:
-    """The retrieval prior for the next frame, or None for a global search."""
-    if not pf.initialised or pf.lost:
-        return None
-    est = pf.estimate()
-    radius = config.sigma_multiplier * est.position_std_m + config.margin_m
-    yaw_std = math.sqrt(max(est.covariance[2, 2], 0.0))
-    return RetrievalPrior(
-        x_m=float(est.pose_world[0]),
-        y_m=float(est.pose_world[1]),
-        radius_m=float(np.clip(radius, config.min_radius_m, config.max_radius_m)),
-        yaw_rad=float(est.pose_world[2]),
-        yaw_tolerance_rad=float(
-            min(math.pi, config.sigma_multiplier * yaw_std + config.yaw_margin_rad)
-        ),
-    )
+class _DriveLog:
+    """What a drive records per frame besides the estimates (all (N,) or lists of N)."""
 
+    def __init__(self, n: int) -> None:
+        self.start = time.perf_counter()
+        self.n_hypotheses = np.zeros(n, dtype=np.int64)
+        self.dropped = np.zeros(n, dtype=bool)
+        self.latency_ms = np.full(n, np.nan)
+        self.sent_at_s = np.full(n, np.nan)
+        self.best_world = np.full((n, 3), np.nan)
+        self.timings_ms: list[dict[str, float]] = [{} for _ in range(n)]
+        self.errors: dict[int, str] = {}
 
-def _answer_seq(answer: dict, expected: int) -> int:
-    """The frame an answer belongs to; the stream answers in order, so it must be
-    ``expected``."""
-    seq = answer.get("seq")
-    if seq != expected:
-        raise ServerError(
-            f"the stream answered frame {seq} when frame {expected} was due: {str(answer)[:200]}"
+    def sent(self, i: int) -> None:
+        self.sent_at_s[i] = time.perf_counter() - self.start
+
+    def answered(self, i: int) -> None:
+        self.latency_ms[i] = (time.perf_counter() - self.start - self.sent_at_s[i]) * 1e3
+
+    def record(self, i: int, answer: LocalizeAnswer) -> None:
+        self.dropped[i] = answer.dropped
+        if answer.error is not None:
+            self.errors[i] = answer.error
+        self.n_hypotheses[i] = len(answer.hypotheses)
+        self.timings_ms[i] = answer.timings_ms
+        self.best_world[i] = answer.best_pose_world
+
+    def result(self, run: ReplayRun, estimates_world: np.ndarray) -> DriveResult:
+        wall = time.perf_counter() - self.start
+        metrics = None
+        if run.truth_world is not None:
+            metrics = trajectory_metrics(estimates_world, run.truth_world)
+        notes = list(run.notes)
+        if self.errors:
+            first = min(self.errors)
+            notes.append(
+                f"the server answered {len(self.errors)} frame(s) with an error (prediction "
+                f"only), first frame {first}: {self.errors[first]}"
+            )
+        return DriveResult(
+            run,
+            estimates_world,
+            self.n_hypotheses,
+            self.dropped,
+            self.latency_ms,
+            self.timings_ms,
+            self.best_world,
+            wall,
+            metrics,
+            notes,
+            self.errors,
+            self.sent_at_s,
         )
-    return expected
 
 
-def _best_pose(answer: dict) -> np.ndarray:
-    hyps = answer.get("hypotheses") or []
-    if not hyps:
-        return np.full(3, np.nan)
-    best = max(hyps, key=lambda h: h.get("n_inliers", 0))
-    return np.array([best["pose"]["x_m"], best["pose"]["y_m"], best["pose"]["yaw_rad"]])
+def run_filter_config(config: FilterConfig, run: ReplayRun) -> FilterConfig:
+    """``config`` with the run's camera lever arm unless the config sets one."""
+    if run.lever_arm_m is None or config.motion.lever_arm_m != 0.0:
+        return config
+    return replace(config, motion=replace(config.motion, lever_arm_m=run.lever_arm_m))
 
 
 def drive(
@@ -120,145 +135,60 @@ def drive(
     progress: Callable[[int, int], None] | None = None,
 ) -> DriveResult:
     """Replay ``run`` over the WebSocket stream and return the filtered trajectory."""
-    n = len(run)
-    if n == 0:
+    if len(run) == 0:
         raise InvalidInputError(f"{run.name}: no frames to replay (check the frame range)")
-    filter_config = config.filter
-    if run.lever_arm_m is not None and config.filter.motion.lever_arm_m == 0.0:
-        motion = replace(config.filter.motion, lever_arm_m=run.lever_arm_m)
-        filter_config = replace(config.filter, motion=motion)
-    pf = ParticleFilter(filter_config, model, np.random.default_rng(config.seed))
-    estimates = np.full((n, 3), np.nan)
-    n_hyps = np.zeros(n, dtype=np.int64)
-    dropped = np.zeros(n, dtype=bool)
-    latency = np.full(n, np.nan)
-    best = np.full((n, 3), np.nan)
-    timings: list[dict[str, float]] = [{} for _ in range(n)]
-    errors: dict[int, str] = {}
-    lock = threading.Lock()
-    sent_at = np.full(n, np.nan)
-    last_done = [-1]  # the last frame the filter has processed
-    start = time.perf_counter()
+    tracker = Tracker(
+        run_filter_config(config.filter, run),
+        model,
+        np.random.default_rng(config.seed),
+        run.timestamps_s,
+        run.signals,
+        config.prior,
+        config.use_prior,
+    )
+    log = _DriveLog(len(run))
 
-    def step_filter(i: int, hyps: Hypotheses) -> None:
-        if i > 0:
-            dt = float(run.timestamps_s[i] - run.timestamps_s[i - 1])
-            speed, yaw_rate = run.signals[i - 1]
-            pf.predict(dt, float(speed), float(yaw_rate))
-        if not pf.initialised:
-            if len(hyps):
-                pf.initialise_from_hypotheses(hyps)
-        else:
-            pf.update(hyps)
-        if pf.initialised:
-            estimates[i] = pf.estimate().pose_world
-        last_done[0] = i
-
-    def handle(i: int, answer: dict) -> None:
-        latency[i] = (time.perf_counter() - start - sent_at[i]) * 1e3
-        hyps = Hypotheses.empty()
-        if answer.get("dropped"):
-            dropped[i] = True
-        elif "error" in answer:
-            err = answer["error"]
-            errors[i] = (
-                f"{err.get('code', 'error')}: {err.get('message', '')}"
-                if isinstance(err, dict)
-                else str(err)
-            )
-        else:
-            parsed = LocalizeAnswer.from_json(answer)
-            hyps = parsed.hypotheses
-            timings[i] = parsed.timings_ms
-            best[i] = _best_pose(answer)
-        n_hyps[i] = len(hyps)
-        with lock:
-            step_filter(i, hyps)
+    def recorded(i: int, answer: LocalizeAnswer) -> None:
+        log.record(i, answer)
         if progress:
-            progress(i + 1, n)
-
-    def prior_for(i: int) -> RetrievalPrior | None:
-        """The prior of frame i: the filter's estimate moved to frame i's time."""
-        if not config.use_prior:
-            return None
-        with lock:
-            return _predicted_prior(pf, run, i, config.prior, last_done[0])
+            progress(i + 1, len(run))
 
     with client.stream(map_id) as stream:
         if config.realtime:
-            _drive_realtime(stream, run, sent_at, start, prior_for, handle, config.k)
+            _drive_realtime(stream, run, tracker, log, config.k, recorded)
         else:
-            for i, path in enumerate(run.image_paths):
-                image = path.read_bytes()
-                prior = prior_for(i)
-                sent_at[i] = time.perf_counter() - start
-                stream.send(i, float(run.timestamps_s[i]), image, prior, config.k)
-                answer = stream.receive()
-                handle(_answer_seq(answer, i), answer)
-    wall = time.perf_counter() - start
-    metrics = None
-    if run.truth_world is not None:
-        metrics = trajectory_metrics(estimates, run.truth_world)
-    notes = list(run.notes)
-    if errors:
-        first = min(errors)
-        notes.append(
-            f"the server answered {len(errors)} frame(s) with an error (prediction only), "
-            f"first frame {first}: {errors[first]}"
-        )
-    return DriveResult(
-        run,
-        estimates,
-        n_hyps,
-        dropped,
-        latency,
-        timings,
-        best,
-        wall,
-        metrics,
-        notes,
-        errors,
-        sent_at,
-    )
+            images = (path.read_bytes() for path in run.image_paths)
+            localizer = _Timed(StreamLocalizer(stream, run.timestamps_s), log)
+            track(tracker, localizer, images, config.k, recorded)
+    return log.result(run, tracker.estimates_world)
 
 
-def _predicted_prior(
-    pf: ParticleFilter, run: ReplayRun, i: int, config: PriorConfig, last: int | None = None
-) -> RetrievalPrior | None:
-    """The filter's prior after frame ``last`` (default i - 1), dead-reckoned with the
-    measured signals to frame i's time (the filter itself is not touched)."""
-    prior = prior_from_filter(pf, config)
-    last = i - 1 if last is None else last
-    if prior is None or last < 0 or last >= i:
-        return prior
-    x, y = prior.x_m, prior.y_m
-    yaw = prior.yaw_rad if prior.yaw_rad is not None else 0.0
-    for j in range(last, i):
-        dt = float(run.timestamps_s[j + 1] - run.timestamps_s[j])
-        speed, yaw_rate = (float(v) for v in run.signals[j])
-        x += speed * math.cos(yaw) * dt
-        y += speed * math.sin(yaw) * dt
-        yaw += yaw_rate * dt
-    return RetrievalPrior(
-        x_m=x,
-        y_m=y,
-        radius_m=prior.radius_m,
-        yaw_rad=math.atan2(math.sin(yaw), math.cos(yaw)),
-        yaw_tolerance_rad=prior.yaw_tolerance_rad,
-    )
+class _Timed:
+    """A localizer whose calls are logged as sent and answered frames."""
+
+    def __init__(self, localizer: StreamLocalizer, log: _DriveLog) -> None:
+        self.localizer, self.log = localizer, log
+
+    def localize(
+        self, image: bytes, prior: RetrievalPrior | None = None, k: int | None = None
+    ) -> LocalizeAnswer:
+        i = self.localizer.seq
+        self.log.sent(i)
+        answer = self.localizer.localize(image, prior, k)
+        self.log.answered(i)
+        return answer
 
 
 def _drive_realtime(
     stream: FrameStream,
     run: ReplayRun,
-    sent_at: np.ndarray,
-    start: float,
-    prior_for: Callable[[int], RetrievalPrior | None],
-    handle: Callable[[int, dict], None],
+    tracker: Tracker,
+    log: _DriveLog,
     k: int | None,
+    recorded: Callable[[int, LocalizeAnswer], None],
 ) -> None:
-    """Send at recorded times from a thread; handle answers in order on this one."""
-    n = len(run)
+    """Send at recorded times from a thread; step the tracker with the answers in order
+    on this one."""
     errors: list[BaseException] = []
 
     def sender() -> None:
@@ -270,8 +200,8 @@ def _drive_realtime(
                 delay = due - (time.perf_counter() - t0)
                 if delay > 0:
                     time.sleep(delay)
-                prior = prior_for(i)
-                sent_at[i] = time.perf_counter() - start
+                prior = tracker.prior(i)
+                log.sent(i)
                 stream.send(i, float(run.timestamps_s[i]), image, prior, k)
         except BaseException as exc:  # noqa: BLE001 - re-raised on the main thread
             errors.append(exc)
@@ -279,11 +209,15 @@ def _drive_realtime(
     thread = threading.Thread(target=sender, daemon=True)
     thread.start()
     try:
-        for i in range(n):
+        for i in range(len(run)):
             if errors:
                 break
-            answer = stream.receive()
-            handle(_answer_seq(answer, i), answer)
+            data = stream.receive()
+            check_answer_seq(data, i)
+            log.answered(i)
+            answer = LocalizeAnswer.from_stream(data)
+            tracker.step(i, answer.hypotheses)
+            recorded(i, answer)
     finally:
         thread.join(timeout=5.0)
     if errors:

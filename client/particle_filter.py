@@ -33,11 +33,12 @@ class FilterConfig:
     resample_ess_fraction: float = 0.5
     init_position_std_m: float = 0.5
     init_yaw_std_rad: float = math.radians(2.0)
-    # A frame is "unlikely" when no particle lies within this squared Mahalanobis distance
-    # (under Sigma1) of any of its hypotheses (chi-square, 3 dof: 40 is far beyond 1e-6).
-    # After ``lost_after_frames`` such frames in a row the filter re-seeds around the
-    # current hypotheses. Unlikely frames still update: the measurement model's outlier
-    # floor keeps one wrong frame from moving the particles.
+    # A frame with hypotheses is "unlikely" when the smallest squared Mahalanobis distance
+    # (under Sigma1) between any particle and any bias-corrected hypothesis exceeds this
+    # (chi-square, 3 dof: P(> 25) = 1.5e-5). An unlikely frame still updates the weights,
+    # except the ``lost_after_frames``-th in a row, which re-seeds the particles around its
+    # own hypotheses instead. ``lost`` holds from the first unlikely frame until a likely
+    # one or the re-seed; frames without hypotheses leave the count alone.
     lost_mahalanobis_sq: float = 25.0
     # The reported pose is the main mode: particles within this radius of the weighted
     # median position (the covariance, used for the retrieval prior, covers all of them).
@@ -188,10 +189,13 @@ class ParticleFilter:
         yaw_rate_radps: float,
         hypotheses: Hypotheses | None = None,
     ) -> FilterEstimate | None:
-        """Predict, then update with this frame's hypotheses; returns the estimate.
+        """One frame: predict by ``dt_s`` with the speed and yaw rate measured since the
+        previous frame, then update with this frame's hypotheses (none: prediction only);
+        returns the estimate.
 
-        Before initialisation the first frame with hypotheses initialises the filter;
-        until then the result is None.
+        Uninitialised, there is nothing to predict: the first frame with hypotheses
+        initialises the filter around them (and is weighed by them), and until then the
+        result is None.
         """
         hypotheses = hypotheses if hypotheses is not None else Hypotheses.empty()
         if self.particles is None:

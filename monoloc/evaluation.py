@@ -1,8 +1,9 @@
 """In-process evaluation of the method on recorded runs (the benchmark's engine).
 
 The map is built in memory with the server's own code (entry builder, retrieval index,
-localization pipeline); the vehicle side is the client's filter. No HTTP and no
-database, so variants of the method can be compared quickly on the same frames:
+localization pipeline), answered by the in-process localizer; the vehicle side is the
+vehicle's own loop (monoloc.client.tracking). No HTTP and no database, so variants of
+the method can be compared quickly on the same frames:
 
 - full:        particle filter + prior-constrained retrieval (the product);
 - no_prior:    particle filter, retrieval always over the whole map;
@@ -19,19 +20,18 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from monoloc.client.drive import PriorConfig, prior_from_filter
-from monoloc.client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.client.api import LocalizeAnswer
+from monoloc.client.localizer import Localizer
+from monoloc.client.particle_filter import FilterConfig
+from monoloc.client.tracking import PriorConfig, Tracker
 from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics
 from monoloc.core.geometry import circular_mean, planar_from_T_world_from_cam
-from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.measurement import MeasurementModel
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
 from monoloc.server.index.retrieval import RetrievalIndex
-from monoloc.server.localize import (
-    LocalizationResult,
-    LocalizeConfig,
-    ReferenceEntry,
-    localize_frame,
-)
+from monoloc.server.localize import LocalizationResult, LocalizeConfig, ReferenceEntry
+from monoloc.server.localizer import InProcessAnswer, InProcessLocalizer
 from monoloc.server.vision.vocabulary import Vocabulary
 
 Progress = Callable[[int, int], None] | None
@@ -118,14 +118,8 @@ class RunEvaluation:
     n_hypotheses: np.ndarray
 
 
-def _hypotheses(result: LocalizationResult) -> Hypotheses:
-    if not result.hypotheses:
-        return Hypotheses.empty()
-    return Hypotheses(
-        np.array([h.pose_world for h in result.hypotheses]),
-        np.array([h.entry_pose_world for h in result.hypotheses]),
-        np.array([h.e_vlad for h in result.hypotheses]),
-    )
+FILTER_VARIANTS = ("full", "no_prior")
+GLOBAL_VARIANTS = ("no_prior", "top1", "topk_mean", "best_pnp")
 
 
 def _retrieval_poses(memory: MemoryMap, result: LocalizationResult):
@@ -135,6 +129,62 @@ def _retrieval_poses(memory: MemoryMap, result: LocalizationResult):
     poses = np.array([memory.poses_world[i] for i in ids])
     mean = np.array([poses[:, 0].mean(), poses[:, 1].mean(), circular_mean(poses[:, 2])])
     return poses[0], mean
+
+
+class _OneGlobalSearch:
+    """Answers a frame's prior-free queries with that frame's one global search, so the
+    variants that need it share it (and the RANSAC draws stay those of one search)."""
+
+    def __init__(self, localizer: Localizer, answer: LocalizeAnswer | None) -> None:
+        self.localizer, self.answer = localizer, answer
+
+    def localize(
+        self, image, prior: RetrievalPrior | None = None, k: int | None = None
+    ) -> LocalizeAnswer:
+        if prior is None and k is None and self.answer is not None:
+            return self.answer
+        return self.localizer.localize(image, prior, k)
+
+
+def _trackers(
+    seq,
+    signals: np.ndarray,
+    model: MeasurementModel,
+    config: EvalConfig,
+    lever_arm_m: float,
+    variants: Sequence[str],
+) -> dict[str, Tracker]:
+    """The vehicle's loop for each filter variant asked for, one filter (same seed) each."""
+    times = np.array([f.timestamp_s for f in seq.frames])
+    motion = replace(config.filter.motion, lever_arm_m=lever_arm_m)
+    fconf = replace(config.filter, motion=motion)
+    return {
+        v: Tracker(
+            fconf,
+            model,
+            np.random.default_rng(config.seed),
+            times,
+            signals,
+            config.prior,
+            use_prior=v == "full",
+        )
+        for v in FILTER_VARIANTS
+        if v in variants
+    }
+
+
+def _record_global(
+    memory: MemoryMap, est: dict[str, np.ndarray], i: int, answer: InProcessAnswer
+) -> None:
+    """The retrieval-only and best-PnP variants' pose of frame i from its global search."""
+    result = answer.result
+    top1, topk = _retrieval_poses(memory, result)
+    if "top1" in est:
+        est["top1"][i] = top1
+    if "topk_mean" in est:
+        est["topk_mean"][i] = topk
+    if "best_pnp" in est and result.best is not None:
+        est["best_pnp"][i] = result.best.pose_world
 
 
 def evaluate_run(
@@ -153,72 +203,33 @@ def evaluate_run(
     """
     n = seq.n_frames
     truth = np.array([planar_from_T_world_from_cam(f.T_world_from_cam) for f in seq.frames])
-    times = np.array([f.timestamp_s for f in seq.frames])
-    motion = replace(config.filter.motion, lever_arm_m=lever_arm_m)
-    fconf = replace(config.filter, motion=motion)
-    est = {v: np.full((n, 3), np.nan) for v in variants}
-    filters = {
-        v: ParticleFilter(fconf, model, np.random.default_rng(config.seed))
-        for v in ("full", "no_prior")
-        if v in variants
-    }
-    rng = np.random.default_rng(config.seed + 1)
+    trackers = _trackers(seq, signals, model, config, lever_arm_m, variants)
+    localizer = InProcessLocalizer(
+        memory.index,
+        memory.lookup,
+        memory.vocabulary,
+        seq.intrinsics,
+        np.random.default_rng(config.seed + 1),
+        config.localize,
+    )
+    est = {v: np.full((n, 3), np.nan) for v in variants if v not in trackers}
     timings, n_hyp = [], np.zeros(n, dtype=np.int64)
-    need_global = any(v in variants for v in ("no_prior", "top1", "topk_mean", "best_pnp"))
+    need_global = any(v in variants for v in GLOBAL_VARIANTS)
     for i, frame in enumerate(seq.frames):
         image = seq.load(frame).image_gray
-        for pf in filters.values():
-            if i > 0:
-                pf.predict(float(times[i] - times[i - 1]), *map(float, signals[i - 1]))
-        results = {}
-        if need_global:
-            results["global"] = localize_frame(
-                image,
-                seq.intrinsics,
-                memory.vocabulary,
-                memory.index,
-                memory.lookup,
-                config.localize,
-                rng,
-            )
-        if "full" in filters:
-            prior = prior_from_filter(filters["full"], config.prior)
-            if prior is None and "global" in results:
-                results["full"] = results["global"]
-            else:
-                results["full"] = localize_frame(
-                    image,
-                    seq.intrinsics,
-                    memory.vocabulary,
-                    memory.index,
-                    memory.lookup,
-                    config.localize,
-                    rng,
-                    prior,
-                )
-        main = results.get("full", results.get("global"))
+        search: InProcessAnswer | None = localizer.localize(image) if need_global else None
+        answers = {
+            v: t.follow(i, image, _OneGlobalSearch(localizer, search)) for v, t in trackers.items()
+        }
+        main = answers.get("full", search)
         timings.append(main.timings_ms)
         n_hyp[i] = len(main.hypotheses)
-        for name, pf in filters.items():
-            hyps = _hypotheses(results["full" if name == "full" else "global"])
-            if not pf.initialised:
-                if len(hyps):
-                    pf.initialise_from_hypotheses(hyps)
-            else:
-                pf.update(hyps)
-            if pf.initialised:
-                est[name][i] = pf.estimate().pose_world
-        if "global" in results:
-            top1, topk = _retrieval_poses(memory, results["global"])
-            if "top1" in est:
-                est["top1"][i] = top1
-            if "topk_mean" in est:
-                est["topk_mean"][i] = topk
-            best = results["global"].best
-            if "best_pnp" in est and best is not None:
-                est["best_pnp"][i] = best.pose_world
+        if search is not None:
+            _record_global(memory, est, i, search)
         if progress:
             progress(i + 1, n)
+    est.update({v: t.estimates_world for v, t in trackers.items()})
+    est = {v: est[v] for v in variants}
     metrics = {v: trajectory_metrics(e, truth) for v, e in est.items()}
     return RunEvaluation(truth, est, metrics, timings, n_hyp)
 

@@ -1,0 +1,80 @@
+"""Where a vehicle's hypotheses come from: one ``Localizer`` protocol, several places.
+
+``localize(image, prior, k)`` answers one frame with the server's pose hypotheses
+(METHOD.md section 6) as a :class:`LocalizeAnswer`. Remote implementations live here:
+:class:`HttpLocalizer` (one ``POST /v1/maps/{id}/localize`` per frame) and
+:class:`StreamLocalizer` (one frame at a time over the map's WebSocket stream). The
+in-process one, the server's pipeline called directly, is
+``monoloc.server.localizer.InProcessLocalizer`` (the client does not import the server).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Protocol
+
+from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, ServerError
+from monoloc.core.prior import RetrievalPrior
+
+
+class Localizer(Protocol):
+    """Answers one frame: encoded PNG/JPEG bytes (remote), or also a grayscale (H, W)
+    uint8 array (in process). ``prior``: restrict retrieval to it, None for the whole map;
+    ``k``: entries to retrieve, None for the server's default. A frame the localizer
+    dropped or could not process comes back without hypotheses (``dropped`` / ``error``)."""
+
+    def localize(
+        self, image, prior: RetrievalPrior | None = None, k: int | None = None
+    ) -> LocalizeAnswer: ...
+
+
+class HttpLocalizer:
+    """One HTTP request per frame against map ``map_id``; errors raise (ServerError)."""
+
+    def __init__(self, client: MonolocClient, map_id: int) -> None:
+        self.client = client
+        self.map_id = map_id
+
+    def localize(
+        self, image: bytes, prior: RetrievalPrior | None = None, k: int | None = None
+    ) -> LocalizeAnswer:
+        return self.client.localize(self.map_id, image, prior, k)
+
+
+def check_answer_seq(answer: dict, expected: int) -> int:
+    """The frame a stream answer belongs to; the stream answers in order, so it must be
+    ``expected`` (ServerError otherwise)."""
+    seq = answer.get("seq")
+    if seq != expected:
+        raise ServerError(
+            f"the stream answered frame {seq} when frame {expected} was due: {str(answer)[:200]}"
+        )
+    return expected
+
+
+class StreamLocalizer:
+    """One frame at a time over an open stream: send frame ``seq`` (0, 1, ...), wait for
+    its answer. The frame's time ``t`` is ``timestamps_s[seq]`` when given, else seconds
+    since the first frame. A dropped or failed frame is an answer without hypotheses."""
+
+    def __init__(self, stream: FrameStream, timestamps_s: Sequence[float] | None = None) -> None:
+        self.stream = stream
+        self.timestamps_s = timestamps_s
+        self.seq = 0
+        self._t0: float | None = None
+
+    def localize(
+        self, image: bytes, prior: RetrievalPrior | None = None, k: int | None = None
+    ) -> LocalizeAnswer:
+        seq = self.seq
+        if self.timestamps_s is not None:
+            t_s = float(self.timestamps_s[seq])
+        else:
+            self._t0 = time.perf_counter() if self._t0 is None else self._t0
+            t_s = time.perf_counter() - self._t0
+        self.stream.send(seq, t_s, image, prior, k)
+        self.seq += 1
+        answer = self.stream.receive()
+        check_answer_seq(answer, seq)
+        return LocalizeAnswer.from_stream(answer)

@@ -1,0 +1,156 @@
+"""The vehicle's loop: a particle filter fed frame by frame by a Localizer.
+
+Per frame i: the retrieval prior is the filter's estimate after the last frame it
+processed, dead-reckoned with the measured signals to frame i's time (none while the
+filter is uninitialised or lost); the localizer answers the frame; the filter steps
+(``ParticleFilter.step``: predict from frame i - 1 with its measured speed and yaw rate,
+then initialise from or update with frame i's hypotheses) and reports its estimate. A
+frame without hypotheses (none found, dropped, failed) is a prediction-only step.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from monoloc.client.api import LocalizeAnswer
+from monoloc.client.localizer import Localizer
+from monoloc.client.particle_filter import FilterConfig, FilterEstimate, ParticleFilter
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.prior import RetrievalPrior
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """How the filter's estimate becomes the retrieval prior."""
+
+    sigma_multiplier: float = 3.0
+    margin_m: float = 5.0
+    min_radius_m: float = 8.0
+    max_radius_m: float = 60.0
+    yaw_margin_rad: float = math.radians(25.0)
+
+
+def prior_from_filter(pf: ParticleFilter, config: PriorConfig) -> RetrievalPrior | None:
+    """A disc around the filter's estimate whose radius grows with its uncertainty, or
+    None for a global search (uninitialised or lost)."""
+    if not pf.initialised or pf.lost:
+        return None
+    est = pf.estimate()
+    radius = config.sigma_multiplier * est.position_std_m + config.margin_m
+    yaw_std = math.sqrt(max(est.covariance[2, 2], 0.0))
+    return RetrievalPrior(
+        x_m=float(est.pose_world[0]),
+        y_m=float(est.pose_world[1]),
+        radius_m=float(np.clip(radius, config.min_radius_m, config.max_radius_m)),
+        yaw_rad=float(est.pose_world[2]),
+        yaw_tolerance_rad=float(
+            min(math.pi, config.sigma_multiplier * yaw_std + config.yaw_margin_rad)
+        ),
+    )
+
+
+def dead_reckon_prior(
+    prior: RetrievalPrior, timestamps_s: np.ndarray, signals: np.ndarray, last: int, i: int
+) -> RetrievalPrior:
+    """``prior`` (at frame ``last``) moved to frame i's time with the measured speed and
+    yaw rate (signals (N, 2)) of frames last .. i - 1; radius and tolerance unchanged."""
+    x, y = prior.x_m, prior.y_m
+    yaw = prior.yaw_rad if prior.yaw_rad is not None else 0.0
+    for j in range(last, i):
+        dt = float(timestamps_s[j + 1] - timestamps_s[j])
+        speed, yaw_rate = (float(v) for v in signals[j])
+        x += speed * math.cos(yaw) * dt
+        y += speed * math.sin(yaw) * dt
+        yaw += yaw_rate * dt
+    return RetrievalPrior(
+        x_m=x,
+        y_m=y,
+        radius_m=prior.radius_m,
+        yaw_rad=math.atan2(math.sin(yaw), math.cos(yaw)),
+        yaw_tolerance_rad=prior.yaw_tolerance_rad,
+    )
+
+
+class Tracker:
+    """One run's filter, stepped once per frame in frame order.
+
+    ``timestamps_s`` (N,) and ``signals`` (N, 2: measured speed m/s, yaw rate rad/s) of
+    the run; ``estimates_world`` (N, 3) fills in as frames are stepped (NaN before the
+    filter initialises). :meth:`prior` and :meth:`step` may be called from two threads
+    (frames sent by one, answers handled by another).
+    """
+
+    def __init__(
+        self,
+        filter_config: FilterConfig,
+        model: MeasurementModel,
+        rng: np.random.Generator,
+        timestamps_s: np.ndarray,
+        signals: np.ndarray,
+        prior_config: PriorConfig = PriorConfig(),
+        use_prior: bool = True,
+    ) -> None:
+        self.filter = ParticleFilter(filter_config, model, rng)
+        self.timestamps_s = np.asarray(timestamps_s, dtype=np.float64)
+        self.signals = np.asarray(signals, dtype=np.float64)
+        self.prior_config = prior_config
+        self.use_prior = use_prior
+        self.estimates_world = np.full((len(self.timestamps_s), 3), np.nan)
+        self.last = -1  # the last frame stepped
+        self._lock = threading.Lock()
+
+    def prior(self, i: int) -> RetrievalPrior | None:
+        """The retrieval prior of frame i: the estimate after the last frame stepped,
+        moved to frame i's time (the filter itself is not touched)."""
+        if not self.use_prior:
+            return None
+        with self._lock:
+            prior = prior_from_filter(self.filter, self.prior_config)
+            if prior is None or not 0 <= self.last < i:
+                return prior
+            return dead_reckon_prior(prior, self.timestamps_s, self.signals, self.last, i)
+
+    def step(self, i: int, hypotheses: Hypotheses) -> FilterEstimate | None:
+        """Frame i's filter step (frames in order: i is the frame after the last one);
+        the estimate, None while uninitialised. Frame 0 is never predicted: the filter
+        starts uninitialised, and the frame that initialises it is not predicted."""
+        with self._lock:
+            if i != self.last + 1:
+                raise InvalidInputError(f"frame {i} stepped after frame {self.last}")
+            dt_s, speed_mps, yaw_rate_radps = 0.0, 0.0, 0.0
+            if i > 0:
+                dt_s = float(self.timestamps_s[i] - self.timestamps_s[i - 1])
+                speed_mps, yaw_rate_radps = (float(v) for v in self.signals[i - 1])
+            estimate = self.filter.step(dt_s, speed_mps, yaw_rate_radps, hypotheses)
+            if estimate is not None:
+                self.estimates_world[i] = estimate.pose_world
+            self.last = i
+            return estimate
+
+    def follow(self, i: int, image, localizer: Localizer, k: int | None = None) -> LocalizeAnswer:
+        """Frame i end to end: prior, localize, step; returns the localizer's answer."""
+        answer = localizer.localize(image, self.prior(i), k)
+        self.step(i, answer.hypotheses)
+        return answer
+
+
+def track(
+    tracker: Tracker,
+    localizer: Localizer,
+    images: Iterable,
+    k: int | None = None,
+    on_answer: Callable[[int, LocalizeAnswer], None] | None = None,
+) -> np.ndarray:
+    """Follow every frame of ``images`` (in the localizer's format) in turn; the
+    estimates (N, 3). ``on_answer(i, answer)`` after each frame's step."""
+    for i, image in enumerate(images):
+        answer = tracker.follow(i, image, localizer, k)
+        if on_answer is not None:
+            on_answer(i, answer)
+    return tracker.estimates_world
