@@ -86,15 +86,18 @@ def _limit_threads(settings: Settings):
 def _start(settings: Settings, metrics: Metrics) -> AppState:
     """Blocking start-up work (run in a thread by the lifespan)."""
     from monoloc.server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
+    from monoloc.server.index.warmup import warm_up as warm_up_index
     from monoloc.server.jobs.handlers import HANDLERS
     from monoloc.server.jobs.runner import JobRunner
     from monoloc.server.jobs.store import mark_interrupted_jobs
     from monoloc.server.runtime import MapRegistry
     from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
     from monoloc.server.storage.migrate import upgrade_database
-    from monoloc.server.vision.warmup import warm_up
+    from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
-    warm_up()  # compile or load the vision kernels now, not in the first request
+    # Compile or load the numba kernels now, not in the first request.
+    warm_up_vision()
+    warm_up_index()
     Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
     clean_incoming_uploads(settings)
     upgrade_database(settings.database_url)

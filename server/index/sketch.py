@@ -22,6 +22,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from monoloc.server.vision.sizes import VLAD_DIM
 
@@ -36,7 +37,10 @@ def sketch_projection() -> np.ndarray:
     """(2048, 256) float32 with orthonormal columns, from a fixed seed (never changes:
     stored sketches depend on it)."""
     rng = np.random.default_rng(_PROJECTION_SEED)
-    q, _ = np.linalg.qr(rng.normal(size=(VLAD_DIM, SKETCH_BITS)))
+    # One BLAS thread: on a busy machine the threaded QR spends seconds handing work off
+    # (this runs on a map's first load); the result is the same bit for bit.
+    with threadpool_limits(1):
+        q, _ = np.linalg.qr(rng.normal(size=(VLAD_DIM, SKETCH_BITS)))
     return np.ascontiguousarray(q, dtype=np.float32)
 
 
