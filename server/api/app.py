@@ -21,6 +21,7 @@ import anyio
 import numpy as np
 from fastapi import FastAPI
 
+from monoloc.server.api.console import install_console
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.errors import install_error_handlers
 from monoloc.server.api.limits import BodySizeLimitMiddleware
@@ -164,12 +165,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         description=API_DESCRIPTION,
         openapi_tags=TAGS,
         lifespan=lifespan,
+        docs_url=None,  # /docs and /redoc from packaged assets: install_console
+        redoc_url=None,
         form_limits={"max_files": settings.max_archive_members, "max_fields": 1000},
     )
     install_error_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
     app.include_router(metrics_router(settings.metrics_public))
+    install_console(app)  # /ui, offline /docs and /redoc, the console's JSON routes
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestMetricsMiddleware, metrics=metrics)
     return app

@@ -29,14 +29,16 @@ from __future__ import annotations
 import json
 import logging
 import struct
+import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import anyio
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from monoloc.core.errors import InvalidInputError, MonolocError
+from monoloc.server.api.console.live import VehicleFeed, vehicle_board
 from monoloc.server.api.deps import AppState, StateDep, StreamKey
 from monoloc.server.api.errors import error_code
 from monoloc.server.api.localizing import localize_bytes
@@ -60,6 +62,7 @@ class _Item:
     data: bytes | None = None  # None: dropped (or an error)
     options: LocalizeOptions | None = None
     error: ErrorDetail | None = None
+    received_s: float = field(default_factory=time.monotonic)  # for the console's latency
 
 
 def _rejected(message: str) -> _Item:
@@ -107,8 +110,10 @@ def _option_fields(header: dict[str, Any]) -> dict[str, Any]:
 class _Session:
     """The pending answers of one connection, in arrival order."""
 
-    def __init__(self, websocket: WebSocket, state: AppState, map_id: int) -> None:
-        self.ws, self.state, self.map_id = websocket, state, map_id
+    def __init__(
+        self, websocket: WebSocket, state: AppState, map_id: int, feed: VehicleFeed
+    ) -> None:
+        self.ws, self.state, self.map_id, self.feed = websocket, state, map_id, feed
         self.queue: deque[_Item] = deque()
         self.waiting = 0  # items still holding an image
         self.wake = anyio.Event()
@@ -169,10 +174,12 @@ class _Session:
             while not self.queue:
                 await self.wake.wait()
                 self.wake = anyio.Event()
-            answer = await self.answer(self.queue[0])
+            item = self.queue[0]
+            answer = await self.answer(item)
             self.queue.popleft()
             # exclude_unset: an error answer leaves out the t it was not given
             body = answer.model_dump(mode="json", exclude_unset=isinstance(answer, StreamError))
+            self.feed.report(body, item.received_s, item.options.prior if item.options else None)
             try:
                 await self.ws.send_text(json.dumps(body))
             except Exception:  # the client went away: nobody to answer
@@ -185,7 +192,8 @@ async def stream(websocket: WebSocket, map_id: int, state: StateDep, _key: Strea
     """Frames in, one answer per frame out, in order (see the module docstring)."""
     await anyio.to_thread.run_sync(state.registry.get, map_id)  # 404 before the handshake
     await websocket.accept()
-    session = _Session(websocket, state, map_id)
+    feed = vehicle_board(websocket.app).connect(map_id, _key.name)
+    session = _Session(websocket, state, map_id, feed)
     try:
         async with anyio.create_task_group() as group:
             group.start_soon(session.send_loop, group.cancel_scope)
@@ -193,3 +201,5 @@ async def stream(websocket: WebSocket, map_id: int, state: StateDep, _key: Strea
             group.cancel_scope.cancel()
     except* (WebSocketDisconnect, OSError):
         pass  # the client disconnected while we were reading
+    finally:
+        feed.close()

@@ -1,0 +1,216 @@
+"""Small JSON routes the console needs beside the resource routes: every entry's planar
+pose in one answer (the map plot), the coverage gaps of a selection, an entry's
+keypoints, and the live vehicles of a map (a snapshot, or server-sent events).
+
+Scopes: poses, coverage and vehicles are ``localize`` (a vehicle key sees the map and
+the live page); keypoints are ``map:write`` like the entry routes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, Field
+
+from monoloc.server.api.console.coverage import CoverageConfig, route_gaps, route_length_m
+from monoloc.server.api.console.live import vehicle_board
+from monoloc.server.api.convert import AUTH_ERRORS, error_responses
+from monoloc.server.api.deps import LocalizeKey, MapWriteKey, SessionDep
+from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.records import EntrySummary
+
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["console"])
+PAGE = 5000  # entries read per query
+SSE_PERIOD_S = 0.25
+SSE_MAX_S = 30.0  # a stream ends after this long; the page reconnects (lets servers stop)
+
+
+class MapPoses(BaseModel):
+    """Planar poses (z-up world) of a map's entries, one array per field, id order."""
+
+    entry_ids: list[int]
+    run_ids: list[int | None]
+    x_m: list[float]
+    y_m: list[float]
+    yaw_rad: list[float]
+    tags: list[list[str]]
+
+
+class CoverageGap(BaseModel):
+    run_id: int | None
+    length_m: float
+    x_m: list[float]
+    y_m: list[float]
+
+
+class Coverage(BaseModel):
+    radius_m: float
+    route_length_m: float = Field(description="Length of every run's route (all entries).")
+    gap_length_m: float
+    gaps: list[CoverageGap]
+
+
+class EntryKeypoints(BaseModel):
+    """The entry's stored keypoints (each has a 3D point) and their depth in its camera."""
+
+    entry_id: int
+    image_width_px: int
+    image_height_px: int
+    x_px: list[float]
+    y_px: list[float]
+    depth_m: list[float]
+
+
+def _all_entries(session, map_id: int, tag: str | None = None, run_id: int | None = None):
+    maps_repo.get_map(session, map_id)
+    out: list[EntrySummary] = []
+    while True:
+        page = entries_repo.list_entries(
+            session, map_id, tag=tag, run_id=run_id, limit=PAGE, offset=len(out)
+        )
+        out.extend(page)
+        if len(page) < PAGE:
+            return out
+
+
+@router.get(
+    "/poses",
+    response_model=MapPoses,
+    responses={**AUTH_ERRORS, **error_responses(404, 422)},
+    summary="Planar poses of every entry (the console's map plot)",
+)
+def map_poses(
+    map_id: int,
+    session: SessionDep,
+    _key: LocalizeKey,
+    tag: str | None = None,
+    run_id: int | None = None,
+) -> MapPoses:
+    entries = _all_entries(session, map_id, tag, run_id)
+    return MapPoses(
+        entry_ids=[e.id for e in entries],
+        run_ids=[e.run_id for e in entries],
+        x_m=[e.x_m for e in entries],
+        y_m=[e.y_m for e in entries],
+        yaw_rad=[e.yaw_rad for e in entries],
+        tags=[list(e.tags) for e in entries],
+    )
+
+
+@router.get(
+    "/coverage",
+    response_model=Coverage,
+    responses={**AUTH_ERRORS, **error_responses(404, 422)},
+    summary="Coverage gaps of a selection of entries along the mapped route",
+)
+def coverage(
+    map_id: int,
+    session: SessionDep,
+    _key: LocalizeKey,
+    radius_m: Annotated[float, Query(gt=0, le=1000)] = CoverageConfig.radius_m,
+    tag: str | None = None,
+    run_id: int | None = None,
+) -> Coverage:
+    """The route is each run's entries in time order; a gap is a stretch of it with no
+    entry of the selection (``tag``, ``run_id``) within ``radius_m``."""
+    config = CoverageConfig(radius_m=radius_m, step_m=min(radius_m / 4, 1.0))
+    everything = _all_entries(session, map_id)
+    selected = everything if tag is None and run_id is None else None
+    if selected is None:
+        selected = _all_entries(session, map_id, tag, run_id)
+    covered = np.array([(e.x_m, e.y_m) for e in selected], dtype=float).reshape(-1, 2)
+    routes: dict[int, list[EntrySummary]] = {}
+    for e in everything:
+        if e.run_id is not None:
+            routes.setdefault(e.run_id, []).append(e)
+    gaps, total_m = [], 0.0
+    for rid, members in sorted(routes.items()):
+        members.sort(key=lambda e: (e.timestamp_s if e.timestamp_s is not None else 0.0, e.id))
+        route = np.array([(e.x_m, e.y_m) for e in members], dtype=float)
+        total_m += route_length_m(route)
+        for gap in route_gaps(route, covered, config, run_id=rid):
+            xy = np.round(gap.points_xy_m, 3)
+            gaps.append(
+                CoverageGap(
+                    run_id=rid,
+                    length_m=round(gap.length_m, 3),
+                    x_m=xy[:, 0].tolist(),
+                    y_m=xy[:, 1].tolist(),
+                )
+            )
+    return Coverage(
+        radius_m=radius_m,
+        route_length_m=round(total_m, 3),
+        gap_length_m=round(sum(g.length_m for g in gaps), 3),
+        gaps=gaps,
+    )
+
+
+@router.get(
+    "/entries/{entry_id}/keypoints",
+    response_model=EntryKeypoints,
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="An entry's keypoints and their depth",
+)
+def entry_keypoints(
+    map_id: int, entry_id: int, session: SessionDep, _key: MapWriteKey
+) -> EntryKeypoints:
+    summary = entries_repo.get_entry(session, entry_id, map_id=map_id)
+    (data,) = entries_repo.get_entry_data(session, [entry_id])
+    xy = np.round(np.asarray(data.keypoints_px, dtype=float), 2)
+    depth = np.round(np.asarray(data.points_cam, dtype=float)[:, 2], 3)
+    return EntryKeypoints(
+        entry_id=entry_id,
+        image_width_px=summary.image_width_px,
+        image_height_px=summary.image_height_px,
+        x_px=xy[:, 0].tolist(),
+        y_px=xy[:, 1].tolist(),
+        depth_m=depth.tolist(),
+    )
+
+
+@router.get(
+    "/vehicles",
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="Vehicles streaming to the map: latest estimate, hypotheses, rate, latency",
+)
+def vehicles(map_id: int, request: Request, session: SessionDep, _key: LocalizeKey) -> dict:
+    maps_repo.get_map(session, map_id)
+    return vehicle_board(request.app).snapshot(map_id)
+
+
+@router.get(
+    "/vehicles/events",
+    response_class=StreamingResponse,
+    responses={**AUTH_ERRORS, **error_responses(404)},
+    summary="The same as server-sent events, one snapshot per change",
+)
+def vehicle_events(
+    map_id: int, request: Request, session: SessionDep, _key: LocalizeKey
+) -> StreamingResponse:
+    """``text/event-stream``: a ``data:`` snapshot at once and after every change
+    (checked every 0.25 s); the stream ends after 30 s and the client reconnects."""
+    maps_repo.get_map(session, map_id)
+    board = vehicle_board(request.app)
+
+    async def events() -> AsyncIterator[str]:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + SSE_MAX_S
+        sent = -1
+        while loop.time() < deadline and not await request.is_disconnected():
+            snapshot = board.snapshot(map_id)
+            if snapshot["version"] != sent:
+                sent = snapshot["version"]
+                yield f"data: {json.dumps(snapshot)}\n\n"
+            await asyncio.sleep(SSE_PERIOD_S)
+
+    return StreamingResponse(
+        events(), media_type="text/event-stream", headers={"Cache-Control": "no-store"}
+    )
