@@ -205,6 +205,15 @@ def test_a_wrong_key_is_refused(offline, server):
     assert offline.page.locator("#nav").is_hidden()
 
 
+def _wait_plot_entries(page, n: int) -> None:
+    """Wait until the map plot shows ``n`` entries (the page sets data-entries)."""
+    page.wait_for_function(
+        "n => { const p = document.querySelector('#map-plot');"
+        " return p !== null && p.dataset.entries === String(n); }",
+        arg=n,
+    )
+
+
 def _plot_entries(page, selector: str = "#map-plot") -> dict[str, list[int]]:
     """Entry ids per tag trace of a Plotly plot, read from the page."""
     return page.evaluate(
@@ -235,9 +244,7 @@ def test_map_plot_night_upload_and_entry_page(offline, server, city, tmp_path):
     offline.sign_in(ADMIN_KEY)
     page.locator("#maps").wait_for()
     page.goto(f"{url}/ui#/maps/{map_id}")
-    page.wait_for_function(
-        "n => document.querySelector('#map-plot').dataset.entries === String(n)", arg=before
-    )
+    _wait_plot_entries(page, before)
     traces = _plot_entries(page)
     assert list(traces) == ["day"] and len(traces["day"]["ids"]) == before
     offline.shot("map")
@@ -258,9 +265,7 @@ def test_map_plot_night_upload_and_entry_page(offline, server, city, tmp_path):
     offline.shot("add-images")
 
     page.goto(f"{url}/ui#/maps/{map_id}")
-    page.wait_for_function(
-        "n => document.querySelector('#map-plot').dataset.entries === String(n)", arg=before + 1
-    )
+    _wait_plot_entries(page, before + 1)
     traces = _plot_entries(page)
     assert traces["night"] == {"ids": [new_id], "colour": NIGHT_COLOUR}
     assert new_id not in traces["day"]["ids"]
@@ -272,7 +277,7 @@ def test_map_plot_night_upload_and_entry_page(offline, server, city, tmp_path):
     np.testing.assert_allclose(xy, night["xy"], atol=1e-6)
     # the filter by tag keeps the night entry only; the gaps are then the rest of the route
     page.select_option("#filter-tag", "night")
-    page.wait_for_function("document.querySelector('#map-plot').dataset.entries === '1'")
+    _wait_plot_entries(page, 1)
     gaps = page.evaluate(
         "document.querySelector('#map-plot').data.find(t => t.meta && 'gaps' in t.meta).meta.gaps"
     )
@@ -299,10 +304,7 @@ def test_map_plot_night_upload_and_entry_page(offline, server, city, tmp_path):
     assert _api(server, "GET", f"/v1/maps/{map_id}")["n_entries"] == before + 1
     page.once("dialog", lambda dialog: dialog.accept())
     page.click("#delete")
-    page.wait_for_function(
-        "n => (document.querySelector('#map-plot') || {dataset: {}}).dataset.entries === String(n)",
-        arg=before,
-    )
+    _wait_plot_entries(page, before)
     assert _api(server, "GET", f"/v1/maps/{map_id}")["n_entries"] == before
 
 
