@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test test-postgres lint bench demo clean
+.PHONY: install test test-postgres lint bench demo clean chromium
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -19,7 +19,12 @@ install: $(STAMP)
 lint: install
 	$(VENV)/bin/ruff check .
 
-test: install lint
+# The console's browser tests drive Debian's chromium (no browser download).
+chromium:
+	@test -x /usr/bin/chromium || { apt-get update -q && apt-get install -y -q chromium; } \
+	  || echo "chromium could not be installed: the browser tests will be skipped"
+
+test: install lint chromium
 	$(PY) -m pytest -q
 
 # The storage and ingestion suites against PostgreSQL: a fresh database per test on the

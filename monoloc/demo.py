@@ -6,12 +6,15 @@
    the measurement model on the train run, upload the map run;
 4. drive the query run over the WebSocket with the client's particle filter; then the
    night run twice: before and after an operator adds night images (admin route);
-5. print a table beside the paper's numbers; 6. write PNG plots and summary.json.
+5. print a table beside the paper's numbers; 6. write PNG plots and summary.json;
+7. print the operator's console URL (``/ui``) and, with ``--serve`` (the default when run
+   in a terminal), keep the server running until Ctrl-C.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +32,7 @@ class DemoConfig:
     seed: int = 3
     server: str | None = None
     key: str | None = None
+    serve: bool = False  # keep the server up at the end until interrupted
 
 
 def demo(
@@ -37,9 +41,27 @@ def demo(
     seed: int = typer.Option(3, help="seed of the sim city"),
     server: str | None = typer.Option(None, help="use this server instead of starting one"),
     key: str | None = typer.Option(None, envvar="MONOLOC_API_KEY", help="admin key for --server"),
+    serve: bool | None = typer.Option(
+        None,
+        "--serve/--no-serve",
+        help="keep serving the console (URL/ui) until Ctrl-C; default: when run in a terminal",
+    ),
 ) -> None:
     """Generate a sim city, map it, localize a car in it; print a table and write plots."""
-    run_demo(DemoConfig(out_dir=out, frames=frames, seed=seed, server=server, key=key))
+    if serve is None:
+        serve = sys.stdin.isatty() and sys.stdout.isatty()
+    config = DemoConfig(out_dir=out, frames=frames, seed=seed, server=server, key=key, serve=serve)
+    run_demo(config)
+
+
+def _serve_until_interrupted(console, key: str) -> None:
+    """Keep the demo's server running for the operator until Ctrl-C."""
+    console.print(f"sign in with the demo's admin key {key}; Ctrl-C stops the server")
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        console.print("stopping the map server")
 
 
 def run_demo(config: DemoConfig) -> dict:
@@ -70,6 +92,9 @@ def run_demo(config: DemoConfig) -> dict:
             map_id = steps.build_map(client, dataset)
             results = steps.drive_all(client, map_id, dataset)
             summary = steps.report(client, map_id, dataset, results, time.monotonic() - started)
+        console.print(f"operator's console: {url}/ui#/maps/{map_id} (API docs: {url}/docs)")
+        if config.serve and proc is not None:
+            _serve_until_interrupted(console, key)
     finally:
         if proc is not None:
             demo_io.stop_server(proc)

@@ -309,12 +309,13 @@ def test_map_plot_night_upload_and_entry_page(offline, server, city, tmp_path):
 
 
 def test_jobs_page_watches_an_ingestion_reach_100(offline, server, city):
-    page, url = offline.page, server["url"]
-    offline.sign_in(server["keys"].write)
-    page.locator("#jobs").wait_for()
     from monoloc.core.camera import KITTI_CAM0
 
-    made = _api(server, "POST", "/v1/maps", json={"name": "night", "camera": camera_json(KITTI_CAM0)})
+    page = offline.page
+    offline.sign_in(server["keys"].write)
+    page.locator("#jobs").wait_for()
+    camera = camera_json(KITTI_CAM0)
+    made = _api(server, "POST", "/v1/maps", json={"name": "night", "camera": camera})
     accepted = _api(
         server,
         "POST",
