@@ -16,7 +16,7 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from monoloc.server.api.console.coverage import CoverageConfig, route_gaps, route_length_m
 from monoloc.server.api.console.live import vehicle_board
@@ -35,6 +35,21 @@ SSE_MAX_S = 30.0  # a stream ends after this long; the page reconnects (lets ser
 class MapPoses(BaseModel):
     """Planar poses (z-up world) of a map's entries, one array per field, id order."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                dict(
+                    entry_ids=[1, 2],
+                    run_ids=[1, None],
+                    x_m=[0.0, 1.5],
+                    y_m=[0.0, 0.1],
+                    yaw_rad=[0.0, 0.02],
+                    tags=[[], ["night"]],
+                )
+            ]
+        }
+    )
+
     entry_ids: list[int]
     run_ids: list[int | None]
     x_m: list[float]
@@ -51,6 +66,18 @@ class CoverageGap(BaseModel):
 
 
 class Coverage(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                dict(
+                    radius_m=5.0,
+                    route_length_m=120.0,
+                    gap_length_m=13.5,
+                    gaps=[dict(run_id=1, length_m=13.5, x_m=[43.25, 56.75], y_m=[0.0, 0.0])],
+                )
+            ]
+        }
+    )
     radius_m: float
     route_length_m: float = Field(description="Length of every run's route (all entries).")
     gap_length_m: float
@@ -60,12 +87,58 @@ class Coverage(BaseModel):
 class EntryKeypoints(BaseModel):
     """The entry's stored keypoints (each has a 3D point) and their depth in its camera."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                dict(
+                    entry_id=13,
+                    image_width_px=1241,
+                    image_height_px=376,
+                    x_px=[512.4, 640.0],
+                    y_px=[180.2, 201.7],
+                    depth_m=[12.8, 35.1],
+                )
+            ]
+        }
+    )
+
     entry_id: int
     image_width_px: int
     image_height_px: int
     x_px: list[float]
     y_px: list[float]
     depth_m: list[float]
+
+
+_VEHICLE_EXAMPLE = {
+    "vehicle_id": 1,
+    "name": "car",
+    "connected": True,
+    "connected_for_s": 12.3,
+    "frames": 120,
+    "dropped": 0,
+    "errors": 0,
+    "last_seq": 119,
+    "last_t_s": 11.9,
+    "since_last_frame_s": 0.08,
+    "frame_rate_hz": 10.0,
+    "latency_ms_p50": 31.5,
+    "latency_ms_max": 48.0,
+    "estimate": {"x_m": 52.1, "y_m": -1.2, "yaw_rad": 0.03},
+    "estimate_source": "vehicle prior",
+    "hypotheses": [{"entry_id": 57, "n_inliers": 143, "x_m": 52.0, "y_m": -1.1, "yaw_rad": 0.03}],
+}
+
+
+class VehicleSnapshot(BaseModel):
+    """The vehicles streaming to a map (see live.py for each field); ``version`` changes
+    with every report."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"version": 361, "vehicles": [_VEHICLE_EXAMPLE]}]}
+    )
+    version: int
+    vehicles: list[dict]
 
 
 def _all_entries(session, map_id: int, tag: str | None = None, run_id: int | None = None):
@@ -178,18 +251,32 @@ def entry_keypoints(
 
 @router.get(
     "/vehicles",
+    response_model=VehicleSnapshot,
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Vehicles streaming to the map: latest estimate, hypotheses, rate, latency",
 )
-def vehicles(map_id: int, request: Request, session: SessionDep, _key: LocalizeKey) -> dict:
+def vehicles(
+    map_id: int, request: Request, session: SessionDep, _key: LocalizeKey
+) -> VehicleSnapshot:
     maps_repo.get_map(session, map_id)
-    return vehicle_board(request.app).snapshot(map_id)
+    return VehicleSnapshot(**vehicle_board(request.app).snapshot(map_id))
 
 
 @router.get(
     "/vehicles/events",
     response_class=StreamingResponse,
-    responses={**AUTH_ERRORS, **error_responses(404)},
+    responses={
+        200: {
+            "description": "One ``data:`` line per snapshot (the /vehicles answer).",
+            "content": {
+                "text/event-stream": {
+                    "example": "data: " + json.dumps({"version": 361, "vehicles": []}) + "\n\n"
+                }
+            },
+        },
+        **AUTH_ERRORS,
+        **error_responses(404),
+    },
     summary="The same as server-sent events, one snapshot per change",
 )
 def vehicle_events(
