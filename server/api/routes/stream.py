@@ -36,10 +36,11 @@ from typing import Any
 import anyio
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from monoloc.core.errors import InvalidInputError, MonolocError
+from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
 from monoloc.server.api.deps import AppState, StateDep, StreamKey
 from monoloc.server.api.errors import error_code
 from monoloc.server.api.localizing import localize_bytes
+from monoloc.server.api.params import is_db_id
 from monoloc.server.api.schemas import ErrorDetail
 from monoloc.server.api.schemas_localize import (
     LocalizeOptions,
@@ -183,6 +184,8 @@ class _Session:
 @router.websocket("/v1/maps/{map_id}/stream")
 async def stream(websocket: WebSocket, map_id: int, state: StateDep, _key: StreamKey) -> None:
     """Frames in, one answer per frame out, in order (see the module docstring)."""
+    if not is_db_id(map_id):  # the driver cannot hold it: no such map
+        raise NotFoundError(f"map {map_id} does not exist")
     await anyio.to_thread.run_sync(state.registry.get, map_id)  # 404 before the handshake
     await websocket.accept()
     session = _Session(websocket, state, map_id)
