@@ -18,6 +18,9 @@ server/api/schemas_localize.py): ``StreamAnswer``, the localize answer plus ``se
 not be processed (without ``t`` if its header was rejected; a header without a readable
 ``seq`` gets ``"seq": null``).
 
+A message larger than ``max_query_body_bytes`` (the localize route's body limit) is
+answered ``payload_too_large`` without being parsed; the connection stays open.
+
 Back-pressure: at most ``stream_max_pending_frames`` frames wait for processing. When
 another arrives, the oldest waiting frame is dropped (its image freed at once) and
 answered as dropped when its turn comes, so answers keep arrival order. A client owed
@@ -130,8 +133,14 @@ class _Session:
             if message["type"] == "websocket.disconnect":
                 return
             data = message.get("bytes")
+            limit = self.state.settings.max_query_body_bytes
             if data is None:
                 item = _rejected("send binary messages (header + image)")
+            elif len(data) > limit:  # the localize route's limit, answered in order
+                detail = f"frame message of {len(data)} bytes exceeds the limit of {limit} bytes"
+                item = _Item(
+                    None, None, error=ErrorDetail(code="payload_too_large", message=detail)
+                )
             else:
                 item = parse_message(data)
             self.push(item)
