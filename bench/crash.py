@@ -59,6 +59,7 @@ def _camera() -> dict:
 def _start_time_s(workdir: Path) -> float:
     from monoloc.demo_io import free_port, new_admin_key, start_server, stop_server
 
+    workdir.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
     proc = start_server(workdir / "data", free_port(), new_admin_key(), workdir / "server.log")
     elapsed = time.monotonic() - start

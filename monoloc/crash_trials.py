@@ -187,13 +187,15 @@ def _ingest_trial(server, dataset, rng, workdir, result, at_end: bool) -> None:
     job_id = int(r.json()["job"]["id"])
     result.acknowledged = 1
     start = time.monotonic()
-    threshold = 0.9 if at_end else 0.0
+    # index_write: every frame built (progress 1.0), the last commit and the index file
+    # write under way; the kill lands within 50 ms of that, before, during or after.
+    threshold = 0.99 if at_end else 0.0
     while time.monotonic() - start < 120:
         job = client.get(f"/v1/jobs/{job_id}").json()
         if job["state"] != "queued" and job["progress"] > threshold or job["state"] == "done":
             break
         time.sleep(0.005 if at_end else 0.02)
-    time.sleep(float(rng.uniform(0.0, 0.15 if at_end else 1.0)))
+    time.sleep(float(rng.uniform(0.0, 0.05 if at_end else 1.0)))
     result.job_state_at_kill = client.get(f"/v1/jobs/{job_id}").json()["state"]
     result.killed_after_s = time.monotonic() - start
     server.kill()
