@@ -112,6 +112,25 @@ def plot_accuracy(data: dict | None, name: str) -> str | None:
     return str(path.relative_to(HERE))
 
 
+def crash_section(data: dict | None) -> list[str]:
+    """SIGKILL trials (bench/crash.py): failures by kind of check, restart times."""
+    lines = ["", "## Crash trials: SIGKILL of the server process (bench/crash.py)", ""]
+    if not data:
+        return lines + ["not run"]
+    rows = [[name, n, "met" if n == 0 else "**missed**"] for name, n in data["failures"].items()]
+    lines.append(table(["trials with ...", "count", "goal 0"], rows))
+    restart = data["restart_after_sigkill_s"]
+    lines += [
+        "",
+        f"{data['trials']} trials ({data['by_kind']}), {data['acknowledged_writes']} "
+        f"acknowledged writes checked; ingestion kills by job state at the kill: "
+        f"{data['ingest_kills_by_job_state']}. Restart after SIGKILL p50 "
+        f"{restart['p50']:.1f} s (max {restart['max']:.1f} s) vs a fresh start "
+        f"{data['baseline_fresh_start_s']:.1f} s (baseline, same run).",
+    ]
+    return lines
+
+
 def main() -> None:
     lines = [
         "# monoloc benchmark report",
@@ -250,6 +269,7 @@ def main() -> None:
         plot = plot_accuracy(data, scenario)
         if plot:
             lines += [f"![accuracy {scenario}]({plot})", ""]
+    lines += crash_section(load("crash"))
     (HERE / "REPORT.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {HERE / 'REPORT.md'}")
 
