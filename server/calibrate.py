@@ -142,6 +142,7 @@ class _Samples:
     joint: list = field(default_factory=list)
     n_hypotheses: int = 0
     n_joint: int = 0
+    n_joint_gated: int = 0
     n_gated: int = 0
     n_queries_with_hypotheses: int = 0
 
@@ -208,7 +209,8 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         e = truth - h.pose_world
         e[2] = wrap_angle(e[2])
         if np.hypot(e[0], e[1]) > config.gate_position_m or abs(e[2]) > config.gate_yaw_rad:
-            samples.n_gated += 1
+            samples.n_gated += int(not h.joint)
+            samples.n_joint_gated += int(h.joint)
             continue
         samples.truth.append(truth)
         samples.hypothesis.append(h.pose_world)
@@ -311,6 +313,7 @@ def _provenance(source_name, counts, samples: _Samples, config, vocabulary) -> d
         "used": len(samples.truth) - int(np.sum(samples.joint)),
         "joint_hypotheses": samples.n_joint,
         "joint_used": int(np.sum(samples.joint)),
+        "joint_gated_outliers": samples.n_joint_gated,
         "gated_outliers": samples.n_gated,
         "pnp": "guided" if config.strategy.guided else "independent RANSAC per entry",
         "quality_model": "ML: N(mu1, s Sigma1), log s = beta . [log(n_inliers / n_ref), "
