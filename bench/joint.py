@@ -81,9 +81,17 @@ def describe_model(model) -> dict:
     return out
 
 
+def _error(hypothesis, truth) -> tuple[float, float]:
+    """Position (m) and absolute heading (rad) error of a hypothesis."""
+    from monoloc.core.geometry import wrap_angle
+
+    d = hypothesis.pose_world - truth
+    return float(np.hypot(d[0], d[1])), abs(float(wrap_angle(d[2])))
+
+
 def global_pass(memory, query, config) -> dict:
     """Every query frame without a prior: accepted share, best / joint errors, PnP time."""
-    from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
+    from monoloc.core.geometry import planar_from_T_world_from_cam
     from monoloc.server.localize import localize_frame
 
     rng = np.random.default_rng(1)
@@ -103,15 +111,11 @@ def global_pass(memory, query, config) -> dict:
         for h in result.hypotheses:
             methods[h.method] = methods.get(h.method, 0) + 1
 
-        def error(h):
-            d = h.pose_world - truth
-            return float(np.hypot(d[0], d[1])), abs(float(wrap_angle(d[2])))
-
         if result.best is not None:
-            best_err.append(error(result.best))
+            best_err.append(_error(result.best, truth))
         if result.joint is not None:
             joint_frames += 1
-            joint_err.append((error(result.joint), error(result.best)))
+            joint_err.append((_error(result.joint, truth), _error(result.best, truth)))
     best = np.array(best_err).reshape(-1, 2)
     pairs = np.array(joint_err).reshape(-1, 2, 2)
     return {
@@ -233,7 +237,8 @@ def main() -> None:
     print(
         f"\nchecks (issue 17.1): RMSE {100 * rmse_change:+.1f} % (within 5 %: "
         f"{'yes' if abs(rmse_change) <= 0.05 else 'NO'}); accepted share "
-        f"{100 * share_change:+.2f} points (within 1: {'yes' if abs(share_change) <= 0.01 else 'NO'})"
+        f"{100 * share_change:+.2f} points (within 1: "
+        f"{'yes' if abs(share_change) <= 0.01 else 'NO'})"
         f"; Sigma1 std change max {100 * std_change.max():.1f} % (within 5 %: "
         f"{'yes' if std_change.max() <= 0.05 else 'NO'})"
     )
