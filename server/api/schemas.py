@@ -362,6 +362,16 @@ class CalibrationUpdate(BaseModel):
         min_length=4, max_length=4, description="4x4, symmetric positive definite."
     )
     outlier_log_density: float | None = -16.0
+    quality: dict[str, Any] | None = Field(
+        default=None,
+        description="Quality-aware pose-error model (mu1, Sigma1, beta, n_ref, error_ref_px, "
+        "log_scale_bounds; monoloc.core.measurement.QualityModel); null: none.",
+    )
+    covariance: Literal["paper", "quality"] = Field(
+        default="paper",
+        description="Which pose-error model the vehicle uses: paper (mu1, Sigma1 for every "
+        "hypothesis) or quality (needs quality).",
+    )
     provenance: dict[str, Any] = Field(default_factory=dict)
 
 
