@@ -2,7 +2,11 @@
 
 Per frame i: the retrieval prior is the filter's estimate after the last frame it
 processed, dead-reckoned with the measured signals to frame i's time (none while the
-filter is uninitialised or lost); the localizer answers the frame; the filter steps
+filter is uninitialised). When hypotheses stop coming or stop agreeing with the
+particles, the prior widens frame by frame and then gives way to a search of the whole
+map, so that the right map entries come back into reach and the filter can re-seed on
+them (it does so only on hypotheses consistent with the vehicle's motion over several
+frames, see ParticleFilter); the localizer answers the frame; the filter steps
 (``ParticleFilter.step``: predict from frame i - 1 with its measured speed and yaw rate,
 then initialise from or update with frame i's hypotheses) and reports its estimate. A
 frame without hypotheses (none found, dropped, failed) is a prediction-only step.
@@ -34,20 +38,30 @@ class PriorConfig:
     min_radius_m: float = 8.0
     max_radius_m: float = 60.0
     yaw_margin_rad: float = math.radians(25.0)
+    # Without support (frames with no hypotheses, or hypotheses far from every particle)
+    # for more than ``widen_after_frames`` frames, the radius grows by ``widen_factor``
+    # per further frame (8 m -> 137 m in 7 frames); after ``global_after_frames`` frames
+    # (1 s at 10 Hz) the whole map is searched until the filter has support again.
+    widen_after_frames: int = 2
+    widen_factor: float = 1.5
+    global_after_frames: int = 10
 
 
 def prior_from_filter(pf: ParticleFilter, config: PriorConfig) -> RetrievalPrior | None:
-    """A disc around the filter's estimate whose radius grows with its uncertainty, or
-    None for a global search (uninitialised or lost)."""
-    if not pf.initialised or pf.lost:
+    """A disc around the filter's estimate whose radius grows with its uncertainty and
+    with the frames it has gone without support, or None for a search of the whole map
+    (uninitialised, or too long without support)."""
+    if not pf.initialised or pf.frames_since_support > config.global_after_frames:
         return None
     est = pf.estimate()
     radius = config.sigma_multiplier * est.position_std_m + config.margin_m
+    radius = float(np.clip(radius, config.min_radius_m, config.max_radius_m))
+    radius *= config.widen_factor ** max(0, pf.frames_since_support - config.widen_after_frames)
     yaw_std = math.sqrt(max(est.covariance[2, 2], 0.0))
     return RetrievalPrior(
         x_m=float(est.pose_world[0]),
         y_m=float(est.pose_world[1]),
-        radius_m=float(np.clip(radius, config.min_radius_m, config.max_radius_m)),
+        radius_m=radius,
         yaw_rad=float(est.pose_world[2]),
         yaw_tolerance_rad=float(
             min(math.pi, config.sigma_multiplier * yaw_std + config.yaw_margin_rad)

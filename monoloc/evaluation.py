@@ -6,6 +6,7 @@ vehicle's own loop (monoloc.client.tracking). No HTTP and no database, so varian
 the method can be compared quickly on the same frames:
 
 - full:        particle filter + prior-constrained retrieval (the product);
+- full_euler:  the same with the paper's Euler motion step instead of the exact arc;
 - no_prior:    particle filter, retrieval always over the whole map;
 - top1:        retrieval only, pose of the top retrieved entry;
 - topk_mean:   retrieval only, mean pose of the top-k entries (the paper's "blue points");
@@ -109,16 +110,24 @@ class EvalConfig:
 
 @dataclass
 class RunEvaluation:
-    """Per-frame planar estimates (N, 3) of each variant, metrics and stage timings."""
+    """Per-frame planar estimates (N, 3) of each variant, metrics and stage timings.
+
+    ``hypotheses_world`` (N lists of (H, 3)) and ``likeliest_world`` (N, 3; NaN without
+    hypotheses) are the server's answers to the main variant ("full", else the global
+    search): what the filter was given, for the best-of-k and likeliest figures.
+    """
 
     truth_world: np.ndarray
     estimates: dict[str, np.ndarray]
     metrics: dict[str, TrajectoryMetrics]
     timings_ms: list[dict[str, float]]
     n_hypotheses: np.ndarray
+    timestamps_s: np.ndarray
+    hypotheses_world: list[np.ndarray]
+    likeliest_world: np.ndarray
 
 
-FILTER_VARIANTS = ("full", "no_prior")
+FILTER_VARIANTS = ("full", "full_euler", "no_prior")
 GLOBAL_VARIANTS = ("no_prior", "top1", "topk_mean", "best_pnp")
 
 
@@ -158,15 +167,16 @@ def _trackers(
     times = np.array([f.timestamp_s for f in seq.frames])
     motion = replace(config.filter.motion, lever_arm_m=lever_arm_m)
     fconf = replace(config.filter, motion=motion)
+    euler = replace(fconf, motion=replace(motion, integration="euler"))
     return {
         v: Tracker(
-            fconf,
+            euler if v == "full_euler" else fconf,
             model,
             np.random.default_rng(config.seed),
             times,
             signals,
             config.prior,
-            use_prior=v == "full",
+            use_prior=v != "no_prior",
         )
         for v in FILTER_VARIANTS
         if v in variants
@@ -214,6 +224,7 @@ def evaluate_run(
     )
     est = {v: np.full((n, 3), np.nan) for v in variants if v not in trackers}
     timings, n_hyp = [], np.zeros(n, dtype=np.int64)
+    hypotheses, likeliest = [], np.full((n, 3), np.nan)
     need_global = any(v in variants for v in GLOBAL_VARIANTS)
     for i, frame in enumerate(seq.frames):
         image = seq.load(frame).image_gray
@@ -224,6 +235,8 @@ def evaluate_run(
         main = answers.get("full", search)
         timings.append(main.timings_ms)
         n_hyp[i] = len(main.hypotheses)
+        hypotheses.append(np.array(main.hypotheses.pose_world, dtype=np.float64))
+        likeliest[i] = main.best_pose_world
         if search is not None:
             _record_global(memory, est, i, search)
         if progress:
@@ -231,7 +244,8 @@ def evaluate_run(
     est.update({v: t.estimates_world for v, t in trackers.items()})
     est = {v: est[v] for v in variants}
     metrics = {v: trajectory_metrics(e, truth) for v, e in est.items()}
-    return RunEvaluation(truth, est, metrics, timings, n_hyp)
+    times = np.array([f.timestamp_s for f in seq.frames])
+    return RunEvaluation(truth, est, metrics, timings, n_hyp, times, hypotheses, likeliest)
 
 
 def stage_percentiles(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
