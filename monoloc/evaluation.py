@@ -7,6 +7,8 @@ the method can be compared quickly on the same frames:
 
 - full:        particle filter + prior-constrained retrieval (the product);
 - full_euler:  the same with the paper's Euler motion step instead of the exact arc;
+- kidnapped:   the full method with the filter initialised ``kidnap_offset_m`` to the
+               left of the first pose: how long it takes to find its way back;
 - no_prior:    particle filter, retrieval always over the whole map;
 - top1:        retrieval only, pose of the top retrieved entry;
 - topk_mean:   retrieval only, mean pose of the top-k entries (the paper's "blue points");
@@ -106,6 +108,7 @@ class EvalConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     seed: int = 0
+    kidnap_offset_m: float = 30.0
 
 
 @dataclass
@@ -125,9 +128,10 @@ class RunEvaluation:
     timestamps_s: np.ndarray
     hypotheses_world: list[np.ndarray]
     likeliest_world: np.ndarray
+    reseeds: dict[str, int] = field(default_factory=dict)
 
 
-FILTER_VARIANTS = ("full", "full_euler", "no_prior")
+FILTER_VARIANTS = ("full", "full_euler", "kidnapped", "no_prior")
 GLOBAL_VARIANTS = ("no_prior", "top1", "topk_mean", "best_pnp")
 
 
@@ -162,13 +166,15 @@ def _trackers(
     config: EvalConfig,
     lever_arm_m: float,
     variants: Sequence[str],
+    start_world: np.ndarray,
 ) -> dict[str, Tracker]:
-    """The vehicle's loop for each filter variant asked for, one filter (same seed) each."""
+    """The vehicle's loop for each filter variant asked for, one filter (same seed) each;
+    the kidnapped one starts initialised off ``start_world`` (3,)."""
     times = np.array([f.timestamp_s for f in seq.frames])
     motion = replace(config.filter.motion, lever_arm_m=lever_arm_m)
     fconf = replace(config.filter, motion=motion)
     euler = replace(fconf, motion=replace(motion, integration="euler"))
-    return {
+    trackers = {
         v: Tracker(
             euler if v == "full_euler" else fconf,
             model,
@@ -181,6 +187,13 @@ def _trackers(
         for v in FILTER_VARIANTS
         if v in variants
     }
+    if "kidnapped" in trackers:
+        yaw = start_world[2]
+        left = config.kidnap_offset_m * np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+        trackers["kidnapped"].filter.initialise(
+            start_world + left, config.filter.init_position_std_m, config.filter.init_yaw_std_rad
+        )
+    return trackers
 
 
 def _record_global(
@@ -213,7 +226,7 @@ def evaluate_run(
     """
     n = seq.n_frames
     truth = np.array([planar_from_T_world_from_cam(f.T_world_from_cam) for f in seq.frames])
-    trackers = _trackers(seq, signals, model, config, lever_arm_m, variants)
+    trackers = _trackers(seq, signals, model, config, lever_arm_m, variants, truth[0])
     localizer = InProcessLocalizer(
         memory.index,
         memory.lookup,
@@ -245,7 +258,8 @@ def evaluate_run(
     est = {v: est[v] for v in variants}
     metrics = {v: trajectory_metrics(e, truth) for v, e in est.items()}
     times = np.array([f.timestamp_s for f in seq.frames])
-    return RunEvaluation(truth, est, metrics, timings, n_hyp, times, hypotheses, likeliest)
+    reseeds = {v: t.filter.n_reseeds for v, t in trackers.items()}
+    return RunEvaluation(truth, est, metrics, timings, n_hyp, times, hypotheses, likeliest, reseeds)
 
 
 def stage_percentiles(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
