@@ -174,9 +174,10 @@ def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> 
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     vocab = load_default_vocabulary()
-    lever = rig_lever_arm_m(root) or 0.0
+    train_id = sequence_of(meta, "train")
+    lever = fitted_lever_arm_m(read_kitti_run(root, train_id), rig_lever_arm_m(root))
     t0 = time.time()
-    calib = calibrate_on(read_kitti_sequence(root, sequence_of(meta, "train")), vocab)
+    calib = calibrate_on(read_kitti_sequence(root, train_id), vocab)
     model = calib.model
     print(f"calibrated on {calib.provenance['used']} hypotheses in {time.time() - t0:.0f} s")
     memory = MemoryMap.empty(vocab)
@@ -195,6 +196,7 @@ def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> 
         "paper": PAPER,
         "goals": GOALS,
         "reseeds": result.reseeds,
+        "lever_arm_m": {"fitted_on_train": lever, "rig": rig_lever_arm_m(root)},
         "bias": bias_report(result, [v for v in ("full", "full_euler") if v in variants]),
     }
     if "kidnapped" in result.estimates:
@@ -223,6 +225,17 @@ def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> 
             f"for good after {out['kidnapped_recover_s']:.1f} s; re-seeds {result.reseeds}"
         )
     return out
+
+
+def fitted_lever_arm_m(train_run, rig_m: float | None) -> float:
+    """The lever arm fitted on the training run's poses and speeds, as a deployment on
+    data without a rig description would (printed beside the sim rig's true value)."""
+    from monoloc.client.motion import fit_lever_arm_m
+
+    fitted = fit_lever_arm_m(train_run.truth_world, train_run.timestamps_s, train_run.signals[:, 0])
+    rig = "-" if rig_m is None else f"{rig_m:.3f}"
+    print(f"camera lever arm fitted on the train run: {fitted:.3f} m (sim rig: {rig} m)")
+    return fitted
 
 
 def recovery_s(result, variant: str) -> float | None:
@@ -366,7 +379,7 @@ def main_indoor(args) -> None:
         scenario="indoor",
     )
     vocab = load_default_vocabulary()
-    lever = rig_lever_arm_m(root / "map") or 0.0
+    lever = fitted_lever_arm_m(read_tum_replay(root / "train"), rig_lever_arm_m(root / "map"))
     train = read_tum_run(root / "train")
     calib = calibrate_on(train, vocab)
     memory = MemoryMap.empty(vocab)

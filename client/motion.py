@@ -99,3 +99,45 @@ def predict(
     speed = speed_mps + rng.uniform(*config.speed_noise_mps, size=n)
     yaw_rate = yaw_rate_radps + rng.uniform(*config.yaw_rate_noise_radps, size=n)
     return advance(particles, speed, yaw_rate, dt_s, config.lever_arm_m, config.integration)
+
+
+def fit_lever_arm_m(
+    poses_world: np.ndarray,
+    timestamps_s: np.ndarray,
+    speed_mps: np.ndarray,
+    min_turn_rad: float = 0.5,
+) -> float:
+    """The camera's distance ahead of the speed reference point, fitted by least squares
+    on a run with camera poses (N, 3), their timestamps (N,) and the measured speed (N,)
+    (e.g. the training run): between consecutive frames the camera moves by the exact arc
+    of the reference point (speed from the signal, heading change from the poses) plus
+    l (u(psi') - u(psi)), u the unit heading vector; l is the only unknown. Without a
+    lever arm, the model puts the camera to the outside of every turn.
+
+    Raises InvalidInputError when the run turns by less than ``min_turn_rad`` in total
+    (nothing to fit on) or the inputs do not match.
+    """
+    poses = np.asarray(poses_world, dtype=np.float64)
+    t = np.asarray(timestamps_s, dtype=np.float64)
+    v = np.asarray(speed_mps, dtype=np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 3 or len(t) != len(poses) or len(v) != len(poses):
+        raise InvalidInputError(
+            f"need poses (N, 3), timestamps (N,) and speeds (N,), got {poses.shape}, "
+            f"{t.shape}, {v.shape}"
+        )
+    ok = np.all(np.isfinite(poses), axis=1) & np.isfinite(t) & np.isfinite(v)
+    pair = ok[:-1] & ok[1:]
+    dt = np.diff(t)[pair]
+    psi0, psi1 = poses[:-1, 2][pair], poses[1:, 2][pair]
+    turn = wrap_angle(psi1 - psi0)
+    if np.abs(turn).sum() < min_turn_rad:
+        raise InvalidInputError(
+            f"the run turns by {np.abs(turn).sum():.2f} rad in all: too little to fit a lever arm"
+        )
+    distance = 0.5 * (v[:-1] + v[1:])[pair] * dt
+    chord = distance * np.sinc(turn / (2.0 * np.pi))
+    mid = psi0 + 0.5 * turn
+    moved = poses[1:, :2][pair] - poses[:-1, :2][pair]
+    residual = moved - chord[:, None] * np.stack([np.cos(mid), np.sin(mid)], axis=1)
+    design = np.stack([np.cos(psi1) - np.cos(psi0), np.sin(psi1) - np.sin(psi0)], axis=1)
+    return float(np.sum(design * residual) / np.sum(design * design))

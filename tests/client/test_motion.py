@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from monoloc.client.motion import MotionConfig, advance, predict
+from monoloc.client.motion import MotionConfig, advance, fit_lever_arm_m, predict
 from monoloc.core.errors import InvalidInputError
 
 SPEED_MPS, YAW_RATE_RADPS, DT_S = 9.0, 0.47, 0.1
@@ -67,3 +67,29 @@ def test_predict_draws_noise_per_particle_around_the_exact_arc():
 def test_unknown_integration_is_refused():
     with pytest.raises(InvalidInputError, match="unknown integration"):
         MotionConfig(integration="rk4")
+
+
+def test_the_lever_arm_is_fitted_from_poses_and_measured_speed():
+    rng = np.random.default_rng(5)
+    # a drive with left and right turns of varying yaw rate, camera 1.3 m ahead
+    n = 400
+    rates = 0.4 * np.sin(np.arange(n) * 0.03)
+    speeds = 7.0 + np.sin(np.arange(n) * 0.01)
+    poses = [np.array([0.0, 0.0, 0.5])]
+    for k in range(n - 1):
+        # the truth integrates finely (10 sub-steps), the signals are sampled at frames
+        pose = poses[-1][None]
+        for s in np.linspace(0, 1, 10, endpoint=False):
+            rate = np.interp(k + s, np.arange(n), rates)
+            speed = np.interp(k + s, np.arange(n), speeds)
+            pose = advance(pose, speed, rate, DT_S / 10, 1.3)
+        poses.append(pose[0])
+    poses = np.array(poses)
+    times = np.arange(n) * DT_S
+    noisy = poses + rng.normal(0, [0.003, 0.003, 0.0002], size=poses.shape)
+    measured = speeds * 1.01 + rng.normal(0, 0.05, n)  # 1 % scale error and noise
+    assert fit_lever_arm_m(noisy, times, measured) == pytest.approx(1.3, abs=0.1)
+    assert fit_lever_arm_m(poses, times, speeds) == pytest.approx(1.3, abs=0.01)
+    straight = np.stack([np.arange(n) * 0.7, np.zeros(n), np.zeros(n)], axis=1)
+    with pytest.raises(InvalidInputError, match="too little to fit"):
+        fit_lever_arm_m(straight, times, np.full(n, 7.0))
