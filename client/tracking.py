@@ -116,8 +116,9 @@ class Tracker:
     ``timestamps_s`` (N,) and ``signals`` (N, 2: measured speed m/s, yaw rate rad/s) of
     the run; ``estimates_world`` (N, 3) fills in as frames are stepped (NaN before the
     filter initialises). The step from frame i - 1 to i uses the mean of both frames'
-    signals (``interpolate_signals``, see :func:`step_signals`). :meth:`prior` and :meth:`step` may be called from two threads
-    (frames sent by one, answers handled by another).
+    signals (``interpolate_signals``, see :func:`step_signals`). :meth:`prior` and
+    :meth:`step` may be called from two threads (frames sent by one, answers handled by
+    another).
     """
 
     def __init__(

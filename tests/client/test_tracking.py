@@ -148,7 +148,8 @@ def test_the_prior_widens_then_gives_way_to_the_whole_map_without_support():
         assert priors[i].radius_m < 1.1 * config.min_radius_m
     radii = [p.radius_m for p in priors[6 : 6 + config.global_after_frames]]
     assert all(
-        b / a == pytest.approx(config.widen_factor, rel=0.05) for a, b in zip(radii[2:], radii[3:])
+        b / a == pytest.approx(config.widen_factor, rel=0.05)
+        for a, b in zip(radii[2:-1], radii[3:], strict=True)
     )
     assert radii[-1] > 10 * config.min_radius_m
     assert all(p is None for p in priors[6 + config.global_after_frames :])
