@@ -15,7 +15,6 @@ then to search the whole map. All randomness comes from the injected
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -148,9 +147,12 @@ class ParticleFilter:
         # likely frame or a (re-)seed); frames without hypotheses count too.
         self.frames_since_support = 0
         self.n_reseeds = 0
-        # The bias-corrected hypotheses (H, 3) of recent frames, each moved to the current
-        # frame with the measured signals (noise-free): the re-seed's evidence.
-        self._recent: deque[np.ndarray] = deque(maxlen=max(config.reseed_window_frames - 1, 0))
+        # The bias-corrected hypotheses of recent frames (M, 3), each moved to the current
+        # frame with the measured signals (noise-free), and the frame each came from (M,):
+        # the re-seed's evidence.
+        self._recent_world = np.zeros((0, 3))
+        self._recent_frame = np.zeros(0, dtype=np.int64)
+        self._frame = 0
 
     @property
     def initialised(self) -> bool:
@@ -183,15 +185,15 @@ class ParticleFilter:
             self.particles, speed_mps, yaw_rate_radps, dt_s, self.config.motion, self.rng
         )
         motion = self.config.motion
-        self._recent = deque(
-            (
-                advance(
-                    poses, speed_mps, yaw_rate_radps, dt_s, motion.lever_arm_m, motion.integration
-                )
-                for poses in self._recent
-            ),
-            maxlen=self._recent.maxlen,
-        )
+        if len(self._recent_world):
+            self._recent_world = advance(
+                self._recent_world,
+                speed_mps,
+                yaw_rate_radps,
+                dt_s,
+                motion.lever_arm_m,
+                motion.integration,
+            )
 
     def update(self, hypotheses: Hypotheses) -> None:
         """Weigh the particles by the mixture; no hypotheses means no update. An unlikely
@@ -200,7 +202,7 @@ class ParticleFilter:
             return
         if len(hypotheses) == 0:
             self.frames_since_support += 1
-            self._recent.append(np.zeros((0, 3)))
+            self._remember(np.zeros((0, 3)))
             return
         log_lik, closest = log_likelihood_and_distance(self.particles, hypotheses, self.model)
         centres = hypotheses.pose_world + self.model.mu1
@@ -208,15 +210,24 @@ class ParticleFilter:
             self._unlikely_frames += 1
             self.frames_since_support += 1
             chosen = self.reseed_candidate(centres)
-            self._recent.append(centres)
+            self._remember(centres)
             if chosen is not None:
                 self._reseed(hypotheses, chosen)
                 return
         else:
             self._unlikely_frames = 0
             self.frames_since_support = 0
-            self._recent.append(centres)
+            self._remember(centres)
         self._weigh(log_lik)
+
+    def _remember(self, centres_world: np.ndarray) -> None:
+        """Keep this frame's hypotheses (H, 3) and forget those that left the window."""
+        keep = self._recent_frame > self._frame - self.config.reseed_window_frames + 1
+        self._recent_world = np.concatenate([self._recent_world[keep], centres_world])
+        self._recent_frame = np.concatenate(
+            [self._recent_frame[keep], np.full(len(centres_world), self._frame)]
+        )
+        self._frame += 1
 
     def reseed_candidate(self, centres_world: np.ndarray) -> np.ndarray | None:
         """Indices of this frame's (bias-corrected) hypotheses (H, 3) to re-seed around,
@@ -227,9 +238,12 @@ class ParticleFilter:
         if not len(centres_world):
             return None
         support = np.ones(len(centres_world), dtype=np.int64)
-        for past in self._recent:
-            if len(past):
-                support += _agrees(centres_world, past, cfg).any(axis=1)
+        if len(self._recent_world):
+            # distinct past frames with a hypothesis that agrees, per hypothesis of this one
+            agree = _agrees(centres_world, self._recent_world, cfg)
+            frames = np.where(agree, self._recent_frame[None, :], -1)
+            for row, picked in enumerate(frames):
+                support[row] += len(np.unique(picked[picked >= 0]))
         near = _agrees(centres_world, centres_world, cfg)
         # most frames first, then the most hypotheses of this frame around it
         best = int(np.lexsort((-near.sum(axis=1), -support))[0])
