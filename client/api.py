@@ -46,8 +46,9 @@ class LocalizeAnswer:
 
     @property
     def best_pose_world(self) -> np.ndarray:
-        """Pose (3,) of the hypothesis with the most PnP inliers; NaN without one."""
-        hyps = self.raw.get("hypotheses") or []
+        """Pose (3,) of the per-entry hypothesis with the most PnP inliers (a joint one
+        aside); NaN without one."""
+        hyps = [h for h in self.raw.get("hypotheses") or [] if not h.get("joint", False)]
         if not hyps:
             return np.full(3, np.nan)
         best = max(hyps, key=lambda h: h.get("n_inliers", 0))
@@ -84,14 +85,26 @@ class LocalizeAnswer:
                 dtype=np.float64,
             ).reshape(-1, 3)
             e_vlad = np.array([h["e_vlad"] for h in hyps], dtype=np.float64)
-        except (KeyError, TypeError) as exc:
+            quality = _quality_features(hyps)
+        except (KeyError, TypeError, ValueError) as exc:
             raise ServerError(f"malformed localize answer: missing {exc}") from exc
         return cls(
-            hypotheses=Hypotheses(pose, entry, e_vlad),
+            hypotheses=Hypotheses(pose, entry, e_vlad, *quality),
             map_version=data.get("map_version"),
             timings_ms=dict(data.get("timings_ms") or {}),
             raw=data,
         )
+
+
+def _quality_features(hyps: list[dict]) -> tuple[np.ndarray | None, ...]:
+    """(n_inliers, reprojection_error_px, joint) arrays of the answer's hypotheses; None
+    for a feature some hypothesis lacks (a server older than the quality model)."""
+    if not hyps or not all("n_inliers" in h and "reprojection_error_px" in h for h in hyps):
+        return None, None, None
+    n_inliers = np.array([h["n_inliers"] for h in hyps], dtype=np.float64)
+    error_px = np.array([h["reprojection_error_px"] for h in hyps], dtype=np.float64)
+    joint = np.array([bool(h.get("joint", False)) for h in hyps], dtype=bool)
+    return n_inliers, error_px, joint
 
 
 # Answers worth another try: the request may succeed later (the server is starting,

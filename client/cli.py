@@ -21,6 +21,12 @@ def drive(
     particles: int = typer.Option(1000, help="number of particles"),
     k: int | None = typer.Option(None, help="retrieved entries per frame (server default 10)"),
     seed: int = typer.Option(0, help="seed of the filter's random generator"),
+    lever_arm_m: float | None = typer.Option(
+        None, help="camera distance ahead of the speed reference point, m (default: the rig)"
+    ),
+    lever_arm_from: Path | None = typer.Option(
+        None, help="fit the lever arm on this recorded run with poses (e.g. the training run)"
+    ),
     out: Path = typer.Option(Path("out/drive"), help="prefix of the trajectory files"),
 ) -> None:
     """Stream a run's frames, run the filter, write TUM + KITTI trajectories, print metrics."""
@@ -30,16 +36,33 @@ def drive(
     from monoloc.client.api import MonolocClient
     from monoloc.client.drive import DriveConfig, write_outputs
     from monoloc.client.drive import drive as run_drive
+    from monoloc.client.motion import MotionConfig, fit_lever_arm_m
     from monoloc.client.particle_filter import FilterConfig
     from monoloc.client.replay import parse_frames, read_run
     from monoloc.client.report import metrics_table
+    from monoloc.core.errors import InvalidInputError
 
     console = Console(stderr=True)
     run = read_run(run_dir, sequence).select(parse_frames(frames))
     for note in run.notes:
         console.print(f"[yellow]note:[/] {note}")
+    if lever_arm_m is None and lever_arm_from is not None:
+        fit_run = read_run(lever_arm_from)
+        if fit_run.truth_world is None:
+            raise InvalidInputError(f"{lever_arm_from} has no poses to fit a lever arm on")
+        lever_arm_m = fit_lever_arm_m(
+            fit_run.truth_world, fit_run.timestamps_s, fit_run.signals[:, 0]
+        )
+        console.print(f"[yellow]note:[/] lever arm {lever_arm_m:.3f} m fitted on {fit_run.name}")
+    elif lever_arm_m is None and run.lever_arm_m is None:
+        console.print(
+            "[yellow]note:[/] lever arm unknown, 0 m: a camera ahead of the speed reference "
+            "then falls to the outside of turns (--lever-arm-m or --lever-arm-from)"
+        )
     config = DriveConfig(
-        filter=FilterConfig(n_particles=particles),
+        filter=FilterConfig(
+            n_particles=particles, motion=MotionConfig(lever_arm_m=lever_arm_m or 0.0)
+        ),
         k=k,
         realtime=realtime,
         use_prior=not no_prior,

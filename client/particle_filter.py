@@ -1,9 +1,15 @@
 """Particle filter on the planar pose (X, Y, psi): METHOD.md sections 7 and 8.
 
 Predict with measured speed and yaw rate, update with the Gaussian-mixture measurement
-model, systematic resampling when the effective sample size falls, and recovery by
-re-seeding around the current hypotheses when every particle has been unlikely for
-several frames. All randomness comes from the injected ``np.random.Generator``.
+model, systematic resampling when the effective sample size falls. Recovery: a frame
+whose hypotheses all lie far from every particle is "unlikely"; the filter re-seeds
+around such a frame's hypotheses only when they agree with the hypotheses of several
+recent frames once those are carried forward by the vehicle's own measured motion (a
+re-seed candidate must be consistent with the dead-reckoned motion), never on a few
+frames that contradict it. ``frames_since_support`` (frames since the hypotheses last
+agreed with the particles) tells the vehicle's loop to widen the retrieval prior and
+then to search the whole map. All randomness comes from the injected
+``np.random.Generator``.
 """
 
 from __future__ import annotations
@@ -13,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from monoloc.client.motion import MotionConfig, predict
+from monoloc.client.motion import MotionConfig, advance, predict
 from monoloc.client.resampling import (
     effective_sample_size,
     normalise_log_weights,
@@ -35,15 +41,24 @@ class FilterConfig:
     init_yaw_std_rad: float = math.radians(2.0)
     # A frame with hypotheses is "unlikely" when the smallest squared Mahalanobis distance
     # (under Sigma1) between any particle and any bias-corrected hypothesis exceeds this
-    # (chi-square, 3 dof: P(> 25) = 1.5e-5). An unlikely frame still updates the weights,
-    # except the ``lost_after_frames``-th in a row, which re-seeds the particles around its
-    # own hypotheses instead. ``lost`` holds from the first unlikely frame until a likely
-    # one or the re-seed; frames without hypotheses leave the count alone.
+    # (chi-square, 3 dof: P(> 25) = 1.5e-5). An unlikely frame still updates the weights
+    # (the mixture's outlier floor keeps them nearly flat), unless it re-seeds. ``lost``
+    # holds from the first unlikely frame until a likely one or a re-seed; frames without
+    # hypotheses leave it alone.
     lost_mahalanobis_sq: float = 25.0
     # The reported pose is the main mode: particles within this radius of the weighted
     # median position (the covariance, used for the retrieval prior, covers all of them).
     mode_radius_m: float = 3.0
-    lost_after_frames: int = 3
+    # Re-seeding: an unlikely frame re-seeds around one of its hypotheses when hypotheses
+    # of at least ``reseed_min_frames`` frames (this one included) among the last
+    # ``reseed_window_frames`` agree with it within the tolerances once moved to this
+    # frame by the measured speed and yaw rate. 4 frames at 10 Hz: 0.4 s of evidence
+    # that moves like the car; the window (2 s) bounds the odometry drift (~0.2 m with
+    # a 1 % speed scale error at 9 m/s).
+    reseed_min_frames: int = 4
+    reseed_window_frames: int = 20
+    reseed_position_tol_m: float = 1.0
+    reseed_yaw_tol_rad: float = math.radians(3.0)
     # Roughening after resampling: Gaussian jitter (m, m, rad) so that a cloud that
     # collapsed onto a few particles can still move to where the measurements are.
     roughening_std: tuple[float, float, float] = (0.02, 0.02, math.radians(0.1))
@@ -58,6 +73,7 @@ class FilterEstimate:
     effective_sample_size: float
     n_hypotheses: int
     lost: bool
+    frames_since_support: int = 0
 
     @property
     def position_std_m(self) -> float:
@@ -127,6 +143,16 @@ class ParticleFilter:
         self.particles: np.ndarray | None = None
         self.log_weights = np.zeros(config.n_particles)
         self._unlikely_frames = 0
+        # Frames since the hypotheses last agreed with the particles (0 right after a
+        # likely frame or a (re-)seed); frames without hypotheses count too.
+        self.frames_since_support = 0
+        self.n_reseeds = 0
+        # The bias-corrected hypotheses of recent frames (M, 3), each moved to the current
+        # frame with the measured signals (noise-free), and the frame each came from (M,):
+        # the re-seed's evidence.
+        self._recent_world = np.zeros((0, 3))
+        self._recent_frame = np.zeros(0, dtype=np.int64)
+        self._frame = 0
 
     @property
     def initialised(self) -> bool:
@@ -140,6 +166,7 @@ class ParticleFilter:
         )
         self.log_weights = np.zeros(self.config.n_particles)
         self._unlikely_frames = 0
+        self.frames_since_support = 0
 
     def initialise_from_hypotheses(self, hypotheses: Hypotheses) -> None:
         """Start around the (bias-corrected) hypotheses of one frame."""
@@ -157,19 +184,84 @@ class ParticleFilter:
         self.particles = predict(
             self.particles, speed_mps, yaw_rate_radps, dt_s, self.config.motion, self.rng
         )
+        motion = self.config.motion
+        if len(self._recent_world):
+            self._recent_world = advance(
+                self._recent_world,
+                speed_mps,
+                yaw_rate_radps,
+                dt_s,
+                motion.lever_arm_m,
+                motion.integration,
+            )
 
     def update(self, hypotheses: Hypotheses) -> None:
-        """Weigh the particles by the mixture; no hypotheses means no update."""
-        if self.particles is None or len(hypotheses) == 0:
+        """Weigh the particles by the mixture; no hypotheses means no update. An unlikely
+        frame with a motion-consistent re-seed candidate re-seeds instead."""
+        if self.particles is None:
+            return
+        if len(hypotheses) == 0:
+            self.frames_since_support += 1
+            self._remember(np.zeros((0, 3)))
             return
         log_lik, closest = log_likelihood_and_distance(self.particles, hypotheses, self.model)
+        centres = hypotheses.pose_world + self.model.mu1
         if closest > self.config.lost_mahalanobis_sq:
             self._unlikely_frames += 1
-            if self._unlikely_frames >= self.config.lost_after_frames:
-                self.initialise_from_hypotheses(hypotheses)
+            self.frames_since_support += 1
+            chosen = self.reseed_candidate(centres)
+            self._remember(centres)
+            if chosen is not None:
+                self._reseed(hypotheses, chosen)
                 return
         else:
             self._unlikely_frames = 0
+            self.frames_since_support = 0
+            self._remember(centres)
+        self._weigh(log_lik)
+
+    def _remember(self, centres_world: np.ndarray) -> None:
+        """Keep this frame's hypotheses (H, 3) and forget those that left the window."""
+        keep = self._recent_frame > self._frame - self.config.reseed_window_frames + 1
+        self._recent_world = np.concatenate([self._recent_world[keep], centres_world])
+        self._recent_frame = np.concatenate(
+            [self._recent_frame[keep], np.full(len(centres_world), self._frame)]
+        )
+        self._frame += 1
+
+    def reseed_candidate(self, centres_world: np.ndarray) -> np.ndarray | None:
+        """Indices of this frame's (bias-corrected) hypotheses (H, 3) to re-seed around,
+        or None: the hypothesis agreed with by the most recent frames (moved here by the
+        measured motion), with its neighbours in this frame, if at least
+        ``reseed_min_frames`` frames (this one included) agree."""
+        cfg = self.config
+        if not len(centres_world):
+            return None
+        support = np.ones(len(centres_world), dtype=np.int64)
+        if len(self._recent_world):
+            # distinct past frames with a hypothesis that agrees, per hypothesis of this one
+            agree = _agrees(centres_world, self._recent_world, cfg)
+            frames = np.where(agree, self._recent_frame[None, :], -1)
+            for row, picked in enumerate(frames):
+                support[row] += len(np.unique(picked[picked >= 0]))
+        near = _agrees(centres_world, centres_world, cfg)
+        # most frames first, then the most hypotheses of this frame around it
+        best = int(np.lexsort((-near.sum(axis=1), -support))[0])
+        if support[best] < cfg.reseed_min_frames:
+            return None
+        return np.flatnonzero(near[best])
+
+    def _reseed(self, hypotheses: Hypotheses, chosen: np.ndarray) -> None:
+        """Particles around the chosen hypotheses, weighed by the whole frame."""
+        centres = hypotheses.pose_world[chosen] + self.model.mu1
+        self.initialise(centres, self.config.init_position_std_m, self.config.init_yaw_std_rad)
+        self.n_reseeds += 1
+        log_lik, _ = log_likelihood_and_distance(self.particles, hypotheses, self.model)
+        self._weigh(log_lik)
+
+    def _weigh(self, log_lik: np.ndarray) -> None:
+        """Add the frame's log likelihoods (P,) to the weights; resample when the
+        effective sample size falls."""
         self.log_weights = self.log_weights + log_lik
         weights = normalise_log_weights(self.log_weights)
         ess = effective_sample_size(weights)
@@ -222,4 +314,13 @@ class ParticleFilter:
             effective_sample_size=effective_sample_size(weights),
             n_hypotheses=n_hypotheses,
             lost=self.lost,
+            frames_since_support=self.frames_since_support,
         )
+
+
+def _agrees(a_world: np.ndarray, b_world: np.ndarray, config: FilterConfig) -> np.ndarray:
+    """(A, B) bool: pose a_i within the re-seed tolerances of pose b_j."""
+    d = a_world[:, None, :2] - b_world[None, :, :2]
+    close = np.einsum("abk,abk->ab", d, d) <= config.reseed_position_tol_m**2
+    yaw = np.abs(wrap_angle(a_world[:, None, 2] - b_world[None, :, 2]))
+    return close & (yaw <= config.reseed_yaw_tol_rad)

@@ -86,3 +86,140 @@ def trajectory_metrics(estimate_world: np.ndarray, truth_world: np.ndarray) -> T
         within_0_5m_5deg=share(0.5, 5.0),
         within_5m_10deg=share(5.0, 10.0),
     )
+
+
+def frame_errors(estimate_world: np.ndarray, truth_world: np.ndarray) -> np.ndarray:
+    """Per-frame errors (N, 3) of planar estimates (N, 3) against truth (N, 3), in the
+    truth's own frame: along-track (m, + ahead), cross-track (m, + to the left) and
+    heading (rad, estimate minus truth, wrapped). NaN rows stay NaN."""
+    est = np.asarray(estimate_world, dtype=np.float64)
+    truth = np.asarray(truth_world, dtype=np.float64)
+    if est.shape != truth.shape or est.ndim != 2 or est.shape[1] != 3:
+        raise InvalidInputError(f"need matching (N, 3) arrays, got {est.shape} and {truth.shape}")
+    d = est[:, :2] - truth[:, :2]
+    cos_t, sin_t = np.cos(truth[:, 2]), np.sin(truth[:, 2])
+    return np.stack(
+        [
+            d[:, 0] * cos_t + d[:, 1] * sin_t,
+            -d[:, 0] * sin_t + d[:, 1] * cos_t,
+            wrap_angle(est[:, 2] - truth[:, 2]),
+        ],
+        axis=1,
+    )
+
+
+def yaw_rate_of(truth_world: np.ndarray, timestamps_s: np.ndarray) -> np.ndarray:
+    """Yaw rate (N,) rad/s of a planar trajectory (N, 3) at its timestamps (N,): central
+    differences of the unwrapped heading (one-sided at the ends)."""
+    yaw = np.unwrap(np.asarray(truth_world, dtype=np.float64)[:, 2])
+    t = np.asarray(timestamps_s, dtype=np.float64)
+    if len(yaw) < 2:
+        return np.zeros(len(yaw))
+    return np.gradient(yaw, t)
+
+
+@dataclass(frozen=True)
+class TurnClasses:
+    """Frames by the truth's |yaw rate|: straight below ``turning_radps``, sharp from
+    ``sharp_radps`` (a car at 9 m/s turning at 0.3 rad/s pulls 2.7 m/s^2 sideways)."""
+
+    turning_radps: float = 0.05
+    sharp_radps: float = 0.3
+
+    def classify(self, yaw_rate_radps: np.ndarray) -> np.ndarray:
+        """Class names (N,): "straight", "turning" or "sharp"."""
+        rate = np.abs(np.asarray(yaw_rate_radps))
+        return np.where(
+            rate < self.turning_radps,
+            "straight",
+            np.where(rate < self.sharp_radps, "turning", "sharp"),
+        )
+
+
+@dataclass(frozen=True)
+class SegmentErrors:
+    """Signed error means of the frames of one class (estimates present only).
+
+    cross_inward_mean_m: cross-track error towards the centre of the turn (the sign of the
+    yaw rate times the cross-track error; an estimate that falls to the outside of turns
+    has a negative mean). heading_ahead_mean_deg: heading error in the turning direction.
+    """
+
+    n_frames: int
+    along_mean_m: float
+    cross_mean_m: float
+    cross_inward_mean_m: float
+    cross_rmse_m: float
+    position_median_m: float
+    heading_mean_deg: float
+    heading_ahead_mean_deg: float
+    heading_rmse_deg: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def errors_by_turning(
+    estimate_world: np.ndarray,
+    truth_world: np.ndarray,
+    timestamps_s: np.ndarray,
+    classes: TurnClasses = TurnClasses(),
+) -> dict[str, SegmentErrors]:
+    """:class:`SegmentErrors` of the "straight", "turning" and "sharp" frames and of "all"
+    (a class without frames is left out). NaN estimates are skipped."""
+    errors = frame_errors(estimate_world, truth_world)
+    yaw_rate = yaw_rate_of(truth_world, timestamps_s)
+    names = classes.classify(yaw_rate)
+    valid = np.all(np.isfinite(errors), axis=1)
+    out = {}
+    for name in ("straight", "turning", "sharp", "all"):
+        pick = valid & ((names == name) if name != "all" else True)
+        if not pick.any():
+            continue
+        along, cross, heading = errors[pick].T
+        sign = np.sign(yaw_rate[pick])
+        out[name] = SegmentErrors(
+            n_frames=int(pick.sum()),
+            along_mean_m=float(along.mean()),
+            cross_mean_m=float(cross.mean()),
+            cross_inward_mean_m=float(np.mean(sign * cross)),
+            cross_rmse_m=float(np.sqrt(np.mean(cross**2))),
+            position_median_m=float(np.median(np.hypot(along, cross))),
+            heading_mean_deg=float(np.degrees(heading.mean())),
+            heading_ahead_mean_deg=float(np.degrees(np.mean(sign * heading))),
+            heading_rmse_deg=float(np.degrees(np.sqrt(np.mean(heading**2)))),
+        )
+    return out
+
+
+def best_of_k_errors(hypotheses_world: list[np.ndarray], truth_world: np.ndarray) -> np.ndarray:
+    """Per frame, the position error (m) of the hypothesis closest to the truth: an
+    oracle's pick among the frame's hypotheses ((H, 3) each, H may be 0); (N,), NaN for a
+    frame without hypotheses."""
+    truth = np.asarray(truth_world, dtype=np.float64)
+    if len(hypotheses_world) != len(truth):
+        raise InvalidInputError(f"{len(hypotheses_world)} frames of hypotheses, {len(truth)} poses")
+    out = np.full(len(truth), np.nan)
+    for i, poses in enumerate(hypotheses_world):
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        if len(poses):
+            out[i] = float(np.min(np.linalg.norm(poses[:, :2] - truth[i, :2], axis=1)))
+    return out
+
+
+def time_to_recover(
+    position_error_m: np.ndarray,
+    timestamps_s: np.ndarray,
+    since: int,
+    tolerance_m: float = 0.5,
+    hold_frames: int = 10,
+) -> float:
+    """Seconds from frame ``since`` until the error (N,) falls within ``tolerance_m`` and
+    stays there for ``hold_frames`` frames (or to the end of the run); inf if it never
+    does. NaN errors (no estimate) count as outside."""
+    err = np.nan_to_num(np.asarray(position_error_m, dtype=np.float64), nan=np.inf)
+    ok = err <= tolerance_m
+    for i in range(since, len(err)):
+        if ok[i : i + hold_frames].all():
+            return float(timestamps_s[i] - timestamps_s[since])
+    return math.inf

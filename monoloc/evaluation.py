@@ -6,6 +6,9 @@ vehicle's own loop (monoloc.client.tracking). No HTTP and no database, so varian
 the method can be compared quickly on the same frames:
 
 - full:        particle filter + prior-constrained retrieval (the product);
+- full_euler:  the same with the paper's Euler motion step instead of the exact arc;
+- kidnapped:   the full method with the filter initialised ``kidnap_offset_m`` to the
+               left of the first pose: how long it takes to find its way back;
 - no_prior:    particle filter, retrieval always over the whole map;
 - top1:        retrieval only, pose of the top retrieved entry;
 - topk_mean:   retrieval only, mean pose of the top-k entries (the paper's "blue points");
@@ -105,20 +108,30 @@ class EvalConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     seed: int = 0
+    kidnap_offset_m: float = 30.0
 
 
 @dataclass
 class RunEvaluation:
-    """Per-frame planar estimates (N, 3) of each variant, metrics and stage timings."""
+    """Per-frame planar estimates (N, 3) of each variant, metrics and stage timings.
+
+    ``hypotheses_world`` (N lists of (H, 3)) and ``likeliest_world`` (N, 3; NaN without
+    hypotheses) are the server's answers to the main variant ("full", else the global
+    search): what the filter was given, for the best-of-k and likeliest figures.
+    """
 
     truth_world: np.ndarray
     estimates: dict[str, np.ndarray]
     metrics: dict[str, TrajectoryMetrics]
     timings_ms: list[dict[str, float]]
     n_hypotheses: np.ndarray
+    timestamps_s: np.ndarray
+    hypotheses_world: list[np.ndarray]
+    likeliest_world: np.ndarray
+    reseeds: dict[str, int] = field(default_factory=dict)
 
 
-FILTER_VARIANTS = ("full", "no_prior")
+FILTER_VARIANTS = ("full", "full_euler", "kidnapped", "no_prior")
 GLOBAL_VARIANTS = ("no_prior", "top1", "topk_mean", "best_pnp")
 
 
@@ -153,24 +166,34 @@ def _trackers(
     config: EvalConfig,
     lever_arm_m: float,
     variants: Sequence[str],
+    start_world: np.ndarray,
 ) -> dict[str, Tracker]:
-    """The vehicle's loop for each filter variant asked for, one filter (same seed) each."""
+    """The vehicle's loop for each filter variant asked for, one filter (same seed) each;
+    the kidnapped one starts initialised off ``start_world`` (3,)."""
     times = np.array([f.timestamp_s for f in seq.frames])
     motion = replace(config.filter.motion, lever_arm_m=lever_arm_m)
     fconf = replace(config.filter, motion=motion)
-    return {
+    euler = replace(fconf, motion=replace(motion, integration="euler"))
+    trackers = {
         v: Tracker(
-            fconf,
+            euler if v == "full_euler" else fconf,
             model,
             np.random.default_rng(config.seed),
             times,
             signals,
             config.prior,
-            use_prior=v == "full",
+            use_prior=v != "no_prior",
         )
         for v in FILTER_VARIANTS
         if v in variants
     }
+    if "kidnapped" in trackers:
+        yaw = start_world[2]
+        left = config.kidnap_offset_m * np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+        trackers["kidnapped"].filter.initialise(
+            start_world + left, config.filter.init_position_std_m, config.filter.init_yaw_std_rad
+        )
+    return trackers
 
 
 def _record_global(
@@ -203,7 +226,7 @@ def evaluate_run(
     """
     n = seq.n_frames
     truth = np.array([planar_from_T_world_from_cam(f.T_world_from_cam) for f in seq.frames])
-    trackers = _trackers(seq, signals, model, config, lever_arm_m, variants)
+    trackers = _trackers(seq, signals, model, config, lever_arm_m, variants, truth[0])
     localizer = InProcessLocalizer(
         memory.index,
         memory.lookup,
@@ -214,6 +237,7 @@ def evaluate_run(
     )
     est = {v: np.full((n, 3), np.nan) for v in variants if v not in trackers}
     timings, n_hyp = [], np.zeros(n, dtype=np.int64)
+    hypotheses, likeliest = [], np.full((n, 3), np.nan)
     need_global = any(v in variants for v in GLOBAL_VARIANTS)
     for i, frame in enumerate(seq.frames):
         image = seq.load(frame).image_gray
@@ -224,6 +248,8 @@ def evaluate_run(
         main = answers.get("full", search)
         timings.append(main.timings_ms)
         n_hyp[i] = len(main.hypotheses)
+        hypotheses.append(np.array(main.hypotheses.pose_world, dtype=np.float64))
+        likeliest[i] = main.best_pose_world
         if search is not None:
             _record_global(memory, est, i, search)
         if progress:
@@ -231,7 +257,9 @@ def evaluate_run(
     est.update({v: t.estimates_world for v, t in trackers.items()})
     est = {v: est[v] for v in variants}
     metrics = {v: trajectory_metrics(e, truth) for v, e in est.items()}
-    return RunEvaluation(truth, est, metrics, timings, n_hyp)
+    times = np.array([f.timestamp_s for f in seq.frames])
+    reseeds = {v: t.filter.n_reseeds for v, t in trackers.items()}
+    return RunEvaluation(truth, est, metrics, timings, n_hyp, times, hypotheses, likeliest, reseeds)
 
 
 def stage_percentiles(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:

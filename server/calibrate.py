@@ -9,7 +9,11 @@ against each (section 6 steps 3-5) and collect
     r_i   = [e_vlad_i, X_i - X_q, Y_i - Y_q, psi_i - psi_q]
 
 then fit (mu1, Sigma1) to e and (mu2, Sigma2) to r with monoloc.core.calibration (monoloc's
-default is the unbiased covariance about the mean). Hypotheses farther than
+default is the unbiased covariance about the mean). PnP is the localizer's own
+(``server.localize.pose_hypotheses``: guided, plus the joint pose); (mu1, Sigma1) are
+fitted on the per-entry hypotheses only, as in the paper, and the quality-aware model
+(``QualityModel``: a covariance per hypothesis from its inliers, reprojection error and
+joint flag) by maximum likelihood on every hypothesis, joint ones included. Hypotheses farther than
 ``gate_position_m`` / ``gate_yaw_rad`` from the truth are PnP failures, not noise: they
 are counted and left out of both fits (the measurement model's outlier floor stands for
 them), and reported.
@@ -20,17 +24,23 @@ as features + VLAD (not images), so a long training run fits in memory.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from monoloc.core.calibration import fit_measurement_model, pose_errors, retrieval_vectors
+from monoloc.core.calibration import (
+    fit_measurement_model,
+    fit_quality_model,
+    pose_errors,
+    retrieval_vectors,
+)
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
-from monoloc.core.measurement import MeasurementModel
+from monoloc.core.measurement import CovarianceModel, MeasurementModel
 from monoloc.server.entry_builder import (
     BuildConfig,
     DepthSource,
@@ -38,11 +48,11 @@ from monoloc.server.entry_builder import (
     TooFewPointsError,
     build_entry,
 )
+from monoloc.server.localize import PnpStrategy, ReferenceEntry, pose_hypotheses
 from monoloc.server.storage.records import NewEntry
 from monoloc.server.vision.features import extract_features
-from monoloc.server.vision.hypothesis import compose_hypothesis
 from monoloc.server.vision.matching import MatchConfig, match_against_references
-from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.server.vision.pnp import PnpConfig
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -55,7 +65,9 @@ class CalibrationConfig:
     """k: map entries per query (closest by pose); map_every: frames 0, m, 2m, ... build
     the temporary map, the others query it; gates: hypotheses farther from the truth are
     counted as outliers and left out of the fit; unbiased: covariance about the mean with
-    N - 1 (monoloc) instead of the paper's mean(e e^T)."""
+    N - 1 (monoloc) instead of the paper's mean(e e^T); strategy: PnP as the localizer
+    runs it (guided, joint pose); covariance: the model the stored calibration selects
+    ("paper" or "quality"; both are fitted and stored)."""
 
     k: int = 10
     map_every: int = 2
@@ -65,6 +77,8 @@ class CalibrationConfig:
     build: BuildConfig = field(default_factory=BuildConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
     pnp: PnpConfig = field(default_factory=PnpConfig)
+    strategy: PnpStrategy = field(default_factory=lambda: PnpStrategy(guess_from_prior=False))
+    covariance: CovarianceModel = "paper"
 
     def __post_init__(self) -> None:
         if self.k < 1 or self.map_every < 2:
@@ -123,7 +137,12 @@ class _Samples:
     hypothesis: list = field(default_factory=list)
     e_vlad: list = field(default_factory=list)
     entry_pose: list = field(default_factory=list)
+    n_inliers: list = field(default_factory=list)
+    error_px: list = field(default_factory=list)
+    joint: list = field(default_factory=list)
     n_hypotheses: int = 0
+    n_joint: int = 0
+    n_joint_gated: int = 0
     n_gated: int = 0
     n_queries_with_hypotheses: int = 0
 
@@ -166,40 +185,41 @@ def _split_run(frames, intrinsics, vocabulary, config, tick):
 
 
 def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples) -> None:
-    """Pass 2 for one query: its k closest entries by position, matching, PnP, errors."""
+    """Pass 2 for one query: its k closest entries by position, matching, PnP (the
+    localizer's, joint pose included), errors."""
     truth = query.truth_world
     dist_m = np.hypot(entry_pose[:, 0] - truth[0], entry_pose[:, 1] - truth[1])
     nearest = np.argsort(dist_m, kind="stable")[: config.k]
-    refs = [entries[j] for j in nearest]
+    refs = [
+        ReferenceEntry(
+            int(j), entries[j].T_world_from_cam, entries[j].descriptors, entries[j].points_cam
+        )
+        for j in nearest
+    ]
     matches = match_against_references(
         query.descriptors, [r.descriptors for r in refs], config.match
     )
-    found = False
-    for j, ref, pairs in zip(nearest, refs, matches, strict=True):
-        rel = estimate_relative_pose(
-            query.keypoints_px[pairs[:, 0]],
-            ref.points_cam[pairs[:, 1]],
-            intrinsics,
-            config.pnp,
-            rng,
-        )
-        if not rel.accepted:
-            continue
-        samples.n_hypotheses += 1
-        found = True
-        z = planar_from_T_world_from_cam(
-            compose_hypothesis(ref.T_world_from_cam, rel.T_ref_from_query)
-        )
-        e = truth - z
+    e_vlad = {int(j): float(np.linalg.norm(entries[j].vlad - query.vlad)) for j in nearest}
+    hypotheses, _ = pose_hypotheses(
+        query.keypoints_px, refs, matches, e_vlad, intrinsics, config.pnp, rng, config.strategy
+    )
+    for h in hypotheses:
+        samples.n_hypotheses += int(not h.joint)
+        samples.n_joint += int(h.joint)
+        e = truth - h.pose_world
         e[2] = wrap_angle(e[2])
         if np.hypot(e[0], e[1]) > config.gate_position_m or abs(e[2]) > config.gate_yaw_rad:
-            samples.n_gated += 1
+            samples.n_gated += int(not h.joint)
+            samples.n_joint_gated += int(h.joint)
             continue
         samples.truth.append(truth)
-        samples.hypothesis.append(z)
-        samples.e_vlad.append(float(np.linalg.norm(ref.vlad - query.vlad)))
-        samples.entry_pose.append(entry_pose[j])
-    samples.n_queries_with_hypotheses += int(found)
+        samples.hypothesis.append(h.pose_world)
+        samples.e_vlad.append(h.e_vlad)
+        samples.entry_pose.append(h.entry_pose_world)
+        samples.n_inliers.append(h.n_inliers)
+        samples.error_px.append(h.reprojection_error_px)
+        samples.joint.append(h.joint)
+    samples.n_queries_with_hypotheses += int(bool(hypotheses))
 
 
 def calibrate(
@@ -240,7 +260,8 @@ def calibrate(
     for query in queries:
         _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         ticker.tick()
-    used = len(samples.truth)
+    joint = np.array(samples.joint, dtype=bool)
+    used = int((~joint).sum())
     if used < MIN_GOOD_HYPOTHESES:
         raise InvalidInputError(
             f"calibration of {what} found only {used} good hypotheses ({samples.n_hypotheses} "
@@ -249,12 +270,19 @@ def calibrate(
             "not match each other"
         )
     truth = np.array(samples.truth)
-    model = fit_measurement_model(
-        pose_errors(truth, np.array(samples.hypothesis)),
-        retrieval_vectors(np.array(samples.e_vlad), np.array(samples.entry_pose), truth),
+    errors = pose_errors(truth, np.array(samples.hypothesis))
+    paper = fit_measurement_model(
+        errors[~joint],
+        retrieval_vectors(
+            np.array(samples.e_vlad)[~joint], np.array(samples.entry_pose)[~joint], truth[~joint]
+        ),
         unbiased=config.unbiased,
         source="calibrated",
     )
+    quality = fit_quality_model(
+        errors, np.array(samples.n_inliers), np.array(samples.error_px), joint
+    )
+    model = dataclasses.replace(paper, quality=quality, covariance=config.covariance)
     counts = {
         "frames": seen,
         "map_frames": len(entries),
@@ -282,8 +310,14 @@ def _provenance(source_name, counts, samples: _Samples, config, vocabulary) -> d
         **counts,
         "queries_with_hypotheses": samples.n_queries_with_hypotheses,
         "hypotheses": samples.n_hypotheses,
-        "used": len(samples.truth),
+        "used": len(samples.truth) - int(np.sum(samples.joint)),
+        "joint_hypotheses": samples.n_joint,
+        "joint_used": int(np.sum(samples.joint)),
+        "joint_gated_outliers": samples.n_joint_gated,
         "gated_outliers": samples.n_gated,
+        "pnp": "guided" if config.strategy.guided else "independent RANSAC per entry",
+        "quality_model": "ML: N(mu1, s Sigma1), log s = beta . [log(n_inliers / n_ref), "
+        "log(reprojection_error / error_ref), joint]",
         "k": config.k,
         "map_every": config.map_every,
         "gate_position_m": config.gate_position_m,

@@ -12,7 +12,17 @@ numba Hamming matcher. ``"paper"`` is the paper-faithful baseline, for benchmark
 float k-NN over every VLAD of the index (no Hamming shortlist; with a prior, over every
 entry inside it; exhaustive while the index is flat, i.e. below
 ``IndexConfig.ivf_min_entries`` entries) and OpenCV brute-force matching per reference
-(same match rule). Features, VLAD, PnP and the answer are the same for both.
+(same match rule). Features, VLAD, PnP and the answer are the same for both, except
+that the paper's pipeline solves every entry with its own RANSAC and adds no joint pose.
+
+PnP (``monoloc``, issue 17): guided. The entries are visited by decreasing number of
+matches; the first gets a full RANSAC (none when the retrieval prior carries a heading:
+the prior's pose, at the entry's height and tilt, is the first guess), every other entry
+is scored against the poses found so far and refined on its own inliers, with its own
+RANSAC only when that leaves too few inliers (``pnp.estimate_relative_pose_guided``).
+Every per-entry hypothesis comes from that entry's own correspondences. Then a joint
+hypothesis (``vision.joint``): the union of the consistent entries' inliers in the world
+frame, refined together; it is appended to the hypotheses, marked ``joint``.
 """
 
 from __future__ import annotations
@@ -25,18 +35,29 @@ from typing import Literal
 import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
-from monoloc.core.geometry import planar_from_T_world_from_cam
+from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
-from monoloc.server.vision.features import Features, OrbConfig, extract_features
+from monoloc.server.vision.features import OrbConfig, extract_features
 from monoloc.server.vision.hypothesis import compose_hypothesis
+from monoloc.server.vision.joint import (
+    EntryInliers,
+    JointConfig,
+    consistent_group,
+    estimate_joint_pose,
+)
 from monoloc.server.vision.matching import (
     MatchConfig,
     match_against_references,
     match_against_references_bruteforce,
 )
-from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.server.vision.pnp import (
+    PnpConfig,
+    RelativePose,
+    estimate_relative_pose,
+    estimate_relative_pose_guided,
+)
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -72,17 +93,23 @@ def retrieve_exhaustive(
 
 @dataclass(frozen=True)
 class Preset:
-    """A named localization pipeline: how entries are retrieved and how the query's
-    descriptors are matched against theirs (one (K_r, 2) int32 array per reference)."""
+    """A named localization pipeline: how entries are retrieved, how the query's
+    descriptors are matched against theirs (one (K_r, 2) int32 array per reference), and
+    whether PnP may be guided and a joint pose added (``LocalizeConfig`` can turn either
+    off, never on for a preset that has them off)."""
 
     retrieve: Retrieve
     match: Match
+    guided: bool = True
+    joint: bool = True
 
 
 PresetName = Literal["monoloc", "paper"]
 PRESETS: dict[PresetName, Preset] = {
     "monoloc": Preset(retrieve_shortlist, match_against_references),
-    "paper": Preset(retrieve_exhaustive, match_against_references_bruteforce),
+    "paper": Preset(
+        retrieve_exhaustive, match_against_references_bruteforce, guided=False, joint=False
+    ),
 }
 
 
@@ -95,10 +122,34 @@ class LocalizeConfig:
     pnp: PnpConfig = field(default_factory=PnpConfig)
     k: int = 10
     pipeline: PresetName = "monoloc"
+    guided_pnp: bool = True
+    guess_from_prior: bool = True
+    joint: JointConfig | None = field(default_factory=JointConfig)
 
     @property
     def preset(self) -> Preset:
         return PRESETS[self.pipeline]
+
+    @property
+    def pnp_strategy(self) -> PnpStrategy:
+        """How :func:`pose_hypotheses` runs for this config's preset."""
+        preset = self.preset
+        return PnpStrategy(
+            guided=self.guided_pnp and preset.guided,
+            guess_from_prior=self.guess_from_prior and self.guided_pnp and preset.guided,
+            joint=self.joint if preset.joint else None,
+        )
+
+
+@dataclass(frozen=True)
+class PnpStrategy:
+    """guided: guided PnP (else every entry its own RANSAC, the paper); guess_from_prior:
+    a retrieval prior with a heading seeds the guesses; joint: joint-pose settings, None
+    for no joint hypothesis."""
+
+    guided: bool = True
+    guess_from_prior: bool = True
+    joint: JointConfig | None = field(default_factory=JointConfig)
 
 
 @dataclass(frozen=True)
@@ -121,7 +172,10 @@ class ReferenceEntry:
 
 @dataclass(frozen=True)
 class PoseHypothesis:
-    """One accepted PnP solution against one retrieved entry (METHOD.md s. 6 step 5)."""
+    """One accepted PnP solution against one retrieved entry (METHOD.md s. 6 step 5), or
+    the joint pose of several (``joint``; then ``entry_id``, ``entry_pose_world`` and
+    ``e_vlad`` are its anchor's, ``entry_ids`` every member, ``n_matches`` / ``n_inliers``
+    count the union). method: "ransac", "guided" or "joint"."""
 
     entry_id: int
     T_world_from_cam: np.ndarray
@@ -131,6 +185,9 @@ class PoseHypothesis:
     n_matches: int
     n_inliers: int
     reprojection_error_px: float
+    joint: bool = False
+    entry_ids: tuple[int, ...] = ()
+    method: str = "ransac"
 
 
 @dataclass(frozen=True)
@@ -144,8 +201,15 @@ class LocalizationResult:
 
     @property
     def best(self) -> PoseHypothesis | None:
-        """The hypothesis with the most PnP inliers."""
-        return max(self.hypotheses, key=lambda h: h.n_inliers, default=None)
+        """The per-entry hypothesis with the most PnP inliers (the joint one aside)."""
+        return max(
+            (h for h in self.hypotheses if not h.joint), key=lambda h: h.n_inliers, default=None
+        )
+
+    @property
+    def joint(self) -> PoseHypothesis | None:
+        """The joint hypothesis, if the frame gave one."""
+        return next((h for h in self.hypotheses if h.joint), None)
 
 
 EntryLookup = Callable[[Sequence[int]], Sequence[ReferenceEntry]]
@@ -192,8 +256,16 @@ def localize_frame(
     matches = preset.match(features.descriptors, [r.descriptors for r in refs], config.match)
     laps.lap("matching")
     e_vlad = dict(zip(found.entry_ids.tolist(), found.distances.tolist(), strict=True))
-    hypotheses, rejected = _pose_hypotheses(
-        features, refs, matches, e_vlad, intrinsics, config.pnp, rng
+    hypotheses, rejected = pose_hypotheses(
+        features.keypoints_px,
+        refs,
+        matches,
+        e_vlad,
+        intrinsics,
+        config.pnp,
+        rng,
+        config.pnp_strategy,
+        prior,
     )
     laps.lap("pnp")
     return LocalizationResult(
@@ -206,23 +278,26 @@ def localize_frame(
     )
 
 
-def _pose_hypotheses(
-    features: Features,
+def pose_hypotheses(
+    keypoints_px: np.ndarray,
     refs: Sequence[ReferenceEntry],
     matches: Sequence[np.ndarray],
     e_vlad: dict[int, float],
     intrinsics: CameraIntrinsics,
     config: PnpConfig,
     rng: np.random.Generator,
+    strategy: PnpStrategy = PnpStrategy(),
+    prior: RetrievalPrior | None = None,
 ) -> tuple[list[PoseHypothesis], list[tuple[int, str]]]:
-    """PnP RANSAC against each reference in turn (its (K, 2) query/reference index pairs):
-    the accepted hypotheses, and (entry id, reason) of the rejected references."""
+    """PnP against each reference (its (K, 2) query/reference index pairs into
+    ``keypoints_px`` (N, 2) and its points), guided or not, plus the joint hypothesis
+    (appended last). Returns the hypotheses in the references' order and (entry id,
+    reason) of the rejected references."""
+    solved = _solve_entries(keypoints_px, refs, matches, intrinsics, config, rng, strategy, prior)
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
-    for ref, pairs in zip(refs, matches, strict=True):
-        rel = estimate_relative_pose(
-            features.keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]], intrinsics, config, rng
-        )
+    inliers: list[EntryInliers] = []
+    for ref, pairs, rel in zip(refs, matches, solved, strict=True):
         if not rel.accepted:
             rejected.append((ref.entry_id, rel.reject_reason or "rejected"))
             continue
@@ -237,6 +312,99 @@ def _pose_hypotheses(
                 n_matches=len(pairs),
                 n_inliers=rel.n_inliers,
                 reprojection_error_px=rel.reprojection_error_px,
+                method=rel.method,
             )
         )
+        kept = pairs[rel.inlier_mask]
+        inliers.append(
+            EntryInliers(ref.T_world_from_cam, keypoints_px[kept[:, 0]], ref.points_cam[kept[:, 1]])
+        )
+    if strategy.joint is not None:
+        joint = _joint_hypothesis(hypotheses, inliers, intrinsics, config, strategy.joint)
+        if joint is not None:
+            hypotheses.append(joint)
     return hypotheses, rejected
+
+
+def _solve_entries(
+    keypoints_px: np.ndarray,
+    refs: Sequence[ReferenceEntry],
+    matches: Sequence[np.ndarray],
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    rng: np.random.Generator,
+    strategy: PnpStrategy,
+    prior: RetrievalPrior | None,
+) -> list[RelativePose]:
+    """One RelativePose per reference, in the references' order. Guided: by decreasing
+    number of matches, each entry seeded by the poses (T_world_from_query) found so far."""
+    solved: list[RelativePose | None] = [None] * len(refs)
+    order = sorted(range(len(refs)), key=lambda j: -len(matches[j]))
+    found_world: list[np.ndarray] = []
+    if strategy.guess_from_prior and prior is not None and prior.yaw_rad is not None and refs:
+        found_world.append(_prior_guess(prior, refs[order[0]].T_world_from_cam))
+    for j in order:
+        ref, pairs = refs[j], matches[j]
+        pixels, points = keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
+        if strategy.guided and found_world:
+            T_ref_from_world = invert_rigid(ref.T_world_from_cam)
+            guesses = [T_ref_from_world @ T for T in found_world]
+            rel = estimate_relative_pose_guided(pixels, points, guesses, intrinsics, config, rng)
+        else:
+            rel = estimate_relative_pose(pixels, points, intrinsics, config, rng)
+        solved[j] = rel
+        if rel.accepted and strategy.guided:
+            found_world.append(ref.T_world_from_cam @ rel.T_ref_from_query)
+    return [rel for rel in solved if rel is not None]
+
+
+def _prior_guess(prior: RetrievalPrior, T_world_from_ref: np.ndarray) -> np.ndarray:
+    """A query pose (4, 4) T_world_from_cam from a planar prior with a heading: the
+    reference camera turned about the vertical to the prior's heading and moved to its
+    position, keeping the reference's height, pitch and roll."""
+    ref = planar_from_T_world_from_cam(T_world_from_ref)
+    turn = float(prior.yaw_rad) - ref[2]
+    c, s = np.cos(turn), np.sin(turn)
+    T = np.array(T_world_from_ref, dtype=np.float64)
+    T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+    T[0, 3], T[1, 3] = prior.x_m, prior.y_m
+    return T
+
+
+def _joint_hypothesis(
+    hypotheses: Sequence[PoseHypothesis],
+    inliers: Sequence[EntryInliers],
+    intrinsics: CameraIntrinsics,
+    pnp: PnpConfig,
+    config: JointConfig,
+) -> PoseHypothesis | None:
+    """The joint pose of the largest consistent group of hypotheses, as a hypothesis."""
+    if len(hypotheses) < config.min_entries:
+        return None
+    group = consistent_group(
+        np.array([h.pose_world for h in hypotheses]),
+        np.array([h.n_inliers for h in hypotheses]),
+        config,
+    )
+    if len(group) < config.min_entries:
+        return None
+    anchor = hypotheses[group[0]]
+    joint = estimate_joint_pose(
+        [inliers[g] for g in group], anchor.T_world_from_cam, intrinsics, pnp, config
+    )
+    if joint is None:
+        return None
+    members = [hypotheses[group[m]] for m in joint.members]
+    return PoseHypothesis(
+        entry_id=anchor.entry_id,
+        T_world_from_cam=joint.T_world_from_cam,
+        pose_world=planar_from_T_world_from_cam(joint.T_world_from_cam),
+        entry_pose_world=anchor.entry_pose_world,
+        e_vlad=anchor.e_vlad,
+        n_matches=joint.n_correspondences,
+        n_inliers=joint.n_inliers,
+        reprojection_error_px=joint.reprojection_error_px,
+        joint=True,
+        entry_ids=tuple(h.entry_id for h in members),
+        method="joint",
+    )

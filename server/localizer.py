@@ -38,13 +38,18 @@ class InProcessAnswer(LocalizeAnswer):
 
 
 def hypotheses_of(result: LocalizationResult) -> Hypotheses:
-    """The filter's view of a result: planar poses, entry poses and VLAD distances."""
+    """The filter's view of a result: planar poses, entry poses, VLAD distances and the
+    quality features (inliers, reprojection error, joint or not)."""
     if not result.hypotheses:
         return Hypotheses.empty()
+    hyps = result.hypotheses
     return Hypotheses(
-        np.array([h.pose_world for h in result.hypotheses]),
-        np.array([h.entry_pose_world for h in result.hypotheses]),
-        np.array([h.e_vlad for h in result.hypotheses]),
+        np.array([h.pose_world for h in hyps]),
+        np.array([h.entry_pose_world for h in hyps]),
+        np.array([h.e_vlad for h in hyps]),
+        n_inliers=np.array([h.n_inliers for h in hyps], dtype=np.float64),
+        reprojection_error_px=np.array([h.reprojection_error_px for h in hyps]),
+        joint=np.array([h.joint for h in hyps], dtype=bool),
     )
 
 

@@ -56,7 +56,20 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=1, le=65535)
     max_body_bytes: int = Field(
-        default=512 * MiB, gt=0, description="Largest request body (uploads included)."
+        default=512 * MiB,
+        gt=0,
+        description="Largest request body of any route: recorded runs (archives, file sets).",
+    )
+    max_query_body_bytes: int = Field(
+        default=8 * MiB, gt=0, description="Largest localize request (one query frame)."
+    )
+    max_entry_body_bytes: int = Field(
+        default=64 * MiB,
+        gt=0,
+        description="Largest add-entry request (image + depth image or LiDAR scan).",
+    )
+    max_json_body_bytes: int = Field(
+        default=1 * MiB, gt=0, description="Largest JSON body (keys, maps, tags, calibration)."
     )
     max_image_pixels: int = Field(
         default=25_000_000, gt=0, description="Largest decoded image (width * height)."

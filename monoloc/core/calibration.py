@@ -10,7 +10,7 @@ import numpy as np
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
-from monoloc.core.measurement import MeasurementModel
+from monoloc.core.measurement import MeasurementModel, QualityModel, quality_features
 
 
 def pose_errors(truth_world: np.ndarray, hypotheses_world: np.ndarray) -> np.ndarray:
@@ -84,3 +84,96 @@ def fit_measurement_model(
         outlier_log_density=outlier_log_density,
         source=source,
     )
+
+
+def fit_quality_model(
+    pose_error_samples: np.ndarray,
+    n_inliers: np.ndarray,
+    reprojection_error_px: np.ndarray,
+    joint: np.ndarray,
+    n_ref: float = 100.0,
+    error_ref_px: float = 1.0,
+    iterations: int = 100,
+    tolerance: float = 1e-9,
+) -> QualityModel:
+    """Maximum-likelihood fit of the quality-aware model (monoloc.core.measurement) to
+    pose errors e_i (N, 3) = truth - hypothesis with their quality features (N,) each.
+
+    The likelihood is prod_i N(e_i; mu1, s_i Sigma1), log s_i = beta . x_i. Coordinate
+    ascent, each step exact or convex: for fixed beta, mu1 is the 1/s_i-weighted mean and
+    Sigma1 the weighted covariance (closed form); for fixed (mu1, Sigma1), beta minimises
+    sum_i 0.5 m_i exp(-beta . x_i) + 1.5 beta . x_i (m_i the Mahalanobis distance under
+    Sigma1), a convex function, by damped Newton steps. A feature that never varies
+    (e.g. no joint sample) keeps a zero slope. Sigma1 gets the same diagonal floor as
+    the paper's fit.
+    """
+    e = np.asarray(pose_error_samples, dtype=np.float64)
+    x = quality_features(n_inliers, reprojection_error_px, joint, n_ref, error_ref_px)
+    if e.ndim != 2 or e.shape[1] != 3 or len(x) != len(e):
+        raise InvalidInputError(
+            f"need pose errors (N, 3) and N quality features, got {e.shape} and {len(x)}"
+        )
+    if len(e) < 10:
+        raise InvalidInputError(f"need at least 10 samples to fit the quality model, got {len(e)}")
+    if not (np.all(np.isfinite(e)) and np.all(np.isfinite(x))):
+        raise InvalidInputError("quality calibration samples contain NaN or infinite values")
+    free = np.array([np.ptp(x[:, k]) > 1e-9 for k in range(3)])
+    floor = np.diag(np.square([0.01, 0.01, 1e-3]))
+    beta = np.zeros(3)
+    previous = np.inf
+    for _ in range(iterations):
+        w = np.exp(-x @ beta)
+        mu1 = (w[:, None] * e).sum(axis=0) / w.sum()
+        centred = e - mu1
+        Sigma1 = (w[:, None, None] * centred[:, :, None] * centred[:, None, :]).mean(axis=0)
+        Sigma1 = 0.5 * (Sigma1 + Sigma1.T) + floor
+        maha = np.einsum("ij,ij->i", centred @ np.linalg.inv(Sigma1), centred)
+        beta = _fit_log_scale(x[:, free], maha, beta[free], free)
+        nll = _quality_nll(centred, x @ beta, Sigma1)
+        if previous - nll < tolerance * max(1.0, abs(nll)):
+            break
+        previous = nll
+    return QualityModel(mu1=mu1, Sigma1=Sigma1, beta=beta, n_ref=n_ref, error_ref_px=error_ref_px)
+
+
+def _fit_log_scale(
+    x: np.ndarray, maha: np.ndarray, beta: np.ndarray, free: np.ndarray
+) -> np.ndarray:
+    """Slopes minimising sum 0.5 m exp(-x b) + 1.5 x b (damped Newton); zeros elsewhere."""
+    out = np.zeros(len(free))
+    if x.shape[1] == 0:
+        return out
+
+    def cost(b: np.ndarray) -> float:
+        z = x @ b
+        return float(np.sum(0.5 * maha * np.exp(-z) + 1.5 * z))
+
+    current = cost(beta)
+    for _ in range(50):
+        r = 0.5 * maha * np.exp(-(x @ beta))
+        grad = x.T @ (1.5 - r)
+        hess = (x * r[:, None]).T @ x + 1e-9 * np.eye(len(beta))
+        step = np.linalg.solve(hess, -grad)
+        scale = 1.0
+        while scale > 1e-6:
+            trial = beta + scale * step
+            trial_cost = cost(trial)
+            if trial_cost <= current:
+                break
+            scale *= 0.5
+        else:
+            break
+        converged = current - trial_cost < 1e-12 * max(1.0, abs(current))
+        beta, current = trial, trial_cost
+        if converged:
+            break
+    out[free] = beta
+    return out
+
+
+def _quality_nll(centred: np.ndarray, log_scale: np.ndarray, Sigma1: np.ndarray) -> float:
+    """Negative log-likelihood (up to a constant) of the samples under the model."""
+    maha = np.einsum("ij,ij->i", centred @ np.linalg.inv(Sigma1), centred)
+    _, log_det = np.linalg.slogdet(Sigma1)
+    data_term = np.sum(0.5 * maha * np.exp(-log_scale) + 1.5 * log_scale)
+    return float(data_term + 0.5 * len(maha) * log_det)

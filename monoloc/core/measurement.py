@@ -7,12 +7,25 @@ For a particle x = (X, Y, psi) and hypotheses i = 1..H from one frame::
     e_i(x)   = [e_vlad_i, X_i - X, Y_i - Y, wrap(psi_i - psi)]
 
 Everything is vectorised over particles and hypotheses (P x H). Pure numpy.
+
+Two covariance models (``MeasurementModel.covariance``):
+
+- ``"paper"``: one (mu1, Sigma1) for every hypothesis, as the paper has it; joint
+  hypotheses (monoloc's multi-entry pose, not in the paper) are left out.
+- ``"quality"``: monoloc's quality-aware model (:class:`QualityModel`): hypothesis i is
+  N(x; z_i + mu1_q, s_i Sigma1_q) with log s_i = beta . [log(n_inliers_i / n_ref),
+  log(reprojection_error_i / error_ref), joint_i]: fewer inliers or a larger
+  reprojection error widen it; the joint pose gets its own factor. Fitted by maximum
+  likelihood on the training run like (mu1, Sigma1) (monoloc.core.calibration).
+  Hypotheses without quality features (an old server) fall back to the paper's model.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -26,11 +39,17 @@ class Hypotheses:
     pose_world: (H, 3) planar (X, Y, psi) of T_world_from_query per hypothesis.
     entry_pose_world: (H, 3) planar pose of the retrieved map entry behind each.
     e_vlad: (H,) VLAD distance between the query and the entry.
+    Quality features, optional (None: unknown, e.g. an old server): n_inliers (H,) PnP
+    inliers, reprojection_error_px (H,) their mean error, joint (H,) bool: the hypothesis
+    is the joint pose of several entries, not one entry's.
     """
 
     pose_world: np.ndarray
     entry_pose_world: np.ndarray
     e_vlad: np.ndarray
+    n_inliers: np.ndarray | None = None
+    reprojection_error_px: np.ndarray | None = None
+    joint: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.pose_world)
@@ -45,6 +64,31 @@ class Hypotheses:
                 f"{np.shape(self.pose_world)}, {np.shape(self.entry_pose_world)}, "
                 f"{np.shape(self.e_vlad)}"
             )
+        for name in ("n_inliers", "reprojection_error_px", "joint"):
+            value = getattr(self, name)
+            if value is not None and np.shape(value) != (n,):
+                raise InvalidInputError(f"hypotheses' {name} must be ({n},), got {np.shape(value)}")
+        if self.joint is not None:
+            object.__setattr__(self, "joint", np.asarray(self.joint, dtype=bool))
+
+    @property
+    def has_quality(self) -> bool:
+        """Whether the quality features are known (n_inliers and reprojection errors)."""
+        return self.n_inliers is not None and self.reprojection_error_px is not None
+
+    def without_joint(self) -> Hypotheses:
+        """The per-entry hypotheses only (the paper's model has no joint pose)."""
+        if self.joint is None or not self.joint.any():
+            return self
+        keep = ~self.joint
+        return Hypotheses(
+            self.pose_world[keep],
+            self.entry_pose_world[keep],
+            self.e_vlad[keep],
+            None if self.n_inliers is None else self.n_inliers[keep],
+            None if self.reprojection_error_px is None else self.reprojection_error_px[keep],
+            self.joint[keep],
+        )
 
     @classmethod
     def empty(cls) -> Hypotheses:
@@ -67,6 +111,101 @@ def _as_cov(matrix, size: int, name: str) -> np.ndarray:
     return cov
 
 
+QUALITY_FEATURES = ("log_inliers", "log_reprojection_error", "joint")
+
+
+def quality_features(
+    n_inliers: np.ndarray,
+    reprojection_error_px: np.ndarray,
+    joint: np.ndarray | None,
+    n_ref: float,
+    error_ref_px: float,
+) -> np.ndarray:
+    """Features (H, 3) of the quality model: log(n / n_ref), log(err / err_ref), joint."""
+    n = np.maximum(np.asarray(n_inliers, dtype=np.float64), 1.0)
+    err = np.maximum(np.asarray(reprojection_error_px, dtype=np.float64), 1e-3)
+    out = np.empty((len(n), 3))
+    out[:, 0] = np.log(n / n_ref)
+    out[:, 1] = np.log(err / error_ref_px)
+    out[:, 2] = 0.0 if joint is None else np.asarray(joint, dtype=np.float64)
+    return out
+
+
+@dataclass(frozen=True)
+class QualityModel:
+    """Quality-aware pose-error model: hypothesis i has error (truth - z_i) ~
+    N(mu1, s_i Sigma1) with log s_i = beta . quality_features(i), clipped to
+    ``log_scale_bounds``.
+
+    mu1 (3,), Sigma1 (3, 3): bias and covariance (m, m, rad) of a per-entry hypothesis
+    with ``n_ref`` inliers at ``error_ref_px`` mean reprojection error. beta (3,): slopes
+    for log(n_inliers / n_ref), log(error / error_ref_px) and the joint flag.
+    """
+
+    mu1: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    Sigma1: np.ndarray = field(
+        default_factory=lambda: np.diag([0.1**2, 0.1**2, math.radians(0.5) ** 2])
+    )
+    beta: np.ndarray = field(default_factory=lambda: np.array([-1.0, 1.0, 0.0]))
+    n_ref: float = 100.0
+    error_ref_px: float = 1.0
+    log_scale_bounds: tuple[float, float] = (-6.0, 6.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mu1", np.asarray(self.mu1, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "beta", np.asarray(self.beta, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "Sigma1", _as_cov(self.Sigma1, 3, "quality Sigma1"))
+        lo, hi = (float(b) for b in self.log_scale_bounds)
+        if not (
+            np.all(np.isfinite(self.mu1))
+            and np.all(np.isfinite(self.beta))
+            and self.n_ref > 0
+            and self.error_ref_px > 0
+            and lo < hi
+        ):
+            raise InvalidInputError(f"invalid quality model {self}")
+        object.__setattr__(self, "log_scale_bounds", (lo, hi))
+        object.__setattr__(self, "_whiten", _whitening(self.Sigma1))
+        object.__setattr__(self, "_log_norm", _log_normaliser(self.Sigma1))
+
+    def log_scale(self, hypotheses: Hypotheses) -> np.ndarray:
+        """log s_i (H,) of each hypothesis (needs its quality features)."""
+        x = quality_features(
+            hypotheses.n_inliers,
+            hypotheses.reprojection_error_px,
+            hypotheses.joint,
+            self.n_ref,
+            self.error_ref_px,
+        )
+        return np.clip(x @ self.beta, *self.log_scale_bounds)
+
+    def to_dict(self) -> dict:
+        return {
+            "mu1": self.mu1.tolist(),
+            "Sigma1": self.Sigma1.tolist(),
+            "beta": self.beta.tolist(),
+            "features": list(QUALITY_FEATURES),
+            "n_ref": self.n_ref,
+            "error_ref_px": self.error_ref_px,
+            "log_scale_bounds": list(self.log_scale_bounds),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> QualityModel:
+        defaults = cls()
+        return cls(
+            mu1=data["mu1"],
+            Sigma1=data["Sigma1"],
+            beta=data["beta"],
+            n_ref=float(data.get("n_ref", defaults.n_ref)),
+            error_ref_px=float(data.get("error_ref_px", defaults.error_ref_px)),
+            log_scale_bounds=tuple(data.get("log_scale_bounds", defaults.log_scale_bounds)),
+        )
+
+
+CovarianceModel = Literal["paper", "quality"]
+
+
 @dataclass(frozen=True)
 class MeasurementModel:
     """Parameters (mu1, Sigma1, mu2, Sigma2) of the mixture, plus monoloc's outlier floor.
@@ -76,6 +215,9 @@ class MeasurementModel:
     [e_vlad, X_i - X, Y_i - Y, psi_i - psi] in (1, m, m, rad).
     ``outlier_log_density`` is monoloc's addition: a constant density mixed in so a frame
     whose hypotheses are all wrong cannot annihilate every particle (None disables it).
+    ``covariance`` selects the pose-error model: "paper" (mu1, Sigma1 for all, joint
+    hypotheses left out) or "quality" (``quality``'s per-hypothesis covariance; needs
+    ``quality``). ``with_covariance`` switches between them.
     """
 
     mu1: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -88,8 +230,16 @@ class MeasurementModel:
     )
     outlier_log_density: float | None = -16.0
     source: str = "defaults"
+    quality: QualityModel | None = None
+    covariance: CovarianceModel = "paper"
 
     def __post_init__(self) -> None:
+        if self.covariance not in ("paper", "quality"):
+            raise InvalidInputError(
+                f"covariance must be 'paper' or 'quality', got {self.covariance!r}"
+            )
+        if self.covariance == "quality" and self.quality is None:
+            raise InvalidInputError("the quality covariance model needs quality parameters")
         object.__setattr__(self, "mu1", np.asarray(self.mu1, dtype=np.float64).reshape(3))
         object.__setattr__(self, "mu2", np.asarray(self.mu2, dtype=np.float64).reshape(4))
         object.__setattr__(self, "Sigma1", _as_cov(self.Sigma1, 3, "Sigma1"))
@@ -109,11 +259,20 @@ class MeasurementModel:
             "Sigma2": self.Sigma2.tolist(),
             "outlier_log_density": self.outlier_log_density,
             "source": self.source,
+            "quality": None if self.quality is None else self.quality.to_dict(),
+            "covariance": self.covariance,
         }
+
+    def with_covariance(self, covariance: CovarianceModel) -> MeasurementModel:
+        """The same parameters with the other covariance model selected."""
+        return dataclasses.replace(self, covariance=covariance)
 
     @classmethod
     def from_dict(cls, data: dict) -> MeasurementModel:
+        """Parameters from :meth:`to_dict` output; a calibration stored before the quality
+        model existed (no ``quality`` / ``covariance``) loads as the paper's model."""
         try:
+            quality = data.get("quality")
             return cls(
                 mu1=data["mu1"],
                 Sigma1=data["Sigma1"],
@@ -121,6 +280,8 @@ class MeasurementModel:
                 Sigma2=data["Sigma2"],
                 outlier_log_density=data.get("outlier_log_density", -16.0),
                 source=str(data.get("source", "calibrated")),
+                quality=None if quality is None else QualityModel.from_dict(quality),
+                covariance=data.get("covariance") or "paper",
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidInputError(f"malformed measurement model parameters: {exc}") from exc
@@ -164,19 +325,30 @@ def log_likelihood_and_distance(
     particles: np.ndarray, hypotheses: Hypotheses, model: MeasurementModel
 ) -> tuple[np.ndarray, float]:
     """log p(z | x) per particle (P,), and the smallest squared Mahalanobis distance
-    (under Sigma1) between any particle and any bias-corrected hypothesis: how far the
+    (under its covariance) between any particle and any bias-corrected hypothesis: how far the
     whole particle set is from what this frame says (the filter's "lost" signal)."""
     if len(hypotheses) == 0:
         raise InvalidInputError("log_likelihood needs at least one hypothesis")
+    quality = model.quality if model.covariance == "quality" else None
+    if quality is None or not hypotheses.has_quality:
+        quality = None
+        per_entry = hypotheses.without_joint()
+        hypotheses = per_entry if len(per_entry) else hypotheses
     # Work column by column on (P, H) arrays: with 3- and 4-vectors this beats batched
     # matmuls by a wide margin (see bench/filter.py).
     X, Y, psi = (particles[:, k : k + 1] for k in range(3))
-    # Component: N(x; z_i + mu1, Sigma1), residual x - (z_i + mu1) with wrapped heading.
-    centres = hypotheses.pose_world + model.mu1  # (H, 3)
+    # Component: N(x; z_i + mu1, s_i Sigma1), residual x - (z_i + mu1), wrapped heading.
+    mu1 = model.mu1 if quality is None else quality.mu1
+    centres = hypotheses.pose_world + mu1  # (H, 3)
     r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
-    maha1 = _mahalanobis(r1, model._whiten1)
+    if quality is None:
+        maha1 = _mahalanobis(r1, model._whiten1)
+        terms = model._log_norm1 - 0.5 * maha1
+    else:
+        log_scale = quality.log_scale(hypotheses)  # (H,)
+        maha1 = _mahalanobis(r1, quality._whiten) * np.exp(-log_scale)
+        terms = (quality._log_norm - 1.5 * log_scale) - 0.5 * maha1
     closest = float(maha1.min())
-    terms = model._log_norm1 - 0.5 * maha1
     # Weight: N(e_i(x); mu2, Sigma2), e_i(x) = [e_vlad, X_i - X, Y_i - Y, psi_i - psi].
     entries = hypotheses.entry_pose_world - model.mu2[1:]  # (H, 3)
     r2 = [

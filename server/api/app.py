@@ -24,6 +24,7 @@ from fastapi import FastAPI
 from monoloc.server.api.console import install_console
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.errors import install_error_handlers
+from monoloc.server.api.guard import document_body_limits
 from monoloc.server.api.limits import BodySizeLimitMiddleware
 from monoloc.server.api.metrics import Metrics, RequestMetricsMiddleware
 from monoloc.server.settings import Settings, get_settings
@@ -135,6 +136,18 @@ def _stop(state: AppState) -> None:
         state.engine.dispose()
 
 
+def _document_limits(app: FastAPI, settings: Settings) -> None:
+    """The OpenAPI description names each route's body limit in bytes (server/api/guard.py)."""
+    build = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            app.openapi_schema = document_body_limits(build(), settings)
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The API for ``settings`` (default: read from the environment now)."""
     settings = settings or get_settings()
@@ -173,6 +186,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in ROUTERS:
         app.include_router(router)
     app.include_router(metrics_router(settings.metrics_public))
+    _document_limits(app, settings)
     install_console(app)  # /ui, offline /docs and /redoc, the console's JSON routes
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestMetricsMiddleware, metrics=metrics)

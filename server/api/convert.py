@@ -121,6 +121,9 @@ def hypothesis(h: PoseHypothesis) -> HypothesisPublic:
         n_inliers=h.n_inliers,
         n_matches=h.n_matches,
         reprojection_error_px=h.reprojection_error_px,
+        joint=h.joint,
+        entry_ids=list(h.entry_ids),
+        method=h.method,
     )
 
 

@@ -106,6 +106,19 @@ _query_scheme = APIKeyQuery(
 )
 
 
+# Where GuardedRoute (server/api/guard.py) leaves the key record it checked before the body.
+KEY_RECORD_SCOPE = "monoloc.api_key"
+
+
+def presented_key(conn: HTTPConnection) -> str | None:
+    """The key of an HTTP request's headers: ``X-API-Key``, else ``Authorization: Bearer``."""
+    header = conn.headers.get("x-api-key")
+    if header:
+        return header
+    scheme, _, credentials = conn.headers.get("authorization", "").partition(" ")
+    return credentials.strip() or None if scheme.lower() == "bearer" else None
+
+
 def authenticate(state: AppState, presented: str | None, scope: str) -> ApiKeyRecord:
     """The key record if ``presented`` is a valid key with ``scope``; 401/403 otherwise."""
     if not presented:
@@ -128,10 +141,14 @@ def require_scope(scope: str, *, websocket: bool = False) -> Callable[..., ApiKe
     """A dependency admitting keys with ``scope`` (``websocket`` also reads ``?key=``)."""
 
     def http_dependency(
+        conn: HTTPConnection,
         state: StateDep,
         header_key: Annotated[str | None, Security(_header_scheme)] = None,
         bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer_scheme)] = None,
     ) -> ApiKeyRecord:
+        checked = conn.scope.get(KEY_RECORD_SCOPE)
+        if isinstance(checked, ApiKeyRecord) and checked.has_scope(scope):
+            return checked  # checked before the body was read (GuardedRoute)
         return authenticate(state, header_key or (bearer.credentials if bearer else None), scope)
 
     def ws_dependency(

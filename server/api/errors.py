@@ -97,12 +97,25 @@ def error_response(status: int, code: str, message: str, **extra: Any) -> JSONRe
     return JSONResponse(error_body(code, message, **extra), status_code=status, headers=headers)
 
 
+# Patterns of the API's fields (server/api/schemas.py) -> the rule in words, so a refusal
+# says what is wrong rather than printing a regular expression.
+PATTERN_RULES: dict[str, str] = {}
+
+
+def _message(err: dict[str, Any]) -> str:
+    if err.get("type") == "string_pattern_mismatch":
+        rule = PATTERN_RULES.get(str((err.get("ctx") or {}).get("pattern", "")))
+        if rule:
+            return f"invalid value {err.get('input')!r}: {rule}"
+    return str(err.get("msg", "invalid"))
+
+
 def describe_validation(errors: list[dict[str, Any]]) -> str:
     """One line naming the first few invalid fields (pydantic's ``errors()``)."""
     parts = []
     for err in errors[:5]:
         where = ".".join(str(p) for p in err.get("loc", ()) if p not in ("body", "query"))
-        parts.append(f"{where or 'request'}: {err.get('msg', 'invalid')}")
+        parts.append(f"{where or 'request'}: {_message(err)}")
     more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
     return "; ".join(parts) + more
 
@@ -115,13 +128,37 @@ async def _monoloc_error(_conn: Request | WebSocket, exc: Exception) -> JSONResp
     return error_response(status, error_code(exc), str(exc) or type(exc).__name__)
 
 
-async def _http_error(_conn: Request | WebSocket, exc: Exception) -> JSONResponse:
+_HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
+
+
+def allowed_methods(app: Any, path: str) -> list[str]:
+    """Every method some operation of the OpenAPI description serves at ``path`` (with
+    HEAD wherever GET is served): a 405's ``Allow`` header. Starlette's own names only the
+    methods of the first route whose path matches."""
+    allowed: set[str] = set()
+    for template, operations in app.openapi().get("paths", {}).items():
+        pattern = re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(template))
+        if re.fullmatch(pattern, path):
+            allowed.update(m.upper() for m in operations if m.upper() in _HTTP_METHODS)
+    if "GET" in allowed:
+        allowed.add("HEAD")
+    return [m for m in _HTTP_METHODS if m in allowed]
+
+
+async def _http_error(conn: Request | WebSocket, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     code = STATUS_CODES.get(exc.status_code, "error")
     message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        methods = allowed_methods(conn.app, conn.url.path)
+        if methods:
+            headers["Allow"] = ", ".join(methods)
+            message = f"{conn.scope.get('method', 'this method')} is not allowed here; allowed: "
+            message += ", ".join(methods)
     response = error_response(exc.status_code, code, message)
-    for key, value in (exc.headers or {}).items():
-        response.headers.setdefault(key, value)
+    for key, value in headers.items():
+        response.headers[key] = value
     return response
 
 

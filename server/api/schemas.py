@@ -9,9 +9,45 @@ server/api/schemas_admin.py; localization: server/api/schemas_localize.py.
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from monoloc.server.api.errors import PATTERN_RULES
+
+# The server's own rules, as patterns in the OpenAPI description (storage checks them too):
+# map names (storage/maps.py MAP_NAME_RE), tags (storage/entry_checks.py TAG_RE; the API
+# lower-cases them first), vocabulary hashes (vision/vocabulary.py: 16 hex digits).
+MAP_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+TAG_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:-]{0,63}$"
+VOCABULARY_REF_PATTERN = r"^(default|[0-9a-f]{16})$"
+_TAG_RULE = "1-64 of a-z, 0-9, '_', '.', ':', '-', starting with a letter or digit"
+PATTERN_RULES.update(
+    {
+        MAP_NAME_PATTERN: "invalid map name: 1-64 letters, digits, '.', '_' or '-', starting "
+        "with a letter or digit",
+        TAG_PATTERN: f"invalid tag: {_TAG_RULE}",
+        VOCABULARY_REF_PATTERN: "a vocabulary is 'default' or a stored hash (16 hex digits)",
+    }
+)
+Tag = Annotated[str, Field(pattern=TAG_PATTERN, examples=["night"])]
+# A form's comma-separated tags: empty items and spaces around items are ignored.
+_TAG = r"[A-Za-z0-9][A-Za-z0-9_.:-]{0,63}"
+TAG_LIST_PATTERN = rf"^[\s,]*(?:{_TAG}(?:\s*,[\s,]*{_TAG})*)?[\s,]*$"
+RUN_KIND_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,31}$"  # storage/runs.py KIND_RE
+# ingest/common.py parse_frame_range: A:B, A:, :B, A:B:S (S not 0), or empty.
+PATTERN_RULES.update(
+    {
+        TAG_LIST_PATTERN: f"invalid tag in a comma-separated list: each tag {_TAG_RULE}",
+        RUN_KIND_PATTERN: "invalid run kind: 1-32 of a-z, 0-9, '_', '-'",
+    }
+)
+FRAME_RANGE_PATTERN = r"^\s*(?:-?\d*\s*:\s*-?\d*\s*(?::\s*(?:-?0*[1-9]\d*)?\s*)?)?$"
+
+
+def _row(n: int) -> Any:
+    return Annotated[list[float], Field(min_length=n, max_length=n)]
+
 
 _T_EXAMPLE = [0.0, 0.0, 1.0, 12.5, -1.0, 0.0, 0.0, 3.2, 0.0, -1.0, 0.0, 1.65, 0.0, 0.0, 0.0, 1.0]
 TIME_EXAMPLE = "2024-05-01T12:00:00Z"
@@ -19,6 +55,12 @@ TIME_EXAMPLE = "2024-05-01T12:00:00Z"
 
 def example(**values: Any) -> ConfigDict:
     return ConfigDict(json_schema_extra={"examples": [values]})
+
+
+def strict_example(**values: Any) -> ConfigDict:
+    """``example`` of a request body, validated strictly: ``false`` is not 0.0, ``"1"`` is
+    not 1 (so the body fits its JSON schema exactly when the server accepts it)."""
+    return ConfigDict(strict=True, json_schema_extra={"examples": [values]})
 
 
 def record_example(**values: Any) -> ConfigDict:
@@ -39,8 +81,15 @@ class ErrorResponse(BaseModel):
 class Camera(BaseModel):
     """Pinhole intrinsics in pixels of the map's camera."""
 
-    model_config = record_example(
-        fx=718.856, fy=718.856, cx=607.1928, cy=185.2157, width_px=1241, height_px=376
+    model_config = ConfigDict(
+        from_attributes=True,
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra={
+            "examples": [
+                dict(fx=718.856, fy=718.856, cx=607.1928, cy=185.2157, width_px=1241, height_px=376)
+            ]
+        },
     )
     fx: float = Field(gt=0)
     fy: float = Field(gt=0)
@@ -51,15 +100,19 @@ class Camera(BaseModel):
 
 
 class MapCreate(BaseModel):
-    model_config = example(
+    model_config = strict_example(
         name="kitti-00",
         camera=Camera.model_config["json_schema_extra"]["examples"][0],
         vocabulary="default",
     )
-    name: str = Field(description="1-64 letters, digits, '.', '_' or '-'.")
+    name: str = Field(
+        pattern=MAP_NAME_PATTERN,
+        description="1-64 letters, digits, '.', '_' or '-', starting with a letter or digit.",
+    )
     camera: Camera
     vocabulary: str = Field(
         default="default",
+        pattern=VOCABULARY_REF_PATTERN,
         description="'default' (the shipped 64-word vocabulary) or the hash of a vocabulary "
         "already stored (e.g. trained for another map). For a vocabulary trained on this "
         "map's own data, upload its first run with train_vocabulary=true.",
@@ -180,8 +233,12 @@ class EntryList(BaseModel):
 
 
 class TagsUpdate(BaseModel):
-    model_config = example(tags=["night", "off-center"])
-    tags: list[str] = Field(max_length=64)
+    model_config = strict_example(tags=["night", "off-center"])
+    tags: list[Tag] = Field(
+        max_length=64,
+        description="1-64 of letters, digits, '_', '.', ':', '-', starting with a letter or "
+        "digit; stored lower-case, duplicates dropped.",
+    )
 
 
 _RUN_EXAMPLE = dict(
@@ -273,39 +330,64 @@ class UploadAccepted(BaseModel):
 
 
 class VocabularyJobCreate(BaseModel):
-    model_config = example(vocabulary="default")
+    model_config = strict_example(vocabulary="default")
     vocabulary: str = Field(
+        pattern=VOCABULARY_REF_PATTERN,
         description="'default' or the hash of a stored vocabulary. To train a map's own "
-        "vocabulary, upload a run with train_vocabulary=true."
+        "vocabulary, upload a run with train_vocabulary=true.",
     )
 
 
 class CalibrationUpdate(BaseModel):
     """Measurement-model parameters (METHOD.md section 7) and their provenance."""
 
-    model_config = example(
-        mu1=[0.02, -0.01, 0.001],
-        Sigma1=[[0.04, 0, 0], [0, 0.04, 0], [0, 0, 0.0007]],
-        mu2=[0.9, 0.0, 0.0, 0.0],
-        Sigma2=[[0.06, 0, 0, 0], [0, 64, 0, 0], [0, 0, 64, 0], [0, 0, 0, 0.27]],
-        outlier_log_density=-16.0,
-        provenance={"training_run": "kitti-05", "method": "ML, unbiased covariance"},
+    model_config = ConfigDict(
+        strict=True,
+        allow_inf_nan=False,
+        **example(
+            mu1=[0.02, -0.01, 0.001],
+            Sigma1=[[0.04, 0, 0], [0, 0.04, 0], [0, 0, 0.0007]],
+            mu2=[0.9, 0.0, 0.0, 0.0],
+            Sigma2=[[0.06, 0, 0, 0], [0, 64, 0, 0], [0, 0, 64, 0], [0, 0, 0, 0.27]],
+            outlier_log_density=-16.0,
+            provenance={"training_run": "kitti-05", "method": "ML, unbiased covariance"},
+        ),
     )
-    mu1: list[float] = Field(min_length=3, max_length=3)
-    Sigma1: list[list[float]] = Field(min_length=3, max_length=3)
-    mu2: list[float] = Field(min_length=4, max_length=4)
-    Sigma2: list[list[float]] = Field(min_length=4, max_length=4)
+    mu1: list[float] = Field(min_length=3, max_length=3, description="Bias of (X, Y, psi).")
+    Sigma1: list[_row(3)] = Field(
+        min_length=3, max_length=3, description="3x3, symmetric positive definite."
+    )
+    mu2: list[float] = Field(min_length=4, max_length=4, description="Mean of e_i.")
+    Sigma2: list[_row(4)] = Field(
+        min_length=4, max_length=4, description="4x4, symmetric positive definite."
+    )
     outlier_log_density: float | None = -16.0
+    quality: dict[str, Any] | None = Field(
+        default=None,
+        description="Quality-aware pose-error model (mu1, Sigma1, beta, n_ref, error_ref_px, "
+        "log_scale_bounds; monoloc.core.measurement.QualityModel); null: none.",
+    )
+    covariance: Literal["paper", "quality"] = Field(
+        default="paper",
+        description="Which pose-error model the vehicle uses: paper (mu1, Sigma1 for every "
+        "hypothesis) or quality (needs quality).",
+    )
     provenance: dict[str, Any] = Field(default_factory=dict)
 
 
 class CalibrationPublic(CalibrationUpdate):
-    model_config = example(
-        **CalibrationUpdate.model_config["json_schema_extra"]["examples"][0],
-        calibrated=True,
-        source="put",
-        updated_at=TIME_EXAMPLE,
+    model_config = ConfigDict(
+        strict=False,
+        **example(
+            **CalibrationUpdate.model_config["json_schema_extra"]["examples"][0],
+            calibrated=True,
+            source="put",
+            updated_at=TIME_EXAMPLE,
+        ),
     )
     calibrated: bool = Field(description="False: these are the documented defaults.")
     source: str
     updated_at: datetime | None = None
+
+
+PATTERN_RULES[FRAME_RANGE_PATTERN] = "invalid frame range: expected A:B, A:, :B or A:B:S (S not 0)"

@@ -9,7 +9,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, field_validator
 
-from monoloc.server.api.schemas import TIME_EXAMPLE, example, record_example
+from monoloc.server.api.schemas import TIME_EXAMPLE, example, record_example, strict_example
 from monoloc.server.storage.keys import SCOPES
 
 Scope = Literal["localize", "map:write", "admin"]
@@ -17,8 +17,13 @@ assert set(SCOPES) == {"localize", "map:write", "admin"}
 
 
 class KeyCreate(BaseModel):
-    model_config = example(name="car1", scopes=["localize"])
-    name: str = Field(min_length=1, max_length=128)
+    model_config = strict_example(name="car1", scopes=["localize"])
+    name: str = Field(
+        min_length=1,
+        max_length=128,
+        pattern=r"\S",
+        description="1-128 characters, not only spaces (stored without surrounding spaces).",
+    )
     scopes: list[Scope] = Field(min_length=1)
 
 

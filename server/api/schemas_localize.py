@@ -209,6 +209,22 @@ class HypothesisPublic(BaseModel):
     n_inliers: int
     n_matches: int
     reprojection_error_px: float
+    joint: bool = Field(
+        default=False,
+        description="True: the joint pose of several entries (the union of their inliers in "
+        "the world frame), not one entry's; entry_id, entry_pose and e_vlad are its anchor's, "
+        "n_matches / n_inliers count the union. Clients that ignore this field should skip "
+        "joint hypotheses for the paper's measurement model.",
+    )
+    entry_ids: list[int] = Field(
+        default_factory=list, description="Joint pose: the entries whose inliers it used."
+    )
+    method: str = Field(
+        default="ransac",
+        description="How the pose was found: ransac (the entry's own RANSAC), guided (a pose "
+        "found for another entry, re-scored and refined on this entry's own correspondences) "
+        "or joint.",
+    )
 
 
 class RetrievedPublic(BaseModel):

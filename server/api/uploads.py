@@ -25,6 +25,7 @@ from monoloc.core.errors import InvalidInputError
 from monoloc.server.api.archives import ArchiveLimits, Unpacked, save_file_set, unpack_archive
 from monoloc.server.api.bootstrap import INCOMING_PREFIX, uploads_dir
 from monoloc.server.api.deps import AppState
+from monoloc.server.api.schemas import FRAME_RANGE_PATTERN
 from monoloc.server.jobs.uploads import dataset_root, open_source, remove_tree
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
@@ -39,12 +40,14 @@ RunFiles = Annotated[
     File(description="Or: the run's files, each named by its relative path."),
 ]
 RunSequence = Annotated[
-    str | None, Form(description="KITTI sequence (e.g. 00) if the upload holds several.")
+    str | None,
+    Form(max_length=64, description="KITTI sequence (e.g. 00) if the upload holds several."),
 ]
 RunFrames = Annotated[
     str | None,
     Form(
-        description="Frame range A:B (Python slice), e.g. 0:3860 for the mapping 85 % of KITTI 00."
+        pattern=FRAME_RANGE_PATTERN,
+        description="Frame range A:B (Python slice), e.g. 0:3860 for the mapping 85 % of KITTI 00.",
     ),
 ]
 

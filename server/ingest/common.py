@@ -12,6 +12,7 @@ records, each with ``index``, ``timestamp_s``, ``image_path``, ``T_world_from_ca
 
 from __future__ import annotations
 
+import hashlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,13 +45,40 @@ def parse_frame_range(text: str | None) -> slice | None:
 
 @dataclass(frozen=True)
 class LoadedFrame:
-    """One frame read from disk: the image file's bytes (hashed for idempotency), the
+    """One frame read from disk: the image file's bytes, the
     decoded (H, W) uint8 grayscale image and the frame's 3D source (a ``LidarSource`` or
     ``DepthSource`` of ``monoloc.server.entry_builder``)."""
 
     image_bytes: bytes
     image_gray: np.ndarray
     source: object
+
+
+CONTENT_HASH_DOMAIN = b"monoloc/gray-u8/v1"
+
+
+def content_hash(image_gray: np.ndarray) -> str:
+    """sha256 (64 hex) of a decoded (H, W) uint8 image: its size and pixels, under a domain
+    tag so that it never equals the sha256 of a file's bytes.
+
+    Entries are identified by what they were built from, the decoded grayscale image, not
+    by the file's bytes: the same picture re-encoded, or with bytes appended after its
+    end, is the same entry. Entries stored before this rule carry the sha256 of their
+    file's bytes (``bytes_hash``); duplicate checks look both up.
+    """
+    image = np.ascontiguousarray(image_gray, dtype=np.uint8)
+    if image.ndim != 2:
+        raise InvalidInputError(f"content_hash needs an (H, W) image, got shape {image.shape}")
+    digest = hashlib.sha256(CONTENT_HASH_DOMAIN)
+    digest.update(np.array(image.shape, dtype="<u8").tobytes())
+    digest.update(image.data)
+    return digest.hexdigest()
+
+
+def bytes_hash(data: bytes) -> str:
+    """sha256 (64 hex) of a file's bytes: the identity of entries stored before
+    ``content_hash`` (still looked up so that old maps keep refusing their duplicates)."""
+    return hashlib.sha256(data).hexdigest()
 
 
 def read_bytes(path: Path, what: str = "file") -> bytes:

@@ -2,10 +2,14 @@
 
 Stages, for a source opened (and its metadata validated) by a reader:
 
-1. hash: the sha256 of the selected image files, ``hash_chunk`` frames at a time
-   (threads), looked up in the map; frames whose hash is already there are skipped
-   (``already_in_map``) before any other work, so a re-run adds nothing twice and an
-   interrupted run resumes where it stopped.
+1. hash: the identity of each selected image, ``hash_chunk`` frames at a time (threads):
+   the hash of its decoded pixels (``common.content_hash``; the same picture re-encoded
+   or with bytes appended is the same frame), and the sha256 of its bytes, under which
+   maps stored before content hashing know their entries. Both are looked up in the map
+   before any other work: a frame this run already added (an interrupted run, resumed)
+   counts as added; one the map holds from elsewhere is skipped (``already_in_map``). So
+   a re-run adds nothing twice, a resumed run continues where it stopped, and the run's
+   counters add up: entries added + frames skipped = frames done.
 2. build: decode, blur + ORB, 3D points from the LiDAR scan or depth image, VLAD
    (``monoloc.server.entry_builder.build_entry``) in a thread pool (OpenCV and numpy release the
    GIL; OpenCV and BLAS are limited to one thread each so 2 cores are not oversubscribed).
@@ -13,9 +17,9 @@ Stages, for a source opened (and its metadata validated) by a reader:
    batch one transaction (entries + run counters); after each commit the registry's
    live index receives the new entries. An interruption loses at most one batch.
 
-Frames skipped, and why: ``already_in_map`` (hash present), ``too_few_points`` (fewer
-than ``BuildConfig.min_points`` keypoints with a 3D point), ``duplicate_image`` (the same
-image file twice in one run), plus the readers' own (TUM: ``no_depth``,
+Frames skipped, and why: ``already_in_map`` (in the map, not from this run),
+``too_few_points`` (fewer than ``BuildConfig.min_points`` keypoints with a 3D point),
+``duplicate_image`` (the same image twice in one run), plus the readers' own (TUM: ``no_depth``,
 ``no_ground_truth``). A frame whose image, scan or depth file cannot be read or decoded
 fails the ingestion with an error naming the file (the entries of earlier frames are
 committed first and stay), unless ``skip_bad_frames`` is set: then it is skipped as
@@ -25,7 +29,6 @@ size) and reported.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import time
 from collections import deque
@@ -39,7 +42,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
-from monoloc.server.ingest.common import read_bytes
+from monoloc.server.ingest.common import bytes_hash, content_hash, decode_gray, read_bytes
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
@@ -89,6 +92,7 @@ class IngestSummary:
 class _Outcome:
     frame: object
     entry: NewEntry | None = None
+    raw_hash: str = ""  # the image file's sha256 (how older maps know the image)
     skip_reason: str | None = None
     error: InvalidInputError | None = None
 
@@ -99,9 +103,11 @@ def _worker_setup() -> None:
     cv2.setNumThreads(1)
 
 
-def _hash_frame(frame) -> str | InputFileError:
+def _hash_frame(frame) -> tuple[str, str] | InputFileError:
+    """(content hash, bytes hash) of the frame's image, or the error reading it."""
     try:
-        return hashlib.sha256(read_bytes(frame.image_path, "image")).hexdigest()
+        data = read_bytes(frame.image_path, "image")
+        return content_hash(decode_gray(data, frame.image_path)), bytes_hash(data)
     except InputFileError as exc:
         return exc
 
@@ -125,7 +131,7 @@ def _build(
     try:
         entry = build_entry(
             loaded.image_gray,
-            hashlib.sha256(loaded.image_bytes).hexdigest(),
+            content_hash(loaded.image_gray),
             frame.T_world_from_cam,
             loaded.source,
             source.intrinsics,
@@ -141,7 +147,7 @@ def _build(
         return _Outcome(
             frame, skip_reason="bad_image", error=InputFileError(frame.image_path, str(exc))
         )
-    return _Outcome(frame, entry=entry)
+    return _Outcome(frame, entry=entry, raw_hash=bytes_hash(loaded.image_bytes))
 
 
 class _Writer:
@@ -152,10 +158,15 @@ class _Writer:
         self.frames_total = frames_total
         self.skips: dict[str, int] = dict(skips)
         self.frames_done = sum(skips.values())
-        self.pending: list[NewEntry] = []
+        self.pending: list[tuple[NewEntry, str]] = []  # with the image's bytes hash
         self.points: list[int] = []
-        self.added = 0
+        self.added = 0  # by this attempt
+        self.run_entries = 0  # the run's entries, earlier attempts included
         self.version = 0
+
+    def already_added(self) -> None:
+        """A frame whose entry an earlier attempt of this run committed: done and added."""
+        self.frames_done += 1
 
     def skip(self, reason: str, n: int = 1) -> None:
         if n <= 0:
@@ -166,22 +177,23 @@ class _Writer:
     def commit(self, status: str | None = None, error: str | None = None) -> None:
         created = []
         with session_scope(self.factory) as session:
-            for entry in self.pending:
+            for entry, raw_hash in self.pending:
                 summary, was_created = entries_repo.add_entry(
-                    session, self.map_id, entry, run_id=self.run_id
+                    session, self.map_id, entry, run_id=self.run_id, also_known_as=(raw_hash,)
                 )
                 if was_created:
                     created.append((summary.id, entry))
                 else:
                     self.skips["duplicate_image"] = self.skips.get("duplicate_image", 0) + 1
             self.version = maps_repo.get_map(session, self.map_id).version
+            self.run_entries = entries_repo.count_entries(session, self.map_id, run_id=self.run_id)
             runs_repo.update_run(
                 session,
                 self.run_id,
                 status=status,
                 frames_total=self.frames_total,
                 frames_done=self.frames_done,
-                entries_added=entries_repo.count_entries(session, self.map_id, run_id=self.run_id),
+                entries_added=self.run_entries,
                 frames_skipped=sum(self.skips.values()),
                 skip_reasons=self.skips,
                 error=error,
@@ -218,21 +230,31 @@ def _load_vocabulary(factory, map_id: int, source) -> tuple[Vocabulary, int]:
     return Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description), vocab.id
 
 
+_ABSENT = object()
+
+
 def _new_frames(pool: ThreadPoolExecutor, frames: list, factory, map_id: int, writer, chunk: int):
-    """The frames whose image is not in the map yet, hashed ``chunk`` at a time (threads);
-    the others are counted as ``already_in_map``. A frame whose image cannot be read is
-    passed on: the build stage reports it in order, by the run's bad-frame policy."""
+    """The frames whose image is not in the map yet, hashed
+    ``chunk`` at a time (threads). The others are counted: as added if this run stored
+    them (an earlier attempt), else as ``already_in_map``. A frame whose image cannot be
+    read is passed on: the build stage reports it in order, by the run's bad-frame policy."""
     for lo in range(0, len(frames), chunk):
         part = frames[lo : lo + chunk]
         digests = list(pool.map(_hash_frame, part))
-        known = [d for d in digests if isinstance(d, str)]
+        known = [h for d in digests if isinstance(d, tuple) for h in d]
         with session_scope(factory) as session:
-            present = entries_repo.existing_hashes(session, map_id, known) if known else set()
+            runs = entries_repo.runs_of_hashes(session, map_id, known) if known else {}
         for frame, digest in zip(part, digests, strict=True):
-            if isinstance(digest, str) and digest in present:
-                writer.skip("already_in_map")
-            else:
+            if not isinstance(digest, tuple):
                 yield frame
+                continue
+            owner = next((runs[h] for h in digest if h in runs), _ABSENT)
+            if owner is _ABSENT:
+                yield frame
+            elif owner == writer.run_id:
+                writer.already_added()
+            else:
+                writer.skip("already_in_map")
 
 
 def ingest_run(
@@ -300,7 +322,7 @@ def ingest_run(
         map_id=map_id,
         frames_total=total,
         frames_done=done,
-        entries_added=writer.added,
+        entries_added=writer.run_entries,
         frames_skipped=sum(writer.skips.values()),
         skip_reasons=dict(writer.skips),
         points_mean=float(np.mean(writer.points)) if writer.points else 0.0,
@@ -341,7 +363,7 @@ def _build_and_write(
             if outcome.error is not None and not config.skip_bad_frames:
                 raise outcome.error
             if outcome.entry is not None:
-                writer.pending.append(outcome.entry)
+                writer.pending.append((outcome.entry, outcome.raw_hash))
                 writer.frames_done += 1
             else:
                 writer.skip(outcome.skip_reason or "skipped")

@@ -7,7 +7,6 @@ depth PNG, extrinsics).
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,13 @@ from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import check_rigid, planar_from_T_world_from_cam
 from monoloc.server.encoded_image import read_image_header
 from monoloc.server.entry_builder import BuildConfig, DepthSource, LidarSource, build_entry
-from monoloc.server.ingest.common import decode_depth, decode_gray, read_bytes
+from monoloc.server.ingest.common import (
+    bytes_hash,
+    content_hash,
+    decode_depth,
+    decode_gray,
+    read_bytes,
+)
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
@@ -44,9 +49,11 @@ def add_single_image(
     """Decode a PNG/JPEG, build its entry and add it to the map; returns (summary, created).
 
     ``T_world_from_cam`` (4, 4) in the z-up world; ``intrinsics`` default to the map's
-    camera. Idempotent by the sha256 of ``image_bytes``: the same image again returns the
-    existing entry with created False. Raises InvalidInputError (unreadable image, wrong
-    size, too few 3D points) and NotFoundError (no such map).
+    camera. Idempotent by the decoded image (``content_hash``): the same picture again,
+    whatever its encoding or trailing bytes, returns the existing entry with created False
+    (as does an entry stored earlier under the sha256 of these very bytes). Raises
+    InvalidInputError (unreadable image, wrong size, too few 3D points) and NotFoundError
+    (no such map).
     """
     if not image_bytes:
         raise InvalidInputError("the image is empty")
@@ -66,7 +73,7 @@ def add_single_image(
     vocabulary = Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
     entry = build_entry(
         image,
-        hashlib.sha256(image_bytes).hexdigest(),
+        content_hash(image),
         T_world_from_cam,
         source,
         camera,
@@ -77,7 +84,9 @@ def add_single_image(
         timestamp_s=timestamp_s,
     )
     with session_scope(session_factory) as session:
-        summary, created = entries_repo.add_entry(session, map_id, entry)
+        summary, created = entries_repo.add_entry(
+            session, map_id, entry, also_known_as=(bytes_hash(image_bytes),)
+        )
         version = maps_repo.get_map(session, map_id).version
     if created and registry is not None:
         registry.entries_added(

@@ -17,7 +17,6 @@ in the result as ``approximate``).
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -28,7 +27,7 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.errors import InvalidInputError, MonolocError
-from monoloc.server.ingest.common import read_bytes
+from monoloc.server.ingest.common import bytes_hash, content_hash, decode_gray, read_bytes
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
@@ -44,8 +43,6 @@ _BATCH = 64
 
 
 def _features_of(path: Path, orb: OrbConfig) -> np.ndarray:
-    from monoloc.server.ingest.common import decode_gray
-
     return extract_features(decode_gray(read_bytes(path, "image"), path), orb).descriptors
 
 
@@ -135,10 +132,12 @@ def _image_paths_by_hash(session_factory, map_id: int) -> dict[str, Path]:
             continue
         for frame in source.frames:
             try:
-                digest = hashlib.sha256(frame.image_path.read_bytes()).hexdigest()
-            except OSError:
+                data = read_bytes(frame.image_path, "image")
+                digests = (content_hash(decode_gray(data, frame.image_path)), bytes_hash(data))
+            except MonolocError:
                 continue
-            paths.setdefault(digest, frame.image_path)
+            for digest in digests:  # entries are known by either (see common.content_hash)
+                paths.setdefault(digest, frame.image_path)
     return paths
 
 
@@ -158,10 +157,9 @@ def _descriptor_set(entry, paths: dict[str, Path], orb: OrbConfig) -> tuple[np.n
     if path is not None:
         try:
             data = read_bytes(path, "image")
-            if hashlib.sha256(data).hexdigest() == entry.summary.source_image_hash:
-                from monoloc.server.ingest.common import decode_gray
-
-                return extract_features(decode_gray(data, path), orb).descriptors, True
+            image = decode_gray(data, path)
+            if entry.summary.source_image_hash in (content_hash(image), bytes_hash(data)):
+                return extract_features(image, orb).descriptors, True
         except MonolocError:
             pass
     return np.asarray(entry.descriptors), False

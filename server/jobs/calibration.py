@@ -116,11 +116,32 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
         f"  std2   e_vlad {std2[0]:.3f}, X {std2[1]:.2f} m, Y {std2[2]:.2f} m, "
         f"psi {deg(std2[3]):.2f} deg",
         f"outlier log density: {calibration.get('outlier_log_density')}",
+        *_describe_quality(calibration),
         "provenance:",
     ]
     for key, value in (calibration.get("provenance") or {}).items():
         lines.append(f"  {key}: {value}")
     return lines
+
+
+def _describe_quality(calibration: dict[str, Any]) -> list[str]:
+    """The quality-aware model's lines (none for a calibration stored before it)."""
+    quality = calibration.get("quality")
+    selected = calibration.get("covariance") or "paper"
+    if not quality:
+        return [f"covariance model: {selected} (no quality-aware parameters stored)"]
+    mu, beta = np.asarray(quality["mu1"]), np.asarray(quality["beta"])
+    std = np.sqrt(np.diag(np.asarray(quality["Sigma1"])))
+    return [
+        f"covariance model: {selected} (both stored)",
+        f"quality-aware: at {quality['n_ref']:.0f} inliers, {quality['error_ref_px']:.1f} px:",
+        f"  mu1    X {100 * mu[0]:+.1f} cm, Y {100 * mu[1]:+.1f} cm, "
+        f"psi {math.degrees(mu[2]):+.2f} deg",
+        f"  std1   X {100 * std[0]:.1f} cm, Y {100 * std[1]:.1f} cm, "
+        f"psi {math.degrees(std[2]):.2f} deg",
+        f"  log-variance slopes: log inliers {beta[0]:+.2f}, log reprojection error "
+        f"{beta[1]:+.2f}, joint {beta[2]:+.2f}",
+    ]
 
 
 def _frame_of(done: int, total: int) -> str:
@@ -174,7 +195,16 @@ def run_calibration_job(
 
 def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
     """What a calibration job records as its result: the model and its provenance."""
-    keys = ("mu1", "Sigma1", "mu2", "Sigma2", "outlier_log_density", "provenance")
+    keys = (
+        "mu1",
+        "Sigma1",
+        "mu2",
+        "Sigma2",
+        "outlier_log_density",
+        "quality",
+        "covariance",
+        "provenance",
+    )
     return {key: calibration.get(key) for key in keys}
 
 

@@ -63,17 +63,26 @@ def _load(session: Session, entry_id: int, map_id: int | None) -> Entry:
 
 
 def add_entry(
-    session: Session, map_id: int, entry: NewEntry, *, run_id: int | None = None
+    session: Session,
+    map_id: int,
+    entry: NewEntry,
+    *,
+    run_id: int | None = None,
+    also_known_as: Iterable[str] = (),
 ) -> tuple[EntrySummary, bool]:
-    """Add ``entry`` to the map unless one with the same source image hash is there.
+    """Add ``entry`` to the map unless one with the same source image hash is there
+    (or one stored under a hash of ``also_known_as``: the same image's older identity).
 
     Returns (summary, created). A new entry bumps the map version in the same transaction;
     an existing one is returned untouched (even if another transaction inserted it
     concurrently: no error, no duplicate).
     """
     source_hash = check_source_hash(entry.source_image_hash)
+    known = sorted({source_hash, *(check_source_hash(h) for h in also_known_as)})
     existing = session.scalars(
-        select(Entry.id).where(Entry.map_id == map_id, Entry.source_image_hash == source_hash)
+        select(Entry.id)
+        .where(Entry.map_id == map_id, Entry.source_image_hash.in_(known))
+        .order_by(Entry.id)
     ).first()
     if existing is not None:
         return _summary(_load(session, existing, None)), False
@@ -203,6 +212,20 @@ def existing_hashes(session: Session, map_id: int, hashes: Iterable[str]) -> set
             Entry.map_id == map_id, Entry.source_image_hash.in_(chunk)
         )
         found.update(session.scalars(stmt))
+    return found
+
+
+def runs_of_hashes(session: Session, map_id: int, hashes: Iterable[str]) -> dict[str, int | None]:
+    """For each of ``hashes`` already in the map, the run its entry belongs to (None: an
+    entry added on its own); lets a resumed ingestion tell its own entries from others."""
+    wanted = sorted({check_source_hash(h) for h in hashes})
+    found: dict[str, int | None] = {}
+    for i in range(0, len(wanted), _IN_CHUNK):
+        chunk = wanted[i : i + _IN_CHUNK]
+        stmt = select(Entry.source_image_hash, Entry.run_id).where(
+            Entry.map_id == map_id, Entry.source_image_hash.in_(chunk)
+        )
+        found.update((h, r) for h, r in session.execute(stmt))
     return found
 
 

@@ -23,6 +23,7 @@ OpenCV's solvePnPRefineLM optimum, faster: bench/vision.py times both).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -58,6 +59,11 @@ class PnpConfig:
     ``refine_iterations`` accepted steps (started from the SQPnP refit, two steps matched
     twenty to 0.5 mm on the bench scene); minimal_solver: RANSAC's hypothesis solver, one of
     ``SOLVERS`` ("p3p": the fastest at equal accuracy in bench/vision.py).
+
+    Guided PnP (:func:`estimate_relative_pose_guided`): a pose guessed from elsewhere is
+    kept when, after ``guided_rounds`` rounds of inlier selection + LM on the entry's own
+    correspondences, it holds at least max(min_inliers, guided_min_inlier_ratio x matches)
+    inliers; otherwise the entry gets its own full RANSAC.
     """
 
     reprojection_error_px: float = 3.0
@@ -68,6 +74,8 @@ class PnpConfig:
     refine: bool = True
     refine_iterations: int = 2
     minimal_solver: str = "p3p"
+    guided_min_inlier_ratio: float = 0.3
+    guided_rounds: int = 2
 
     def __post_init__(self) -> None:
         if not self.reprojection_error_px > 0 or self.iterations < 1:
@@ -76,6 +84,8 @@ class PnpConfig:
             raise InvalidInputError(f"invalid PnpConfig {self}")
         if self.max_rotation_rad is not None and not self.max_rotation_rad > 0:
             raise InvalidInputError(f"PnpConfig.max_rotation_rad must be > 0: {self}")
+        if not 0.0 <= self.guided_min_inlier_ratio <= 1.0 or self.guided_rounds < 1:
+            raise InvalidInputError(f"invalid PnpConfig guided settings {self}")
         if self.minimal_solver not in SOLVERS:
             raise InvalidInputError(
                 f"PnpConfig.minimal_solver must be one of {sorted(SOLVERS)}, got "
@@ -91,7 +101,9 @@ class RelativePose:
     points; all NaN when no pose was estimated. n_inliers / inlier_mask (M,) bool: the
     correspondences within ``reprojection_error_px`` of the final pose (and in front of
     the query camera). reprojection_error_px: mean over the inliers (NaN without any).
-    accepted: False when rejected, with ``reject_reason`` saying why.
+    accepted: False when rejected, with ``reject_reason`` saying why. method: how the
+    pose was found, "ransac" (the entry's own RANSAC) or "guided" (a pose found elsewhere,
+    re-scored and refined on this entry's own correspondences).
     """
 
     T_ref_from_query: np.ndarray
@@ -100,6 +112,7 @@ class RelativePose:
     reprojection_error_px: float
     accepted: bool
     reject_reason: str | None = None
+    method: str = "ransac"
 
 
 def _rejected(
@@ -312,3 +325,89 @@ def _judged(
         accepted=True,
         reject_reason=None,
     )
+
+
+def refine_from_pose(
+    points: np.ndarray,
+    pixels: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    config: PnpConfig,
+    rounds: int,
+    candidates: np.ndarray | None = None,
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
+    """Score the correspondences against a pose and refine it on its inliers, ``rounds``
+    times: select the inliers of (R, t), Levenberg-Marquardt on them, then a last
+    selection. The shared step of guided PnP and the joint pose.
+
+    points (M, 3) float64 in the frame (R, t) maps to the query camera, pixels (M, 2)
+    float64; ``candidates`` (M,) bool limits which correspondences may be inliers.
+    Returns (R, t, inlier mask, errors_px (M,)); R is None if LM left the finite numbers
+    or fewer than 6 inliers remained to refine on.
+    """
+    from monoloc.server.vision._pnp_kernel import refine_lm
+
+    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+    if candidates is not None:
+        mask &= candidates
+    for _ in range(rounds):
+        if mask.sum() < _MIN_POINTS_FOR_SOLVER:
+            return None, None, mask, errors_px
+        R, t, _ = refine_lm(
+            points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
+        )
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            return None, None, mask, errors_px
+        mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+        if candidates is not None:
+            mask &= candidates
+    return R, t, mask, errors_px
+
+
+def guided_min_inliers(n_points: int, config: PnpConfig) -> int:
+    """The fewest inliers a guided pose must keep to stand without the entry's own RANSAC."""
+    return max(config.min_inliers, math.ceil(config.guided_min_inlier_ratio * n_points))
+
+
+def estimate_relative_pose_guided(
+    points_query_px: np.ndarray,
+    points_ref_cam: np.ndarray,
+    guesses_T_ref_from_query: list[np.ndarray],
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    rng: np.random.Generator,
+) -> RelativePose:
+    """PnP seeded by poses found elsewhere (guided PnP), falling back to RANSAC.
+
+    Each guess (4, 4) T_ref_from_query (e.g. another entry's hypothesis brought into this
+    entry's frame) is scored on this entry's own M correspondences; the guess with the most
+    inliers is refined on them (:func:`refine_from_pose`). The result is kept when it has at
+    least :func:`guided_min_inliers` inliers and passes the usual checks (``method`` is then
+    "guided"); otherwise, or without guesses, the entry gets its own
+    :func:`estimate_relative_pose`. Either way the pose comes from this entry's own
+    correspondences only.
+    """
+    pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
+    n_points = len(pixels)
+    needed = guided_min_inliers(n_points, config)
+    K = intrinsics.K
+    best: tuple[int, np.ndarray, np.ndarray] | None = None
+    for guess in guesses_T_ref_from_query if n_points >= needed else []:
+        T_query_from_ref = invert_rigid(np.asarray(guess, dtype=np.float64))
+        R, t = T_query_from_ref[:3, :3].copy(), T_query_from_ref[:3, 3].copy()
+        mask, _ = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+        count = int(mask.sum())
+        if best is None or count > best[0]:
+            best = (count, R, t)
+    if best is not None and best[0] >= _MIN_POINTS_FOR_SOLVER:
+        R, t, mask, errors_px = refine_from_pose(
+            points, pixels, best[1], best[2], K, config, config.guided_rounds
+        )
+        if R is not None and mask.sum() >= needed:
+            T_query_from_ref = np.eye(4)
+            T_query_from_ref[:3, :3], T_query_from_ref[:3, 3] = R, t
+            judged = _judged(invert_rigid(T_query_from_ref), mask, errors_px, intrinsics, config)
+            if judged.accepted:
+                return dataclasses.replace(judged, method="guided")
+    return estimate_relative_pose(pixels, points, intrinsics, config, rng)

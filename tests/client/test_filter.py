@@ -130,7 +130,7 @@ def test_filter_converges_from_wide_prior_and_tracks_without_hypotheses():
 
 def test_filter_initialises_from_first_hypotheses_and_recovers_when_lost():
     rng = np.random.default_rng(4)
-    pf = ParticleFilter(FilterConfig(n_particles=500, lost_after_frames=2), MeasurementModel(), rng)
+    pf = ParticleFilter(FilterConfig(n_particles=500, reseed_min_frames=2), MeasurementModel(), rng)
     assert pf.step(0.1, 5.0, 0.0, None) is None
     truth = np.array([5.0, 5.0, 0.0])
     est = pf.step(0.1, 5.0, 0.0, _hypotheses_at(truth, rng, n_bad=0))

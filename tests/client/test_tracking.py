@@ -130,20 +130,46 @@ def test_without_hypotheses_every_frame_is_a_prediction_step():
     assert all(call[1] is not None for call in localizer.calls[1:])
 
 
-def test_no_prior_when_asked_for_none_or_when_lost():
+def test_no_prior_when_asked_for_none():
     n = 8
-    truth = _truth(n)
-    localizer = FakeLocalizer(truth)
+    localizer = FakeLocalizer(_truth(n))
     track(_tracker(n, use_prior=False), localizer, range(n))
     assert all(call[1] is None for call in localizer.calls)
-    # Kidnapped: frame 5's hypotheses are 200 m away, the filter is lost and frame 6 is a
-    # global search again.
+
+
+def test_the_prior_widens_then_gives_way_to_the_whole_map_without_support():
+    n = 24
+    localizer = FakeLocalizer(_truth(n), missing=range(5, n))
+    track(_tracker(n), localizer, range(n))
+    config = PriorConfig()
+    priors = [call[1] for call in localizer.calls]
+    # frame i's prior follows i - 5 frames without hypotheses
+    for i in range(6, 6 + config.widen_after_frames):
+        assert priors[i].radius_m < 1.1 * config.min_radius_m
+    radii = [p.radius_m for p in priors[6 : 6 + config.global_after_frames]]
+    assert all(
+        b / a == pytest.approx(config.widen_factor, rel=0.05)
+        for a, b in zip(radii[2:-1], radii[3:], strict=True)
+    )
+    assert radii[-1] > 10 * config.min_radius_m
+    assert all(p is None for p in priors[6 + config.global_after_frames :])
+
+
+def test_hypotheses_far_away_that_move_with_the_car_reseed_the_filter():
+    n = 12
+    truth = _truth(n)
     far = truth.copy()
-    far[5:, 0] += 200.0
+    far[5:, 0] += 200.0  # kidnapped at frame 5
     localizer = FakeLocalizer(far)
     tracker = _tracker(n)
     track(tracker, localizer, range(n))
-    assert localizer.calls[5][1] is not None and localizer.calls[6][1] is None
+    priors = [call[1] for call in localizer.calls]
+    # frames 5, 6, 7 disagree with the particles: the prior stays, then starts to widen;
+    # frame 8 is the fourth consistent frame and re-seeds, so frame 9's prior is there
+    assert priors[7].radius_m < priors[8].radius_m
+    assert tracker.filter.n_reseeds == 1
+    assert priors[9].x_m > 150.0 and priors[9].radius_m < 1.1 * PriorConfig().min_radius_m
+    assert np.abs(tracker.estimates_world[8:] - far[8:])[:, :2].max() < 0.3
 
 
 def test_frames_are_stepped_in_order():

@@ -38,6 +38,12 @@ def test_every_variant_localizes_the_query_run(memory_map, sim_city):
     assert result.metrics["no_prior"].position_rmse_m < 0.5
     assert result.metrics["top1"].position_rmse_m > result.metrics["full"].position_rmse_m
     assert len(result.timings_ms) == query.n_frames and np.mean(result.n_hypotheses > 0) >= 0.8
+    # what the filter was given: the full variant's hypotheses and their likeliest pose
+    assert [len(h) for h in result.hypotheses_world] == result.n_hypotheses.tolist()
+    with_hyp = result.n_hypotheses > 0
+    assert np.isfinite(result.likeliest_world[with_hyp]).all()
+    assert np.isnan(result.likeliest_world[~with_hyp]).all()
+    assert result.timestamps_s.shape == (query.n_frames,) and result.reseeds["full"] >= 0
     # the same seeds give the same estimates; the full variant alone is the same loop
     alone = evaluate_run(
         memory_map, query, signals, MeasurementModel(), config, lever, variants=("full",)

@@ -65,4 +65,20 @@ def test_both_pipelines_give_the_same_hypotheses_on_the_same_frame(live_map, tmp
         [r["distance"] for r in fast.raw["retrieved"]],
         rtol=1e-5,
     )
-    np.testing.assert_allclose(paper.hypotheses.pose_world, fast.hypotheses.pose_world)
+    # The paper's pipeline solves every entry with its own RANSAC and adds no joint pose;
+    # monoloc's guided PnP must find the same per-entry hypotheses, plus the joint one. Not
+    # bit for bit: a guided entry's LM starts from another entry's pose, not from its own
+    # RANSAC + SQPnP, and ends within about a centimetre of it on this frame.
+    assert not paper.hypotheses.joint.any() and fast.hypotheses.joint.sum() == 1
+
+    def per_entry(answer):
+        hyps = [h for h in answer.raw["hypotheses"] if not h["joint"]]
+        return {
+            h["entry_id"]: [h["pose"]["x_m"], h["pose"]["y_m"], h["pose"]["yaw_rad"]] for h in hyps
+        }
+
+    fast_poses, paper_poses = per_entry(fast), per_entry(paper)
+    assert fast_poses.keys() == paper_poses.keys()
+    for entry_id, pose in paper_poses.items():
+        np.testing.assert_allclose(fast_poses[entry_id][:2], pose[:2], atol=0.03)
+        assert abs(fast_poses[entry_id][2] - pose[2]) < 0.003

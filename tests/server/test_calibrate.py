@@ -109,6 +109,12 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     assert prov["map_frames"] + prov["map_frames_skipped"] == N_FRAMES // 2
     assert prov["used"] == prov["hypotheses"] - prov["gated_outliers"] >= 10
     assert prov["k"] == 10 and prov["source"] == "sim train" and "unbiased" in prov["covariance"]
+    # The quality-aware model is fitted beside the paper's, on the joint poses too; the
+    # paper's stays selected. More inliers must not widen a hypothesis.
+    assert model.covariance == "paper" and model.quality is not None
+    assert prov["joint_used"] == prov["joint_hypotheses"] - prov["joint_gated_outliers"] > 0
+    assert model.quality.beta[0] < 0.0, model.quality.beta
+    assert np.linalg.eigvalsh(model.quality.Sigma1).min() > 0.0
     done = [d for d, _ in calls]
     assert done == sorted(done) and calls[-1][0] == calls[-1][1] == N_FRAMES + N_FRAMES // 2
 

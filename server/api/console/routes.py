@@ -22,6 +22,8 @@ from monoloc.server.api.console.coverage import CoverageConfig, route_gaps, rout
 from monoloc.server.api.console.live import vehicle_board
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import LocalizeKey, MapWriteKey, SessionDep
+from monoloc.server.api.params import DB_ID_MAX, EntryId, MapId
+from monoloc.server.api.schemas import TAG_PATTERN
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.records import EntrySummary
@@ -30,6 +32,8 @@ router = APIRouter(prefix="/v1/maps/{map_id}", tags=["console"])
 PAGE = 5000  # entries read per query
 SSE_PERIOD_S = 0.25
 SSE_MAX_S = 30.0  # a stream ends after this long; the page reconnects (lets servers stop)
+TagFilter = Annotated[str | None, Query(pattern=TAG_PATTERN, description="Only this tag.")]
+RunFilter = Annotated[int | None, Query(ge=1, le=DB_ID_MAX, description="Only this run.")]
 
 
 class MapPoses(BaseModel):
@@ -160,11 +164,11 @@ def _all_entries(session, map_id: int, tag: str | None = None, run_id: int | Non
     summary="Planar poses of every entry (the console's map plot)",
 )
 def map_poses(
-    map_id: int,
+    map_id: MapId,
     session: SessionDep,
     _key: LocalizeKey,
-    tag: str | None = None,
-    run_id: int | None = None,
+    tag: TagFilter = None,
+    run_id: RunFilter = None,
 ) -> MapPoses:
     entries = _all_entries(session, map_id, tag, run_id)
     return MapPoses(
@@ -184,12 +188,14 @@ def map_poses(
     summary="Coverage gaps of a selection of entries along the mapped route",
 )
 def coverage(
-    map_id: int,
+    map_id: MapId,
     session: SessionDep,
     _key: LocalizeKey,
-    radius_m: Annotated[float, Query(gt=0, le=1000)] = CoverageConfig.radius_m,
-    tag: str | None = None,
-    run_id: int | None = None,
+    radius_m: Annotated[
+        float, Query(gt=0, le=1000, allow_inf_nan=False, description="Gap radius (m).")
+    ] = CoverageConfig.radius_m,
+    tag: TagFilter = None,
+    run_id: RunFilter = None,
 ) -> Coverage:
     """The route is each run's entries in time order; a gap is a stretch of it with no
     entry of the selection (``tag``, ``run_id``) within ``radius_m``."""
@@ -233,7 +239,7 @@ def coverage(
     summary="An entry's keypoints and their depth",
 )
 def entry_keypoints(
-    map_id: int, entry_id: int, session: SessionDep, _key: MapWriteKey
+    map_id: MapId, entry_id: EntryId, session: SessionDep, _key: MapWriteKey
 ) -> EntryKeypoints:
     summary = entries_repo.get_entry(session, entry_id, map_id=map_id)
     (data,) = entries_repo.get_entry_data(session, [entry_id])
@@ -254,9 +260,12 @@ def entry_keypoints(
     response_model=VehicleSnapshot,
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Vehicles streaming to the map: latest estimate, hypotheses, rate, latency",
+    description="The same snapshots live: `GET /v1/maps/{map_id}/vehicles/events` "
+    "(`text/event-stream`, localize scope), one `data:` line per change; it ends after "
+    "30 s and the client reconnects.",
 )
 def vehicles(
-    map_id: int, request: Request, session: SessionDep, _key: LocalizeKey
+    map_id: MapId, request: Request, session: SessionDep, _key: LocalizeKey
 ) -> VehicleSnapshot:
     maps_repo.get_map(session, map_id)
     return VehicleSnapshot(**vehicle_board(request.app).snapshot(map_id))
@@ -264,6 +273,7 @@ def vehicles(
 
 @router.get(
     "/vehicles/events",
+    include_in_schema=False,  # an open-ended stream: described on GET .../vehicles
     response_class=StreamingResponse,
     responses={
         200: {
@@ -280,7 +290,7 @@ def vehicles(
     summary="The same as server-sent events, one snapshot per change",
 )
 def vehicle_events(
-    map_id: int, request: Request, session: SessionDep, _key: LocalizeKey
+    map_id: MapId, request: Request, session: SessionDep, _key: LocalizeKey
 ) -> StreamingResponse:
     """``text/event-stream``: a ``data:`` snapshot at once and after every change
     (checked every 0.25 s); the stream ends after 30 s and the client reconnects."""

@@ -23,6 +23,8 @@ from monoloc.server.api import convert
 from monoloc.server.api.archives import Unpacked
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AppState, LocalizeKey, MapWriteKey, SessionDep, StateDep
+from monoloc.server.api.guard import GuardedRoute, body_limit
+from monoloc.server.api.params import MapId
 from monoloc.server.api.schemas import CalibrationPublic, CalibrationUpdate, JobPublic
 from monoloc.server.api.uploads import (
     RunArchive,
@@ -41,7 +43,9 @@ from monoloc.server.jobs.calibration import JOB_KIND
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.records import JobRecord
 
-router = APIRouter(prefix="/v1/maps/{map_id}/calibration", tags=["calibration"])
+router = APIRouter(
+    prefix="/v1/maps/{map_id}/calibration", tags=["calibration"], route_class=GuardedRoute
+)
 
 
 class CalibrationJobAccepted(BaseModel):
@@ -104,7 +108,7 @@ def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get the calibration",
 )
-def get_calibration(map_id: int, session: SessionDep, _key: LocalizeKey) -> CalibrationPublic:
+def get_calibration(map_id: MapId, session: SessionDep, _key: LocalizeKey) -> CalibrationPublic:
     """mu1, Sigma1, mu2, Sigma2 (and the outlier floor) with their provenance."""
     return _public(maps_repo.get_map(session, map_id).calibration)
 
@@ -116,7 +120,7 @@ def get_calibration(map_id: int, session: SessionDep, _key: LocalizeKey) -> Cali
     summary="Set the calibration",
 )
 def put_calibration(
-    map_id: int, body: CalibrationUpdate, session: SessionDep, _key: MapWriteKey
+    map_id: MapId, body: CalibrationUpdate, session: SessionDep, _key: MapWriteKey
 ) -> CalibrationPublic:
     """Store parameters computed elsewhere. Covariances must be symmetric positive
     definite (422 otherwise)."""
@@ -134,7 +138,7 @@ def put_calibration(
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Forget the calibration (back to defaults)",
 )
-def delete_calibration(map_id: int, session: SessionDep, _key: MapWriteKey) -> CalibrationPublic:
+def delete_calibration(map_id: MapId, session: SessionDep, _key: MapWriteKey) -> CalibrationPublic:
     record = maps_repo.set_calibration(session, map_id, None)
     session.commit()
     return _public(record.calibration)
@@ -173,12 +177,13 @@ def _store_job(
 @router.post(
     "/jobs",
     response_model=CalibrationJobAccepted,
+    openapi_extra=body_limit("archive"),
     status_code=status.HTTP_202_ACCEPTED,
     responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422)},
     summary="Calibrate from an uploaded training run (job)",
 )
 async def calibration_job(
-    map_id: int,
+    map_id: MapId,
     state: StateDep,
     _key: MapWriteKey,
     format: RunFormat,

@@ -14,18 +14,28 @@ from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import MapWriteKey, RegistryDep, SessionDep, StateDep
 from monoloc.server.api.entry_upload import NewEntryForm, add_entry_from_form
-from monoloc.server.api.schemas import EntryCreated, EntryDetail, EntryList, EntryPublic, TagsUpdate
+from monoloc.server.api.guard import GuardedRoute, body_limit
+from monoloc.server.api.params import DB_ID_MAX, EntryId, Limit, MapId, Offset
+from monoloc.server.api.schemas import (
+    TAG_LIST_PATTERN,
+    EntryCreated,
+    EntryDetail,
+    EntryList,
+    EntryPublic,
+    TagsUpdate,
+)
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.entry_checks import normalise_tags
 from monoloc.server.storage.records import Area
 
-router = APIRouter(prefix="/v1/maps/{map_id}/entries", tags=["entries"])
+router = APIRouter(prefix="/v1/maps/{map_id}/entries", tags=["entries"], route_class=GuardedRoute)
 
 
 @router.post(
     "",
     response_model=EntryCreated,
+    openapi_extra=body_limit("entry"),
     status_code=status.HTTP_201_CREATED,
     responses={
         200: {
@@ -38,7 +48,7 @@ router = APIRouter(prefix="/v1/maps/{map_id}/entries", tags=["entries"])
     summary="Add one reference image",
 )
 async def add_entry(
-    map_id: int,
+    map_id: MapId,
     response: Response,
     state: StateDep,
     _key: MapWriteKey,
@@ -55,15 +65,21 @@ async def add_entry(
         File(description="16-bit depth PNG registered to the image; needs depth_scale."),
     ] = None,
     depth_scale: Annotated[
-        float | None, Form(description="Raw depth units per metre (TUM: 5000).")
+        float | None,
+        Form(gt=0, allow_inf_nan=False, description="Raw depth units per metre (TUM: 5000)."),
     ] = None,
     lidar: Annotated[
         UploadFile | None,
         File(description="LiDAR scan, KITTI .bin (float32 x, y, z, r); needs T_cam_from_lidar."),
     ] = None,
     T_cam_from_lidar: Annotated[str | None, Form(description="16 numbers, row-major.")] = None,
-    tags: Annotated[str | None, Form(description="Comma-separated, e.g. night,off-center.")] = None,
-    timestamp_s: Annotated[float | None, Form()] = None,
+    tags: Annotated[
+        str | None,
+        Form(pattern=TAG_LIST_PATTERN, description="Comma-separated, e.g. night,off-center."),
+    ] = None,
+    timestamp_s: Annotated[
+        float | None, Form(allow_inf_nan=False, description="Capture time (s).")
+    ] = None,
 ) -> EntryCreated:
     """Builds the entry (ORB keypoints with a 3D point from the depth image or the
     projected LiDAR scan, VLAD) and stores it. The same image twice is stored once
@@ -91,16 +107,23 @@ async def add_entry(
     summary="List entries",
 )
 def list_entries(
-    map_id: int,
+    map_id: MapId,
     session: SessionDep,
     _key: MapWriteKey,
     tag: str | None = None,
-    run_id: int | None = None,
-    x_m: Annotated[float | None, Query(description="Area centre x; with y_m, radius_m.")] = None,
-    y_m: float | None = None,
-    radius_m: Annotated[float | None, Query(gt=0)] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    run_id: Annotated[int | None, Query(ge=1, le=DB_ID_MAX)] = None,
+    x_m: Annotated[
+        float | None,
+        Query(allow_inf_nan=False, description="Area centre x (m); with y_m, radius_m."),
+    ] = None,
+    y_m: Annotated[
+        float | None, Query(allow_inf_nan=False, description="Area centre y (m).")
+    ] = None,
+    radius_m: Annotated[
+        float | None, Query(gt=0, allow_inf_nan=False, description="Area radius (m).")
+    ] = None,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> EntryList:
     """Entries in id order, filtered by tag, run and/or a disc (x_m, y_m, radius_m)."""
     maps_repo.get_map(session, map_id)
@@ -124,7 +147,9 @@ def list_entries(
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get an entry",
 )
-def get_entry(map_id: int, entry_id: int, session: SessionDep, _key: MapWriteKey) -> EntryDetail:
+def get_entry(
+    map_id: MapId, entry_id: EntryId, session: SessionDep, _key: MapWriteKey
+) -> EntryDetail:
     """The entry with its full pose T_world_from_cam."""
     summary = entries_repo.get_entry(session, entry_id, map_id=map_id)
     (data,) = entries_repo.get_entry_data(session, [entry_id])
@@ -138,7 +163,7 @@ def get_entry(map_id: int, entry_id: int, session: SessionDep, _key: MapWriteKey
     summary="Delete an entry",
 )
 def delete_entry(
-    map_id: int, entry_id: int, session: SessionDep, registry: RegistryDep, _key: MapWriteKey
+    map_id: MapId, entry_id: EntryId, session: SessionDep, registry: RegistryDep, _key: MapWriteKey
 ) -> Response:
     """Removes the entry; the next query no longer retrieves it."""
     version = entries_repo.delete_entry(session, entry_id, map_id=map_id)
@@ -154,8 +179,8 @@ def delete_entry(
     summary="Re-tag an entry",
 )
 def retag_entry(
-    map_id: int,
-    entry_id: int,
+    map_id: MapId,
+    entry_id: EntryId,
     body: TagsUpdate,
     session: SessionDep,
     registry: RegistryDep,

@@ -9,10 +9,12 @@ from fastapi import APIRouter, Query
 from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import MapWriteKey, SessionDep, StateDep
+from monoloc.server.api.guard import GuardedRoute
+from monoloc.server.api.params import DB_ID_MAX, JobId, Limit, Offset
 from monoloc.server.api.schemas import JobList, JobPublic
 from monoloc.server.jobs import store as jobs_repo
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=GuardedRoute)
 
 JobState = Literal["queued", "running", "done", "failed", "interrupted"]
 
@@ -26,10 +28,10 @@ JobState = Literal["queued", "running", "done", "failed", "interrupted"]
 def list_jobs(
     session: SessionDep,
     _key: MapWriteKey,
-    map_id: int | None = None,
+    map_id: Annotated[int | None, Query(ge=1, le=DB_ID_MAX)] = None,
     state: Annotated[list[JobState] | None, Query()] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> JobList:
     """Newest first, optionally of one map and/or in the given states."""
     jobs = jobs_repo.list_jobs(session, map_id=map_id, states=state, limit=limit, offset=offset)
@@ -42,7 +44,7 @@ def list_jobs(
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get a job",
 )
-def get_job(job_id: int, session: SessionDep, _key: MapWriteKey) -> JobPublic:
+def get_job(job_id: JobId, session: SessionDep, _key: MapWriteKey) -> JobPublic:
     """State (queued, running, done, failed, interrupted), progress 0..1, message, error
     and, when done, the result (an ingestion's summary: entries added, skips and why)."""
     return convert.job_public(jobs_repo.get_job(session, job_id))
@@ -54,7 +56,7 @@ def get_job(job_id: int, session: SessionDep, _key: MapWriteKey) -> JobPublic:
     responses={**AUTH_ERRORS, **error_responses(404, 409)},
     summary="Resume a job",
 )
-def resume_job(job_id: int, state: StateDep, _key: MapWriteKey) -> JobPublic:
+def resume_job(job_id: JobId, state: StateDep, _key: MapWriteKey) -> JobPublic:
     """Re-queue an interrupted or failed job (409 otherwise). Ingestion skips the frames
     already in the map, so nothing is added twice."""
     return convert.job_public(state.jobs.resume(job_id))
@@ -66,7 +68,7 @@ def resume_job(job_id: int, state: StateDep, _key: MapWriteKey) -> JobPublic:
     responses={**AUTH_ERRORS, **error_responses(404, 409)},
     summary="Cancel a job",
 )
-def cancel_job(job_id: int, state: StateDep, _key: MapWriteKey) -> JobPublic:
+def cancel_job(job_id: JobId, state: StateDep, _key: MapWriteKey) -> JobPublic:
     """Stop a queued or running job: it ends 'interrupted' (what it committed stays) and
     may be resumed later."""
     return convert.job_public(state.jobs.cancel(job_id))

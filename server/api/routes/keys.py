@@ -6,10 +6,12 @@ from fastapi import APIRouter, status
 
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AdminKey, SessionDep
+from monoloc.server.api.guard import GuardedRoute
+from monoloc.server.api.params import KeyId
 from monoloc.server.api.schemas_admin import KeyCreate, KeyCreated, KeyList, KeyPublic
 from monoloc.server.storage import keys as keys_repo
 
-router = APIRouter(prefix="/v1/keys", tags=["keys"])
+router = APIRouter(prefix="/v1/keys", tags=["keys"], route_class=GuardedRoute)
 
 
 @router.post(
@@ -38,7 +40,7 @@ def list_keys(session: SessionDep, _key: AdminKey, include_revoked: bool = True)
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Revoke an API key",
 )
-def revoke_key(key_id: int, session: SessionDep, _key: AdminKey) -> KeyPublic:
+def revoke_key(key_id: KeyId, session: SessionDep, _key: AdminKey) -> KeyPublic:
     """Takes effect on the next request (idempotent)."""
     record = keys_repo.revoke_api_key(session, key_id)
     session.commit()

@@ -8,20 +8,23 @@ from fastapi import APIRouter, File, Form, Request, UploadFile
 
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import LocalizeKey, StateDep
+from monoloc.server.api.guard import GuardedRoute, body_limit
 from monoloc.server.api.localizing import localize_bytes
+from monoloc.server.api.params import MapId
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
 
-router = APIRouter(prefix="/v1/maps/{map_id}", tags=["localize"])
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["localize"], route_class=GuardedRoute)
 
 
 @router.post(
     "/localize",
     response_model=LocalizeResponse,
+    openapi_extra=body_limit("image"),
     responses={**AUTH_ERRORS, **error_responses(404, 413, 415, 422)},
     summary="Localize one frame",
 )
 async def localize(
-    map_id: int,
+    map_id: MapId,
     request: Request,
     state: StateDep,
     _key: LocalizeKey,

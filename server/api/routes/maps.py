@@ -10,13 +10,15 @@ from monoloc.core.errors import ConflictError
 from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AdminKey, LocalizeKey, RegistryDep, SessionDep, StateDep
+from monoloc.server.api.guard import GuardedRoute
+from monoloc.server.api.params import MapId
 from monoloc.server.api.schemas import JobPublic, MapCreate, MapDetail, MapList, VocabularyJobCreate
 from monoloc.server.jobs import store as jobs_repo
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
 
-router = APIRouter(prefix="/v1/maps", tags=["maps"])
+router = APIRouter(prefix="/v1/maps", tags=["maps"], route_class=GuardedRoute)
 
 
 def _vocabulary_id(session, ref: str) -> int:
@@ -85,7 +87,7 @@ def list_maps(session: SessionDep, _key: LocalizeKey) -> MapList:
     summary="Get a map",
 )
 def get_map(
-    map_id: int, session: SessionDep, registry: RegistryDep, _key: LocalizeKey
+    map_id: MapId, session: SessionDep, registry: RegistryDep, _key: LocalizeKey
 ) -> MapDetail:
     """Counts (entries, runs, tags), version, vocabulary, calibration status, index state."""
     return _detail(session, registry, map_id)
@@ -97,7 +99,9 @@ def get_map(
     responses={**AUTH_ERRORS, **error_responses(404, 409)},
     summary="Delete a map",
 )
-def delete_map(map_id: int, session: SessionDep, registry: RegistryDep, _key: AdminKey) -> Response:
+def delete_map(
+    map_id: MapId, session: SessionDep, registry: RegistryDep, _key: AdminKey
+) -> Response:
     """Deletes the map with its runs and entries, and its index file. Refused (409)
     while one of its jobs is queued or running."""
     maps_repo.get_map(session, map_id)
@@ -120,7 +124,7 @@ def delete_map(map_id: int, session: SessionDep, registry: RegistryDep, _key: Ad
     summary="Change the map's vocabulary (job)",
 )
 def vocabulary_job(
-    map_id: int, body: VocabularyJobCreate, session: SessionDep, state: StateDep, _key: AdminKey
+    map_id: MapId, body: VocabularyJobCreate, session: SessionDep, state: StateDep, _key: AdminKey
 ) -> JobPublic:
     """Switch to 'default' or a stored vocabulary hash; the job recomputes every entry's
     VLAD while the map keeps answering queries. (Training a vocabulary on the map's own

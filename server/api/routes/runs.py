@@ -22,7 +22,14 @@ from monoloc.server.api import convert
 from monoloc.server.api.archives import Unpacked
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
-from monoloc.server.api.schemas import RunPublic, UploadAccepted
+from monoloc.server.api.guard import GuardedRoute, body_limit
+from monoloc.server.api.params import MapId, RunId
+from monoloc.server.api.schemas import (
+    RUN_KIND_PATTERN,
+    TAG_LIST_PATTERN,
+    RunPublic,
+    UploadAccepted,
+)
 from monoloc.server.api.uploads import (
     RunArchive,
     RunFiles,
@@ -40,7 +47,7 @@ from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.entry_checks import normalise_tags
 from monoloc.server.storage.records import JobRecord, RunRecord
 
-router = APIRouter(prefix="/v1/maps/{map_id}/runs", tags=["runs"])
+router = APIRouter(prefix="/v1/maps/{map_id}/runs", tags=["runs"], route_class=GuardedRoute)
 
 
 @dataclass(frozen=True)
@@ -91,12 +98,13 @@ def _store(
 @router.post(
     "",
     response_model=UploadAccepted,
+    openapi_extra=body_limit("archive"),
     status_code=status.HTTP_202_ACCEPTED,
     responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422)},
     summary="Upload a mapping run (ingested by a job)",
 )
 async def upload_run(
-    map_id: int,
+    map_id: MapId,
     state: StateDep,
     _key: MapWriteKey,
     format: RunFormat,
@@ -104,7 +112,9 @@ async def upload_run(
     files: RunFiles = None,
     sequence: RunSequence = None,
     frames: RunFrames = None,
-    kind: Annotated[str, Form(description="map, offcenter, night, ...")] = "map",
+    kind: Annotated[
+        str, Form(pattern=RUN_KIND_PATTERN, description="map, offcenter, night, ...")
+    ] = "map",
     train_vocabulary: Annotated[
         bool,
         Form(
@@ -113,7 +123,11 @@ async def upload_run(
         ),
     ] = False,
     tags: Annotated[
-        str | None, Form(description="Comma-separated tags for every entry, e.g. night,off-center.")
+        str | None,
+        Form(
+            pattern=TAG_LIST_PATTERN,
+            description="Comma-separated tags for every entry, e.g. night,off-center.",
+        ),
     ] = None,
 ) -> UploadAccepted:
     """Stores the upload and queues its ingestion; follow the job at /v1/jobs/{id}."""
@@ -139,7 +153,7 @@ async def upload_run(
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="List a map's runs",
 )
-def list_runs(map_id: int, session: SessionDep, _key: MapWriteKey) -> list[RunPublic]:
+def list_runs(map_id: MapId, session: SessionDep, _key: MapWriteKey) -> list[RunPublic]:
     maps_repo.get_map(session, map_id)
     return [RunPublic.model_validate(r) for r in runs_repo.list_runs(session, map_id)]
 
@@ -150,7 +164,7 @@ def list_runs(map_id: int, session: SessionDep, _key: MapWriteKey) -> list[RunPu
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get a run",
 )
-def get_run(map_id: int, run_id: int, session: SessionDep, _key: MapWriteKey) -> RunPublic:
+def get_run(map_id: MapId, run_id: RunId, session: SessionDep, _key: MapWriteKey) -> RunPublic:
     run = runs_repo.get_run(session, run_id)
     if run.map_id != map_id:
         from monoloc.core.errors import NotFoundError

@@ -18,6 +18,9 @@ server/api/schemas_localize.py): ``StreamAnswer``, the localize answer plus ``se
 not be processed (without ``t`` if its header was rejected; a header without a readable
 ``seq`` gets ``"seq": null``).
 
+A message larger than ``max_query_body_bytes`` (the localize route's body limit) is
+answered ``payload_too_large`` without being parsed; the connection stays open.
+
 Back-pressure: at most ``stream_max_pending_frames`` frames wait for processing. When
 another arrives, the oldest waiting frame is dropped (its image freed at once) and
 answered as dropped when its turn comes, so answers keep arrival order. A client owed
@@ -37,11 +40,12 @@ from typing import Any
 import anyio
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from monoloc.core.errors import InvalidInputError, MonolocError
+from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
 from monoloc.server.api.console.live import VehicleFeed, vehicle_board
 from monoloc.server.api.deps import AppState, StateDep, StreamKey
 from monoloc.server.api.errors import error_code
 from monoloc.server.api.localizing import localize_bytes
+from monoloc.server.api.params import is_db_id
 from monoloc.server.api.schemas import ErrorDetail
 from monoloc.server.api.schemas_localize import (
     LocalizeOptions,
@@ -134,8 +138,14 @@ class _Session:
             if message["type"] == "websocket.disconnect":
                 return
             data = message.get("bytes")
+            limit = self.state.settings.max_query_body_bytes
             if data is None:
                 item = _rejected("send binary messages (header + image)")
+            elif len(data) > limit:  # the localize route's limit, answered in order
+                detail = f"frame message of {len(data)} bytes exceeds the limit of {limit} bytes"
+                item = _Item(
+                    None, None, error=ErrorDetail(code="payload_too_large", message=detail)
+                )
             else:
                 item = parse_message(data)
             self.push(item)
@@ -190,6 +200,8 @@ class _Session:
 @router.websocket("/v1/maps/{map_id}/stream")
 async def stream(websocket: WebSocket, map_id: int, state: StateDep, _key: StreamKey) -> None:
     """Frames in, one answer per frame out, in order (see the module docstring)."""
+    if not is_db_id(map_id):  # the driver cannot hold it: no such map
+        raise NotFoundError(f"map {map_id} does not exist")
     await anyio.to_thread.run_sync(state.registry.get, map_id)  # 404 before the handshake
     await websocket.accept()
     feed = vehicle_board(websocket.app).connect(map_id, _key.name)

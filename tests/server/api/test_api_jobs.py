@@ -86,9 +86,14 @@ def test_interrupted_ingestion_resumes_without_duplicates(sim_dataset, tmp_path,
         listed = client.get(f"/v1/jobs?map_id={map_id}&state=done", headers=h).json()["items"]
     skipped = job["result"]["skip_reasons"]
     assert final["n_entries"] + skipped.get("too_few_points", 0) == MAP_FRAMES
-    assert job["result"]["entries_added"] == final["n_entries"] - partial["n_entries"]
-    assert skipped.get("already_in_map", 0) == partial["n_entries"]
+    # The first attempt's entries are the run's own: counted as added, not as skipped, so
+    # added + skipped = done = total in the job's result and on the run (issue 15, item 7).
+    result = job["result"]
+    assert result["entries_added"] == final["n_entries"] and "already_in_map" not in skipped
+    assert result["entries_added"] + result["frames_skipped"] == result["frames_total"]
+    assert result["frames_done"] == result["frames_total"] == MAP_FRAMES
     assert run["status"] == "done" and run["entries_added"] == final["n_entries"]
+    assert run["entries_added"] + run["frames_skipped"] == run["frames_total"]
     assert [j["id"] for j in listed] == [job_id] and "upload" not in listed[0]["params"]
     assert not (tmp_path / "data" / "uploads" / str(job_id)).exists()
 
@@ -128,6 +133,6 @@ def test_trained_vocabulary_then_change_back(sim_dataset, tmp_path):
         r = client.post(
             f"/v1/maps/{map_id}/vocabulary/jobs",
             headers=keys.header("admin"),
-            json={"vocabulary": "nope"},
+            json={"vocabulary": "00000000deadbeef"},
         )
         assert r.status_code == 404

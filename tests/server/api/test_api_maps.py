@@ -34,7 +34,8 @@ def test_map_lifecycle(fresh):
         ({"name": "city-1", "camera": CAMERA}, 409),
         ({"name": "bad name!", "camera": CAMERA}, 422),
         ({"name": "c2", "camera": {**CAMERA, "fx": -1}}, 422),
-        ({"name": "c3", "camera": CAMERA, "vocabulary": "0123abcd"}, 404),
+        ({"name": "c3", "camera": CAMERA, "vocabulary": "0123abcd0123abcd"}, 404),
+        ({"name": "c3", "camera": CAMERA, "vocabulary": "0123abcd"}, 422),  # not a hash
         ({"name": "c4"}, 422),
     ]
     for body, status in refusals:

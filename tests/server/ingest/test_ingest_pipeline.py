@@ -81,10 +81,14 @@ def test_interrupted_ingestion_resumes_without_duplicates(kitti_root, factory, m
     assert calls[0] == (0, 8) and calls[-1] == (3, 8)
     assert _run(factory, run_id).status == "interrupted"
     resumed = ingest_run(factory, map_id, seq, run_id=run_id)
-    assert resumed.entries_added == 5 and resumed.skip_reasons == {"already_in_map": 3}
+    # The 3 frames of the first attempt are this run's entries, not skips: the counters
+    # add up (added + skipped = done = total), in the summary and on the run.
+    assert resumed.entries_added == 8 and resumed.skip_reasons == {}
+    assert resumed.frames_done == resumed.frames_total == 8
     hashes = [e.summary.source_image_hash for e in _entries(factory, map_id)]
     assert len(hashes) == len(set(hashes)) == 8
-    assert _run(factory, run_id).entries_added == 8
+    run = _run(factory, run_id)
+    assert (run.entries_added, run.frames_skipped, run.frames_done) == (8, 0, 8)
 
 
 def test_unreadable_image_fails_naming_it_and_keeps_earlier_frames(

@@ -1,0 +1,142 @@
+"""One pose from every consistent retrieved entry: the joint (multi-entry) PnP pose.
+
+The k retrieved entries are neighbours seeing one place. Each gives a hypothesis from its
+own correspondences (METHOD.md 6.5); together their inliers constrain the query far
+better than any one of them (hloc's multi-image PnP over covisible references does the
+same). Here:
+
+1. the *consistent* entries are the largest group (by total inliers) of accepted
+   hypotheses within ``position_gate_m`` / ``yaw_gate_rad`` of one of them (the anchor);
+2. each member's inlier 3D points are brought into the world frame (T_world_from_ref);
+3. the union is scored against the anchor's pose and refined by Levenberg-Marquardt
+   (``pnp.refine_from_pose``: inlier selection, LM, re-selection), only a member's own
+   inliers being candidates.
+
+World coordinates can be kilometres: the union is expressed in a frame translated to the
+anchor's camera position (a pure translation of the world frame) so LM works on numbers
+of the scene's size. Pure: arrays in, a pose out.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import invert_rigid, wrap_angle
+from monoloc.server.vision.pnp import PnpConfig, refine_from_pose
+
+
+@dataclass(frozen=True)
+class JointConfig:
+    """Joint-pose settings. position_gate_m / yaw_gate_rad: a hypothesis within these of
+    the anchor's (planar) joins the union; min_entries: fewer consistent entries give no
+    joint pose (one entry's pose is already its own hypothesis); rounds: inlier selection
+    + LM rounds on the union (the PnP config's threshold and LM budget)."""
+
+    position_gate_m: float = 0.5
+    yaw_gate_rad: float = math.radians(2.0)
+    min_entries: int = 2
+    rounds: int = 2
+
+    def __post_init__(self) -> None:
+        if not (self.position_gate_m > 0 and self.yaw_gate_rad > 0):
+            raise InvalidInputError(f"JointConfig gates must be positive: {self}")
+        if self.min_entries < 2 or self.rounds < 1:
+            raise InvalidInputError(f"JointConfig needs min_entries >= 2, rounds >= 1: {self}")
+
+
+@dataclass(frozen=True)
+class EntryInliers:
+    """One entry's share of the union: its pose (4, 4) T_world_from_ref, its inlier query
+    pixels (M, 2) and their 3D points (M, 3) in the reference camera frame."""
+
+    T_world_from_ref: np.ndarray
+    pixels_px: np.ndarray
+    points_ref: np.ndarray
+
+
+@dataclass(frozen=True)
+class JointPose:
+    """The joint pose: T_world_from_cam (4, 4) of the query, the members it used (indices
+    into the hypotheses given), inliers of the union and their mean reprojection error."""
+
+    T_world_from_cam: np.ndarray
+    members: tuple[int, ...]
+    n_correspondences: int
+    n_inliers: int
+    reprojection_error_px: float
+
+
+def consistent_group(
+    poses_world: np.ndarray, weights: np.ndarray, config: JointConfig
+) -> list[int]:
+    """Indices of the largest group of planar poses (H, 3) that agree with one of them
+    (the anchor, first in the list), the group's size being the sum of ``weights`` (H,)
+    (inlier counts). Ties go to the earlier anchor."""
+    poses = np.asarray(poses_world, dtype=np.float64).reshape(-1, 3)
+    if len(poses) == 0:
+        return []
+    dist = np.hypot(poses[:, None, 0] - poses[None, :, 0], poses[:, None, 1] - poses[None, :, 1])
+    dyaw = np.abs(wrap_angle(poses[:, None, 2] - poses[None, :, 2]))
+    agree = (dist <= config.position_gate_m) & (dyaw <= config.yaw_gate_rad)
+    anchor = int(np.argmax(agree @ np.asarray(weights, dtype=np.float64)))
+    others = [j for j in np.flatnonzero(agree[anchor]).tolist() if j != anchor]
+    return [anchor, *others]
+
+
+def estimate_joint_pose(
+    entries: Sequence[EntryInliers],
+    T_world_from_cam_init: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    pnp: PnpConfig,
+    config: JointConfig,
+) -> JointPose | None:
+    """Refine ``T_world_from_cam_init`` (4, 4) on the union of the entries' inliers in the
+    world frame. None when fewer than ``config.min_entries`` entries keep inliers, the
+    union keeps fewer than ``pnp.min_inliers``, or LM fails."""
+    if len(entries) < config.min_entries:
+        return None
+    init = np.asarray(T_world_from_cam_init, dtype=np.float64)
+    origin_world = init[:3, 3].copy()
+    points, pixels, owner = [], [], []
+    for j, e in enumerate(entries):
+        T = np.asarray(e.T_world_from_ref, dtype=np.float64)
+        p_ref = np.asarray(e.points_ref, dtype=np.float64).reshape(-1, 3)
+        points.append(p_ref @ T[:3, :3].T + (T[:3, 3] - origin_world))
+        pixels.append(np.asarray(e.pixels_px, dtype=np.float64).reshape(-1, 2))
+        owner.append(np.full(len(p_ref), j))
+    points_local, pixels_all = np.concatenate(points), np.concatenate(pixels)
+    owner_all = np.concatenate(owner)
+    T_local_from_cam = init.copy()
+    T_local_from_cam[:3, 3] -= origin_world
+    T_cam_from_local = invert_rigid(T_local_from_cam)
+    R, t, mask, errors_px = refine_from_pose(
+        points_local,
+        pixels_all,
+        T_cam_from_local[:3, :3].copy(),
+        T_cam_from_local[:3, 3].copy(),
+        intrinsics.K,
+        pnp,
+        config.rounds,
+    )
+    if R is None or mask.sum() < pnp.min_inliers:
+        return None
+    members = tuple(int(j) for j in np.unique(owner_all[mask]))
+    if len(members) < config.min_entries:
+        return None
+    T_cam_from_local = np.eye(4)
+    T_cam_from_local[:3, :3], T_cam_from_local[:3, 3] = R, t
+    T_world_from_cam = invert_rigid(T_cam_from_local)
+    T_world_from_cam[:3, 3] += origin_world
+    return JointPose(
+        T_world_from_cam=T_world_from_cam,
+        members=members,
+        n_correspondences=len(points_local),
+        n_inliers=int(mask.sum()),
+        reprojection_error_px=float(errors_px[mask].mean()),
+    )

@@ -1,0 +1,209 @@
+"""Guided PnP and the joint multi-entry pose on synthetic street scenes: a known query pose,
+world points seen by several reference cameras, projected into the query image."""
+
+import math
+
+import numpy as np
+import pytest
+
+from monoloc.core.camera import KITTI_CAM0 as CAM
+from monoloc.core.geometry import (
+    T_world_from_cam_planar,
+    invert_rigid,
+    planar_from_T_world_from_cam,
+    rotation_angle_rad,
+    wrap_angle,
+)
+from monoloc.server.localize import PnpStrategy, ReferenceEntry, pose_hypotheses
+from monoloc.server.vision.joint import (
+    EntryInliers,
+    JointConfig,
+    consistent_group,
+    estimate_joint_pose,
+)
+from monoloc.server.vision.pnp import (
+    PnpConfig,
+    estimate_relative_pose_guided,
+)
+
+
+def _pose_error(T_a, T_b):
+    delta = invert_rigid(T_a) @ T_b
+    return np.linalg.norm(delta[:3, 3]), math.degrees(rotation_angle_rad(delta[:3, :3]))
+
+
+def _street(rng, T_world_from_query, n=400):
+    """World points (n, 3) 6-40 m in front of the query camera, within its image."""
+    pixels = np.stack(
+        [rng.uniform(0, CAM.width_px - 1, n), rng.uniform(0, CAM.height_px - 1, n)], 1
+    )
+    depth = rng.uniform(6.0, 40.0, n)
+    points_cam = np.stack(
+        [(pixels[:, 0] - CAM.cx) / CAM.fx * depth, (pixels[:, 1] - CAM.cy) / CAM.fy * depth, depth],
+        1,
+    )
+    return points_cam @ T_world_from_query[:3, :3].T + T_world_from_query[:3, 3], pixels
+
+
+def _entry(rng, points_world, pixels, T_world_from_ref, noise_px, outlier_fraction, subset=0.7):
+    """One reference's correspondences: a random subset of the points in its camera frame,
+    the query pixels with noise, a share of them replaced by random pixels (outliers)."""
+    keep = rng.random(len(points_world)) < subset
+    T_ref_from_world = invert_rigid(T_world_from_ref)
+    points_ref = points_world[keep] @ T_ref_from_world[:3, :3].T + T_ref_from_world[:3, 3]
+    observed = pixels[keep] + rng.normal(0.0, noise_px, (keep.sum(), 2))
+    bad = rng.random(keep.sum()) < outlier_fraction
+    observed[bad] = np.stack(
+        [rng.uniform(0, CAM.width_px - 1, bad.sum()), rng.uniform(0, CAM.height_px - 1, bad.sum())],
+        1,
+    )
+    return observed, points_ref
+
+
+def _scene(seed, n_refs=5, noise_px=0.5, outlier_fraction=0.3):
+    rng = np.random.default_rng(seed)
+    T_world_from_query = T_world_from_cam_planar(
+        100.0 + rng.uniform(-5, 5), -40.0 + rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi), 1.65
+    )
+    points_world, pixels = _street(rng, T_world_from_query)
+    query = planar_from_T_world_from_cam(T_world_from_query)
+    refs, matches, keypoints = [], [], []
+    offset = 0
+    for j in range(n_refs):
+        along = rng.uniform(-4.0, 4.0)
+        T_world_from_ref = T_world_from_cam_planar(
+            query[0] + along * math.cos(query[2]) + rng.uniform(-1, 1) * math.sin(query[2]),
+            query[1] + along * math.sin(query[2]) - rng.uniform(-1, 1) * math.cos(query[2]),
+            query[2] + rng.uniform(-0.1, 0.1),
+            1.65,
+        )
+        observed, points_ref = _entry(
+            rng, points_world, pixels, T_world_from_ref, noise_px, outlier_fraction
+        )
+        refs.append(
+            ReferenceEntry(j, T_world_from_ref, np.zeros((len(points_ref), 32)), points_ref)
+        )
+        keypoints.append(observed)
+        m = len(observed)
+        # One query keypoint per correspondence: the pairs index the stacked keypoints.
+        matches.append(np.stack([np.arange(offset, offset + m), np.arange(m)], 1))
+        offset += m
+    return T_world_from_query, refs, matches, np.concatenate(keypoints).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_guided_pnp_matches_full_ransac_on_clean_data(seed):
+    T_world_from_query, refs, matches, keypoints = _scene(seed)
+    config = PnpConfig()
+    e_vlad = {r.entry_id: 0.8 for r in refs}
+    guided, rej_g = pose_hypotheses(
+        keypoints,
+        refs,
+        matches,
+        e_vlad,
+        CAM,
+        config,
+        np.random.default_rng(0),
+        PnpStrategy(joint=None),
+    )
+    full, rej_f = pose_hypotheses(
+        keypoints,
+        refs,
+        matches,
+        e_vlad,
+        CAM,
+        config,
+        np.random.default_rng(0),
+        PnpStrategy(guided=False, joint=None),
+    )
+    assert not rej_g and not rej_f
+    assert [h.entry_id for h in guided] == [h.entry_id for h in full] == list(range(len(refs)))
+    # One entry (the most matches) searched from scratch, every other one guided.
+    assert sorted(h.method for h in guided) == ["guided"] * (len(refs) - 1) + ["ransac"]
+    assert {h.method for h in full} == {"ransac"}
+    for g, f in zip(guided, full, strict=True):
+        error_m, error_deg = _pose_error(g.T_world_from_cam, f.T_world_from_cam)
+        assert error_m < 2e-3 and error_deg < 0.02
+        assert abs(g.n_inliers - f.n_inliers) <= 2
+        truth_m, _ = _pose_error(T_world_from_query, g.T_world_from_cam)
+        assert truth_m < 0.05
+
+
+def test_guided_pnp_falls_back_to_ransac_when_the_guess_keeps_too_few_inliers():
+    T_world_from_query, refs, matches, keypoints = _scene(11)
+    ref, pairs = refs[0], matches[0]
+    pixels, points = keypoints[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
+    T_ref_from_query = invert_rigid(ref.T_world_from_cam) @ T_world_from_query
+    # A guess 3 m to the side (e.g. an aliased entry's pose): few points project near
+    # their pixels, so the entry must get its own RANSAC and still find the true pose.
+    wrong = T_ref_from_query.copy()
+    wrong[:3, 3] += [3.0, 0.0, 0.0]
+    config = PnpConfig()
+    rel = estimate_relative_pose_guided(
+        pixels, points, [wrong], CAM, config, np.random.default_rng(0)
+    )
+    assert rel.accepted and rel.method == "ransac"
+    assert _pose_error(T_ref_from_query, rel.T_ref_from_query)[0] < 0.05
+    good = estimate_relative_pose_guided(
+        pixels, points, [wrong, T_ref_from_query], CAM, config, np.random.default_rng(0)
+    )
+    assert good.accepted and good.method == "guided"
+    assert _pose_error(T_ref_from_query, good.T_ref_from_query)[0] < 0.05
+    # The same guess with a demanding ratio: the guided set is "too small", RANSAC decides.
+    strict = PnpConfig(guided_min_inlier_ratio=1.0)
+    assert (
+        estimate_relative_pose_guided(
+            pixels, points, [T_ref_from_query], CAM, strict, np.random.default_rng(0)
+        ).method
+        == "ransac"
+    )
+
+
+def test_guided_pnp_rejects_an_entry_of_another_place():
+    rng = np.random.default_rng(3)
+    n = 60
+    pixels = np.stack([rng.uniform(0, CAM.width_px, n), rng.uniform(0, CAM.height_px, n)], 1)
+    points = np.c_[rng.uniform(-10, 10, (n, 2)), rng.uniform(5, 40, n)]
+    rel = estimate_relative_pose_guided(
+        pixels, points, [np.eye(4)], CAM, PnpConfig(), np.random.default_rng(0)
+    )
+    assert not rel.accepted and rel.method == "ransac"
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_joint_pose_round_trip_recovers_the_query_pose(seed):
+    # Known pose -> project -> joint PnP over every entry's inliers -> the same pose,
+    # exactly without noise, and at least as close as the best single entry with noise.
+    for noise_px, tol_m, tol_deg in ((0.0, 1e-6, 1e-5), (0.7, 0.03, 0.1)):
+        T_world_from_query, refs, matches, keypoints = _scene(
+            seed, noise_px=noise_px, outlier_fraction=0.2
+        )
+        e_vlad = {r.entry_id: 0.8 for r in refs}
+        hyps, _ = pose_hypotheses(
+            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(seed)
+        )
+        joint = [h for h in hyps if h.joint]
+        assert len(joint) == 1 and hyps[-1].joint and hyps[-1].method == "joint"
+        joint = joint[0]
+        assert sorted(joint.entry_ids) == list(range(len(refs)))
+        assert joint.n_inliers > max(h.n_inliers for h in hyps if not h.joint)
+        error_m, error_deg = _pose_error(T_world_from_query, joint.T_world_from_cam)
+        assert error_m < tol_m and error_deg < tol_deg
+        singles = [_pose_error(T_world_from_query, h.T_world_from_cam)[0] for h in hyps[:-1]]
+        assert error_m <= np.median(singles) + 1e-9
+
+
+def test_joint_pose_leaves_out_an_inconsistent_entry():
+    poses = np.array([[0.0, 0.0, 0.1], [0.05, 0.02, 0.11], [12.0, 3.0, 0.1], [0.02, -0.03, 0.1]])
+    group = consistent_group(poses, np.array([100, 80, 200, 50]), JointConfig())
+    assert group[0] in (0, 1, 3) and sorted(group) == [0, 1, 3]
+    assert wrap_angle(poses[group, 2] - poses[group[0], 2]).max() < JointConfig().yaw_gate_rad
+    # The group is the one with the most inliers in total, not the most members.
+    assert consistent_group(poses, np.array([100, 80, 300, 50]), JointConfig()) == [2]
+
+
+def test_joint_pose_needs_two_entries():
+    T_world_from_query, refs, matches, keypoints = _scene(5, n_refs=1)
+    pairs = matches[0]
+    one = EntryInliers(refs[0].T_world_from_cam, keypoints[pairs[:, 0]], refs[0].points_cam)
+    assert estimate_joint_pose([one], T_world_from_query, CAM, PnpConfig(), JointConfig()) is None
