@@ -117,6 +117,34 @@ class Settings(BaseSettings):
         default=1, ge=1, description="Jobs (ingestion, vocabulary) running at the same time."
     )
 
+    # --- admission control (server/api/admission.py) --------------------------------
+    localize_queue_depth: int = Field(
+        default=4,
+        ge=0,
+        description="Localize requests allowed to wait for a CPU slot (worker_threads "
+        "compute); more are answered 503 with Retry-After at once.",
+    )
+    localize_deadline_ms: int = Field(
+        default=2000,
+        ge=1,
+        description="Default deadline of a localize request (X-Request-Deadline-Ms "
+        "overrides): not computed once it passed.",
+    )
+    write_threads: int = Field(
+        default=1, ge=1, description="Map writes (entry builds, edits) computed at a time."
+    )
+    write_queue_depth: int = Field(
+        default=16, ge=0, description="Map writes allowed to wait; more are answered 503."
+    )
+    write_deadline_ms: int = Field(
+        default=30_000, ge=1, description="Default deadline of a map write."
+    )
+    job_queue_depth: int = Field(
+        default=4,
+        ge=0,
+        description="Run uploads / job submissions in flight beyond one; more are 503.",
+    )
+
     @model_validator(mode="after")
     def _fill_derived_paths(self) -> Settings:
         # Settings is frozen; derived defaults are filled once, at construction.

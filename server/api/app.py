@@ -21,6 +21,7 @@ import anyio
 import numpy as np
 from fastapi import FastAPI
 
+from monoloc.server.api.admission import Admission, LaneConfig, install_admission
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.errors import install_error_handlers
 from monoloc.server.api.limits import BodySizeLimitMiddleware
@@ -83,7 +84,27 @@ def _limit_threads(settings: Settings):
     return threadpool_limits(limits=1)
 
 
-def _start(settings: Settings, metrics: Metrics) -> AppState:
+def admission_for(settings: Settings, metrics: Metrics) -> Admission:
+    """The lanes of admission control, sized by the settings."""
+    return Admission(
+        {
+            "localize": LaneConfig(
+                settings.worker_threads,
+                settings.localize_queue_depth,
+                settings.localize_deadline_ms,
+            ),
+            "write": LaneConfig(
+                settings.write_threads, settings.write_queue_depth, settings.write_deadline_ms
+            ),
+            # Uploads spool to disk and hand work to the job runner; the deadline only
+            # bounds the wait for a slot.
+            "jobs": LaneConfig(1, settings.job_queue_depth, 3_600_000),
+        },
+        metrics,
+    )
+
+
+def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppState:
     """Blocking start-up work (run in a thread by the lifespan)."""
     from monoloc.server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
     from monoloc.server.jobs.handlers import HANDLERS
@@ -118,7 +139,7 @@ def _start(settings: Settings, metrics: Metrics) -> AppState:
         registry=registry,
         jobs=runner,
         metrics=metrics,
-        cpu=anyio.CapacityLimiter(settings.worker_threads),
+        admission=admission,
         seeds=np.random.SeedSequence(settings.localize_seed),
     )
 
@@ -135,6 +156,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """The API for ``settings`` (default: read from the environment now)."""
     settings = settings or get_settings()
     metrics = Metrics()
+    admission = admission_for(settings, metrics)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -142,7 +164,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         install_log_redaction()
         limiter = _limit_threads(settings)
-        state = await anyio.to_thread.run_sync(_start, settings, metrics)
+        state = await anyio.to_thread.run_sync(_start, settings, metrics, admission)
         state.ready = True
         app.state.monoloc = state
         try:
@@ -168,6 +190,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     app.include_router(metrics_router(settings.metrics_public))
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    install_admission(app, admission)  # inside the metrics: shed requests are timed too
     app.add_middleware(RequestMetricsMiddleware, metrics=metrics)
     return app
 
