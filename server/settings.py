@@ -145,6 +145,19 @@ class Settings(BaseSettings):
         description="Run uploads / job submissions in flight beyond one; more are 503.",
     )
 
+    # --- replicas (server/runtime.py, server/api/consistency.py) -----------------------
+    replica_sync_s: float = Field(
+        default=0.25,
+        gt=0,
+        description="How often a replica polls the maps' versions to apply the change log "
+        "(PostgreSQL's NOTIFY wakes it at once).",
+    )
+    min_version_wait_ms: int = Field(
+        default=1000,
+        ge=0,
+        description="How long localize waits for X-Min-Map-Version before 503 stale_replica.",
+    )
+
     @model_validator(mode="after")
     def _fill_derived_paths(self) -> Settings:
         # Settings is frozen; derived defaults are filled once, at construction.

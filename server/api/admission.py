@@ -56,6 +56,7 @@ class OverloadedError(MonolocError):
     """The request's lane is full; nothing was done. Retry after ``retry_after_s``."""
 
     http_status = 503
+    code = "overloaded"
 
     def __init__(self, message: str, retry_after_s: int) -> None:
         super().__init__(message)
@@ -65,9 +66,13 @@ class OverloadedError(MonolocError):
 class DeadlineExceededError(OverloadedError):
     """The request's deadline passed before its turn came; it was not computed."""
 
+    code = "deadline_exceeded"
+
 
 class ClientDisconnectedError(OverloadedError):
     """The client went away before its request's turn came; it was not computed."""
+
+    code = "client_disconnected"
 
 
 @dataclass(frozen=True)
@@ -314,15 +319,9 @@ class AdmissionMiddleware:
             lane.leave()
 
 
-_CODES = {
-    DeadlineExceededError: "deadline_exceeded",
-    ClientDisconnectedError: "client_disconnected",
-}
-
-
 async def _overloaded(_request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, OverloadedError)
-    body = {"error": {"code": _CODES.get(type(exc), "overloaded"), "message": str(exc)}}
+    body = {"error": {"code": exc.code, "message": str(exc)}}
     return JSONResponse(body, status_code=503, headers={"Retry-After": str(exc.retry_after_s)})
 
 

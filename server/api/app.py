@@ -130,6 +130,8 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
     registry = MapRegistry(sessions, Path(settings.index_dir))
     n_maps = registry.load_all()
     log.info("loaded %d map(s)", n_maps)
+    postgres = engine.dialect.name == "postgresql"
+    registry.start_sync(settings.replica_sync_s, settings.database_url if postgres else None)
     runner = JobRunner(sessions, registry, settings, HANDLERS)
     runner.start()
     return AppState(
@@ -145,6 +147,7 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
 
 
 def _stop(state: AppState) -> None:
+    state.registry.stop_sync()
     state.jobs.stop()
     try:
         state.registry.persist()
