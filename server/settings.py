@@ -43,6 +43,12 @@ class Settings(BaseSettings):
     index_dir: Path | None = Field(
         default=None, description="Where retrieval indexes are persisted; default data_dir/index."
     )
+    uploads_dir: Path | None = Field(
+        default=None,
+        description="Where uploaded runs wait for their ingestion job; default "
+        "data_dir/uploads. Replicas on several machines must share it (a network mount): "
+        "the replica that takes a job over reads the upload from here.",
+    )
     sqlite_synchronous: Literal["NORMAL", "FULL", "EXTRA"] = Field(
         default="NORMAL",
         description="PRAGMA synchronous in WAL mode: NORMAL survives app crashes, FULL "
@@ -145,6 +151,16 @@ class Settings(BaseSettings):
         description="Run uploads / job submissions in flight beyond one; more are 503.",
     )
 
+    job_lease_s: float = Field(
+        default=15.0,
+        gt=0,
+        description="Lease of a running job; renewed every third of it. A replica that "
+        "stops renewing (killed) loses its jobs to another after this long.",
+    )
+    job_poll_s: float = Field(
+        default=1.0, gt=0, description="How often a replica looks for claimable jobs."
+    )
+
     # --- replicas (server/runtime.py, server/api/consistency.py) -----------------------
     replica_sync_s: float = Field(
         default=0.25,
@@ -166,6 +182,8 @@ class Settings(BaseSettings):
             object.__setattr__(self, "database_url", f"sqlite:///{db_path}")
         if self.index_dir is None:
             object.__setattr__(self, "index_dir", self.data_dir / "index")
+        if self.uploads_dir is None:
+            object.__setattr__(self, "uploads_dir", self.data_dir / "uploads")
         return self
 
 

@@ -109,9 +109,8 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
     from monoloc.server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
     from monoloc.server.jobs.handlers import HANDLERS
     from monoloc.server.jobs.runner import JobRunner
-    from monoloc.server.jobs.store import mark_interrupted_jobs
     from monoloc.server.runtime import MapRegistry
-    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
     from monoloc.server.storage.migrate import upgrade_database
     from monoloc.server.vision.warmup import warm_up
 
@@ -121,10 +120,6 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
     upgrade_database(settings.database_url)
     engine = create_engine_for(settings)
     sessions = make_session_factory(engine)
-    with session_scope(sessions) as session:
-        interrupted = mark_interrupted_jobs(session)
-    if interrupted:
-        log.warning("jobs %s were cut off by the last shutdown: marked interrupted", interrupted)
     bootstrap_admin_key(sessions, settings)
     assert settings.index_dir is not None
     registry = MapRegistry(sessions, Path(settings.index_dir))

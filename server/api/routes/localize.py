@@ -18,7 +18,11 @@ router = APIRouter(prefix="/v1/maps/{map_id}", tags=["localize"])
 @router.post(
     "/localize",
     response_model=LocalizeResponse,
-    responses={**AUTH_ERRORS, **error_responses(404, 413, 415, 422, 503)},
+    responses={
+        **AUTH_ERRORS,
+        **error_responses(404, 413, 415, 422),
+        503: {"description": "Overloaded, deadline passed or stale replica; see Retry-After."},
+    },
     summary="Localize one frame",
 )
 async def localize(
