@@ -17,7 +17,8 @@ from monoloc.server.storage.migrate import (
 from monoloc.server.storage.models import Base
 
 REPO = Path(__file__).resolve().parents[3]
-TABLES = {"vocabularies", "maps", "runs", "entries", "entry_tags", "jobs", "api_keys", "map_changes"}
+TABLES = {"vocabularies", "maps", "runs", "entries", "entry_tags", "jobs", "api_keys"}
+TABLES |= {"map_changes"}
 
 
 def test_upgrade_creates_exactly_the_models_schema(tmp_path):
