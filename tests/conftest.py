@@ -17,30 +17,12 @@ from __future__ import annotations
 
 import os
 import socket
-import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
 
 import pytest
-from sqlalchemy import create_engine, text
-from sqlalchemy.engine import make_url
+from pg_cluster import fresh_database, start_throwaway_postgres
 
 POSTGRES_ADMIN_URL = os.environ.get("MONOLOC_TEST_POSTGRES_URL", "")
-
-
-@contextmanager
-def fresh_database(admin_url: str) -> Iterator[str]:
-    """A new, empty database on ``admin_url``'s server, dropped afterwards."""
-    name = f"monoloc_test_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
-    with admin.connect() as connection:
-        connection.execute(text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield make_url(admin_url).set(database=name).render_as_string(hide_password=False)
-    finally:
-        with admin.connect() as connection:
-            connection.execute(text(f'DROP DATABASE "{name}" WITH (FORCE)'))
-        admin.dispose()
 
 
 @pytest.fixture
@@ -59,8 +41,6 @@ def postgres_admin_url() -> Iterator[str]:
     if POSTGRES_ADMIN_URL:
         yield POSTGRES_ADMIN_URL
         return
-    from pg_cluster import start_throwaway_postgres
-
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
