@@ -3,23 +3,22 @@
 
 from __future__ import annotations
 
-import io
-import os
-import signal
-import socket
-import subprocess
-import sys
-import tarfile
-import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
 import pytest
-
-ADMIN_KEY = "mlk_" + "F" * 43
-FRAMES = 40
+from fleet_helpers import (
+    ADMIN_KEY,
+    FRAMES,
+    Fleet,
+    Replica,
+    create_map,
+    free_port,
+    replica_env,
+    upload_run,
+    wait_job,
+)
 
 
 @pytest.fixture(scope="session")
@@ -39,146 +38,6 @@ def street(tmp_path_factory) -> Path:
     )
     generate_dataset(config, root)
     return root
-
-
-def tar_run(dataset: Path, seq: str = "00") -> bytes:
-    buffer = io.BytesIO()
-    with tarfile.open(fileobj=buffer, mode="w:gz", compresslevel=1) as tar:
-        tar.add(dataset / "sequences" / seq, arcname=f"kitti/sequences/{seq}")
-        tar.add(dataset / "poses" / f"{seq}.txt", arcname=f"kitti/poses/{seq}.txt")
-    return buffer.getvalue()
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-@dataclass
-class Replica:
-    """One `monoloc serve` process."""
-
-    name: str
-    port: int
-    data_dir: Path
-    env: dict[str, str]
-    process: subprocess.Popen | None = None
-    log: Path = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.log = self.data_dir.parent / f"{self.name}.log"
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def start(self) -> None:
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        cmd = [
-            sys.executable,
-            "-m",
-            "monoloc.cli",
-            "serve",
-            "--port",
-            str(self.port),
-            "--data-dir",
-            str(self.data_dir),
-            "--log-level",
-            "warning",
-        ]
-        with open(self.log, "ab") as log:
-            self.process = subprocess.Popen(cmd, env=self.env, stdout=log, stderr=log)
-
-    def wait_ready(self, timeout_s: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            assert self.process is not None
-            if self.process.poll() is not None:
-                raise AssertionError(f"{self.name} exited: {self.log.read_text()[-3000:]}")
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.1)
-        raise AssertionError(f"{self.name} not ready: {self.log.read_text()[-3000:]}")
-
-    def kill(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(signal.SIGKILL)
-            self.process.wait(10)
-
-    def stop(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(40)
-            except subprocess.TimeoutExpired:
-                self.kill()
-
-
-def replica_env(database_url: str, uploads: Path, **extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MONOLOC_")}
-    env.update(
-        MONOLOC_DATABASE_URL=database_url,
-        MONOLOC_UPLOADS_DIR=str(uploads),
-        MONOLOC_BOOTSTRAP_ADMIN_KEY=ADMIN_KEY,
-        MONOLOC_WORKER_THREADS="1",
-        MONOLOC_JOB_LEASE_S="2",
-        MONOLOC_JOB_POLL_S="0.2",
-        MONOLOC_REPLICA_SYNC_S="0.2",
-        **extra,
-    )
-    return env
-
-
-@dataclass
-class Fleet:
-    database_url: str
-    replicas: list[Replica]
-    keys: dict[str, str]
-    map_id: int
-
-    def headers(self, scope: str) -> dict[str, str]:
-        return {"X-API-Key": self.keys[scope]}
-
-
-def wait_job(url: str, job_id: int, headers: dict, timeout_s: float = 120.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers, timeout=10).json()
-        if job["state"] in ("done", "failed", "interrupted"):
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} did not finish in {timeout_s} s")
-
-
-def create_map(url: str, keys: dict, name: str, dataset: Path) -> int:
-    from monoloc.core.camera import KITTI_CAM0
-
-    c = KITTI_CAM0
-    camera = dict(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, width_px=c.width_px, height_px=c.height_px)
-    r = httpx.post(
-        f"{url}/v1/maps",
-        json={"name": name, "camera": camera},
-        headers={"X-API-Key": keys["admin"]},
-        timeout=30,
-    )
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
-
-
-def upload_run(url: str, keys: dict, map_id: int, dataset: Path, seq: str) -> int:
-    r = httpx.post(
-        f"{url}/v1/maps/{map_id}/runs",
-        files={"archive": ("run.tar.gz", tar_run(dataset, seq), "application/gzip")},
-        data={"format": "kitti", "kind": "map"},
-        headers={"X-API-Key": keys["write"]},
-        timeout=120,
-    )
-    assert r.status_code == 202, r.text
-    return r.json()["job"]["id"]
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,8 @@
 """Replica processes (`monoloc serve`) on one real PostgreSQL: a write on one is seen by
 localize on the other within 1 s; writes on one while the other serves frames leave
 every replica's index equal to the database; SIGKILL of the replica running an
-ingestion job: the other takes it over and finishes it, no duplicate, no loss."""
+ingestion job: the other takes it over and finishes it, no duplicate, no loss; the
+docker/nginx.conf front (on loopback) spreads frames over both replicas."""
 
 from __future__ import annotations
 
@@ -11,6 +12,15 @@ import threading
 import time
 
 import httpx
+import pytest
+from fleet_helpers import (
+    create_map,
+    find_nginx,
+    free_port,
+    loopback_nginx_conf,
+    upload_run,
+    wait_job,
+)
 from sqlalchemy import create_engine, func, select
 
 from monoloc.server.storage.models import Entry, Job
@@ -132,8 +142,6 @@ def test_sigkill_of_the_replica_running_an_ingestion_the_other_finishes_it(fleet
         os.kill(pid, signal.SIGKILL)
         victim.process.wait(10)
         survivor = b if victim is a else a
-        from conftest import wait_job
-
         job = wait_job(survivor.url, job_id, fleet.headers("admin"), timeout_s=120)
         assert job["state"] == "done", job
         with engine.connect() as connection:
@@ -159,14 +167,10 @@ def test_sigkill_of_the_replica_running_an_ingestion_the_other_finishes_it(fleet
 
 
 def _new_map(fleet, street) -> int:
-    from conftest import create_map
-
     return create_map(fleet.replicas[0].url, fleet.keys, "second", street)
 
 
 def _upload(fleet, replica, map_id, street) -> int:
-    from conftest import upload_run
-
     return upload_run(replica.url, fleet.keys, map_id, street, "01")
 
 
@@ -183,3 +187,40 @@ def _wait_for_progress(engine, job_id: int, timeout_s: float = 60.0) -> str:
             return owner
         time.sleep(0.01)
     raise AssertionError("the ingestion made no progress")
+
+
+def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_path):
+    import subprocess
+
+    nginx = find_nginx()
+    if nginx is None:
+        pytest.skip("nginx is not installed (make test installs Debian's nginx-light)")
+    for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"):
+        (tmp_path / kind).mkdir()
+    port = free_port()
+    conf = loopback_nginx_conf(tmp_path, [r.port for r in fleet.replicas], port)
+    subprocess.run([nginx, "-p", str(tmp_path), "-c", str(conf)], check=True)
+    try:
+        front = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                if httpx.get(f"{front}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, (tmp_path / "error.log").read_text()
+            time.sleep(0.05)
+        with httpx.Client(timeout=30) as client:
+            for _ in range(8):
+                r = client.post(
+                    f"{front}/v1/maps/{fleet.map_id}/localize",
+                    files={"image": ("f.png", _frame(street, "01", FRAME), "image/png")},
+                    headers=fleet.headers("localize"),
+                )
+                assert r.status_code == 200, r.text
+    finally:
+        subprocess.run([nginx, "-p", str(tmp_path), "-c", str(conf), "-s", "quit"], check=False)
+    log = (tmp_path / "access.log").read_text()
+    for replica in fleet.replicas:
+        assert f"upstream=127.0.0.1:{replica.port}" in log, log
