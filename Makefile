@@ -48,7 +48,7 @@ demo: install
 
 # Benchmarks: slow test suites, then every bench script (each prints its figures beside a
 # baseline and writes bench/results/*.json), then bench/REPORT.md from those results.
-BENCHES := vision filter sim ingest localize retrieval speed accuracy
+BENCHES := vision filter sim ingest localize retrieval speed accuracy load footprint
 
 bench: install
 	$(PY) -m pytest -q -m slow

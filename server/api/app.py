@@ -1,13 +1,14 @@
 """The FastAPI application: ``create_app(settings)`` builds it; its lifespan does the work.
 
-Start-up (in order): data directories; Alembic upgrade of the database; queued/running
-jobs of a previous process marked ``interrupted``; the bootstrap admin key (if
-configured and no key exists); thread counts (OpenCV ``cv_threads``, FAISS
+Start-up (in order): data directories; Alembic upgrade of the database; the bootstrap
+admin key (if configured and no key exists); thread counts (OpenCV ``cv_threads``, FAISS
 ``faiss_threads``, BLAS 1 thread: on 2 cores an oversubscribed OpenBLAS makes small
-mat-vecs many times slower); every map's index loaded (or rebuilt) by the registry; the
-job runner. Shutdown: jobs asked to stop (they end ``interrupted``), indexes persisted,
-the engine disposed. Run one process per data directory (one uvicorn worker): the map
-registry and the job runner live in the process.
+mat-vecs many times slower); every map's index loaded (or rebuilt) by the registry and
+its replica sync started; the job runner (leases: it takes over jobs whose holder died).
+Shutdown: sync stopped, running jobs handed back to the queue, indexes persisted, the
+engine disposed. Any number of processes may serve one database: each is a replica
+(``server/runtime.py``), admission control bounds what each one accepts
+(``server/api/admission.py``).
 """
 
 from __future__ import annotations
