@@ -9,7 +9,7 @@ import hashlib
 import anyio.to_thread
 import numpy as np
 from fastapi import APIRouter
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import select
 
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
@@ -27,7 +27,13 @@ class ReplicaSide(BaseModel):
     entry_ids_sha256: str = Field(description="sha256 of the sorted entry ids (int64 LE).")
 
 
+_SIDE = {"map_version": 4013, "entries": 3860, "entry_ids_sha256": "9f86d08188...b0f00a08"}
+
+
 class ReplicaState(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"replica": _SIDE, "database": _SIDE, "in_sync": True}]}
+    )
     replica: ReplicaSide = Field(description="This process's index of the map.")
     database: ReplicaSide = Field(description="The map in the database, read now.")
     in_sync: bool
