@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test test-postgres lint bench demo clean chromium
+.PHONY: install test test-postgres lint bench demo clean chromium system-deps
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -24,7 +24,23 @@ chromium:
 	@test -x /usr/bin/chromium || { apt-get update -q && apt-get install -y -q chromium; } \
 	  || echo "chromium could not be installed: the browser tests will be skipped"
 
-test: install lint chromium
+
+# The tests start a throwaway PostgreSQL (initdb/pg_ctl, tests/pg_cluster.py) and check the
+# nginx config of docker/ with `nginx -t`: install Debian's packages when missing.
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+system-deps:
+	@need=""; \
+	command -v pg_ctl >/dev/null || ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 \
+	  || need="$$need postgresql"; \
+	command -v nginx >/dev/null || [ -x /usr/sbin/nginx ] || need="$$need nginx-light"; \
+	if [ -n "$$need" ]; then \
+	  echo "installing Debian packages:$$need"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	    $(SUDO) apt-get install -y -qq --no-install-recommends $$need >/dev/null; \
+	fi
+
+
+test: install lint chromium system-deps
 	$(PY) -m pytest -q
 
 # The storage and ingestion suites against PostgreSQL: a fresh database per test on the
@@ -39,7 +55,7 @@ demo: install
 
 # Benchmarks: slow test suites, then every bench script (each prints its figures beside a
 # baseline and writes bench/results/*.json), then bench/REPORT.md from those results.
-BENCHES := vision filter sim ingest localize retrieval speed accuracy crash
+BENCHES := vision filter sim ingest localize retrieval speed accuracy crash load footprint
 
 bench: install
 	$(PY) -m pytest -q -m slow

@@ -136,6 +136,90 @@ def crash_section(data: dict | None) -> list[str]:
     return lines
 
 
+def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
+    """bench/load.py (capacity, then 2x open loop) and bench/footprint.py."""
+    out = ["## Fleet load: capacity, then twice capacity offered (bench/load.py)", ""]
+    if data is None:
+        out += ["not run", ""]
+    else:
+        g = data["goals"]
+        out += [
+            f"Goals at 2x: served >= {100 * g['served_share_min']:.0f} % of capacity, p99 <= "
+            f"{g['p99_over_capacity_p50_max']:.0f}x the p50 at capacity, memory <= idle + "
+            f"{g['memory_growth_mb_max']:.0f} MB, writes p99 <= {g['writes_p99_s_max']:.0f} s, "
+            f"no 5xx but 503 (shed). {data['duration_s']:.0f} s per phase; the load generator "
+            "shares the 2 cores with the server.",
+            "",
+        ]
+        rows = []
+        for r in data["results"]:
+            cap = r["capacity"]
+            rows.append(
+                [
+                    f"{r['replicas']} ({r['database']})",
+                    "capacity (closed loop)",
+                    cap["served_per_s"],
+                    "",
+                    cap["p50_ms"],
+                    cap["p99_ms"],
+                    "",
+                    "",
+                    "",
+                    "",
+                    f"idle {r['idle_mb']:.0f} MB",
+                ]
+            )
+            for name, run in r["runs"].items():
+                v = run["verdicts"]
+                met = [k for k, ok in v.items() if k.endswith("_met") and not ok]
+                rows.append(
+                    [
+                        "",
+                        f"2x: {r['vehicles']} x {r['rate_hz']:.1f} Hz, {name}",
+                        run["served_per_s"],
+                        f"{100 * v['served_share']:.0f} %",
+                        run["served_p50_ms"],
+                        run["served_p99_ms"],
+                        f"{v['p99_over_capacity_p50']:.1f}x",
+                        run["shed"],
+                        run["errors_5xx"] + run["failed_no_answer"],
+                        run["writes_p99_s"],
+                        f"+{v['memory_growth_mb']:.0f} MB; "
+                        + ("all met" if not met else "missed: " + ", ".join(met)),
+                    ]
+                )
+        header = ["replicas", "phase", "served/s", "of cap.", "p50 ms", "p99 ms"]
+        header += ["p99 / cap. p50", "shed", "5xx / lost", "writes p99 s", "memory, goals"]
+        out += [table(header, rows), ""]
+    out += ["## What one entry costs (bench/footprint.py)", ""]
+    if footprint is None:
+        out += ["not run", ""]
+    else:
+        i, st = footprint["index"], footprint["stored"]
+        out += [
+            table(
+                ["what", "bytes per entry", "measured on"],
+                [
+                    [
+                        "replica index (resident)",
+                        i["rss_bytes_per_entry"],
+                        f"{i['entries']} synthetic",
+                    ],
+                    ["index arrays (bare)", i["arrays_bytes_per_entry"], "arithmetic"],
+                    ["entry cache", st["cache_bytes_per_entry"], f"{st['entries']} sim entries"],
+                    [
+                        "database blobs",
+                        st["blob_bytes_total_per_entry"],
+                        f"{st['mean_points']:.0f} points/entry",
+                    ],
+                    ["SQLite file", st.get("sqlite_file_bytes_per_entry"), "same"],
+                ],
+            ),
+            "",
+        ]
+    return out
+
+
 def main() -> None:
     lines = [
         "# monoloc benchmark report",
@@ -263,6 +347,7 @@ def main() -> None:
         ]
     else:
         lines.append("not run")
+    lines += [""] + fleet_section(load("load"), load("footprint"))
     for name in ("filter", "ingest", "sim"):
         data = load(name)
         lines += ["", f"## {name} (bench/{name}.py)", ""]

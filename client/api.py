@@ -27,9 +27,12 @@ from monoloc.core.prior import RetrievalPrior
 class ServerError(MonolocError):
     """The server answered with an error, or could not be reached after retries."""
 
-    def __init__(self, message: str, status_code: int | None = None) -> None:
+    def __init__(
+        self, message: str, status_code: int | None = None, retry_after_s: float | None = None
+    ) -> None:
         super().__init__(message)
         self.status_code = status_code
+        self.retry_after_s = retry_after_s  # the server's Retry-After (503 shed, 429)
 
 
 @dataclass(frozen=True)
@@ -177,13 +180,17 @@ class MonolocClient:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def request(self, method: str, path: str, **kwargs) -> httpx.Response:
-        """One call; retried (``retries`` more times, waiting ``backoff_s * 2**attempt``
-        capped at ``max_backoff_s``, or the server's ``Retry-After``) on transport errors
+    def request(
+        self, method: str, path: str, retries: int | None = None, **kwargs
+    ) -> httpx.Response:
+        """One call; retried (``retries`` more times, default the client's, waiting
+        ``backoff_s * 2**attempt`` capped at ``max_backoff_s``, or the server's
+        ``Retry-After``) on transport errors
         and RETRY_STATUS answers. Other 4xx/5xx raise at once: NotFoundError for 404,
         ServerError (with ``status_code``) otherwise, both with the server's message."""
+        retries = self.retries if retries is None else retries
         last: ServerError | None = None
-        for attempt in range(self.retries + 1):
+        for attempt in range(retries + 1):
             response = None
             try:
                 response = self._http.request(method, path, **kwargs)
@@ -197,15 +204,15 @@ class MonolocClient:
                     raise NotFoundError(message)
                 if response.status_code not in RETRY_STATUS:
                     raise ServerError(message, response.status_code)
-                last = ServerError(message, response.status_code)
-            if attempt < self.retries:
+                last = ServerError(message, response.status_code, _retry_after_s(response))
+            if attempt < retries:
                 wait = _retry_after_s(response)
                 if wait is None:
                     wait = self.backoff_s * (2**attempt)
                 time.sleep(min(wait, self.max_backoff_s))
         assert last is not None
         raise ServerError(
-            f"{last} (gave up after {self.retries + 1} attempts)", last.status_code
+            f"{last} (gave up after {retries + 1} attempts)", last.status_code, last.retry_after_s
         ) from last
 
     def find_map_id(self, name_or_id: str | int) -> int:
@@ -227,9 +234,17 @@ class MonolocClient:
         k: int | None = None,
         filename: str = "frame.png",
         seed: int | None = None,
+        *,
+        retries: int | None = None,
+        deadline_ms: int | None = None,
+        min_map_version: int | None = None,
     ) -> LocalizeAnswer:
         """Hypotheses for one PNG/JPEG frame over HTTP (``seed``: the server's RANSAC
-        seed, to repeat an answer; default: the server draws one)."""
+        seed, to repeat an answer; default: the server draws one). ``deadline_ms``: how
+        long the answer is worth waiting for (the server drops the frame uncomputed
+        after it); ``min_map_version``: answer from a map at least this new (after one's
+        own write; the server waits briefly for its replica, else 503); ``retries``:
+        this call's retries (a vehicle sends 0: a frame is stale by the next one)."""
         data: dict[str, str] = {}
         if prior is not None:
             data.update({key: repr(float(v)) for key, v in prior.to_fields().items()})
@@ -238,11 +253,18 @@ class MonolocClient:
         if seed is not None:
             data["seed"] = str(int(seed))
         mime = "image/jpeg" if filename.lower().endswith((".jpg", ".jpeg")) else "image/png"
+        headers: dict[str, str] = {}
+        if deadline_ms is not None:
+            headers["X-Request-Deadline-Ms"] = str(int(deadline_ms))
+        if min_map_version is not None:
+            headers["X-Min-Map-Version"] = str(int(min_map_version))
         response = self.request(
             "POST",
             f"/v1/maps/{map_id}/localize",
+            retries=retries,
             files={"image": (filename, image_bytes, mime)},
             data=data,
+            headers=headers,
         )
         return LocalizeAnswer.from_json(response.json())
 

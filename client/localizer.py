@@ -10,11 +10,14 @@ in-process one, the server's pipeline called directly, is
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
 from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, ServerError
+from monoloc.core.measurement import Hypotheses
 from monoloc.core.prior import RetrievalPrior
 
 
@@ -29,17 +32,66 @@ class Localizer(Protocol):
     ) -> LocalizeAnswer: ...
 
 
-class HttpLocalizer:
-    """One HTTP request per frame against map ``map_id``; errors raise (ServerError)."""
+@dataclass
+class ShedCounts:
+    """What happened to the frames an :class:`HttpLocalizer` was given."""
 
-    def __init__(self, client: MonolocClient, map_id: int) -> None:
+    sent: int = 0  # requests made
+    answered: int = 0  # answered with hypotheses (possibly none)
+    shed: int = 0  # answered 503: the server was at capacity or the deadline passed
+    held: int = 0  # not sent: inside the server's Retry-After window after a shed frame
+
+
+class HttpLocalizer:
+    """One HTTP request per frame against map ``map_id``.
+
+    A frame is worth nothing once the next one is taken, so it is sent once (no retry).
+    A frame the server sheds (503) comes back as a dropped answer (the filter predicts
+    only), and the frames inside the server's ``Retry-After`` window are not sent at all
+    (dropped too): an overloaded server is given the time it asked for. ``counts`` keeps
+    the tally. ``deadline_ms`` (X-Request-Deadline-Ms) tells the server when an answer
+    is no longer worth computing. Other errors raise (ServerError)."""
+
+    def __init__(
+        self,
+        client: MonolocClient,
+        map_id: int,
+        deadline_ms: int | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.client = client
         self.map_id = map_id
+        self.deadline_ms = deadline_ms
+        self.counts = ShedCounts()
+        self._clock = clock
+        self._hold_until_s = -math.inf
 
     def localize(
         self, image: bytes, prior: RetrievalPrior | None = None, k: int | None = None
     ) -> LocalizeAnswer:
-        return self.client.localize(self.map_id, image, prior, k)
+        now_s = self._clock()
+        if now_s < self._hold_until_s:
+            self.counts.held += 1
+            return _dropped("held")
+        self.counts.sent += 1
+        try:
+            answer = self.client.localize(
+                self.map_id, image, prior, k, retries=0, deadline_ms=self.deadline_ms
+            )
+        except ServerError as exc:
+            if exc.status_code != 503:
+                raise
+            self.counts.shed += 1
+            self._hold_until_s = now_s + (exc.retry_after_s or 0.0)
+            return _dropped("shed")
+        self.counts.answered += 1
+        return answer
+
+
+def _dropped(reason: str) -> LocalizeAnswer:
+    return LocalizeAnswer(
+        Hypotheses.empty(), None, {}, {"dropped": True, "reason": reason}, dropped=True
+    )
 
 
 def check_answer_seq(answer: dict, expected: int) -> int:

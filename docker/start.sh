@@ -6,7 +6,8 @@
 # Environment: MONOLOC_HOST (default 0.0.0.0), MONOLOC_PORT (8000), MONOLOC_DATA_DIR,
 # MONOLOC_DATABASE_URL and every other MONOLOC_* setting (monoloc.server.settings);
 # MONOLOC_PYTHON picks the interpreter (default: python3 on PATH).
-# One process per data directory: the map index and the job runner live in it.
+# Each process is a replica: its own index of every map, kept current from the database's
+# change log; jobs are leases in the database that any replica may take.
 set -eu
 
 PYTHON="${MONOLOC_PYTHON:-python3}"
@@ -17,6 +18,10 @@ PORT="${MONOLOC_PORT:-8000}"
 # with room for the largest upload (compose.yaml uses /data/tmp).
 if [ -n "${TMPDIR:-}" ]; then mkdir -p "$TMPDIR"; fi
 
-"$PYTHON" -m monoloc.cli db upgrade
+# With several replicas the schema is migrated once, before they start (compose.yaml's
+# migrate service): they set MONOLOC_SKIP_MIGRATIONS=1.
+if [ "${MONOLOC_SKIP_MIGRATIONS:-0}" != "1" ]; then
+    "$PYTHON" -m monoloc.cli db upgrade
+fi
 exec "$PYTHON" -m uvicorn --factory monoloc.server.api.app:create_app_from_env \
     --host "$HOST" --port "$PORT" --workers 1 --timeout-graceful-shutdown 30

@@ -3,10 +3,16 @@
 One ``MapRegistry`` per process. A map's runtime is loaded on first use (or at start-up
 by ``load_all``): its index comes from the index file when that file is intact and
 stamped with the database's map version, and is otherwise rebuilt from the database and
-re-saved; it is never served empty. Edits made through the registry (after their
-database commit) reach the index at once. Edits made by another process (a CLI
-ingestion next to a running server) are noticed by a cheap version check, at most once
-per ``version_check_s`` per map, and trigger a rebuild.
+re-saved; it is never served empty.
+
+Every process is a replica: the database's per-map change log (``map_changes``: entry
+added, deleted, re-tagged, VLAD rewritten, vocabulary changed, one row per version) is
+applied in version order as deltas (:meth:`MapRegistry.catch_up`); only a vocabulary
+change (or a gap in the log) rebuilds the whole index. Edits made through this process
+catch up right after their commit; edits of other processes (replicas, a CLI
+ingestion) are applied by the sync thread (:meth:`MapRegistry.start_sync`: a poll of the
+maps' versions every ``sync_interval_s``, woken at once by PostgreSQL's NOTIFY) and by a
+version check of at most once per ``version_check_s`` on the query path.
 """
 
 from __future__ import annotations
@@ -37,10 +43,55 @@ from monoloc.server.localize import (
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
-from monoloc.server.storage.records import MapRecord
+from monoloc.server.storage.records import MapChangeRecord, MapRecord
 from monoloc.server.vision.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
+
+
+class ChangeListener:
+    """LISTEN on PostgreSQL's change channel: :meth:`wait` returns at the first NOTIFY
+    or after ``timeout_s``. Falls back to sleeping when the connection fails."""
+
+    def __init__(self, sqlalchemy_url: str) -> None:
+        from sqlalchemy.engine import make_url
+
+        self._url = make_url(sqlalchemy_url).set(drivername="postgresql")
+        self._conn = None
+
+    def _connect(self):
+        import psycopg
+
+        url = self._url
+        params = {k: v for k, v in url.query.items() if isinstance(v, str)}
+        conn = psycopg.connect(
+            host=params.get("host", url.host),
+            port=params.get("port", url.port),
+            user=url.username,
+            password=url.password,
+            dbname=url.database,
+            autocommit=True,
+        )
+        conn.execute(f"LISTEN {maps_repo.CHANGES_CHANNEL}")
+        return conn
+
+    def wait(self, timeout_s: float) -> None:
+        try:
+            if self._conn is None:
+                self._conn = self._connect()
+            for _ in self._conn.notifies(timeout=timeout_s, stop_after=1):
+                pass
+        except Exception:  # noqa: BLE001 - the sync loop polls anyway
+            log.warning("LISTEN connection lost; polling until it is back", exc_info=True)
+            self.close()
+            time.sleep(timeout_s)
+
+    def close(self) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            finally:
+                self._conn = None
 
 
 class EntryCache:
@@ -119,6 +170,8 @@ class MapRegistry:
         self._maps: dict[int, MapRuntime] = {}
         self._lock = threading.RLock()
         self._load_locks: dict[int, threading.Lock] = {}
+        self._stop_sync = threading.Event()
+        self._sync_thread: threading.Thread | None = None
 
     def index_path(self, map_id: int) -> Path:
         return self._index_dir / f"map_{map_id}.index.npz"
@@ -180,26 +233,61 @@ class MapRegistry:
             cache.get(ids[start : start + 512])
 
     def get(self, map_id: int) -> MapRuntime:
-        """The map's runtime, loading or refreshing it if needed (NotFoundError if gone)."""
+        """The map's runtime, loading or catching it up if needed (NotFoundError if gone)."""
         with self._lock:
             runtime = self._maps.get(map_id)
-            load_lock = self._load_locks.setdefault(map_id, threading.Lock())
         if runtime is not None and time.monotonic() - runtime.checked_at < self._version_check_s:
             return runtime
-        with load_lock:
+        return self.catch_up(map_id)
+
+    def _load_lock(self, map_id: int) -> threading.Lock:
+        with self._lock:
+            return self._load_locks.setdefault(map_id, threading.Lock())
+
+    def catch_up(self, map_id: int) -> MapRuntime:
+        """Bring the map's runtime to the database's version: apply the change log's
+        entries above the runtime's version as deltas, or build the runtime (first use, a
+        vocabulary change, a gap in the log). NotFoundError if the map is gone."""
+        with self._load_lock(map_id):
             with self._lock:
                 runtime = self._maps.get(map_id)
-            if runtime is not None:
+            if runtime is None:
+                runtime = self._build(map_id)
+            else:
                 with session_scope(self._sessions) as session:
                     record = maps_repo.get_map(session, map_id)
-                if record.version == runtime.version:
-                    runtime.record, runtime.checked_at = record, time.monotonic()
-                    return runtime
-                log.info("map %s changed outside this process; reloading", map_id)
-            runtime = self._build(map_id)
+                    changes = maps_repo.list_changes(session, map_id, runtime.version)
+                if record.version != runtime.version:
+                    if not self._apply(runtime, changes, record.version):
+                        log.info("map %s: rebuilding (vocabulary change or log gap)", map_id)
+                        runtime = self._build(map_id)
+                runtime.record, runtime.checked_at = record, time.monotonic()
             with self._lock:
                 self._maps[map_id] = runtime
             return runtime
+
+    def _apply(self, runtime: MapRuntime, changes: list[MapChangeRecord], version: int) -> bool:
+        """Apply ``changes`` (in version order) to ``runtime``; False when they cannot be
+        applied as deltas (not contiguous from the runtime's version, or a vocabulary
+        change) and the runtime must be rebuilt."""
+        expected = list(range(runtime.version + 1, runtime.version + 1 + len(changes)))
+        if [c.version for c in changes] != expected or not changes:
+            return False
+        if any(c.kind == "vocabulary" for c in changes):
+            return False
+        touched = list(dict.fromkeys(c.entry_id for c in changes if c.entry_id is not None))
+        with session_scope(self._sessions) as session:
+            vectors = entries_repo.map_vectors_of(session, runtime.record.id, touched)
+        present = set(vectors.entry_ids.tolist())
+        gone = [i for i in touched if i not in present]
+        if gone:
+            runtime.index.remove(gone)
+        if len(vectors.entry_ids):
+            runtime.index.add(vectors.entry_ids, vectors.codes, vectors.vlads, vectors.planar)
+        runtime.cache.discard(touched)
+        runtime.version = changes[-1].version
+        self._warm(runtime.cache, vectors.entry_ids, len(runtime.index))
+        return runtime.version == version or version < runtime.version
 
     def load_all(self) -> int:
         """Load every map (start-up). Returns how many were loaded."""
@@ -218,28 +306,85 @@ class MapRegistry:
     def entries_added(
         self, map_id: int, entry_ids, codes, vlads, poses_world, new_version: int
     ) -> None:
-        runtime = self._maps.get(map_id)
-        if runtime is None:
-            return  # loaded from the database on first use
-        runtime.index.add(entry_ids, codes, vlads, poses_world)
-        runtime.cache.discard(list(np.asarray(entry_ids).tolist()))  # replaced entries
-        runtime.version = new_version
-        # Read the new entries now, on the adding thread, not on a vehicle's first query.
-        self._warm(runtime.cache, entry_ids, len(runtime.index))
+        """Entries committed by this process: the map catches up from the log now (the
+        same path as any replica's), so the next query sees them."""
+        self.changed(map_id)
 
     def entries_removed(self, map_id: int, entry_ids: Sequence[int], new_version: int) -> None:
-        runtime = self._maps.get(map_id)
-        if runtime is None:
-            return
-        runtime.index.remove(entry_ids)
-        runtime.cache.discard(entry_ids)
-        runtime.version = new_version
+        self.changed(map_id)
 
     def entry_retagged(self, map_id: int, entry_id: int) -> None:
-        runtime = self._maps.get(map_id)
-        if runtime is not None:
-            runtime.cache.discard([entry_id])
-            self._warm(runtime.cache, [entry_id], len(runtime.index))
+        self.changed(map_id)
+
+    def changed(self, map_id: int) -> None:
+        """A change was committed to ``map_id``: catch up if the map is in memory."""
+        with self._lock:
+            loaded = map_id in self._maps
+        if loaded:
+            try:
+                self.catch_up(map_id)
+            except NotFoundError:
+                self.forget(map_id)
+
+    def version(self, map_id: int) -> int | None:
+        """The version of the map in memory (None if not loaded)."""
+        with self._lock:
+            runtime = self._maps.get(map_id)
+        return None if runtime is None else runtime.version
+
+    def sync_once(self) -> int:
+        """Catch up every loaded map whose database version differs, forget deleted maps.
+        Returns how many maps were caught up."""
+        with session_scope(self._sessions) as session:
+            versions = maps_repo.map_versions(session)
+        with self._lock:
+            loaded = {map_id: rt.version for map_id, rt in self._maps.items()}
+        n = 0
+        for map_id, version in loaded.items():
+            if map_id not in versions:
+                self.forget(map_id)
+            elif versions[map_id] != version:
+                try:
+                    self.catch_up(map_id)
+                    n += 1
+                except NotFoundError:
+                    self.forget(map_id)
+        return n
+
+    def start_sync(self, interval_s: float, listen_url: str | None = None) -> None:
+        """Keep the loaded maps current from the database in a daemon thread: every
+        ``interval_s``, and at once on a PostgreSQL NOTIFY when ``listen_url`` (a
+        ``postgresql`` SQLAlchemy URL) is given."""
+        self._stop_sync.clear()
+        self._sync_thread = threading.Thread(
+            target=self._sync_loop,
+            args=(interval_s, listen_url),
+            name="monoloc-replica-sync",
+            daemon=True,
+        )
+        self._sync_thread.start()
+
+    def stop_sync(self) -> None:
+        self._stop_sync.set()
+        if self._sync_thread is not None:
+            self._sync_thread.join(10)
+            self._sync_thread = None
+
+    def _sync_loop(self, interval_s: float, listen_url: str | None) -> None:
+        listener = ChangeListener(listen_url) if listen_url else None
+        try:
+            while not self._stop_sync.is_set():
+                try:
+                    self.sync_once()
+                except Exception:  # the database may be away for a moment: retry
+                    log.exception("replica sync failed; retrying")
+                if listener is not None:
+                    listener.wait(interval_s)
+                else:
+                    self._stop_sync.wait(interval_s)
+        finally:
+            if listener is not None:
+                listener.close()
 
     def forget(self, map_id: int, delete_file: bool = False) -> None:
         """Drop a map from memory (deleted, or its vocabulary changed)."""

@@ -43,6 +43,12 @@ class Settings(BaseSettings):
     index_dir: Path | None = Field(
         default=None, description="Where retrieval indexes are persisted; default data_dir/index."
     )
+    uploads_dir: Path | None = Field(
+        default=None,
+        description="Where uploaded runs wait for their ingestion job; default "
+        "data_dir/uploads. Replicas on several machines must share it (a network mount): "
+        "the replica that takes a job over reads the upload from here.",
+    )
     sqlite_synchronous: Literal["NORMAL", "FULL", "EXTRA"] = Field(
         default="NORMAL",
         description="PRAGMA synchronous in WAL mode: NORMAL survives app crashes, FULL "
@@ -130,6 +136,57 @@ class Settings(BaseSettings):
         default=1, ge=1, description="Jobs (ingestion, vocabulary) running at the same time."
     )
 
+    # --- admission control (server/api/admission.py) --------------------------------
+    localize_queue_depth: int = Field(
+        default=4,
+        ge=0,
+        description="Localize requests allowed to wait for a CPU slot (worker_threads "
+        "compute); more are answered 503 with Retry-After at once.",
+    )
+    localize_deadline_ms: int = Field(
+        default=2000,
+        ge=1,
+        description="Default deadline of a localize request (X-Request-Deadline-Ms "
+        "overrides): not computed once it passed.",
+    )
+    write_threads: int = Field(
+        default=1, ge=1, description="Map writes (entry builds, edits) computed at a time."
+    )
+    write_queue_depth: int = Field(
+        default=16, ge=0, description="Map writes allowed to wait; more are answered 503."
+    )
+    write_deadline_ms: int = Field(
+        default=30_000, ge=1, description="Default deadline of a map write."
+    )
+    job_queue_depth: int = Field(
+        default=4,
+        ge=0,
+        description="Run uploads / job submissions in flight beyond one; more are 503.",
+    )
+
+    job_lease_s: float = Field(
+        default=15.0,
+        gt=0,
+        description="Lease of a running job; renewed every third of it. A replica that "
+        "stops renewing (killed) loses its jobs to another after this long.",
+    )
+    job_poll_s: float = Field(
+        default=1.0, gt=0, description="How often a replica looks for claimable jobs."
+    )
+
+    # --- replicas (server/runtime.py, server/api/consistency.py) -----------------------
+    replica_sync_s: float = Field(
+        default=0.25,
+        gt=0,
+        description="How often a replica polls the maps' versions to apply the change log "
+        "(PostgreSQL's NOTIFY wakes it at once).",
+    )
+    min_version_wait_ms: int = Field(
+        default=1000,
+        ge=0,
+        description="How long localize waits for X-Min-Map-Version before 503 stale_replica.",
+    )
+
     @model_validator(mode="after")
     def _fill_derived_paths(self) -> Settings:
         # Settings is frozen; derived defaults are filled once, at construction.
@@ -138,6 +195,8 @@ class Settings(BaseSettings):
             object.__setattr__(self, "database_url", f"sqlite:///{db_path}")
         if self.index_dir is None:
             object.__setattr__(self, "index_dir", self.data_dir / "index")
+        if self.uploads_dir is None:
+            object.__setattr__(self, "uploads_dir", self.data_dir / "uploads")
         return self
 
 

@@ -5,17 +5,22 @@
 databases (e.g. ``postgresql+psycopg://postgres@/postgres?host=/tmp&port=55432``), the URL
 of a fresh database created for the test and dropped after it. ``make test-postgres``
 runs the storage and ingestion suites that way.
+
+``postgres_url``: always PostgreSQL (the replica, change-log and job-lease suites): a
+fresh database on ``MONOLOC_TEST_POSTGRES_URL``'s server if set, else on a throwaway
+server this session starts itself (``tests/pg_cluster.py``; ``make test`` installs the
+Debian ``postgresql`` package when none is installed). Skipped only when no server can
+be found at all.
 """
 
 from __future__ import annotations
 
 import os
-import uuid
+import socket
 from collections.abc import Iterator
 
 import pytest
-from sqlalchemy import create_engine, text
-from sqlalchemy.engine import make_url
+from pg_cluster import fresh_database, start_throwaway_postgres
 
 POSTGRES_ADMIN_URL = os.environ.get("MONOLOC_TEST_POSTGRES_URL", "")
 
@@ -26,11 +31,30 @@ def database_url() -> Iterator[str | None]:
     if not POSTGRES_ADMIN_URL:
         yield None
         return
-    name = f"monoloc_test_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(POSTGRES_ADMIN_URL, isolation_level="AUTOCOMMIT")
-    with admin.connect() as connection:
-        connection.execute(text(f'CREATE DATABASE "{name}"'))
-    yield make_url(POSTGRES_ADMIN_URL).set(database=name).render_as_string(hide_password=False)
-    with admin.connect() as connection:
-        connection.execute(text(f'DROP DATABASE "{name}" WITH (FORCE)'))
-    admin.dispose()
+    with fresh_database(POSTGRES_ADMIN_URL) as url:
+        yield url
+
+
+@pytest.fixture(scope="session")
+def postgres_admin_url() -> Iterator[str]:
+    """The URL of a PostgreSQL server the tests may create databases on."""
+    if POSTGRES_ADMIN_URL:
+        yield POSTGRES_ADMIN_URL
+        return
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    server = start_throwaway_postgres(port)
+    if server is None:
+        pytest.skip("no PostgreSQL server installed (make test installs Debian's postgresql)")
+    try:
+        yield server.url
+    finally:
+        server.stop()
+
+
+@pytest.fixture
+def postgres_url(postgres_admin_url) -> Iterator[str]:
+    """A fresh, empty PostgreSQL database for one test."""
+    with fresh_database(postgres_admin_url) as url:
+        yield url

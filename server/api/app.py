@@ -1,13 +1,14 @@
 """The FastAPI application: ``create_app(settings)`` builds it; its lifespan does the work.
 
-Start-up (in order): data directories; Alembic upgrade of the database; queued/running
-jobs of a previous process marked ``interrupted``; the bootstrap admin key (if
-configured and no key exists); thread counts (OpenCV ``cv_threads``, FAISS
+Start-up (in order): data directories; Alembic upgrade of the database; the bootstrap
+admin key (if configured and no key exists); thread counts (OpenCV ``cv_threads``, FAISS
 ``faiss_threads``, BLAS 1 thread: on 2 cores an oversubscribed OpenBLAS makes small
-mat-vecs many times slower); every map's index loaded (or rebuilt) by the registry; the
-job runner. Shutdown: jobs asked to stop (they end ``interrupted``), indexes persisted,
-the engine disposed. Run one process per data directory (one uvicorn worker): the map
-registry and the job runner live in the process.
+mat-vecs many times slower); every map's index loaded (or rebuilt) by the registry and
+its replica sync started; the job runner (leases: it takes over jobs whose holder died).
+Shutdown: sync stopped, running jobs handed back to the queue, indexes persisted, the
+engine disposed. Any number of processes may serve one database: each is a replica
+(``server/runtime.py``), admission control bounds what each one accepts
+(``server/api/admission.py``).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import anyio
 import numpy as np
 from fastapi import FastAPI
 
+from monoloc.server.api.admission import Admission, LaneConfig, install_admission
 from monoloc.server.api.console import install_console
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.errors import install_error_handlers
@@ -85,15 +87,34 @@ def _limit_threads(settings: Settings):
     return threadpool_limits(limits=1)
 
 
-def _start(settings: Settings, metrics: Metrics) -> AppState:
+def admission_for(settings: Settings, metrics: Metrics) -> Admission:
+    """The lanes of admission control, sized by the settings."""
+    return Admission(
+        {
+            "localize": LaneConfig(
+                settings.worker_threads,
+                settings.localize_queue_depth,
+                settings.localize_deadline_ms,
+            ),
+            "write": LaneConfig(
+                settings.write_threads, settings.write_queue_depth, settings.write_deadline_ms
+            ),
+            # Uploads spool to disk and hand work to the job runner; the deadline only
+            # bounds the wait for a slot.
+            "jobs": LaneConfig(1, settings.job_queue_depth, 3_600_000),
+        },
+        metrics,
+    )
+
+
+def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppState:
     """Blocking start-up work (run in a thread by the lifespan)."""
     from monoloc.server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
     from monoloc.server.index.warmup import warm_up as warm_up_index
     from monoloc.server.jobs.handlers import HANDLERS
     from monoloc.server.jobs.runner import JobRunner
-    from monoloc.server.jobs.store import mark_interrupted_jobs
     from monoloc.server.runtime import MapRegistry
-    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
     from monoloc.server.storage.migrate import upgrade_database
     from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
@@ -105,15 +126,13 @@ def _start(settings: Settings, metrics: Metrics) -> AppState:
     upgrade_database(settings.database_url)
     engine = create_engine_for(settings)
     sessions = make_session_factory(engine)
-    with session_scope(sessions) as session:
-        interrupted = mark_interrupted_jobs(session)
-    if interrupted:
-        log.warning("jobs %s were cut off by the last shutdown: marked interrupted", interrupted)
     bootstrap_admin_key(sessions, settings)
     assert settings.index_dir is not None
     registry = MapRegistry(sessions, Path(settings.index_dir))
     n_maps = registry.load_all()
     log.info("loaded %d map(s)", n_maps)
+    postgres = engine.dialect.name == "postgresql"
+    registry.start_sync(settings.replica_sync_s, settings.database_url if postgres else None)
     runner = JobRunner(sessions, registry, settings, HANDLERS)
     runner.start()
     return AppState(
@@ -123,12 +142,13 @@ def _start(settings: Settings, metrics: Metrics) -> AppState:
         registry=registry,
         jobs=runner,
         metrics=metrics,
-        cpu=anyio.CapacityLimiter(settings.worker_threads),
+        admission=admission,
         seeds=np.random.SeedSequence(settings.localize_seed),
     )
 
 
 def _stop(state: AppState) -> None:
+    state.registry.stop_sync()
     state.jobs.stop()
     try:
         state.registry.persist()
@@ -152,6 +172,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """The API for ``settings`` (default: read from the environment now)."""
     settings = settings or get_settings()
     metrics = Metrics()
+    admission = admission_for(settings, metrics)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -159,7 +180,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         install_log_redaction()
         limiter = _limit_threads(settings)
-        state = await anyio.to_thread.run_sync(_start, settings, metrics)
+        state = await anyio.to_thread.run_sync(_start, settings, metrics, admission)
         state.ready = True
         app.state.monoloc = state
         try:
@@ -189,6 +210,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     _document_limits(app, settings)
     install_console(app)  # /ui, offline /docs and /redoc, the console's JSON routes
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    install_admission(app, admission)  # inside the metrics: shed requests are timed too
     app.add_middleware(RequestMetricsMiddleware, metrics=metrics)
     return app
 

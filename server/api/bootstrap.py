@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import re
+import time
 from pathlib import Path
 
 from sqlalchemy import func, select
@@ -58,15 +59,23 @@ def bootstrap_admin_key(sessions: sessionmaker[Session], settings: Settings) -> 
 
 
 def uploads_dir(settings: Settings) -> Path:
-    return Path(settings.data_dir) / "uploads"
+    assert settings.uploads_dir is not None
+    return Path(settings.uploads_dir)
 
 
-def clean_incoming_uploads(settings: Settings) -> int:
-    """Delete half-received uploads a crash left in ``uploads/.incoming-*``."""
+def clean_incoming_uploads(settings: Settings, older_than_s: float = 3600.0) -> int:
+    """Delete half-received uploads a crash left in ``uploads/.incoming-*`` (only those
+    untouched for ``older_than_s``: replicas share the directory, and another one may be
+    receiving an upload right now)."""
     root = uploads_dir(settings)
     if not root.is_dir():
         return 0
-    stale = [p for p in root.iterdir() if p.name.startswith(INCOMING_PREFIX)]
+    cutoff = time.time() - older_than_s
+    stale = [
+        p
+        for p in root.iterdir()
+        if p.name.startswith(INCOMING_PREFIX) and p.stat().st_mtime < cutoff
+    ]
     for path in stale:
         remove_tree(path)
     return len(stale)

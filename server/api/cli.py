@@ -89,11 +89,22 @@ def serve(
     port: Annotated[int | None, typer.Option(help="Port (MONOLOC_PORT).")] = None,
     data_dir: DataDirOption = None,
     log_level: Annotated[str, typer.Option(help="uvicorn log level.")] = "info",
+    workers: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            help="Server processes on this port; each is a replica with its own index, kept "
+            "current from the database's change log (use PostgreSQL for more than a few).",
+        ),
+    ] = 1,
 ) -> None:
-    """Run the map server (one process: the index and the jobs live in it)."""
+    """Run the map server: ``workers`` replica processes sharing the database."""
+    import os
+
     import uvicorn
 
     from monoloc.server.api.app import create_app
+    from monoloc.server.storage.migrate import upgrade_database
 
     overrides: dict[str, object] = {}
     if host is not None:
@@ -101,6 +112,24 @@ def serve(
     if port is not None:
         overrides["port"] = port
     settings = _settings(data_dir, **overrides)
+    if workers == 1:
+        uvicorn.run(
+            create_app(settings),
+            host=settings.host,
+            port=settings.port,
+            log_level=log_level,
+            workers=1,
+        )
+        return
+    # Worker processes build their app from the environment: pass the resolved settings.
+    upgrade_database(settings.database_url)  # once, before the replicas start
+    os.environ["MONOLOC_DATA_DIR"] = str(settings.data_dir)
+    os.environ["MONOLOC_DATABASE_URL"] = settings.database_url
     uvicorn.run(
-        create_app(settings), host=settings.host, port=settings.port, log_level=log_level, workers=1
+        "monoloc.server.api.app:create_app_from_env",
+        factory=True,
+        host=settings.host,
+        port=settings.port,
+        log_level=log_level,
+        workers=workers,
     )

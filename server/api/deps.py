@@ -20,7 +20,6 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Annotated, Any, TypeVar
 
-import anyio
 import numpy as np
 from fastapi import Depends, Security
 from fastapi.security import APIKeyHeader, APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
@@ -28,6 +27,7 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.requests import HTTPConnection
 
+from monoloc.server.api.admission import Admission
 from monoloc.server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
 from monoloc.server.api.metrics import Metrics
 from monoloc.server.jobs.runner import JobRunner
@@ -50,8 +50,8 @@ class AppState:
     registry: MapRegistry
     jobs: JobRunner
     metrics: Metrics
-    cpu: anyio.CapacityLimiter
     seeds: np.random.SeedSequence
+    admission: Admission
     ready: bool = False
     _seed_lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -62,8 +62,9 @@ class AppState:
         return int(child.generate_state(2, np.uint64)[0] >> np.uint64(1))
 
     async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T:
-        """Run CPU work (decode, ORB, PnP, entry building) on the bounded worker pool."""
-        return await anyio.to_thread.run_sync(fn, *args, limiter=self.cpu)
+        """Run CPU work (decode, ORB, PnP, entry building) on the request's admission lane
+        (dropped first if its deadline passed or its client left)."""
+        return await self.admission.run(fn, *args)
 
 
 def get_state(conn: HTTPConnection) -> AppState:

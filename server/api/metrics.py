@@ -9,6 +9,9 @@ justify a dependency, and per-app instances keep tests independent.
 * ``monoloc_localize_stage_duration_seconds{stage}``: histogram of the localization
   stages (decode, features, vlad, retrieval, lookup, matching, pnp, total).
 * ``monoloc_stream_frames_total{outcome}``: WebSocket frames answered, dropped, failed.
+* ``monoloc_admission_shed_total{lane}``, ``monoloc_admission_expired_total{lane, reason}``:
+  requests turned away by admission control (``server/api/admission.py``); its queue
+  depths are gauges read at scrape time.
 * ``monoloc_map_entries{map_id, map}``, ``monoloc_jobs{kind, state}`` and
   ``monoloc_maps_loaded``: gauges read from the database / registry at scrape time.
 """
@@ -134,6 +137,16 @@ class Metrics:
             "monoloc_stream_frames_total",
             "WebSocket stream frames by outcome (answered, dropped, error).",
             ("outcome",),
+        )
+        self.admission_shed = Counter(
+            "monoloc_admission_shed_total",
+            "Requests answered 503 at once because their lane was full (nothing computed).",
+            ("lane",),
+        )
+        self.admission_expired = Counter(
+            "monoloc_admission_expired_total",
+            "Admitted requests dropped before computing: deadline passed or client gone.",
+            ("lane", "reason"),
         )
 
     def observe_localize(self, timings_ms: Mapping[str, float]) -> None:

@@ -1,9 +1,8 @@
-"""Resuming a job. Nothing is resumed behind the operator's back: after a restart the
-server marks the jobs it cut off ``interrupted`` (:func:`store.mark_interrupted_jobs`),
-and an interrupted or failed job comes back only when asked (``POST
-/v1/jobs/{id}/resume``). Every kind is idempotent (entries by image hash, VLADs by
-vocabulary id, a calibration replaces the previous one and is seeded), so a resumed job
-does only the work that was missing."""
+"""Resuming a job. Work cut off by a crash or a shutdown is taken over by a replica
+(``monoloc.server.jobs.lease``); a job that ended ``interrupted`` (cancelled) or
+``failed`` comes back only when asked (``POST /v1/jobs/{id}/resume``). Every kind is
+idempotent (entries by image hash, VLADs by vocabulary id, a calibration replaces the
+previous one and is seeded), so a resumed job does only the work that was missing."""
 
 from __future__ import annotations
 

@@ -2,8 +2,9 @@
 error, result of each ingestion, vocabulary change, calibration). Never commits.
 
 Job states: queued -> running -> done | failed | interrupted. An interrupted or failed
-job may be queued or run again (resumed); done is final. On start-up the server calls
-:func:`mark_interrupted_jobs` so that work cut off by a restart is reported as such.
+job may be queued or run again (resumed); done is final. Which process runs a job is a
+lease (``monoloc.server.jobs.lease``): work whose holder died is taken over, not marked.
+:func:`mark_interrupted_jobs` remains for tools that stop every job of a database.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""A job's uploaded run: unpacked under ``data_dir/uploads/<job id>`` by the route that
-created the job, opened by the readers from the job's parameters (so a resumed job reads
+"""A job's uploaded run: unpacked under ``uploads_dir/<job id>`` (default
+``data_dir/uploads``, shared by the replicas) by the route that created the job, opened
+by the readers from the job's parameters (so a resumed job reads
 what the first attempt read), and deleted once the job is done."""
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ def upload_dir_of(job: JobRecord, settings: Settings) -> Path | None:
     """``data_dir/uploads/<job id>`` for jobs that came with an upload, else None."""
     if not job.params.get("upload"):
         return None
-    return Path(settings.data_dir) / "uploads" / str(job.id)
+    assert settings.uploads_dir is not None
+    return Path(settings.uploads_dir) / str(job.id)
 
 
 def dataset_root(dest: Path) -> Path:
@@ -51,5 +53,5 @@ def remove_tree(path: Path) -> None:
 
 def public_message(text: str, settings: Settings) -> str:
     """An error message without the server's absolute upload paths."""
-    uploads = str((Path(settings.data_dir) / "uploads").resolve()) + "/"
+    uploads = str(Path(settings.uploads_dir or "uploads").resolve()) + "/"
     return text.replace(uploads, "uploads/")

@@ -107,7 +107,7 @@ def add_entry(
     tags = normalise_tags(entry.tags)
     if tags:
         session.execute(insert(EntryTag), [{"entry_id": new_id, "tag": t} for t in tags])
-    bump_map_version(session, map_id)
+    bump_map_version(session, map_id, "add", new_id)
     return _summary(_load(session, new_id, None)), True
 
 
@@ -124,18 +124,20 @@ def delete_entry(session: Session, entry_id: int, *, map_id: int | None = None) 
     session.execute(
         delete(Entry).where(Entry.id == entry_id).execution_options(synchronize_session=False)
     )
-    return bump_map_version(session, owner)
+    return bump_map_version(session, owner, "delete", entry_id)
 
 
 def set_entry_tags(
     session: Session, entry_id: int, tags: Iterable[str], *, map_id: int | None = None
 ) -> EntrySummary:
-    """Replace the entry's tags (normalised to lower case, duplicates dropped)."""
-    _load(session, entry_id, map_id)
+    """Replace the entry's tags (normalised to lower case, duplicates dropped); bumps the
+    map version (replicas re-read the entry's tags)."""
+    row = _load(session, entry_id, map_id)
     clean = normalise_tags(tags)
     session.execute(delete(EntryTag).where(EntryTag.entry_id == entry_id))
     if clean:
         session.execute(insert(EntryTag), [{"entry_id": entry_id, "tag": t} for t in clean])
+    bump_map_version(session, row.map_id, "retag", entry_id)
     return _summary(_load(session, entry_id, map_id))
 
 
@@ -263,27 +265,51 @@ def get_entry_data(session: Session, entry_ids: Sequence[int]) -> list[EntryData
     return [_data(rows[int(i)]) for i in entry_ids]
 
 
+def _vectors(rows) -> MapVectors:
+    ids = np.array([r[0] for r in rows], dtype=np.int64)
+    if not len(ids):
+        return MapVectors(
+            entry_ids=ids,
+            vlads=np.zeros((0, arr.VLAD[1][0]), np.float32),
+            codes=np.zeros((0, arr.CODE[1][0]), np.uint8),
+            planar=np.zeros((0, 3), np.float64),
+        )
+    vlads = np.stack([arr.unpack_array(r[1], arr.VLAD, f"entries id={r[0]} vlad") for r in rows])
+    codes = np.stack([arr.unpack_array(r[2], arr.CODE, f"entries id={r[0]} code") for r in rows])
+    planar = np.array([(r[3], r[4], r[5]) for r in rows], dtype=np.float64)
+    return MapVectors(entry_ids=ids, vlads=vlads, codes=codes, planar=planar)
+
+
+_VECTOR_COLUMNS = (Entry.id, Entry.vlad, Entry.code, Entry.x_m, Entry.y_m, Entry.yaw_rad)
+
+
 def iter_map_vectors(
     session: Session, map_id: int, *, batch_size: int = 4096
 ) -> Iterator[MapVectors]:
     """All of a map's (entry id, VLAD, code, planar pose) in id order, in batches, for
     building a retrieval index. Corrupt blobs raise InvalidInputError."""
     stmt = (
-        select(Entry.id, Entry.vlad, Entry.code, Entry.x_m, Entry.y_m, Entry.yaw_rad)
+        select(*_VECTOR_COLUMNS)
         .where(Entry.map_id == map_id)
         .order_by(Entry.id)
         .execution_options(yield_per=batch_size)
     )
     for part in session.execute(stmt).partitions():
-        ids = np.array([r[0] for r in part], dtype=np.int64)
-        vlads = np.stack(
-            [arr.unpack_array(r[1], arr.VLAD, f"entries id={r[0]} vlad") for r in part]
+        yield _vectors(part)
+
+
+def map_vectors_of(session: Session, map_id: int, entry_ids: Sequence[int]) -> MapVectors:
+    """The retrieval data of those of ``entry_ids`` that exist in the map, in id order
+    (a replica applying the change log)."""
+    rows = []
+    unique_ids = sorted({int(i) for i in entry_ids})
+    for i in range(0, len(unique_ids), _IN_CHUNK):
+        stmt = select(*_VECTOR_COLUMNS).where(
+            Entry.map_id == map_id, Entry.id.in_(unique_ids[i : i + _IN_CHUNK])
         )
-        codes = np.stack(
-            [arr.unpack_array(r[2], arr.CODE, f"entries id={r[0]} code") for r in part]
-        )
-        planar = np.array([(r[3], r[4], r[5]) for r in part], dtype=np.float64)
-        yield MapVectors(entry_ids=ids, vlads=vlads, codes=codes, planar=planar)
+        rows.extend(session.execute(stmt))
+    rows.sort(key=lambda r: r[0])
+    return _vectors(rows)
 
 
 def update_entry_vlad(
@@ -300,4 +326,4 @@ def update_entry_vlad(
         .values(vlad=vlad_blob, code=code_blob, vocabulary_id=vocabulary_id)
         .execution_options(synchronize_session=False)
     )
-    return bump_map_version(session, row.map_id)
+    return bump_map_version(session, row.map_id, "vlad", entry_id)

@@ -11,15 +11,22 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Select, delete, func, select, update
+from sqlalchemy import Select, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
 from monoloc.server.storage._sql import insert_or_ignore
 from monoloc.server.storage.arrays import CENTRES, pack_array, unpack_array
-from monoloc.server.storage.models import Entry, Map, Vocabulary, utc_now
-from monoloc.server.storage.records import MapRecord, VocabularyRecord
+from monoloc.server.storage.models import (
+    CHANGE_KINDS,
+    Entry,
+    Map,
+    MapChange,
+    Vocabulary,
+    utc_now,
+)
+from monoloc.server.storage.records import MapChangeRecord, MapRecord, VocabularyRecord
 from monoloc.server.vision.sizes import N_WORDS
 
 MAP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
@@ -175,19 +182,53 @@ def delete_map(session: Session, map_id: int) -> None:
     session.expire_all()
 
 
-def bump_map_version(session: Session, map_id: int) -> int:
-    """Increment the map's version counter (takes the write lock); returns the new value."""
+CHANGES_CHANNEL = "monoloc_map_changes"  # PostgreSQL NOTIFY channel: "<map id>:<version>"
+
+
+def bump_map_version(session: Session, map_id: int, kind: str, entry_id: int | None = None) -> int:
+    """Increment the map's version counter (takes the write lock) and append the change
+    that made it (``kind`` of ``models.CHANGE_KINDS``, about ``entry_id``) to the map's
+    log in the same transaction; returns the new version. On PostgreSQL the commit also
+    notifies ``CHANGES_CHANNEL`` so that replicas apply it at once."""
+    if kind not in CHANGE_KINDS:
+        raise InvalidInputError(f"change kind must be one of {CHANGE_KINDS}, got {kind!r}")
+    now = utc_now()
     result = session.execute(
         update(Map)
         .where(Map.id == map_id)
-        .values(version=Map.version + 1, updated_at=utc_now())
+        .values(version=Map.version + 1, updated_at=now)
         .returning(Map.version)
         .execution_options(synchronize_session=False)
     )
     version = result.scalar_one_or_none()
     if version is None:
         raise NotFoundError(f"map {map_id} does not exist")
+    session.execute(
+        insert(MapChange).values(
+            map_id=map_id, version=int(version), kind=kind, entry_id=entry_id, created_at=now
+        )
+    )
+    if session.get_bind().dialect.name == "postgresql":
+        session.execute(select(func.pg_notify(CHANGES_CHANNEL, f"{map_id}:{int(version)}")))
     return int(version)
+
+
+def list_changes(
+    session: Session, map_id: int, after_version: int, limit: int = 10_000
+) -> list[MapChangeRecord]:
+    """The map's changes with a version above ``after_version``, in version order."""
+    stmt = (
+        select(MapChange)
+        .where(MapChange.map_id == map_id, MapChange.version > after_version)
+        .order_by(MapChange.version)
+        .limit(limit)
+    )
+    return [MapChangeRecord(r.map_id, r.version, r.kind, r.entry_id) for r in session.scalars(stmt)]
+
+
+def map_versions(session: Session) -> dict[int, int]:
+    """Every map's id -> current version (one cheap query; replicas poll it)."""
+    return {int(i): int(v) for i, v in session.execute(select(Map.id, Map.version))}
 
 
 def set_map_vocabulary(session: Session, map_id: int, vocabulary_id: int) -> MapRecord:
@@ -200,7 +241,7 @@ def set_map_vocabulary(session: Session, map_id: int, vocabulary_id: int) -> Map
         .values(vocabulary_id=vocabulary_id)
         .execution_options(synchronize_session=False)
     )
-    bump_map_version(session, map_id)
+    bump_map_version(session, map_id, "vocabulary")
     return get_map(session, map_id)
 
 

@@ -182,6 +182,31 @@ class EntryTag(Base):
     tag: Mapped[str] = mapped_column(String(64), primary_key=True, index=True)
 
 
+CHANGE_KINDS = ("add", "delete", "retag", "vlad", "vocabulary")
+
+
+class MapChange(Base):
+    """One step of a map's ordered change log: the edit that took the map to ``version``.
+
+    Written in the transaction that bumps the version (``maps.bump_map_version``), so the
+    log has no gap: replicas apply ``version > their own`` in order as deltas to their
+    in-memory index (``runtime.MapRegistry.catch_up``). ``entry_id`` is not a foreign key:
+    a deleted entry's row stays in the log."""
+
+    __tablename__ = "map_changes"
+    __table_args__ = (
+        UniqueConstraint("map_id", "version"),
+        CheckConstraint(_in("kind", CHANGE_KINDS), name="kind"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    map_id: Mapped[int] = mapped_column(ForeignKey("maps.id", ondelete="CASCADE"))
+    version: Mapped[int]
+    kind: Mapped[str] = mapped_column(String(16))
+    entry_id: Mapped[int | None]
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
 class Job(Base):
     __tablename__ = "jobs"
     __table_args__ = (
@@ -206,6 +231,10 @@ class Job(Base):
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
     finished_at: Mapped[datetime | None]
+    # The lease of the process running it (server/jobs/lease.py): who holds it, until when.
+    lease_owner: Mapped[str | None] = mapped_column(String(128))
+    lease_expires_at: Mapped[datetime | None] = mapped_column(index=True)
+    attempts: Mapped[int] = mapped_column(default=0, server_default=text("0"))
 
 
 class ApiKey(Base):

@@ -28,6 +28,17 @@ class VocabularyRecord:
 
 
 @dataclass(frozen=True)
+class MapChangeRecord:
+    """One step of a map's change log: ``kind`` (add, delete, retag, vlad, vocabulary)
+    took the map to ``version``; ``entry_id`` is the entry concerned, if any."""
+
+    map_id: int
+    version: int
+    kind: str
+    entry_id: int | None
+
+
+@dataclass(frozen=True)
 class MapRecord:
     """A map with its camera, vocabulary, version counter and entry count."""
 

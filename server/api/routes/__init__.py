@@ -10,12 +10,14 @@ from monoloc.server.api.routes import (
     keys,
     localize,
     maps,
+    replica,
     runs,
     stream,
 )
 
 ROUTERS = [
     maps.router,
+    replica.router,
     runs.router,
     jobs.router,
     entries.router,

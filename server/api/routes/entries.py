@@ -11,6 +11,7 @@ from fastapi import APIRouter, File, Form, Query, Response, UploadFile, status
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.server.api import convert
+from monoloc.server.api.consistency import MAP_VERSION_HEADER
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import MapWriteKey, RegistryDep, SessionDep, StateDep
 from monoloc.server.api.entry_upload import NewEntryForm, add_entry_from_form
@@ -95,6 +96,7 @@ async def add_entry(
         timestamp_s=timestamp_s,
     )
     created = await add_entry_from_form(state, map_id, form)
+    response.headers[MAP_VERSION_HEADER] = str(created.map_version)
     if not created.created:
         response.status_code = status.HTTP_200_OK
     return created
@@ -165,11 +167,13 @@ def get_entry(
 def delete_entry(
     map_id: MapId, entry_id: EntryId, session: SessionDep, registry: RegistryDep, _key: MapWriteKey
 ) -> Response:
-    """Removes the entry; the next query no longer retrieves it."""
+    """Removes the entry; the next query no longer retrieves it. The map version the
+    deletion produced is in the X-Map-Version header."""
     version = entries_repo.delete_entry(session, entry_id, map_id=map_id)
     session.commit()
     registry.entries_removed(map_id, [entry_id], version)
-    return Response(status_code=status.HTTP_204_NO_CONTENT)
+    headers = {MAP_VERSION_HEADER: str(version)}
+    return Response(status_code=status.HTTP_204_NO_CONTENT, headers=headers)
 
 
 @router.patch(
@@ -184,10 +188,14 @@ def retag_entry(
     body: TagsUpdate,
     session: SessionDep,
     registry: RegistryDep,
+    response: Response,
     _key: MapWriteKey,
 ) -> EntryPublic:
-    """Replaces the entry's tags (lower-cased, duplicates dropped)."""
+    """Replaces the entry's tags (lower-cased, duplicates dropped); the map version it
+    produced is in the X-Map-Version header."""
     summary = entries_repo.set_entry_tags(session, entry_id, body.tags, map_id=map_id)
+    version = maps_repo.get_map(session, map_id).version
     session.commit()
+    response.headers[MAP_VERSION_HEADER] = str(version)
     registry.entry_retagged(map_id, entry_id)
     return convert.entry_public(summary)

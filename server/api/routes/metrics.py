@@ -17,6 +17,17 @@ def _scrape(state: AppState) -> str:
     lines.extend(state.metrics.requests.render())
     lines.extend(state.metrics.localize_stages.render())
     lines.extend(state.metrics.stream_frames.render())
+    lines.extend(state.metrics.admission_shed.render())
+    lines.extend(state.metrics.admission_expired.render())
+    for kind, values in state.admission.gauges().items():
+        lines.extend(
+            render_gauge(
+                f"monoloc_admission_{kind}",
+                f"Requests per admission lane: {kind}.",
+                ("lane",),
+                values,
+            )
+        )
     with state.sessions() as session:
         per_map = session.execute(
             select(Map.id, Map.name, func.count(Entry.id))

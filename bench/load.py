@@ -1,0 +1,490 @@
+"""Open-loop fleet load on the map server: capacity first, then twice capacity offered.
+
+`monoloc serve` replicas run as subprocesses on 127.0.0.1 (1, then 2 replicas on one
+database: SQLite in WAL mode by default, PostgreSQL with ``--postgres-url``); vehicles
+are spread over the replicas as a load balancer would. The map is a sim city's map pass
+(generated once into ``out/bench_load``), uploaded and ingested through the HTTP API.
+
+1. **Capacity**: closed loop, ``2 x worker_threads`` clients per replica sending frames
+   back to back over HTTP for ``--duration`` s: served frames per second and the p50 /
+   p99 of their round trip (the baseline of this run).
+2. **Twice capacity, open loop**: N vehicles at R Hz (N x R = 2 x capacity; each
+   vehicle sends on its own clock whatever happened to its earlier frames, deadline
+   ``X-Request-Deadline-Ms`` = 1000), over HTTP and over the WebSocket stream, without
+   and with concurrent map writes (one re-tag per second, alternately on each replica).
+
+Printed beside capacity, with the issue's goals: served rate at 2x >= 90 % of capacity;
+p99 of served frames <= 3 x their p50 at capacity; server memory (summed RSS of the
+replicas) within +300 MB of idle; writes p99 <= 1 s; no 5xx other than 503 (shed).
+Writes bench/results/load.json. Usage:
+    python bench/load.py [--duration 20] [--replicas 1 2] [--rate-hz 10] [--postgres-url URL]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import platform
+import shutil
+import socket
+import subprocess
+import sys
+import tarfile
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
+    sys.path.pop(0)  # bench/sim.py would shadow the sim package
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).parent / "results"
+WORK = ROOT / "out" / "bench_load"
+ADMIN_KEY = "mlk_" + "L" * 43  # local benchmark data only
+DEADLINE_MS = 1000
+GOALS = {
+    "served_share_min": 0.90,
+    "p99_over_capacity_p50_max": 3.0,
+    "memory_growth_mb_max": 300.0,
+    "writes_p99_s_max": 1.0,
+}
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory of a process (MB) from /proc."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+@contextmanager
+def replicas(n: int, data_dir: Path, database_url: str | None, workers: int):
+    """``n`` `monoloc serve` processes on one database; yields (urls, pids)."""
+    import httpx
+
+    procs, urls = [], []
+
+    def wait_ready(proc: subprocess.Popen, url: str) -> None:
+        deadline = time.monotonic() + 180
+        while True:
+            if proc.poll() is not None:
+                raise RuntimeError(f"monoloc serve exited with {proc.returncode}")
+            try:
+                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            if time.monotonic() > deadline:
+                raise RuntimeError("monoloc serve did not become ready in 180 s")
+            time.sleep(0.2)
+
+    try:
+        for i in range(n):  # one after the other: the first one migrates the database
+            port = free_port()
+            env = dict(
+                os.environ,
+                MONOLOC_BOOTSTRAP_ADMIN_KEY=ADMIN_KEY,
+                MONOLOC_WORKER_THREADS=str(workers),
+                MONOLOC_CV_THREADS="1",
+                MONOLOC_FAISS_THREADS="1",
+                MONOLOC_UPLOADS_DIR=str(data_dir / "uploads"),
+                MONOLOC_INDEX_DIR=str(data_dir / f"index-{i}"),
+            )
+            if database_url:
+                env["MONOLOC_DATABASE_URL"] = database_url
+            cmd = [sys.executable, "-m", "monoloc.cli", "serve", "--port", str(port)]
+            cmd += ["--data-dir", str(data_dir), "--log-level", "warning"]
+            procs.append(subprocess.Popen(cmd, env=env, cwd=ROOT))
+            urls.append(f"http://127.0.0.1:{port}")
+            wait_ready(procs[-1], urls[-1])
+        yield urls, [p.pid for p in procs]
+    finally:
+        for proc in procs:
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def ensure_dataset(frames: int) -> Path:
+    root = WORK / "sim"
+    if not (root / "dataset.json").exists():
+        from monoloc.sim.generate import GenerateConfig, generate_dataset
+
+        print(f"generating {frames} + {frames} frames into {root} (once) ...", flush=True)
+        generate_dataset(GenerateConfig(seed=0, runs=("map", "query"), max_frames=frames), root)
+    return root
+
+
+def ingest_map(url: str, dataset: Path) -> int:
+    from monoloc.client.api import MonolocClient
+
+    camera = json.loads((dataset / "dataset.json").read_text())["camera"]
+    archive = WORK / "map_run.tar"
+    with tarfile.open(archive, "w") as tar:
+        tar.add(dataset / "sequences" / "00", arcname="kitti/sequences/00")
+        tar.add(dataset / "poses" / "00.txt", arcname="kitti/poses/00.txt")
+    with MonolocClient(url, ADMIN_KEY, 600.0) as client:
+        made = client.request("POST", "/v1/maps", json={"name": "load", "camera": camera})
+        map_id = int(made.json()["id"])
+        with open(archive, "rb") as fh:
+            job = client.request(
+                "POST",
+                f"/v1/maps/{map_id}/runs",
+                files={"archive": ("map.tar", fh, "application/x-tar")},
+                data={"format": "kitti", "kind": "map"},
+            ).json()["job"]
+        while job["state"] not in ("done", "failed", "interrupted"):
+            time.sleep(0.5)
+            job = client.request("GET", f"/v1/jobs/{job['id']}").json()
+    archive.unlink()
+    if job["state"] != "done":
+        raise RuntimeError(f"ingestion failed: {job}")
+    return map_id
+
+
+class MemorySampler:
+    """Peak of the replicas' summed RSS, sampled every 0.25 s in a thread."""
+
+    def __init__(self, pids: list[int]) -> None:
+        self.pids, self.peak_mb = pids, 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak_mb = max(self.peak_mb, sum(rss_mb(p) for p in self.pids))
+            self._stop.wait(0.25)
+
+    def __enter__(self) -> MemorySampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def pct(values, q) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+# ---- load generators (asyncio) ----------------------------------------------------------
+
+
+async def _post_frame(client, url: str, map_id: int, png: bytes, deadline_ms: int | None):
+    """(status, seconds): 0 for a failure without an answer, -1 for a frame the vehicle
+    gave up before sending (its connections all busy past the deadline)."""
+    import httpx
+
+    headers = {"X-API-Key": ADMIN_KEY}
+    if deadline_ms is not None:
+        headers["X-Request-Deadline-Ms"] = str(deadline_ms)
+    start = time.perf_counter()
+    try:
+        r = await client.post(
+            f"{url}/v1/maps/{map_id}/localize",
+            files={"image": ("f.png", png, "image/png")},
+            headers=headers,
+        )
+        status = r.status_code
+    except httpx.PoolTimeout:
+        status = -1
+    except Exception:  # noqa: BLE001 - a client timeout or reset counts as a failure
+        status = 0
+    return status, time.perf_counter() - start
+
+
+async def closed_loop(urls, map_id, frames, clients_per_replica, duration_s) -> dict:
+    import httpx
+
+    latencies: list[float] = []
+    statuses: list[int] = []
+    stop_at = time.perf_counter() + duration_s
+
+    async def client_loop(url: str, offset: int) -> None:
+        async with httpx.AsyncClient(timeout=30) as client:
+            i = offset
+            while time.perf_counter() < stop_at:
+                status, latency = await _post_frame(
+                    client, url, map_id, frames[i % len(frames)], None
+                )
+                statuses.append(status)
+                if status == 200:
+                    latencies.append(latency)
+                i += 1
+
+    start = time.perf_counter()
+    await asyncio.gather(*(client_loop(u, k * 7) for u in urls for k in range(clients_per_replica)))
+    wall = time.perf_counter() - start
+    return {
+        "served_per_s": len(latencies) / wall,
+        "p50_ms": pct(latencies, 50) * 1e3,
+        "p99_ms": pct(latencies, 99) * 1e3,
+        "statuses": {str(s): statuses.count(s) for s in sorted(set(statuses))},
+    }
+
+
+async def _writer(urls, map_id, entry_ids, stop_at, out: list) -> None:
+    import httpx
+
+    async with httpx.AsyncClient(timeout=30) as client:
+        k = 0
+        while time.perf_counter() < stop_at:
+            url = urls[k % len(urls)]
+            entry = entry_ids[k % len(entry_ids)]
+            start = time.perf_counter()
+            try:
+                r = await client.patch(
+                    f"{url}/v1/maps/{map_id}/entries/{entry}",
+                    json={"tags": ["load", f"w{k % 2}"]},
+                    headers={"X-API-Key": ADMIN_KEY},
+                )
+                status = r.status_code
+            except Exception:  # noqa: BLE001
+                status = 0
+            out.append((status, time.perf_counter() - start))
+            k += 1
+            await asyncio.sleep(max(0.0, 1.0 - (time.perf_counter() - start)))
+
+
+async def open_loop_http(urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries):
+    import httpx
+
+    results: list[tuple[int, float]] = []
+    write_results: list[tuple[int, float]] = []
+    period = 1.0 / rate_hz
+    t0 = time.perf_counter() + 0.2
+    stop_at = t0 + duration_s
+    limits = httpx.Limits(max_connections=4, max_keepalive_connections=4)
+
+    async def vehicle(v: int) -> None:
+        # A vehicle keeps a few connections alive; a frame that finds them all busy past
+        # its deadline is given up by the vehicle, unsent.
+        timeout = httpx.Timeout(10.0, pool=DEADLINE_MS / 1e3)
+        async with httpx.AsyncClient(timeout=timeout, limits=limits) as client:
+            url = urls[v % len(urls)]
+            tasks = []
+            k = 0
+            while True:
+                at = t0 + (v / vehicles) * period + k * period
+                if at >= stop_at:
+                    break
+                await asyncio.sleep(max(0.0, at - time.perf_counter()))
+                png = frames[(v * 13 + k) % len(frames)]
+                post = _post_frame(client, url, map_id, png, DEADLINE_MS)
+                tasks.append(asyncio.ensure_future(post))
+                k += 1
+            results.extend(await asyncio.gather(*tasks))
+
+    jobs = [vehicle(v) for v in range(vehicles)]
+    if writes:
+        jobs.append(_writer(urls, map_id, entries, stop_at, write_results))
+    await asyncio.gather(*jobs)
+    return summarise(results, write_results, duration_s)
+
+
+async def open_loop_ws(urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries):
+    import websockets
+
+    from monoloc.client.api import encode_frame
+
+    results: list[tuple[int, float]] = []
+    write_results: list[tuple[int, float]] = []
+    period = 1.0 / rate_hz
+    t0 = time.perf_counter() + 0.5
+    stop_at = t0 + duration_s
+
+    async def vehicle(v: int) -> None:
+        url = urls[v % len(urls)].replace("http://", "ws://")
+        sent: dict[int, float] = {}
+        async with websockets.connect(
+            f"{url}/v1/maps/{map_id}/stream",
+            additional_headers={"X-API-Key": ADMIN_KEY},
+            max_size=2**24,
+            compression=None,
+        ) as ws:
+
+            async def receive() -> None:
+                while True:
+                    try:
+                        message = await asyncio.wait_for(ws.recv(), timeout=10)
+                    except (TimeoutError, websockets.ConnectionClosed):
+                        return
+                    answer = json.loads(message)
+                    seq = answer.get("seq")
+                    latency = time.perf_counter() - sent.pop(seq, time.perf_counter())
+                    status = 503 if answer.get("dropped") else (500 if "error" in answer else 200)
+                    results.append((status, latency))
+                    if not sent and time.perf_counter() >= stop_at:
+                        return
+
+            receiver = asyncio.ensure_future(receive())
+            k = 0
+            while True:
+                at = t0 + (v / vehicles) * period + k * period
+                if at >= stop_at:
+                    break
+                await asyncio.sleep(max(0.0, at - time.perf_counter()))
+                sent[k] = time.perf_counter()
+                await ws.send(
+                    encode_frame({"seq": k, "t": k * period}, frames[(v * 13 + k) % len(frames)])
+                )
+                k += 1
+            await receiver
+
+    jobs = [vehicle(v) for v in range(vehicles)]
+    if writes:
+        jobs.append(_writer(urls, map_id, entries, stop_at, write_results))
+    await asyncio.gather(*jobs)
+    return summarise(results, write_results, duration_s)
+
+
+def summarise(results, write_results, duration_s) -> dict:
+    served = [lat for status, lat in results if status == 200]
+    statuses = [s for s, _ in results]
+    write_lat = [lat for _, lat in write_results]
+    return {
+        "offered": len(results),
+        "served_per_s": len(served) / duration_s,
+        "served_p50_ms": None if not served else pct(served, 50) * 1e3,
+        "served_p99_ms": None if not served else pct(served, 99) * 1e3,
+        "shed": statuses.count(503),
+        "errors_5xx": sum(1 for s in statuses if s >= 500 and s != 503),
+        "failed_no_answer": statuses.count(0),
+        "given_up_by_vehicle": statuses.count(-1),
+        "writes": len(write_results),
+        "writes_failed": sum(1 for s, _ in write_results if s != 200),
+        "writes_p99_s": pct(write_lat, 99),
+    }
+
+
+def verdicts(run: dict, capacity: dict, idle_mb: float) -> dict:
+    share = run["served_per_s"] / capacity["served_per_s"]
+    p99_ratio = (run["served_p99_ms"] or math.inf) / capacity["p50_ms"]
+    growth = run["peak_mb"] - idle_mb
+    out = {
+        "served_share": share,
+        "served_share_met": share >= GOALS["served_share_min"],
+        "p99_over_capacity_p50": p99_ratio,
+        "p99_met": p99_ratio <= GOALS["p99_over_capacity_p50_max"],
+        "memory_growth_mb": growth,
+        "memory_met": growth <= GOALS["memory_growth_mb_max"],
+        "no_5xx_met": run["errors_5xx"] == 0 and run["failed_no_answer"] == 0,
+    }
+    if run["writes"]:
+        out["writes_met"] = (run["writes_p99_s"] or 0.0) <= GOALS["writes_p99_s_max"] and not run[
+            "writes_failed"
+        ]
+    return out
+
+
+def measure(n_replicas, args, dataset, frames) -> dict:
+    import httpx
+
+    data_dir = WORK / f"data-{n_replicas}"
+    shutil.rmtree(data_dir, ignore_errors=True)
+    data_dir.mkdir(parents=True)
+    db = args.postgres_url
+    with replicas(n_replicas, data_dir, db, args.workers) as (urls, pids):
+        map_id = ingest_map(urls[0], dataset)
+        entries = [
+            e["id"]
+            for e in httpx.get(
+                f"{urls[0]}/v1/maps/{map_id}/entries?limit=50",
+                headers={"X-API-Key": ADMIN_KEY},
+                timeout=30,
+            ).json()["items"]
+        ]
+        # warm caches and kernels, at full concurrency
+        asyncio.run(closed_loop(urls, map_id, frames, 2 * args.workers, 5.0))
+        time.sleep(2.0)
+        idle_mb = sum(rss_mb(p) for p in pids)
+        capacity = asyncio.run(closed_loop(urls, map_id, frames, 2 * args.workers, args.duration))
+        print(
+            f"[{n_replicas} replica(s)] capacity {capacity['served_per_s']:.1f} frames/s, "
+            f"p50 {capacity['p50_ms']:.0f} ms, p99 {capacity['p99_ms']:.0f} ms, idle "
+            f"{idle_mb:.0f} MB",
+            flush=True,
+        )
+        offered = 2.0 * capacity["served_per_s"]
+        vehicles = max(1, math.ceil(offered / args.rate_hz))
+        rate = offered / vehicles
+        runs = {}
+        for transport, fn in (("http", open_loop_http), ("ws", open_loop_ws)):
+            for writes in (False, True):
+                name = f"{transport}{'+writes' if writes else ''}"
+                with MemorySampler(pids) as memory:
+                    run = asyncio.run(
+                        fn(urls, map_id, frames, vehicles, rate, args.duration, writes, entries)
+                    )
+                run["peak_mb"] = memory.peak_mb
+                run["verdicts"] = verdicts(run, capacity, idle_mb)
+                runs[name] = run
+                v = run["verdicts"]
+                print(
+                    f"  2x ({vehicles} vehicles x {rate:.1f} Hz) {name:12s} served "
+                    f"{run['served_per_s']:.1f}/s ({100 * v['served_share']:.0f} % of capacity), "
+                    f"p99 {run['served_p99_ms'] or float('nan'):.0f} ms "
+                    f"({v['p99_over_capacity_p50']:.1f}x cap p50), shed {run['shed']}, 5xx "
+                    f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
+                    f"+{v['memory_growth_mb']:.0f} MB"
+                    + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else ""),
+                    flush=True,
+                )
+                time.sleep(2.0)
+    return {
+        "replicas": n_replicas,
+        "database": "postgresql" if db else "sqlite",
+        "idle_mb": idle_mb,
+        "capacity": capacity,
+        "offered_per_s": offered,
+        "vehicles": vehicles,
+        "rate_hz": rate,
+        "runs": runs,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--duration", type=float, default=20.0, help="seconds per phase")
+    parser.add_argument("--replicas", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--rate-hz", type=float, default=10.0, help="per vehicle")
+    parser.add_argument("--workers", type=int, default=2, help="worker threads per replica")
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--postgres-url", default="", help="SQLAlchemy URL; default SQLite")
+    args = parser.parse_args()
+    dataset = ensure_dataset(args.frames)
+    frames = sorted((dataset / "sequences" / "01" / "image_0").glob("*.png"))
+    frames = [p.read_bytes() for p in frames]
+    results = [measure(n, args, dataset, frames) for n in args.replicas]
+    RESULTS.mkdir(exist_ok=True)
+    out = {
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "duration_s": args.duration,
+        "deadline_ms": DEADLINE_MS,
+        "goals": GOALS,
+        "results": results,
+    }
+    (RESULTS / "load.json").write_text(json.dumps(out, indent=2))
+    print(f"wrote {RESULTS / 'load.json'}")
+
+
+if __name__ == "__main__":
+    main()

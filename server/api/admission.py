@@ -1,0 +1,331 @@
+"""Admission control: bounded lanes for localize, map writes and jobs.
+
+Every costly HTTP request belongs to one *lane* (:func:`lane_of`): ``localize``
+(``POST .../localize``), ``write`` (entry adds, deletes, re-tags, calibration and other
+map edits) and ``jobs`` (run uploads, job resumes). A lane admits at most
+``workers + queue_depth`` requests at a time; one more is answered at once with 503 and
+``Retry-After``, before its body is read, so it costs the server nothing (no upload
+spooled, no decode) and memory stays bounded by the lanes' sizes whatever the offered
+load. Each lane has its own CPU slots (``workers``): writes never queue behind a flood of
+frames and frames never behind an upload. Reads (GET), ``/healthz``, ``/readyz`` and
+``/metrics`` take no lane: they always answer.
+
+An admitted request carries a deadline: ``X-Request-Deadline-Ms`` (milliseconds the
+client is willing to wait, counted from the server's receipt of the request), else the
+lane's default. When its turn on the CPU comes, a request whose deadline has passed or
+whose client has disconnected is dropped without being computed (503
+``deadline_exceeded`` / ``client_disconnected``; a gone client never reads it). The
+WebSocket stream sheds on its own (stale frames dropped) and takes CPU slots of the
+localize lane without a ticket.
+
+Counts go to :class:`monoloc.server.api.metrics.Metrics`: ``monoloc_admission_shed_total``,
+``monoloc_admission_expired_total``; queue depth and running work are gauges read at
+scrape time (:meth:`Admission.gauges`).
+"""
+
+from __future__ import annotations
+
+import contextvars
+import json
+import math
+import re
+import threading
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import anyio
+import anyio.to_thread
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from monoloc.core.errors import MonolocError
+
+T = TypeVar("T")
+
+DEADLINE_HEADER = b"x-request-deadline-ms"
+LANES = ("localize", "write", "jobs")
+
+_LOCALIZE = re.compile(r"^/v1/maps/[^/]+/localize/?$")
+_JOBS = re.compile(r"^/v1/(maps/[^/]+/(runs|calibration/runs)(/.*)?|jobs(/.*)?)$")
+
+
+class OverloadedError(MonolocError):
+    """The request's lane is full; nothing was done. Retry after ``retry_after_s``."""
+
+    http_status = 503
+    code = "overloaded"
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
+class DeadlineExceededError(OverloadedError):
+    """The request's deadline passed before its turn came; it was not computed."""
+
+    code = "deadline_exceeded"
+
+
+class ClientDisconnectedError(OverloadedError):
+    """The client went away before its request's turn came; it was not computed."""
+
+    code = "client_disconnected"
+
+
+@dataclass(frozen=True)
+class LaneConfig:
+    """One lane: concurrent computations, requests allowed to wait, default deadline."""
+
+    workers: int
+    queue_depth: int
+    default_deadline_ms: int
+
+
+def lane_of(method: str, path: str) -> str | None:
+    """The lane of an HTTP request, or None (reads, health, metrics, docs: no lane)."""
+    if method in ("GET", "HEAD", "OPTIONS"):
+        return None
+    if _LOCALIZE.match(path):
+        return "localize"
+    if _JOBS.match(path):
+        return "jobs"
+    if path.startswith("/v1/"):
+        return "write"
+    return None
+
+
+class Lane:
+    """Bounded admission (``workers + queue_depth`` requests inside) and CPU slots."""
+
+    def __init__(self, name: str, config: LaneConfig) -> None:
+        self.name = name
+        self.config = config
+        self.capacity = config.workers + config.queue_depth
+        self.cpu = anyio.CapacityLimiter(config.workers)
+        self._threads = anyio.CapacityLimiter(config.workers)
+        self._lock = threading.Lock()
+        self._inside = 0
+        self._running = 0
+        self._service_s = 0.05  # moving average of one computation, for Retry-After
+
+    def try_enter(self) -> bool:
+        with self._lock:
+            if self._inside >= self.capacity:
+                return False
+            self._inside += 1
+            return True
+
+    def leave(self) -> None:
+        with self._lock:
+            self._inside -= 1
+
+    @property
+    def inside(self) -> int:
+        with self._lock:
+            return self._inside
+
+    @property
+    def running(self) -> int:
+        with self._lock:
+            return self._running
+
+    def retry_after_s(self) -> int:
+        """Whole seconds (HTTP's unit) for the queue ahead to drain, at least 1."""
+        with self._lock:
+            drain_s = self.capacity * self._service_s / max(1, self.config.workers)
+        return int(min(60, max(1, math.ceil(drain_s))))
+
+    async def compute(
+        self,
+        fn: Callable[..., T],
+        *args: Any,
+        wait_s: float = math.inf,
+        check: Callable[[], Awaitable[None]] | None = None,
+    ) -> T:
+        """Run ``fn`` (blocking, in a thread) on one of the lane's CPU slots. Waits at most
+        ``wait_s`` for the slot (TimeoutError); ``check`` runs once the slot is held and
+        may raise to drop the work. The computation itself is never cut short."""
+        acquired = False
+        with anyio.move_on_after(wait_s):
+            await self.cpu.acquire()
+            acquired = True
+        if not acquired:
+            raise TimeoutError(f"no {self.name} slot within {wait_s:.3f} s")
+        try:
+            if check is not None:
+                await check()
+            with self._lock:
+                self._running += 1
+            start = time.perf_counter()
+            try:
+                return await anyio.to_thread.run_sync(fn, *args, limiter=self._threads)
+            finally:
+                elapsed = time.perf_counter() - start
+                with self._lock:
+                    self._running -= 1
+                    self._service_s = 0.9 * self._service_s + 0.1 * elapsed
+        finally:
+            self.cpu.release()
+
+
+@dataclass
+class Ticket:
+    """An admitted request: its lane, its deadline (monotonic s) and its ASGI receive."""
+
+    lane: Lane
+    deadline_s: float
+    receive: Receive
+
+    async def client_gone(self) -> bool:
+        """True when the client has disconnected (peeks at the ASGI receive channel
+        without waiting; call only after the body was read)."""
+        message: dict | None = None
+        with anyio.CancelScope() as scope:
+            scope.cancel()
+            message = await self.receive()
+        return message is not None and message.get("type") == "http.disconnect"
+
+
+_ticket: contextvars.ContextVar[Ticket | None] = contextvars.ContextVar(
+    "monoloc_admission_ticket", default=None
+)
+
+
+class Admission:
+    """The lanes of one app, and the counters of what they turned away."""
+
+    def __init__(self, configs: dict[str, LaneConfig], metrics) -> None:
+        self.lanes = {name: Lane(name, configs[name]) for name in LANES}
+        self.metrics = metrics
+
+    def shed(self, lane: Lane) -> OverloadedError:
+        self.metrics.admission_shed.inc(lane.name)
+        return OverloadedError(
+            f"the server is at capacity for {lane.name} requests "
+            f"({lane.capacity} admitted); retry after the Retry-After seconds",
+            lane.retry_after_s(),
+        )
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """Compute ``fn(*args)`` on the current request's lane, dropping the request
+        first if its deadline passed or its client left while it waited. Outside a
+        ticket (the WebSocket stream, start-up work) the localize lane's slots are used."""
+        ticket = _ticket.get()
+        if ticket is None:
+            return await self.lanes["localize"].compute(fn, *args)
+        lane = ticket.lane
+
+        async def still_wanted() -> None:
+            if time.monotonic() >= ticket.deadline_s:
+                raise self._expired(lane, "deadline")
+            if await ticket.client_gone():
+                raise self._expired(lane, "disconnected")
+
+        try:
+            wait_s = max(0.0, ticket.deadline_s - time.monotonic())
+            return await lane.compute(fn, *args, wait_s=wait_s, check=still_wanted)
+        except TimeoutError:
+            raise self._expired(lane, "deadline") from None
+
+    def _expired(self, lane: Lane, reason: str) -> OverloadedError:
+        self.metrics.admission_expired.inc(lane.name, reason)
+        if reason == "disconnected":
+            return ClientDisconnectedError(
+                "the client disconnected before its request was computed", 1
+            )
+        return DeadlineExceededError(
+            f"the request's deadline passed while it waited for a {lane.name} slot; "
+            "it was not computed",
+            lane.retry_after_s(),
+        )
+
+    def gauges(self) -> dict[str, dict[tuple[str, ...], float]]:
+        """Per lane: requests waiting (admitted, not computing), computing, capacity."""
+        waiting, running, capacity = {}, {}, {}
+        for name, lane in self.lanes.items():
+            busy = lane.running
+            waiting[(name,)] = float(max(0, lane.inside - busy))
+            running[(name,)] = float(busy)
+            capacity[(name,)] = float(lane.capacity)
+        return {"waiting": waiting, "running": running, "capacity": capacity}
+
+
+def parse_deadline_ms(raw: bytes | None, default_ms: int) -> int:
+    """The request's deadline budget in ms (header value, else ``default_ms``)."""
+    if raw is None:
+        return default_ms
+    text = raw.decode("latin-1").strip()
+    if not text.isdigit() or not 0 < int(text) <= 3_600_000:
+        raise ValueError(
+            f"X-Request-Deadline-Ms must be a whole number of milliseconds in 1..3600000, "
+            f"got {text[:40]!r}"
+        )
+    return int(text)
+
+
+async def _send_json(send: Send, status: int, body: dict, headers: list) -> None:
+    payload = json.dumps(body).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(payload)).encode()),
+                *headers,
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": payload})
+
+
+class AdmissionMiddleware:
+    """Admits HTTP requests into their lane before anything reads their body."""
+
+    def __init__(self, app: ASGIApp, admission: Admission) -> None:
+        self.app = app
+        self.admission = admission
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        name = None
+        if scope["type"] == "http":
+            name = lane_of(scope.get("method", ""), scope.get("path", ""))
+        if name is None:
+            await self.app(scope, receive, send)
+            return
+        lane = self.admission.lanes[name]
+        headers = dict(scope.get("headers") or [])
+        try:
+            budget_ms = parse_deadline_ms(
+                headers.get(DEADLINE_HEADER), lane.config.default_deadline_ms
+            )
+        except ValueError as exc:
+            body = {"error": {"code": "bad_request", "message": str(exc)}}
+            await _send_json(send, 400, body, [])
+            return
+        if not lane.try_enter():
+            exc = self.admission.shed(lane)
+            body = {"error": {"code": "overloaded", "message": str(exc)}}
+            await _send_json(send, 503, body, [(b"retry-after", str(exc.retry_after_s).encode())])
+            return
+        token = _ticket.set(Ticket(lane, time.monotonic() + budget_ms / 1e3, receive))
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            _ticket.reset(token)
+            lane.leave()
+
+
+async def _overloaded(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, OverloadedError)
+    body = {"error": {"code": exc.code, "message": str(exc)}}
+    return JSONResponse(body, status_code=503, headers={"Retry-After": str(exc.retry_after_s)})
+
+
+def install_admission(app: FastAPI, admission: Admission) -> None:
+    """The lanes' middleware and the 503 + Retry-After answer of what they turn away."""
+    app.add_exception_handler(OverloadedError, _overloaded)
+    app.add_middleware(AdmissionMiddleware, admission=admission)

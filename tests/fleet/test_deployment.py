@@ -1,0 +1,52 @@
+"""docker/compose.yaml and docker/nginx.conf (Docker cannot run here): the compose file's
+shape (PostgreSQL, migrations once, two replicas sharing uploads, nginx in front) and
+nginx's own syntax check of the config (`nginx -t`, upstreams on loopback)."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+import yaml
+from fleet_helpers import REPO, find_nginx, loopback_nginx_conf
+
+
+def _compose() -> dict:
+    return yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())
+
+
+def test_compose_runs_postgres_migrations_once_two_replicas_and_nginx():
+    services = _compose()["services"]
+    assert {"postgres", "migrate", "monoloc-1", "monoloc-2", "nginx"} <= set(services)
+    assert services["migrate"]["command"][-2:] == ["db", "upgrade"]
+    assert services["migrate"]["depends_on"]["postgres"]["condition"] == "service_healthy"
+    replicas = [services["monoloc-1"], services["monoloc-2"]]
+    for replica in replicas:
+        env = replica["environment"]
+        assert env["MONOLOC_DATABASE_URL"].startswith("postgresql+psycopg://")
+        assert "@postgres:5432/" in env["MONOLOC_DATABASE_URL"]
+        assert env["MONOLOC_SKIP_MIGRATIONS"] == "1"  # the migrate service did it, once
+        assert replica["depends_on"]["migrate"]["condition"] == "service_completed_successfully"
+        assert "shared:/shared" in replica["volumes"]
+        assert env["MONOLOC_UPLOADS_DIR"].startswith("/shared/")
+    data = [v for r in replicas for v in r["volumes"] if v.endswith(":/data")]
+    assert len(set(data)) == 2  # each replica its own data directory
+    assert "./nginx.conf:/etc/nginx/nginx.conf:ro" in services["nginx"]["volumes"]
+    conf = (REPO / "docker" / "nginx.conf").read_text()
+    assert "server monoloc-1:8000" in conf and "server monoloc-2:8000" in conf
+    start = (REPO / "docker" / "start.sh").read_text()
+    assert "MONOLOC_SKIP_MIGRATIONS" in start
+
+
+def test_nginx_accepts_the_config(tmp_path):
+    nginx = find_nginx()
+    if nginx is None:
+        pytest.skip("nginx is not installed (make test installs Debian's nginx-light)")
+    for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"):
+        (tmp_path / kind).mkdir()
+    conf = loopback_nginx_conf(tmp_path, [18001, 18002], 18000)
+    done = subprocess.run(
+        [nginx, "-t", "-p", str(tmp_path), "-c", str(conf)], capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    assert "syntax is ok" in done.stderr

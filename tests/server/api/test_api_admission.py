@@ -1,0 +1,195 @@
+"""Admission control over the real app: a full lane answers 503 + Retry-After at once
+without reading the body, other lanes and health keep answering, a request whose
+deadline passed or whose client left is not computed, /metrics counts it all."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+from api_helpers import frame_png, free_port, make_settings, open_client
+
+from monoloc.server.api.admission import lane_of, parse_deadline_ms
+
+
+def _localize(client, map_copy, sim_dataset, headers=None):
+    return client.post(
+        f"/v1/maps/{map_copy.map_id}/localize",
+        files={"image": ("f.png", frame_png(sim_dataset, "01", 3), "image/png")},
+        headers={**map_copy.keys.header("localize"), **(headers or {})},
+    )
+
+
+def _metric(client, map_copy, name: str) -> float:
+    text = client.get("/metrics", headers=map_copy.keys.header("admin")).text
+    total = 0.0
+    for line in text.splitlines():
+        if line.startswith(name):
+            total += float(line.rsplit(" ", 1)[1])
+    return total
+
+
+def test_routes_fall_into_their_lanes():
+    assert lane_of("POST", "/v1/maps/3/localize") == "localize"
+    assert lane_of("POST", "/v1/maps/3/entries") == "write"
+    assert lane_of("DELETE", "/v1/maps/3/entries/9") == "write"
+    assert lane_of("PATCH", "/v1/maps/3/entries/9") == "write"
+    assert lane_of("POST", "/v1/maps/3/runs") == "jobs"
+    assert lane_of("POST", "/v1/jobs/4/resume") == "jobs"
+    assert lane_of("GET", "/v1/maps/3/entries") is None
+    assert lane_of("GET", "/healthz") is None and lane_of("GET", "/readyz") is None
+    assert parse_deadline_ms(None, 2000) == 2000 and parse_deadline_ms(b" 150 ", 2000) == 150
+    for bad in (b"0", b"-5", b"1.5", b"soon", b"99999999"):
+        with pytest.raises(ValueError, match="X-Request-Deadline-Ms"):
+            parse_deadline_ms(bad, 2000)
+
+
+def test_a_full_lane_sheds_at_once_while_writes_and_health_answer(map_copy, sim_dataset):
+    settings = make_settings(map_copy.data_dir, worker_threads=1, localize_queue_depth=1)
+    with open_client(settings) as client:
+        assert _localize(client, map_copy, sim_dataset).status_code == 200
+        lane = client.app.state.monoloc.admission.lanes["localize"]
+        assert lane.capacity == 2
+        assert lane.try_enter() and lane.try_enter()  # the lane is full
+        try:
+            start = time.perf_counter()
+            shed = _localize(client, map_copy, sim_dataset)
+            elapsed_s = time.perf_counter() - start
+            assert shed.status_code == 503, shed.text
+            assert shed.json()["error"]["code"] == "overloaded"
+            assert int(shed.headers["Retry-After"]) >= 1
+            assert elapsed_s < 1.0
+            # writes have their own lane; health never queues
+            write = map_copy.keys.header("write")
+            entries = client.get(f"/v1/maps/{map_copy.map_id}/entries", headers=write).json()
+            entry_id = entries["items"][0]["id"]
+            r = client.patch(
+                f"/v1/maps/{map_copy.map_id}/entries/{entry_id}",
+                json={"tags": ["night"]},
+                headers=write,
+            )
+            assert r.status_code == 200, r.text
+            assert client.get("/healthz").status_code == 200
+            assert client.get("/readyz").status_code == 200
+            bad = _localize(client, map_copy, sim_dataset, {"X-Request-Deadline-Ms": "soon"})
+            assert bad.status_code == 400 and "X-Request-Deadline-Ms" in bad.text
+        finally:
+            lane.leave()
+            lane.leave()
+        assert _localize(client, map_copy, sim_dataset).status_code == 200
+        assert _metric(client, map_copy, 'monoloc_admission_shed_total{lane="localize"}') == 1
+        assert _metric(client, map_copy, 'monoloc_admission_capacity{lane="localize"}') == 2
+
+
+def test_a_request_whose_deadline_passes_in_the_queue_is_not_computed(map_copy, sim_dataset):
+    settings = make_settings(map_copy.data_dir, worker_threads=1)
+    with open_client(settings) as client:
+        lane = client.app.state.monoloc.admission.lanes["localize"]
+        computed = "monoloc_localize_stage_duration_seconds_count"
+        before = _metric(client, map_copy, computed)
+        holder = object()
+        client.portal.call(lane.cpu.acquire_on_behalf_of, holder)  # the one slot is busy
+        try:
+            start = time.perf_counter()
+            r = _localize(client, map_copy, sim_dataset, {"X-Request-Deadline-Ms": "300"})
+            waited_s = time.perf_counter() - start
+        finally:
+            client.portal.call(lane.cpu.release_on_behalf_of, holder)
+        assert r.status_code == 503 and r.json()["error"]["code"] == "deadline_exceeded"
+        assert "Retry-After" in r.headers
+        assert 0.3 <= waited_s < 3.0
+        assert _metric(client, map_copy, computed) == before  # no stage ran
+        expired = 'monoloc_admission_expired_total{lane="localize",reason="deadline"}'
+        assert _metric(client, map_copy, expired) == 1
+        ok = _localize(client, map_copy, sim_dataset, {"X-Request-Deadline-Ms": "5000"})
+        assert ok.status_code == 200
+        assert _metric(client, map_copy, computed) > before
+
+
+@contextmanager
+def _uvicorn(app) -> Iterator[tuple[int, asyncio.AbstractEventLoop]]:
+    """``app`` on a real uvicorn in a thread, on a loop the test can schedule onto."""
+    import uvicorn
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),))
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.02)
+    try:
+        yield port, loop
+    finally:
+        server.should_exit = True
+        thread.join(30)
+        loop.close()
+
+
+def _multipart_request(port: int, map_id: int, key: str, png: bytes) -> bytes:
+    boundary = "monolocboundary"
+    body = (
+        (
+            f'--{boundary}\r\nContent-Disposition: form-data; name="image"; filename="f.png"\r\n'
+            f"Content-Type: image/png\r\n\r\n"
+        ).encode()
+        + png
+        + f"\r\n--{boundary}--\r\n".encode()
+    )
+    head = (
+        f"POST /v1/maps/{map_id}/localize HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+        f"X-API-Key: {key}\r\nContent-Type: multipart/form-data; boundary={boundary}\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    ).encode()
+    return head + body
+
+
+def test_a_client_that_left_is_not_computed_and_a_full_lane_reads_no_body(map_copy, sim_dataset):
+    from monoloc.server.api.app import create_app
+
+    app = create_app(make_settings(map_copy.data_dir, worker_threads=1, localize_queue_depth=1))
+    with _uvicorn(app) as (port, loop):
+        state = app.state.monoloc
+        lane = state.admission.lanes["localize"]
+        holder = object()
+        asyncio.run_coroutine_threadsafe(lane.cpu.acquire_on_behalf_of(holder), loop).result()
+        request = _multipart_request(
+            port, map_copy.map_id, map_copy.keys.localize, frame_png(sim_dataset, "01", 3)
+        )
+        with socket.create_connection(("127.0.0.1", port)) as gone:
+            gone.sendall(request)
+            deadline = time.monotonic() + 10
+            while lane.cpu.statistics().tasks_waiting < 1:  # parsed, waiting for the slot
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            # Fill the lane's last place; a request announcing 100 MB is then refused
+            # before a byte of its body is sent.
+            assert lane.try_enter() and not lane.try_enter()
+            try:
+                with socket.create_connection(("127.0.0.1", port)) as flood:
+                    flood.sendall(
+                        f"POST /v1/maps/{map_copy.map_id}/localize HTTP/1.1\r\nHost: x\r\n"
+                        f"X-API-Key: {map_copy.keys.localize}\r\nContent-Length: 100000000\r\n"
+                        "Content-Type: multipart/form-data; boundary=b\r\n\r\n".encode()
+                    )
+                    flood.settimeout(5)
+                    answer = flood.recv(4096).decode()
+            finally:
+                lane.leave()
+            assert answer.startswith("HTTP/1.1 503") and "retry-after" in answer.lower()
+        # the first client has gone; now free the slot
+        loop.call_soon_threadsafe(lane.cpu.release_on_behalf_of, holder)
+        deadline = time.monotonic() + 10
+        while lane.inside:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        assert state.metrics.admission_expired.value("localize", "disconnected") == 1
+        rendered = list(state.metrics.localize_stages.render())
+        assert not any(line.startswith("monoloc_localize_stage") for line in rendered[2:])
