@@ -11,7 +11,7 @@ from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import LocalizeKey, StateDep
 from monoloc.server.api.guard import GuardedRoute, body_limit
 from monoloc.server.api.localizing import localize_bytes
-from monoloc.server.api.params import MapId
+from monoloc.server.api.params import DB_ID_MAX, MapId
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["localize"], route_class=GuardedRoute)
@@ -40,6 +40,7 @@ async def localize(
         Header(
             alias="X-Min-Map-Version",
             ge=0,
+            le=DB_ID_MAX,
             description="Answer from this map version or newer (read-your-writes after a "
             "write's map_version); 503 stale_replica if this replica cannot reach it soon.",
         ),

@@ -14,11 +14,13 @@ from sqlalchemy import select
 
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AdminKey, StateDep
+from monoloc.server.api.guard import GuardedRoute
+from monoloc.server.api.params import MapId
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.models import Entry
 
-router = APIRouter(prefix="/v1/maps/{map_id}", tags=["maps"])
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["maps"], route_class=GuardedRoute)
 
 
 class ReplicaSide(BaseModel):
@@ -57,9 +59,9 @@ def _state(state, map_id: int) -> ReplicaState:
 @router.get(
     "/replica",
     response_model=ReplicaState,
-    responses={**AUTH_ERRORS, **error_responses(404)},
+    responses={**AUTH_ERRORS, **error_responses(404, 422)},
     summary="This replica's index of the map vs the database",
 )
-async def replica_state(map_id: int, state: StateDep, _key: AdminKey) -> ReplicaState:
+async def replica_state(map_id: MapId, state: StateDep, _key: AdminKey) -> ReplicaState:
     """The map version and entry ids indexed by this process, and the database's."""
     return await anyio.to_thread.run_sync(_state, state, map_id)
