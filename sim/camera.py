@@ -131,17 +131,24 @@ def shade(
     T_world_from_cam: np.ndarray,
     intrinsics: CameraIntrinsics,
     lighting: Lighting,
+    material_gain: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Radiance (H, W) float32 of a textured raster under ``lighting``, sky included."""
+    """Radiance (H, W) float32 of a textured raster under ``lighting``, sky included.
+    ``material_gain``: optional (n_textures,) factor on each texture's albedo (a run's
+    illuminant colour as a mono sensor sees it)."""
     lut = np.append(lighting_lut(scene, lighting), 0.0)  # index -1 -> sky (set below)
     ids = raster.quad_id
-    radiance = raster.albedo.astype(np.float32) * (lut[ids] / 255.0)
+    albedo = raster.albedo.astype(np.float32)
+    if material_gain is not None:
+        per_quad = np.append(material_gain[scene.quads.texture], 1.0).astype(np.float32)
+        albedo = albedo * per_quad[ids]
+    radiance = albedo * (lut[ids] / 255.0)
     sky = ids < 0
     if sky.any():
         radiance[sky] = _sky(T_world_from_cam, intrinsics, lighting)[sky]
     if lighting.lamp_strength > 0 or lighting.headlights > 0:
         radiance += (
-            raster.albedo.astype(np.float32)
+            albedo
             / 255.0
             * _artificial_light(raster, scene, T_world_from_cam, intrinsics, lighting)
         )
@@ -304,12 +311,14 @@ def render(
     config: CameraConfig = CameraConfig(),
     previous_exposure: float | None = None,
     render_config: RenderConfig = RenderConfig(),
+    material_gain: np.ndarray | None = None,
 ) -> CameraFrame:
-    """One camera frame of ``scene`` from ``T_world_from_cam`` (OpenCV camera axes)."""
+    """One camera frame of ``scene`` from ``T_world_from_cam`` (OpenCV camera axes);
+    ``material_gain`` as in :func:`shade`."""
     raster = rasterize(
         scene, bank, T_world_from_cam, intrinsics, render_config, night=lighting.night
     )
-    radiance = shade(raster, scene, T_world_from_cam, intrinsics, lighting)
+    radiance = shade(raster, scene, T_world_from_cam, intrinsics, lighting, material_gain)
     exposure = auto_exposure(radiance, config, previous_exposure)
     image = expose(radiance, exposure, config, rng)
     return CameraFrame(image=image, depth_m=raster.depth_m, exposure=exposure)
