@@ -23,69 +23,53 @@ WALL_FOOT_M = -0.3
 
 @dataclass(frozen=True)
 class BuildingDesign:
-    """A building that recurs: lot width and set-back in metres, shop front or not, and
-    the seed every copy builds from (same seed, same building)."""
+    """A street facade that recurs: a module of ``module_width_m`` (tiled along the
+    wall), the building's height, shop front or not, and the seed of its texture (same
+    seed, same facade to the texel)."""
 
-    width_m: float
-    setback_m: float
+    module_width_m: float
+    height_m: float
     shops: bool
     seed: int
 
+    def front_spec(self, ppm: float) -> TextureSpec:
+        """The facade texture every copy shows (tiles along a wider wall)."""
+        w, h = texture_size_px(self.module_width_m, self.height_m - WALL_FOOT_M, ppm)
+        style = "shops" if self.shops else "windows"
+        return TextureSpec("facade", w, h, self.seed, (("ppm", ppm), ("style", style)), wrap=True)
+
 
 def building_designs(rng: np.random.Generator, config) -> tuple[BuildingDesign, ...]:
-    """The ``config.building_designs`` designs of one district (never plain fronts)."""
-    designs = []
-    for _ in range(config.building_designs):
-        width = rng.uniform(config.lot_width_m[0], 0.5 * sum(config.lot_width_m))
-        designs.append(
-            BuildingDesign(
-                width_m=float(width),
-                setback_m=float(rng.uniform(*config.setback_m)),
-                shops=bool(rng.random() < config.shop_fraction),
-                seed=int(rng.integers(0, 2**31)),
-            )
+    """The ``config.building_designs`` recurring facades of one district."""
+    return tuple(
+        BuildingDesign(
+            module_width_m=float(rng.uniform(6.0, 12.0)),
+            height_m=float(rng.uniform(*config.building_height_m)),
+            shops=bool(rng.random() < config.shop_fraction),
+            seed=texture_seed(rng),
         )
-    return tuple(designs)
+        for _ in range(config.building_designs)
+    )
 
 
-def add_frontage(b, rng, config, start, end, normal, max_depth, designs=()):
-    """Lots of buildings along the line start->end, set back along ``normal``; a lot
-    starts a row of identical copies of one of ``designs`` with probability
-    ``config.repeated_building_fraction``."""
+def add_frontage(b, rng, config, start, end, normal, max_depth, designs=(), design_rng=None):
+    """Lots of buildings along the line start->end, set back along ``normal``. With
+    ``designs``, a lot starts a row of ``config.terrace_copies`` neighbours that show the
+    same recurring facade with probability ``config.repeated_building_fraction`` (drawn
+    from ``design_rng``, so that the lots themselves do not depend on it)."""
     length = float(np.linalg.norm(end - start))
     if length < 4.0:
         return
     d = (end - start) / length
     pos = 0.0
+    design, copies_left = None, 0
     while pos < length - 1e-6:
-        if designs and rng.random() < config.repeated_building_fraction:
-            design = designs[int(rng.integers(len(designs)))]
-            copies = int(rng.integers(config.terrace_copies[0], config.terrace_copies[1] + 1))
-            copies = min(copies, int((length - pos) // design.width_m))
-            for _ in range(copies):
-                depth = min(max_depth - design.setback_m, config.lot_depth_m[0])
-                f0 = start + d * pos + normal * design.setback_m
-                f1 = start + d * (pos + design.width_m) + normal * design.setback_m
-                corners = np.array([f0, f1, f1 + normal * depth, f0 + normal * depth])
-                copy_rng = np.random.default_rng(design.seed)
-                add_building(
-                    b,
-                    copy_rng,
-                    config,
-                    corners,
-                    front_edges=(0,),
-                    height=None,
-                    shops=design.shops,
-                    plain_front=False,
-                )
-                pos += design.width_m
-            if copies:
-                continue
         width = rng.uniform(*config.lot_width_m)
         if length - (pos + width) < config.lot_width_m[0] * 0.6:
             width = length - pos
         if rng.random() < config.empty_lot_fraction and width < length:
             pos += width
+            copies_left = 0  # a gap ends a row
             continue
         setback = rng.uniform(*config.setback_m)
         if rng.random() < config.deep_setback_fraction:
@@ -96,6 +80,11 @@ def add_frontage(b, rng, config, start, end, normal, max_depth, designs=()):
         f0 = start + d * pos + normal * setback
         f1 = start + d * (pos + width) + normal * setback
         corners = np.array([f0, f1, f1 + normal * depth, f0 + normal * depth])
+        if copies_left == 0 and designs and design_rng.random() < config.repeated_building_fraction:
+            design = designs[int(design_rng.integers(len(designs)))]
+            copies_left = int(
+                design_rng.integers(config.terrace_copies[0], config.terrace_copies[1] + 1)
+            )
         add_building(
             b,
             rng,
@@ -104,18 +93,23 @@ def add_frontage(b, rng, config, start, end, normal, max_depth, designs=()):
             front_edges=(0,),
             height=None,
             shops=rng.random() < config.shop_fraction,
+            front_design=design if copies_left > 0 else None,
         )
+        copies_left = max(0, copies_left - 1)
         pos += width
 
 
-def add_building(b, rng, config, corners, front_edges, height, shops, plain_front=None):
+def add_building(b, rng, config, corners, front_edges, height, shops, front_design=None):
     """A box building on footprint ``corners`` (4, 2) (any winding); edges listed in
-    ``front_edges`` (edge k = corners[k] -> corners[k+1]) get street facades, plain ones
-    with probability ``config.plain_facade_fraction`` unless ``plain_front`` says."""
+    ``front_edges`` (edge k = corners[k] -> corners[k+1]) get street facades: those of
+    ``front_design`` (a :class:`BuildingDesign`, which also sets the height) if given.
+    ``rng`` is drawn from the same way either way."""
     ppm = config.facade_texels_per_m
     h = height if height is not None else rng.uniform(*config.building_height_m)
     if rng.random() < 0.15:
         h = rng.uniform(*config.building_height_m) * 1.6
+    if front_design is not None:
+        h = front_design.height_m
     x, y = corners[:, 0], corners[:, 1]
     area2 = float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
     if area2 > 0:  # counter-clockwise: reverse so that walls face outwards
@@ -124,8 +118,7 @@ def add_building(b, rng, config, corners, front_edges, height, shops, plain_fron
     else:
         cw = corners
         front = set(front_edges)
-    plain = rng.random() < config.plain_facade_fraction
-    plain_front = plain if plain_front is None else plain_front
+    plain_front = rng.random() < config.plain_facade_fraction
     specs = []
     for k in range(4):
         length = float(np.linalg.norm(cw[(k + 1) % 4] - cw[k]))
@@ -136,9 +129,10 @@ def add_building(b, rng, config, corners, front_edges, height, shops, plain_fron
             style = "plain" if rng.random() < 0.5 else "windows"
             p = ppm * 0.6
         w, hh = texture_size_px(length, h - WALL_FOOT_M, p)
-        specs.append(
-            (TextureSpec("facade", w, hh, texture_seed(rng), (("ppm", p), ("style", style))), p)
-        )
+        spec = TextureSpec("facade", w, hh, texture_seed(rng), (("ppm", p), ("style", style)))
+        if k in front and front_design is not None:
+            spec = front_design.front_spec(p)
+        specs.append((spec, p))
     for k in range(4):
         spec, p = specs[k]
         add_wall(

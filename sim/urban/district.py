@@ -82,7 +82,9 @@ def _road_segment(builder, a_xy, b_xy, width, ppm, rng):
 def build_district_scene(grid, config, seed: int) -> tuple[Scene, np.ndarray]:
     """Static scene of one district and its parking spots (N, 3) of (x, y, yaw_rad)."""
     rng = np.random.default_rng(seed)
-    designs = building_designs(np.random.default_rng([seed, 1]), config)
+    # Recurring facades draw from their own generator: the lots stay where they were.
+    design_rng = np.random.default_rng([seed, 1])
+    designs = (building_designs(design_rng, config), design_rng)
     b = SceneBuilder()
     gppm = config.ground_texels_per_m
     xs, ys = grid.xs, grid.ys
@@ -230,7 +232,8 @@ def _backdrop(b, rng, config, inner_rect):
 def _block(b, rng, config, kerb, side, facing, designs):
     """A block inside kerb rect (x0, y0, x1, y1): kerb faces, sidewalks of widths
     (west, south, east, north) on the sides that face a street, interior, buildings
-    (some of them copies of the district's recurring ``designs``)."""
+    (some showing the district's recurring facades: ``designs`` = (designs, their
+    generator))."""
     x0, y0, x1, y1 = kerb
     sw, ss, se, sn = (s if f else 0.0 for s, f in zip(side, facing, strict=True))
     gppm = config.ground_texels_per_m
@@ -292,7 +295,7 @@ def _block(b, rng, config, kerb, side, facing, designs):
             np.array(end),
             np.array(normal),
             max(6.0, max_depth),
-            designs,
+            *designs,
         )
     for start, end, normal, walk_w in fronts:
         add_street_furniture(
