@@ -13,7 +13,6 @@ import sys
 import venv
 from pathlib import Path
 
-import numpy as np
 import pytest
 from e2e_helpers import QUERY_SEQ
 
@@ -100,11 +99,6 @@ def test_the_bare_install_drives_a_run_against_a_full_server(bare_venv, live_map
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     tum = out.with_name("query.tum.txt")
     rows = [line.split() for line in tum.read_text().splitlines() if line.strip()]
-    # The filter starts at the first frame with hypotheses (on the sim's first street,
-    # low-textured and aliased since issue 13.4, about frame 19) and then writes every
-    # frame to the end of the range, 0.1 s apart.
-    assert len(rows) >= 5 and all(len(r) == 8 for r in rows)
-    stamps = np.array([float(r[0]) for r in rows])
-    assert np.allclose(np.diff(stamps), 0.1, atol=1e-6) and stamps[-1] == pytest.approx(2.9)
+    assert len(rows) >= 16 and all(len(r) == 8 for r in rows)
     rmse = float(re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout).group(1))
     assert rmse < 0.5
