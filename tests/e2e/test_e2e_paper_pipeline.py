@@ -41,7 +41,7 @@ def test_both_pipelines_give_the_same_hypotheses_on_the_same_frame(live_map, tmp
 
     monkeypatch.setattr(matching, "match_descriptors_bruteforce", counted)
     run = read_run(live_map.dataset, QUERY_SEQ)
-    frame = 20
+    frame = 12  # several consistent entries (frames ~22-35 have 0-1 since issue 13.4's sim)
     image, truth = run.image_paths[frame].read_bytes(), run.truth_world[frame]
 
     with MonolocClient(live_map.url, live_map.keys.localize) as client:
