@@ -46,7 +46,9 @@ def postgres_admin_url() -> Iterator[str]:
         port = sock.getsockname()[1]
     server = start_throwaway_postgres(port)
     if server is None:
-        pytest.skip("no PostgreSQL server installed (make test installs Debian's postgresql)")
+        # `make test` installs Debian's postgresql: a missing server is a broken setup,
+        # never a reason to pass without the tests that need it.
+        pytest.fail("no PostgreSQL server installed (make test installs Debian's postgresql)")
     try:
         yield server.url
     finally:

@@ -24,15 +24,11 @@ from e2e_helpers import (
     tar_sequence,
     upload_map_run,
 )
+from playwright import sync_api
 
 CHROMIUM = Path("/usr/bin/chromium")
 CITY_FRAMES = 12
 NIGHT_COLOUR = "#6a3d9a"  # console.js TAG_COLOURS.night
-
-sync_api = pytest.importorskip("playwright.sync_api", reason="pip install 'monoloc[dev]'")
-pytestmark = pytest.mark.skipif(
-    not CHROMIUM.exists(), reason="Debian's chromium is missing: apt-get install chromium"
-)
 
 
 @pytest.fixture(scope="module")

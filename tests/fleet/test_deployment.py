@@ -41,7 +41,7 @@ def test_compose_runs_postgres_migrations_once_two_replicas_and_nginx():
 def test_nginx_accepts_the_config(tmp_path):
     nginx = find_nginx()
     if nginx is None:
-        pytest.skip("nginx is not installed (make test installs Debian's nginx-light)")
+        pytest.fail("nginx is not installed (make test installs Debian's nginx-light)")
     for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"):
         (tmp_path / kind).mkdir()
     conf = loopback_nginx_conf(tmp_path, [18001, 18002], 18000)

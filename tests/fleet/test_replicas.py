@@ -194,7 +194,7 @@ def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_pat
 
     nginx = find_nginx()
     if nginx is None:
-        pytest.skip("nginx is not installed (make test installs Debian's nginx-light)")
+        pytest.fail("nginx is not installed (make test installs Debian's nginx-light)")
     for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"):
         (tmp_path / kind).mkdir()
     port = free_port()

@@ -248,7 +248,8 @@ def test_cli_generates_and_previews(tmp_path):
 def test_server_tum_reader_reads_the_output(noisy_dataset):
     """The contract: monoloc's own TUM reader associates every frame and gets the
     camera and the ground truth."""
-    server_tum = pytest.importorskip("monoloc.server.ingest.tum")
+    from monoloc.server.ingest import tum as server_tum
+
     root, info = noisy_dataset
     run = server_tum.read_tum_run(root / "map")
     assert run.n_frames == info["sequences"][0]["frames"] and not run.read_skips

@@ -12,12 +12,11 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
+import schemathesis
 from api_helpers import ADMIN_KEY, camera_of, make_settings
-
-schemathesis = pytest.importorskip("schemathesis")
-from hypothesis import HealthCheck, Phase, assume, given, settings  # noqa: E402
-from schemathesis import checks  # noqa: E402
-from schemathesis.specs.openapi import checks as openapi_checks  # noqa: E402
+from hypothesis import HealthCheck, Phase, assume, given, settings
+from schemathesis import checks
+from schemathesis.specs.openapi import checks as openapi_checks
 
 CHECKS = [
     checks.not_a_server_error,
