@@ -73,23 +73,12 @@ def rss_mb(pid: int) -> float:
 @contextmanager
 def replicas(n: int, data_dir: Path, database_url: str | None, workers: int):
     """``n`` `monoloc serve` processes on one database; yields (urls, pids)."""
-    import httpx
+    from monoloc.client.api import wait_until_ready
 
     procs, urls = [], []
 
     def wait_ready(proc: subprocess.Popen, url: str) -> None:
-        deadline = time.monotonic() + 180
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError(f"monoloc serve exited with {proc.returncode}")
-            try:
-                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError("monoloc serve did not become ready in 180 s")
-            time.sleep(0.2)
+        wait_until_ready(url, 180.0, proc)
 
     try:
         for i in range(n):  # one after the other: the first one migrates the database

@@ -64,7 +64,6 @@ def free_port() -> int:
 @contextmanager
 def serve(data_dir: Path, pipeline: str, workers: int):
     """`monoloc serve` in a subprocess; yields its base URL once /readyz answers 200."""
-    import httpx
 
     port = free_port()
     env = dict(
@@ -81,18 +80,9 @@ def serve(data_dir: Path, pipeline: str, workers: int):
     proc = subprocess.Popen(cmd, env=env, cwd=ROOT)
     url = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError(f"monoloc serve exited with {proc.returncode}")
-            try:
-                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError("monoloc serve did not become ready in 120 s")
-            time.sleep(0.2)
+        from monoloc.client.api import wait_until_ready
+
+        wait_until_ready(url, 120.0, proc)
         yield url
     finally:
         proc.terminate()

@@ -110,6 +110,24 @@ def _quality_features(hyps: list[dict]) -> tuple[np.ndarray | None, ...]:
     return n_inliers, error_px, joint
 
 
+def wait_until_ready(base_url: str, timeout_s: float, process=None, poll_s: float = 0.2) -> None:
+    """Return once ``GET {base_url}/readyz`` answers 200. ``process`` (a
+    ``subprocess.Popen`` of the server, optional): stop waiting as soon as it exits.
+    Raises ServerError when the server exits or is not ready within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if process is not None and process.poll() is not None:
+            raise ServerError(f"the server at {base_url} exited with code {process.returncode}")
+        try:
+            if httpx.get(f"{base_url}/readyz", timeout=2.0).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        if time.monotonic() > deadline:
+            raise ServerError(f"the server at {base_url} was not ready within {timeout_s:.0f} s")
+        time.sleep(poll_s)
+
+
 # Answers worth another try: the request may succeed later (the server is starting,
 # overloaded, restarting behind a proxy). 501 means "never in this build".
 RETRY_STATUS = frozenset({408, 429, 500, 502, 503, 504})

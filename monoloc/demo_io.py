@@ -12,10 +12,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import httpx
 import numpy as np
 
-from monoloc.client.api import MonolocClient
+from monoloc.client.api import MonolocClient, ServerError, wait_until_ready
 from monoloc.core.errors import MonolocError
 
 
@@ -49,18 +48,12 @@ def start_server(data_dir: Path, port: int, admin_key: str, log_path: Path) -> s
         stdout=log,
         stderr=subprocess.STDOUT,
     )
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise DemoError(f"the server exited with code {proc.returncode}; see {log_path}")
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.3)
-    proc.terminate()
-    raise DemoError(f"the server did not become ready in 90 s; see {log_path}")
+    try:
+        wait_until_ready(f"http://127.0.0.1:{port}", 90.0, proc, poll_s=0.3)
+    except ServerError as exc:
+        proc.terminate()
+        raise DemoError(f"{exc}; see {log_path}") from exc
+    return proc
 
 
 def stop_server(proc: subprocess.Popen) -> None:

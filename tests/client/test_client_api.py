@@ -196,3 +196,21 @@ def test_opening_a_stream_is_retried_when_nobody_answers():
             client.stream(1, timeout_s=2.0)
     assert info.value.status_code is None
     assert time.perf_counter() - start >= 0.05 + 0.10
+
+
+def test_wait_until_ready_stops_when_the_server_process_exits_or_times_out():
+    import socket
+    import subprocess
+    import sys
+
+    from monoloc.client.api import wait_until_ready
+
+    with socket.socket() as sock:  # a port nothing listens on
+        sock.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{sock.getsockname()[1]}"
+    exited = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    exited.wait(30)
+    with pytest.raises(ServerError, match="exited with code 3"):
+        wait_until_ready(url, 30.0, exited)
+    with pytest.raises(ServerError, match="not ready within"):
+        wait_until_ready(url, 0.3, poll_s=0.05)

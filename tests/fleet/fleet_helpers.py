@@ -16,6 +16,8 @@ from pathlib import Path
 
 import httpx
 
+from monoloc.client.api import ServerError, wait_until_ready
+
 ADMIN_KEY = "mlk_" + "F" * 43
 FRAMES = 40
 
@@ -70,18 +72,11 @@ class Replica:
             self.process = subprocess.Popen(cmd, env=self.env, stdout=log, stderr=log)
 
     def wait_ready(self, timeout_s: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            assert self.process is not None
-            if self.process.poll() is not None:
-                raise AssertionError(f"{self.name} exited: {self.log.read_text()[-3000:]}")
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.1)
-        raise AssertionError(f"{self.name} not ready: {self.log.read_text()[-3000:]}")
+        assert self.process is not None
+        try:
+            wait_until_ready(self.url, timeout_s, self.process, poll_s=0.1)
+        except ServerError as exc:
+            raise AssertionError(f"{self.name}: {exc}: {self.log.read_text()[-3000:]}") from exc
 
     def kill(self) -> None:
         if self.process is not None and self.process.poll() is None:

@@ -8,26 +8,21 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 from api_helpers import ADMIN_KEY, free_port
 
+from monoloc.client.api import ServerError, wait_until_ready
+
 REPO = Path(__file__).resolve().parents[3]
 
 
 def _wait_ready(url: str, process: subprocess.Popen, timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        assert process.poll() is None, process.stderr.read().decode()[-2000:]
-        try:
-            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    raise AssertionError(f"{url}/readyz not ready within {timeout_s} s")
+    try:
+        wait_until_ready(url, timeout_s, process)
+    except ServerError as exc:
+        raise AssertionError(f"{exc}: {process.stderr.read().decode()[-2000:]}") from exc
 
 
 def test_start_script_serves_readyz_and_stops_on_sigterm(tmp_path):
