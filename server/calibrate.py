@@ -74,7 +74,8 @@ class CalibrationConfig:
     gate_position_m: float = 3.0
     gate_yaw_rad: float = 0.2
     unbiased: bool = True
-    build: BuildConfig = field(default_factory=BuildConfig)
+    # the training map lives in memory only: no entry images
+    build: BuildConfig = field(default_factory=lambda: BuildConfig(image_max_side_px=0))
     match: MatchConfig = field(default_factory=MatchConfig)
     pnp: PnpConfig = field(default_factory=PnpConfig)
     strategy: PnpStrategy = field(default_factory=lambda: PnpStrategy(guess_from_prior=False))

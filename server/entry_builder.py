@@ -10,12 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import check_rigid
-from monoloc.server.storage.records import NewEntry
+from monoloc.server.storage.records import EntryImageData, NewEntry
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.depth import (
     DepthAssociationConfig,
@@ -48,6 +49,35 @@ class BuildConfig:
     orb: OrbConfig = field(default_factory=OrbConfig)
     depth: DepthAssociationConfig = field(default_factory=DepthAssociationConfig)
     min_points: int = 20  # an entry with fewer 3D keypoints cannot support PnP
+    # The console shows each entry's image: a grey JPEG, its longer side at most this
+    # many pixels (0 keeps no image), at this JPEG quality. ~20 kB for a KITTI frame.
+    image_max_side_px: int = 640
+    image_jpeg_quality: int = 80
+
+
+def entry_image(
+    image_gray: np.ndarray, keypoints_without_point_px: np.ndarray, config: BuildConfig
+) -> EntryImageData | None:
+    """The small JPEG of a reference image kept for people (None when disabled)."""
+    if config.image_max_side_px <= 0:
+        return None
+    height, width = image_gray.shape[:2]
+    scale = min(1.0, config.image_max_side_px / max(width, height))
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    small = (
+        image_gray if scale == 1.0 else cv2.resize(image_gray, size, interpolation=cv2.INTER_AREA)
+    )
+    if small.dtype != np.uint8:  # 16-bit sources: keep the visible range
+        small = cv2.normalize(small, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, config.image_jpeg_quality])
+    if not ok:  # pragma: no cover - OpenCV encodes any 2D uint8 array
+        return None
+    return EntryImageData(
+        jpeg=jpeg.tobytes(),
+        width_px=size[0],
+        height_px=size[1],
+        keypoints_without_point_px=np.asarray(keypoints_without_point_px, dtype=np.float32),
+    )
 
 
 class TooFewPointsError(InvalidInputError):
@@ -129,4 +159,5 @@ def build_entry(
         tags=tags,
         timestamp_s=timestamp_s,
         vocabulary_id=vocabulary_id,
+        image=entry_image(image_gray, features.keypoints_px[~has], config),
     )

@@ -23,8 +23,15 @@ from monoloc.server.storage.entry_checks import (
     normalise_tags,
 )
 from monoloc.server.storage.maps import bump_map_version, get_vocabulary
-from monoloc.server.storage.models import Entry, EntryTag, Map, Run, utc_now
-from monoloc.server.storage.records import Area, EntryData, EntrySummary, MapVectors, NewEntry
+from monoloc.server.storage.models import Entry, EntryImage, EntryTag, Map, Run, utc_now
+from monoloc.server.storage.records import (
+    Area,
+    EntryData,
+    EntryImageData,
+    EntrySummary,
+    MapVectors,
+    NewEntry,
+)
 
 _IN_CHUNK = 500  # ids/hashes per IN (...) clause
 
@@ -97,6 +104,7 @@ def add_entry(
     if entry.vocabulary_id is not None:
         get_vocabulary(session, vocabulary_id)
     values = check_new_entry(entry, source_hash)
+    image_values = None if entry.image is None else _check_image(entry.image, values)
     values.update(map_id=map_id, run_id=run_id, vocabulary_id=vocabulary_id, created_at=utc_now())
     new_id = insert_or_ignore(session, Entry, values, ["map_id", "source_image_hash"])
     if new_id is None:  # inserted by a concurrent transaction since our first look
@@ -107,8 +115,54 @@ def add_entry(
     tags = normalise_tags(entry.tags)
     if tags:
         session.execute(insert(EntryTag), [{"entry_id": new_id, "tag": t} for t in tags])
+    if entry.image is not None:
+        session.execute(insert(EntryImage), [{"entry_id": new_id, **image_values}])
     bump_map_version(session, map_id, "add", new_id)
     return _summary(_load(session, new_id, None)), True
+
+
+_JPEG_MAGIC = b"\xff\xd8\xff"
+
+
+def _check_image(image: EntryImageData, entry_values: dict) -> dict:
+    """Column values of an entry's image row; InvalidInputError if it is not a JPEG no
+    larger than the entry's image, or its keypoints are not (M, 2) finite pixels."""
+    width, height = int(image.width_px), int(image.height_px)
+    full_w, full_h = entry_values["image_width_px"], entry_values["image_height_px"]
+    if not (0 < width <= full_w and 0 < height <= full_h):
+        raise InvalidInputError(
+            f"entry image is {width}x{height}; it must be within the {full_w}x{full_h} image"
+        )
+    if not bytes(image.jpeg[:3]) == _JPEG_MAGIC:
+        raise InvalidInputError("entry image must be a JPEG")
+    keypoints = arr.pack_array(
+        image.keypoints_without_point_px, arr.KEYPOINTS, "keypoints_without_point_px"
+    )
+    return dict(
+        jpeg=bytes(image.jpeg),
+        width_px=width,
+        height_px=height,
+        keypoints_without_point_px=keypoints,
+    )
+
+
+def get_entry_image(
+    session: Session, entry_id: int, *, map_id: int | None = None
+) -> EntryImageData | None:
+    """The entry's stored image, None if it has none (added before images were kept);
+    NotFoundError if the entry does not exist (or is not in ``map_id``)."""
+    _load(session, entry_id, map_id)
+    row = session.get(EntryImage, entry_id)
+    if row is None:
+        return None
+    return EntryImageData(
+        jpeg=row.jpeg,
+        width_px=row.width_px,
+        height_px=row.height_px,
+        keypoints_without_point_px=arr.unpack_array(
+            row.keypoints_without_point_px, arr.KEYPOINTS, "keypoints_without_point_px"
+        ),
+    )
 
 
 def get_entry(session: Session, entry_id: int, *, map_id: int | None = None) -> EntrySummary:

@@ -173,6 +173,23 @@ class Entry(Base):
     )
 
 
+class EntryImage(Base):
+    """A small grey JPEG of an entry's reference image (the console shows it), and the
+    keypoints (N, 2) float32 in full-size pixels that got no 3D point (the entry keeps
+    only the others). Optional: entries added before revision 0003 have none."""
+
+    __tablename__ = "entry_images"
+    __table_args__ = (CheckConstraint("width_px > 0 AND height_px > 0", name="size_positive"),)
+
+    entry_id: Mapped[int] = mapped_column(
+        ForeignKey("entries.id", ondelete="CASCADE"), primary_key=True
+    )
+    jpeg: Mapped[bytes] = mapped_column(LargeBinary)
+    width_px: Mapped[int]  # of the JPEG, not of the full-size image
+    height_px: Mapped[int]
+    keypoints_without_point_px: Mapped[bytes] = mapped_column(LargeBinary)
+
+
 class EntryTag(Base):
     __tablename__ = "entry_tags"
 

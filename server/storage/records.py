@@ -117,6 +117,18 @@ class EntryData:
 
 
 @dataclass(frozen=True)
+class EntryImageData:
+    """A small grey JPEG of an entry's reference image (``width_px`` x ``height_px``, the
+    JPEG's own size) and the keypoints (M, 2) float32 in full-size image pixels that got
+    no 3D point (the entry keeps only the others). For people, not for localization."""
+
+    jpeg: bytes = field(repr=False)
+    width_px: int
+    height_px: int
+    keypoints_without_point_px: np.ndarray = field(repr=False)
+
+
+@dataclass(frozen=True)
 class NewEntry:
     """What ingestion or the API hands to ``entries.add_entry``. Shapes as in EntryData.
 
@@ -137,6 +149,7 @@ class NewEntry:
     tags: tuple[str, ...] = ()
     timestamp_s: float | None = None
     vocabulary_id: int | None = None
+    image: EntryImageData | None = None  # stored beside the entry when given
 
 
 @dataclass(frozen=True)

@@ -231,6 +231,7 @@ def _night_frame(city) -> dict:
         "T": ",".join(f"{v:.10g}" for v in frame.T_world_from_cam.reshape(-1)),
         "T_lidar": ",".join(f"{v:.10g}" for v in seq.T_cam_from_lidar.reshape(-1)),
         "xy": frame.T_world_from_cam[:2, 3],
+        "t": float(frame.timestamp_s),
     }
 
 
@@ -254,6 +255,7 @@ def test_map_plot_night_upload_and_entry_page(offline, server, city, tmp_path):
     page.set_input_files("#sources", str(scan))
     page.fill("#poses", night["T"])
     page.fill("#lidar-T", night["T_lidar"])
+    page.fill("#timestamps", f"{night['t']:.6f}")
     page.click("#upload")
     outcome = page.locator("#add-results .outcome").first
     outcome.filter(has_text="added").wait_for()
@@ -284,8 +286,19 @@ def test_map_plot_night_upload_and_entry_page(offline, server, city, tmp_path):
     page.goto(f"{url}/ui#/maps/{map_id}/entries/{new_id}")
     page.locator("#keypoint-plot .main-svg").first.wait_for()
     n_points = _api(server, "GET", f"/v1/maps/{map_id}/entries/{new_id}")["n_points"]
-    shown = page.evaluate("document.querySelector('#keypoint-plot').data[0].x.length")
-    assert shown == n_points > 0
+    plotted = page.evaluate(
+        "Object.fromEntries(document.querySelector('#keypoint-plot').data"
+        ".map(t => [t.meta ? t.meta.kind : t.type, t.type === 'image' ? "
+        "[t.source.slice(0, 23), t.dx, t.dy] : t.x.length]))"
+    )
+    # the image is shown (a JPEG the server kept), scaled to full-size pixels, with the
+    # keypoints that have a 3D point and those that have none
+    assert plotted["with"] == n_points > 0 and plotted["without"] > 0
+    source, dx, dy = plotted["image"]
+    assert source == "data:image/jpeg;base64,"
+    assert dx == pytest.approx(1241 / 640) and dy == pytest.approx(376 / 194)
+    entry = _api(server, "GET", f"/v1/maps/{map_id}/entries/{new_id}")
+    assert entry["timestamp_s"] == pytest.approx(night["t"])
     offline.shot("entry")
     page.fill("#tags", "night, off-center")
     page.click("#retag")
@@ -332,6 +345,53 @@ def test_jobs_page_watches_an_ingestion_reach_100(offline, server, city):
     assert ("done", "100") in seen, seen
     assert "100 %" in row.inner_text()
     offline.shot("jobs")
+
+
+def test_jobs_page_cancels_a_queued_job_and_resumes_it(offline, server, city):
+    """One job runs at a time (job_threads=1): the last of four submitted ingestions waits
+    queued behind the others, long enough to be cancelled from the page; it ends
+    interrupted with nothing of it in the map, and its resume button takes it to done."""
+    from monoloc.core.camera import KITTI_CAM0
+
+    page = offline.page
+    offline.sign_in(server["keys"].write)
+    page.locator("#jobs").wait_for()
+    archive = tar_sequence(city["root"], city["night"])
+    jobs = []
+    for i in range(4):
+        made = _api(
+            server,
+            "POST",
+            "/v1/maps",
+            json={"name": f"queue{i}", "camera": camera_json(KITTI_CAM0)},
+        )
+        accepted = _api(
+            server,
+            "POST",
+            f"/v1/maps/{made['id']}/runs",
+            files={"archive": ("night.tar.gz", archive, "x")},
+            data={"format": "kitti", "kind": "map"},
+        )
+        jobs.append((made["id"], accepted["job"]["id"]))
+    last_map, last_job = jobs[-1]
+    row = page.locator(f"#jobs tr[data-job-id='{last_job}']")
+    row.locator("button.cancel").click()
+    page.locator(f"#jobs tr[data-job-id='{last_job}'][data-state='interrupted']").wait_for()
+    assert "cancelled" in row.inner_text()
+    offline.shot("jobs-cancelled")
+    assert _api(server, "GET", f"/v1/jobs/{last_job}")["state"] == "interrupted"
+    for _map_id, job_id in jobs[:-1]:  # the others are not disturbed
+        page.locator(f"#jobs tr[data-job-id='{job_id}'][data-state='done']").wait_for(
+            timeout=120_000
+        )
+    assert _api(server, "GET", f"/v1/maps/{last_map}")["n_entries"] == 0
+
+    row.locator("button.resume").click()
+    page.locator(f"#jobs tr[data-job-id='{last_job}'][data-state='done']").wait_for(timeout=120_000)
+    assert "100 %" in row.inner_text()
+    offline.shot("jobs-resumed")
+    n_first = _api(server, "GET", f"/v1/maps/{jobs[0][0]}")["n_entries"]
+    assert _api(server, "GET", f"/v1/maps/{last_map}")["n_entries"] == n_first > 0
 
 
 def test_live_page_follows_a_vehicle(offline, server, city):

@@ -15,9 +15,10 @@ from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import StreamingResponse
+from fastapi.responses import Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
+from monoloc.core.errors import NotFoundError
 from monoloc.server.api.console.coverage import CoverageConfig, route_gaps, route_length_m
 from monoloc.server.api.console.live import vehicle_board
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
@@ -89,7 +90,8 @@ class Coverage(BaseModel):
 
 
 class EntryKeypoints(BaseModel):
-    """The entry's stored keypoints (each has a 3D point) and their depth in its camera."""
+    """The entry's stored keypoints (each has a 3D point) and their depth in its camera;
+    with the entry's image (``has_image``), also the keypoints that got no 3D point."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -101,6 +103,9 @@ class EntryKeypoints(BaseModel):
                     x_px=[512.4, 640.0],
                     y_px=[180.2, 201.7],
                     depth_m=[12.8, 35.1],
+                    has_image=True,
+                    without_point_x_px=[20.5],
+                    without_point_y_px=[33.0],
                 )
             ]
         }
@@ -112,6 +117,9 @@ class EntryKeypoints(BaseModel):
     x_px: list[float]
     y_px: list[float]
     depth_m: list[float]
+    has_image: bool = Field(description="GET .../image answers the entry's image.")
+    without_point_x_px: list[float] = Field(description="Keypoints that got no 3D point.")
+    without_point_y_px: list[float]
 
 
 _VEHICLE_EXAMPLE = {
@@ -243,8 +251,12 @@ def entry_keypoints(
 ) -> EntryKeypoints:
     summary = entries_repo.get_entry(session, entry_id, map_id=map_id)
     (data,) = entries_repo.get_entry_data(session, [entry_id])
+    image = entries_repo.get_entry_image(session, entry_id)
     xy = np.round(np.asarray(data.keypoints_px, dtype=float), 2)
     depth = np.round(np.asarray(data.points_cam, dtype=float)[:, 2], 3)
+    without = np.zeros((0, 2))
+    if image is not None:
+        without = np.round(np.asarray(image.keypoints_without_point_px, dtype=float), 2)
     return EntryKeypoints(
         entry_id=entry_id,
         image_width_px=summary.image_width_px,
@@ -252,7 +264,34 @@ def entry_keypoints(
         x_px=xy[:, 0].tolist(),
         y_px=xy[:, 1].tolist(),
         depth_m=depth.tolist(),
+        has_image=image is not None,
+        without_point_x_px=without[:, 0].tolist(),
+        without_point_y_px=without[:, 1].tolist(),
     )
+
+
+@router.get(
+    "/entries/{entry_id}/image",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}},
+            "description": "A grey JPEG of the entry's reference image, at most 640 px on its "
+            "longer side (keypoint pixels scale by its width / the entry's image width).",
+        },
+        **AUTH_ERRORS,
+        **error_responses(404),
+    },
+    summary="An entry's image (small JPEG)",
+)
+def entry_image(map_id: MapId, entry_id: EntryId, session: SessionDep, _key: MapWriteKey):
+    """404 when the entry does not exist, or was added before monoloc kept entry images."""
+    image = entries_repo.get_entry_image(session, entry_id, map_id=map_id)
+    if image is None:
+        raise NotFoundError(
+            f"entry {entry_id} has no stored image (added before monoloc kept entry images)"
+        )
+    return Response(content=image.jpeg, media_type="image/jpeg")
 
 
 @router.get(

@@ -150,3 +150,50 @@ def test_depth_png_entry(sim_dataset, map_copy, client_on_copy):
     )
     assert r.status_code == 201, r.text
     assert r.json()["entry"]["n_points"] >= 100
+
+
+def test_an_entry_shows_its_image_and_both_kinds_of_keypoints(
+    sim_dataset, map_copy, client_on_copy
+):
+    import cv2
+
+    client, m = client_on_copy, map_copy
+    r = _add_lidar_entry(client, m, sim_dataset, QUERY, "night")
+    assert r.status_code == 201, r.text
+    entry = r.json()["entry"]
+    base = f"/v1/maps/{m.map_id}/entries/{entry['id']}"
+
+    got = client.get(f"{base}/image", headers=m.keys.header("write"))
+    assert got.status_code == 200 and got.headers["content-type"] == "image/jpeg"
+    jpeg = cv2.imdecode(np.frombuffer(got.content, np.uint8), cv2.IMREAD_GRAYSCALE)
+    width, height = entry["image_width_px"], entry["image_height_px"]
+    assert (
+        jpeg.shape[1] == min(640, width)
+        and abs(jpeg.shape[0] / jpeg.shape[1] - height / width) < 0.01
+    )
+    # the JPEG is the uploaded frame, downscaled
+    frame = cv2.imdecode(np.frombuffer(frame_png(sim_dataset, "01", QUERY), np.uint8), 0)
+    small = cv2.resize(frame, jpeg.shape[::-1], interpolation=cv2.INTER_AREA)
+    assert np.abs(jpeg.astype(float) - small).mean() < 4.0
+
+    kp = client.get(f"{base}/keypoints", headers=m.keys.header("write")).json()
+    assert kp["has_image"] and len(kp["x_px"]) == entry["n_points"]
+    n_without = len(kp["without_point_x_px"])
+    assert n_without == len(kp["without_point_y_px"]) > 0
+    # with and without a 3D point are disjoint parts of the image's ORB keypoints
+    with_pt = set(zip(kp["x_px"], kp["y_px"], strict=True))
+    assert not with_pt & set(zip(kp["without_point_x_px"], kp["without_point_y_px"], strict=True))
+
+    # a vehicle key may not read it; an ingested entry of the same map has its image too
+    assert client.get(f"{base}/image", headers=m.keys.header("localize")).status_code == 403
+    first = client.get(
+        f"/v1/maps/{m.map_id}/entries?limit=1", headers=m.keys.header("write")
+    ).json()["items"][0]
+    other = client.get(
+        f"/v1/maps/{m.map_id}/entries/{first['id']}/image", headers=m.keys.header("write")
+    )
+    assert other.status_code == 200 and other.content[:3] == b"\xff\xd8\xff"
+    # deleted: 404 with a message
+    assert client.delete(base, headers=m.keys.header("write")).status_code == 204
+    gone = client.get(f"{base}/image", headers=m.keys.header("write"))
+    assert gone.status_code == 404 and "does not exist" in gone.json()["error"]["message"]

@@ -244,10 +244,27 @@ async function mapPage(mapId) {
 
 // ---- one entry ------------------------------------------------------------------------
 
+// The entry's image (fetched with the key, as a data URI for Plotly's image trace), or null.
+async function entryImage(mapId, entryId) {
+  const response = await fetch(`/v1/maps/${mapId}/entries/${entryId}/image`,
+    { headers: { "X-API-Key": state.key } });
+  if (!response.ok) return null;
+  const blob = await response.blob();
+  const uri = await new Promise((resolve, reject) => {
+    const reader = new FileReader();
+    reader.onload = () => resolve(reader.result);
+    reader.onerror = () => reject(reader.error);
+    reader.readAsDataURL(blob);
+  });
+  const bitmap = await createImageBitmap(blob);
+  return { uri, width: bitmap.width, height: bitmap.height };
+}
+
 async function entryPage(mapId, entryId) {
   const [entry, kp] = await Promise.all([
     api(`/v1/maps/${mapId}/entries/${entryId}`),
     api(`/v1/maps/${mapId}/entries/${entryId}/keypoints`)]);
+  const image = kp.has_image ? await entryImage(mapId, entryId) : null;
   const T = entry.T_world_from_cam;
   const plot = h("div", { id: "keypoint-plot", class: "plot", style: "height: 430px" });
   const tagInput = h("input", { id: "tags", value: entry.tags.join(", "), size: 30 });
@@ -269,6 +286,7 @@ async function entryPage(mapId, entryId) {
     await api(`/v1/maps/${mapId}/entries/${entryId}`, { method: "DELETE" });
     location.hash = `#/maps/${mapId}`;
   };
+  const nWithout = kp.without_point_x_px.length;
   show(h("h1", {}, `Entry ${entryId}`),
     h("p", {}, h("a", { href: `#/maps/${mapId}` }, "← map")),
     h("div", { class: "grid2" }, plot, h("div", { class: "card" },
@@ -276,23 +294,36 @@ async function entryPage(mapId, entryId) {
       h("p", { class: "pose", id: "entry-pose" },
         `x ${fmt(entry.pose.x_m)} m, y ${fmt(entry.pose.y_m)} m, z ${fmt(T[11])} m, ` +
         `heading ${deg(entry.pose.yaw_rad)}`),
-      h("p", { class: "muted" }, `run ${entry.run_id ?? "-"} · ${entry.n_points} keypoints with a 3D ` +
-        `point · image ${entry.image_width_px}×${entry.image_height_px} px · ` +
-        `t ${entry.timestamp_s ?? "-"} s`),
+      h("p", { class: "muted", id: "entry-facts" }, `run ${entry.run_id ?? "-"} · ` +
+        `${entry.n_points} keypoints with a 3D point` +
+        (image ? `, ${nWithout} without` : "") + ` · image ${entry.image_width_px}×` +
+        `${entry.image_height_px} px · t ${entry.timestamp_s ?? "-"} s`),
       h("h2", {}, "Tags"), tagInput, " ",
       h("button", { id: "retag", onclick: () => retag().catch(fail) }, "Save tags"),
       h("h2", {}, "Delete"),
       h("button", { id: "delete", class: "danger", onclick: () => remove().catch(fail) },
         "Delete entry…"),
       outcome)),
-    h("p", { class: "muted" }, "The map keeps the keypoints that have a 3D point (their depth " +
-      "in the entry's camera is the colour), not the image itself."));
-  await Plotly.newPlot(plot, [{
-    type: "scattergl", mode: "markers", name: "keypoints with a 3D point",
-    x: kp.x_px, y: kp.y_px,
-    marker: { size: 5, color: kp.depth_m, colorscale: "Viridis", showscale: true,
-      colorbar: { title: { text: "depth (m)" } } },
-  }], plotLayout({
+    h("p", { class: "muted", id: "image-note" }, image
+      ? "Keypoints on the entry's image: coloured by the depth of their 3D point in the " +
+        "entry's camera; grey crosses got no 3D point (the map does not keep them)."
+      : "This entry has no stored image (added before monoloc kept entry images): its " +
+        "keypoints with a 3D point, coloured by depth."));
+  const traces = [];
+  if (image) {
+    // pixel (0, 0) is the centre of the top-left pixel, in both images
+    const dx = entry.image_width_px / image.width, dy = entry.image_height_px / image.height;
+    traces.push({ type: "image", name: "image", source: image.uri, hoverinfo: "skip",
+      x0: (dx - 1) / 2, y0: (dy - 1) / 2, dx, dy });
+    traces.push({ type: "scattergl", mode: "markers", name: "keypoints without a 3D point",
+      meta: { kind: "without" }, x: kp.without_point_x_px, y: kp.without_point_y_px,
+      marker: { symbol: "x", size: 5, color: "#cfd8dc", opacity: 0.8 } });
+  }
+  traces.push({ type: "scattergl", mode: "markers", name: "keypoints with a 3D point",
+    meta: { kind: "with" }, x: kp.x_px, y: kp.y_px,
+    marker: { size: 6, color: kp.depth_m, colorscale: "Viridis", showscale: true,
+      line: { color: "#000", width: 0.5 }, colorbar: { title: { text: "depth (m)" } } } });
+  await Plotly.newPlot(plot, traces, plotLayout({
     xaxis: { range: [0, kp.image_width_px], title: { text: "u (px)" }, zeroline: false },
     yaxis: { range: [kp.image_height_px, 0], title: { text: "v (px)" }, scaleanchor: "x",
       zeroline: false },
@@ -307,6 +338,8 @@ function addPage(mapId) {
   const sources = h("input", { id: "sources", type: "file", multiple: true });
   const poses = h("textarea", { id: "poses", placeholder: "one line per image: 16 numbers of " +
     "T_world_from_cam, row-major (z-up world)" });
+  const times = h("textarea", { id: "timestamps", rows: 2, placeholder: "optional: one " +
+    "capture time per image, in seconds (same order as the poses)" });
   const tags = h("input", { id: "add-tags", value: "night" });
   const depthScale = h("input", { id: "depth-scale", type: "number", value: 5000 });
   const lidarT = h("input", { id: "lidar-T", size: 50, placeholder: "T_cam_from_lidar: 16 numbers" });
@@ -315,6 +348,7 @@ function addPage(mapId) {
     event.preventDefault();
     const files = [...images.files];
     const lines = poses.value.split("\n").map((l) => l.trim()).filter(Boolean);
+    const stamps = times.value.split("\n").map((l) => l.trim()).filter(Boolean);
     const byName = new Map([...sources.files].map((f) => [f.name.replace(/\.[^.]*$/, ""), f]));
     results.replaceChildren();
     for (const [i, file] of files.entries()) {
@@ -326,6 +360,8 @@ function addPage(mapId) {
         form.append("image", file);
         form.append("T_world_from_cam", lines[i]);
         if (tags.value.trim()) form.append("tags", tags.value.trim());
+        if (stamps.length && !stamps[i]) throw new Error(`no capture time for image ${i + 1}`);
+        if (stamps[i]) form.append("timestamp_s", stamps[i]);
         const source = byName.get(file.name.replace(/\.[^.]*$/, "")) || sources.files[i];
         if (source && source.name.endsWith(".bin")) {
           form.append("lidar", source);
@@ -352,6 +388,7 @@ function addPage(mapId) {
       h("p", {}, h("label", {}, "Depth PNGs or LiDAR .bin scans (same names as the images, or the " +
         "same order) ", sources)),
       h("p", {}, h("label", {}, "Poses ", poses)),
+      h("p", {}, h("label", {}, "Capture times (s) ", times)),
       h("p", {}, h("label", {}, "Tags ", tags), " ",
         h("label", {}, "depth scale (units per metre) ", depthScale)),
       h("p", {}, h("label", {}, "LiDAR extrinsics ", lidarT)),
