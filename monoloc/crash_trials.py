@@ -187,15 +187,25 @@ def _ingest_trial(server, dataset, rng, workdir, result, at_end: bool) -> None:
     job_id = int(r.json()["job"]["id"])
     result.acknowledged = 1
     start = time.monotonic()
-    # index_write: every frame built (progress 1.0), the last commit and the index file
-    # write under way; the kill lands within 50 ms of that, before, during or after.
-    threshold = 0.99 if at_end else 0.0
+    # ingest: the kill lands once the map holds a random number of the run's entries (a
+    # run ingests in about a second and progress is written every 0.5 s, so a random
+    # delay would mostly land after the job); index_write: every frame built (progress
+    # 1.0), the last commit and the index file write under way; the kill lands within
+    # 50 ms of that, before, during or after.
+    n_frames = len(read_kitti_sequence(dataset.root, dataset.map_sequence).frames)
+    entries_before_kill = int(rng.integers(1, max(2, n_frames - 1)))
     while time.monotonic() - start < 120:
         job = client.get(f"/v1/jobs/{job_id}").json()
-        if job["state"] != "queued" and job["progress"] > threshold or job["state"] == "done":
+        if job["state"] == "done":
             break
-        time.sleep(0.005 if at_end else 0.02)
-    time.sleep(float(rng.uniform(0.0, 0.05 if at_end else 1.0)))
+        if at_end and job["state"] != "queued" and job["progress"] > 0.99:
+            break
+        if not at_end:
+            n_entries = client.get(f"/v1/maps/{map_id}").json()["n_entries"]
+            if n_entries >= entries_before_kill:
+                break
+        time.sleep(0.005)
+    time.sleep(float(rng.uniform(0.0, 0.05 if at_end else 0.01)))
     result.job_state_at_kill = client.get(f"/v1/jobs/{job_id}").json()["state"]
     result.killed_after_s = time.monotonic() - start
     server.kill()
