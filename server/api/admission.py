@@ -179,14 +179,17 @@ class Ticket:
     deadline_s: float
     receive: Receive
 
-    async def client_gone(self) -> bool:
-        """True when the client has disconnected (peeks at the ASGI receive channel
-        without waiting; call only after the body was read)."""
-        message: dict | None = None
-        with anyio.CancelScope() as scope:
-            scope.cancel()
-            message = await self.receive()
-        return message is not None and message.get("type") == "http.disconnect"
+    gone: bool = False
+
+    async def watch_disconnect(self) -> None:
+        """Wait for the client to leave and remember it in ``gone``. Run it as a task once
+        the request's body was read, while the request waits for its slot: the only
+        message left is then ``http.disconnect``. Waiting on ``receive`` is also what
+        resumes reading the socket (uvicorn pauses reading a connection whose body
+        filled its buffer, and a paused socket never shows the client's close)."""
+        message = await self.receive()
+        if message.get("type") == "http.disconnect":
+            self.gone = True
 
 
 _ticket: contextvars.ContextVar[Ticket | None] = contextvars.ContextVar(
@@ -221,14 +224,26 @@ class Admission:
         async def still_wanted() -> None:
             if time.monotonic() >= ticket.deadline_s:
                 raise self._expired(lane, "deadline")
-            if await ticket.client_gone():
+            await anyio.lowlevel.checkpoint()  # lets the watcher take a close just seen
+            if ticket.gone:
                 raise self._expired(lane, "disconnected")
 
-        try:
-            wait_s = max(0.0, ticket.deadline_s - time.monotonic())
-            return await lane.compute(fn, *args, wait_s=wait_s, check=still_wanted)
-        except TimeoutError:
+        error: Exception | None = None
+        async with anyio.create_task_group() as watchers:
+            if not ticket.gone:
+                watchers.start_soon(ticket.watch_disconnect)
+            try:
+                wait_s = max(0.0, ticket.deadline_s - time.monotonic())
+                result = await lane.compute(fn, *args, wait_s=wait_s, check=still_wanted)
+            except Exception as exc:  # raised outside the group, not as an ExceptionGroup
+                error = exc
+            finally:
+                watchers.cancel_scope.cancel()
+        if isinstance(error, TimeoutError):
             raise self._expired(lane, "deadline") from None
+        if error is not None:
+            raise error
+        return result
 
     def _expired(self, lane: Lane, reason: str) -> OverloadedError:
         self.metrics.admission_expired.inc(lane.name, reason)
