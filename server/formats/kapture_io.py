@@ -92,7 +92,8 @@ class DepthMapFile:
             raise InputFileError(
                 self.path, f"depth map missing or not {self.size[0]}x{self.size[1]} float32"
             )
-        return DepthSource(np.nan_to_num(depth_map_from_file(str(self.path), self.size)), 1.0)
+        depth_m = depth_map_from_file(str(self.path), self.size)
+        return DepthSource(np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m, 0.0), 1.0)
 
 
 @dataclass(frozen=True)
@@ -338,8 +339,8 @@ def write_kapture_trajectory(
     marker: dict | None = None,
 ) -> Path:
     """A trajectory (N,) timestamps and (N, 4, 4) poses as kapture ``trajectories.txt``
-    of device ``cam0`` (microsecond timestamps), with the camera in ``sensors.txt`` if
-    known."""
+    of device ``cam0`` (microsecond timestamps), declared in ``sensors.txt`` with its
+    intrinsics if known, else as kapture's ``UNKNOWN_CAMERA``."""
     kapture = _import_kapture()
     from kapture.io.csv import kapture_to_dir
 
@@ -354,6 +355,8 @@ def write_kapture_trajectory(
     sensors = kapture.Sensors()
     if camera is not None:
         sensors[CAMERA_ID] = _camera_sensor(kapture, camera)
+    else:  # kapture reads only the poses of declared devices
+        sensors[CAMERA_ID] = kapture.Camera(kapture.CameraType.UNKNOWN_CAMERA, [0, 0], CAMERA_ID)
     kapture_to_dir(str(out_dir), kapture.Kapture(sensors=sensors, trajectories=trajectories))
     if marker is not None:
         (out_dir / MARKER_FILE).write_text(json.dumps(marker, indent=2) + "\n")
