@@ -14,7 +14,9 @@ from typing import Annotated
 import typer
 
 map_app = typer.Typer(
-    help="Maps: create, ingest runs, vocabulary, calibration, statistics.", no_args_is_help=True
+    help="Maps: create, ingest runs, import/export COLMAP and kapture, vocabulary, calibration, "
+    "statistics.",
+    no_args_is_help=True,
 )
 
 DataDir = Annotated[
