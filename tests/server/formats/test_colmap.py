@@ -5,11 +5,11 @@ localized against, exported, opened by pycolmap and imported again."""
 from __future__ import annotations
 
 import shutil
-import subprocess
-import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from cli_runner import run_monoloc
 from colmap_builder import build_sift_model
 
 from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam
@@ -167,14 +167,13 @@ def test_up_auto_matches_the_stated_axis_for_a_level_camera(sift_model):
     assert abs(wrong.T_world_from_cam[2, 1]) < 0.5  # the camera's y is not vertical
 
 
-def test_cli_import_export_and_errors(sift_model, tmp_path):
+def test_cli_import_export_and_errors(sift_model, tmp_path, monkeypatch, capsys):
     model_dir, images_dir, _ = sift_model
-    env = {"MONOLOC_DATA_DIR": str(tmp_path / "data"), "PATH": "/usr/bin:/bin"}
+    monkeypatch.setenv("MONOLOC_DATA_DIR", str(tmp_path / "data"))
 
     def run(*args):
-        return subprocess.run(
-            [sys.executable, "-m", "monoloc.cli", *args], capture_output=True, text=True, env=env
-        )
+        code, out, err = run_monoloc(monkeypatch, capsys, *args)
+        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
 
     ok = run(
         "map",

@@ -7,11 +7,11 @@ driven trajectory written as kapture."""
 from __future__ import annotations
 
 import shutil
-import subprocess
-import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from cli_runner import run_monoloc
 
 from monoloc.core.geometry import R_from_quaternion_xyzw, invert_rigid, quaternion_xyzw_from_R
 from monoloc.server.formats.kapture_io import read_kapture
@@ -174,7 +174,7 @@ def test_export_reads_back_in_kapture_and_imports_again(factory, kapture_dir, tm
         np.testing.assert_allclose(b.points_cam, a.points_cam, atol=1e-4)
 
 
-def test_driven_trajectory_as_kapture_and_cli_errors(tmp_path, map_run):
+def test_driven_trajectory_as_kapture_and_cli_errors(tmp_path, map_run, monkeypatch, capsys):
     """A TUM and a KITTI file as `monoloc drive` writes them, exported by the CLI and read
     back by kapture; a folder that is not a kapture dataset is refused in one line."""
     from kapture.io.csv import kapture_from_dir
@@ -186,12 +186,11 @@ def test_driven_trajectory_as_kapture_and_cli_errors(tmp_path, map_run):
     stamps = np.array([f.timestamp_s for f in map_run.frames])
     tum_path, kitti_path = write_trajectory_files(tmp_path / "track", stamps, planar, 1.65)
     (tmp_path / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
-    env = {"MONOLOC_DATA_DIR": str(tmp_path / "data"), "PATH": "/usr/bin:/bin"}
+    monkeypatch.setenv("MONOLOC_DATA_DIR", str(tmp_path / "data"))
 
     def run(*args):
-        return subprocess.run(
-            [sys.executable, "-m", "monoloc.cli", *args], capture_output=True, text=True, env=env
-        )
+        code, out, err = run_monoloc(monkeypatch, capsys, *args)
+        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
 
     for path, extra in ((tum_path, ()), (kitti_path, ("--times", str(tmp_path / "times.txt")))):
         out = tmp_path / f"k_{path.name}"
