@@ -170,7 +170,7 @@ def main() -> None:
         f"per image), query run {len(query.frames)} frames, one frame at a time, no filter"
     )
     header = (
-        f"{'map':<14}{'entries':>8}{'pts/entry':>10}{'hyp. %':>8}{'RMSE m':>9}"
+        f"{'map':<18}{'entries':>8}{'pts/entry':>10}{'hyp. %':>8}{'RMSE m':>9}"
         f"{'median m':>10}{'<=0.25m %':>10}{'head. deg':>10}{'build s':>9}"
     )
     print(header)
@@ -181,7 +181,7 @@ def main() -> None:
             return format(v, spec) if v is not None else "-"
 
         print(
-            f"{label:<14}{r['entries']:>8}{r['points_per_entry']:>10.0f}"
+            f"{label:<18}{r['entries']:>8}{r['points_per_entry']:>10.0f}"
             f"{100 * r['with_hypothesis']:>8.0f}{fmt(r['position_rmse_m'], '>9.3f')}"
             f"{fmt(r['position_median_m'], '>10.3f')}{100 * r['within_0_25m']:>10.0f}"
             f"{fmt(r['heading_median_deg'], '>10.2f')}{r['build_s']:>9.1f}"
