@@ -40,6 +40,7 @@ from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import R_ZUP_FROM_KITTI, invert_rigid
 from monoloc.server.ingest.common import LoadedFrame, decode_gray, read_bytes
+from monoloc.server.vision.features import OrbConfig
 
 UP_CHOICES = ("z", "-y", "y", "auto")
 POINT_MODES = ("orb", "model")
@@ -220,13 +221,13 @@ class ImportSource:
     T_world_from_model: np.ndarray = field(repr=False)
     points: str = "orb"
     association: Association = field(default_factory=Association)
-    orb: object = None  # OrbConfig of the ingestion (the same features as build_entry's)
+    orb: OrbConfig = field(default_factory=OrbConfig)  # the ingestion's (build_entry's)
     read_skips: dict[str, int] = field(default_factory=dict)
 
     def load(self, frame: ImportFrame) -> LoadedFrame:
         """Read the image and give it its 3D source (thread-safe; no database access)."""
         from monoloc.server.entry_builder import ObservedPoints
-        from monoloc.server.vision.features import OrbConfig, extract_features
+        from monoloc.server.vision.features import extract_features
 
         data = read_bytes(frame.image_path, "image")
         gray = decode_gray(data, frame.image_path)
@@ -244,7 +245,7 @@ class ImportSource:
             return LoadedFrame(data, gray, ObservedPoints(image.keypoints_px, points_cam))
         if gray.shape != (self.intrinsics.height_px, self.intrinsics.width_px):
             return LoadedFrame(data, gray, np.zeros((0, 3)))  # build_entry names the size
-        features = extract_features(gray, self.orb or OrbConfig())
+        features = extract_features(gray, self.orb)
         explicit = associate_points(
             features.keypoints_px, image.keypoints_px, points_cam, self.intrinsics, self.association
         )
@@ -259,7 +260,7 @@ def import_sources(
     scale: float = 1.0,
     points: str = "orb",
     association: Association = Association(),
-    orb=None,
+    orb: OrbConfig | None = None,
 ) -> list[ImportSource]:
     """One ingestion source per camera of the model, poses in the z-up world (metres)."""
     if points not in POINT_MODES:
@@ -291,7 +292,7 @@ def import_sources(
                 T,
                 points,
                 association,
-                orb,
+                orb or OrbConfig(),
                 dict(model.skipped) if k == 0 else {},
             )
         )
