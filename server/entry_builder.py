@@ -1,9 +1,11 @@
 """Turn a reference image with a pose and a 3D source into a map entry (METHOD.md s. 5).
 
 Pure: arrays in, a ``NewEntry`` out. The 3D source is one of a LiDAR scan with its
-extrinsics, a registered depth image with its scale, or explicit per-keypoint points.
-VLAD is computed from all of the image's descriptors (as at query time); the entry
-keeps only the keypoints that received a 3D point.
+extrinsics, a registered depth image with its scale, explicit points for the image's ORB
+keypoints, or observed points (a reconstruction's own 2D observations with their 3D
+points, described with ORB where they are). VLAD is computed from all of the image's
+ORB descriptors (as at query time); the entry keeps only the keypoints that have a 3D
+point.
 """
 
 from __future__ import annotations
@@ -23,7 +25,12 @@ from monoloc.server.vision.depth import (
     points_from_depth_image,
     points_from_lidar,
 )
-from monoloc.server.vision.features import Features, OrbConfig, extract_features
+from monoloc.server.vision.features import (
+    Features,
+    OrbConfig,
+    describe_keypoints,
+    extract_features,
+)
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -42,6 +49,16 @@ class DepthSource:
 
     depth_raw: np.ndarray
     scale_per_m: float
+
+
+@dataclass(frozen=True)
+class ObservedPoints:
+    """A reconstruction's observations in one image: keypoints_px (N, 2) float (OpenCV
+    pixel convention) and their 3D points points_cam (N, 3) in this camera's frame. The
+    entry keeps them as they are, with ORB descriptors computed at those pixels."""
+
+    keypoints_px: np.ndarray
+    points_cam: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -110,7 +127,7 @@ def build_entry(
     image_gray: np.ndarray,
     source_hash: str,
     T_world_from_cam: np.ndarray,
-    source: LidarSource | DepthSource | np.ndarray,
+    source: LidarSource | DepthSource | ObservedPoints | np.ndarray,
     intrinsics: CameraIntrinsics,
     vocabulary: Vocabulary,
     vocabulary_id: int | None,
@@ -119,7 +136,8 @@ def build_entry(
     timestamp_s: float | None = None,
 ) -> NewEntry:
     """A map entry from one image. ``source`` may also be explicit points (N, 3) float
-    for the image's own keypoints as :func:`extract_features` returns them.
+    for the image's own keypoints as :func:`extract_features` returns them (NaN or
+    z <= 0: none), or :class:`ObservedPoints`.
 
     Raises TooFewPointsError when fewer than ``config.min_points`` keypoints have depth.
     """
@@ -130,6 +148,24 @@ def build_entry(
             f"{intrinsics.width_px}x{intrinsics.height_px}"
         )
     features = extract_features(image_gray, config.orb)
+    if isinstance(source, ObservedPoints):
+        keypoints_px, descriptors, points_cam = _observed(image_gray, source, config)
+        return _entry(
+            image_gray,
+            features,
+            features.keypoints_px,  # the image's ORB keypoints: none is kept
+            keypoints_px,
+            descriptors,
+            points_cam,
+            source_hash,
+            T_world_from_cam,
+            intrinsics,
+            vocabulary,
+            vocabulary_id,
+            config,
+            tags,
+            timestamp_s,
+        )
     if isinstance(source, LidarSource | DepthSource):
         points_cam, has = points_for(features, source, intrinsics, config)
     else:
@@ -139,11 +175,63 @@ def build_entry(
                 f"explicit 3D points must be ({len(features)}, 3), got {points_cam.shape}"
             )
         has = np.all(np.isfinite(points_cam), axis=1) & (points_cam[:, 2] > 0)
-    n_points = int(has.sum())
+    return _entry(
+        image_gray,
+        features,
+        features.keypoints_px[~has],
+        features.keypoints_px[has],
+        features.descriptors[has],
+        points_cam[has],
+        source_hash,
+        T_world_from_cam,
+        intrinsics,
+        vocabulary,
+        vocabulary_id,
+        config,
+        tags,
+        timestamp_s,
+    )
+
+
+def _observed(image_gray, source: ObservedPoints, config: BuildConfig):
+    """(keypoints (K, 2) float32, descriptors (K, 32), points_cam (K, 3)) of the observed
+    points that lie in front of the camera and inside ORB's border."""
+    keypoints_px = np.asarray(source.keypoints_px, dtype=np.float64).reshape(-1, 2)
+    points_cam = np.asarray(source.points_cam, dtype=np.float64).reshape(-1, 3)
+    if len(keypoints_px) != len(points_cam):
+        raise InvalidInputError(
+            f"{len(keypoints_px)} observed keypoints but {len(points_cam)} 3D points"
+        )
+    front = np.all(np.isfinite(points_cam), axis=1) & (points_cam[:, 2] > 0)
+    kept, descriptors = describe_keypoints(image_gray, keypoints_px[front], config.orb)
+    return (
+        keypoints_px[front][kept].astype(np.float32),
+        descriptors,
+        points_cam[front][kept],
+    )
+
+
+def _entry(
+    image_gray: np.ndarray,
+    features: Features,
+    without_point_px: np.ndarray,
+    keypoints_px: np.ndarray,
+    descriptors: np.ndarray,
+    points_cam: np.ndarray,
+    source_hash: str,
+    T_world_from_cam: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    vocabulary: Vocabulary,
+    vocabulary_id: int | None,
+    config: BuildConfig,
+    tags: tuple[str, ...],
+    timestamp_s: float | None,
+) -> NewEntry:
+    n_points = len(keypoints_px)
     if n_points < config.min_points:
         raise TooFewPointsError(
-            f"only {n_points} of {len(features)} keypoints have a 3D point "
-            f"(need {config.min_points})"
+            f"only {n_points} keypoints have a 3D point (need {config.min_points}; the "
+            f"image has {len(features)} ORB features)"
         )
     vlad = compute_vlad(features.descriptors, vocabulary)
     return NewEntry(
@@ -151,13 +239,13 @@ def build_entry(
         T_world_from_cam=T_world_from_cam,
         vlad=vlad,
         code=vlad_binary_code(vlad),
-        keypoints_px=features.keypoints_px[has],
-        descriptors=features.descriptors[has],
-        points_cam=points_cam[has].astype(np.float32),
+        keypoints_px=np.ascontiguousarray(keypoints_px, dtype=np.float32),
+        descriptors=np.ascontiguousarray(descriptors, dtype=np.uint8),
+        points_cam=np.ascontiguousarray(points_cam, dtype=np.float32),
         image_width_px=intrinsics.width_px,
         image_height_px=intrinsics.height_px,
         tags=tags,
         timestamp_s=timestamp_s,
         vocabulary_id=vocabulary_id,
-        image=entry_image(image_gray, features.keypoints_px[~has], config),
+        image=entry_image(image_gray, without_point_px, config),
     )

@@ -14,7 +14,9 @@ from typing import Annotated
 import typer
 
 map_app = typer.Typer(
-    help="Maps: create, ingest runs, vocabulary, calibration, statistics.", no_args_is_help=True
+    help="Maps: create, ingest runs, import/export COLMAP and kapture, vocabulary, calibration, "
+    "statistics.",
+    no_args_is_help=True,
 )
 
 DataDir = Annotated[
@@ -310,3 +312,127 @@ def map_add_image(
         f"{verb} entry {summary.id} at x={summary.x_m:.2f} y={summary.y_m:.2f} "
         f"with {summary.n_points} 3D keypoints"
     )
+
+
+@map_app.command("import")
+def map_import(
+    ctx: typer.Context,
+    path: Annotated[Path, typer.Argument(help="COLMAP sparse model folder or kapture folder.")],
+    map_ref: Annotated[str, typer.Option("--map", "-m", help="Map name or id (created if new).")],
+    fmt: Annotated[str, typer.Option("--format", help="colmap | kapture")] = "colmap",
+    images: Annotated[
+        Path | None, typer.Option(help="COLMAP: the folder of the model's images.")
+    ] = None,
+    points: Annotated[
+        str,
+        typer.Option(
+            help="orb: ORB features on the image take the model's 3D points by proximity "
+            "to its 2D observations; model: the model's observations as they are."
+        ),
+    ] = "orb",
+    up: Annotated[
+        str | None,
+        typer.Option(
+            help="The model's up axis: z | -y | y | auto (default: monoloc.json beside the "
+            "model, else -y for COLMAP, z for kapture)."
+        ),
+    ] = None,
+    scale: Annotated[float, typer.Option(help="Metres per model unit.")] = 1.0,
+    radius_px: Annotated[
+        float, typer.Option(help="--points orb: the 2D observation search radius.")
+    ] = 3.0,
+    tags: Annotated[str, typer.Option(help="Comma-separated tags, e.g. night.")] = "",
+    kind: Annotated[str, typer.Option(help="Run kind: map | offcenter | night | ...")] = "map",
+    skip_bad_frames: Annotated[
+        bool, typer.Option(help="Skip unreadable images (reported) instead of failing.")
+    ] = False,
+    workers: Annotated[int, typer.Option(help="Threads building entries.")] = 2,
+) -> None:
+    """Import a COLMAP sparse model (with its images) or a kapture dataset as mapping runs
+    (one per camera); idempotent like any ingestion."""
+    from monoloc.core.errors import InvalidInputError
+    from monoloc.server.entry_builder import BuildConfig
+    from monoloc.server.formats.maps import import_sources_into_map
+    from monoloc.server.formats.model import Association, import_sources
+    from monoloc.server.ingest.pipeline import IngestConfig
+    from monoloc.server.ingest.report import print_ingest_summary, progress_bar
+
+    if fmt == "colmap":
+        from monoloc.server.formats.colmap import read_colmap_model
+
+        if images is None:
+            raise typer.BadParameter("--format colmap needs --images DIR")
+        model = read_colmap_model(path, images)
+    elif fmt == "kapture":
+        from monoloc.server.formats.kapture_io import read_kapture
+
+        model = read_kapture(path)
+    else:
+        raise InvalidInputError(f"unknown import format {fmt!r}: colmap or kapture")
+    build = BuildConfig()
+    sources = import_sources(
+        model,
+        fmt=fmt,
+        up=up,
+        scale=scale,
+        points=points,
+        association=Association(radius_px=radius_px),
+        orb=build.orb,
+    )
+    _, factory = open_database(ctx)
+    config = IngestConfig(build=build, workers=workers, skip_bad_frames=skip_bad_frames)
+    tag_list = tuple(t.strip() for t in tags.split(",") if t.strip())
+    with progress_bar(f"importing {model.name}") as update:
+        record, summaries, created = import_sources_into_map(
+            factory, map_ref, sources, kind=kind, tags=tag_list, config=config, progress=update
+        )
+    if created:
+        typer.echo(f"created map {record.name} (id {record.id}), camera {record.camera}")
+    for summary in summaries:
+        print_ingest_summary(summary)
+
+
+@map_app.command("export")
+def map_export(
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Argument(help="Output folder (created).")],
+    fmt: Annotated[str, typer.Option("--format", help="colmap | kapture")] = "colmap",
+    map_ref: Annotated[
+        str | None,
+        typer.Option("--map", "-m", help="Map name or id (with --trajectory: its camera)."),
+    ] = None,
+    trajectory: Annotated[
+        Path | None,
+        typer.Option(
+            help="kapture: write this driven trajectory (monoloc drive's TUM or KITTI file)."
+        ),
+    ] = None,
+    times: Annotated[
+        Path | None, typer.Option(help="KITTI trajectory: its times.txt (one per line).")
+    ] = None,
+) -> None:
+    """Write a map as a COLMAP sparse model or a kapture dataset, or a driven trajectory
+    as kapture (z-up world; monoloc.json beside it says so)."""
+    from monoloc.core.errors import InvalidInputError
+
+    if trajectory is not None:
+        from monoloc.server.formats.trajectory import export_trajectory
+
+        if fmt != "kapture":
+            raise InvalidInputError("--trajectory is written as kapture: give --format kapture")
+        camera = None
+        if map_ref is not None:
+            from monoloc.server.ingest.manage import find_map
+
+            _, factory = open_database(ctx)
+            camera = find_map(factory, map_ref).camera
+        n = export_trajectory(trajectory, out, times=times, camera=camera)
+        typer.echo(f"wrote {n} poses of {trajectory} as kapture to {out}")
+        return
+    if map_ref is None:
+        raise typer.BadParameter("give --map (or --trajectory)")
+    from monoloc.server.formats.maps import export_map
+
+    _, factory = open_database(ctx)
+    record, n = export_map(factory, map_ref, fmt, out)
+    typer.echo(f"wrote map {record.name} ({n} entries, version {record.version}) as {fmt} to {out}")

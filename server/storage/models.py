@@ -32,7 +32,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 RUN_STATUSES = ("pending", "running", "done", "failed", "interrupted")
 JOB_STATES = ("queued", "running", "done", "failed", "interrupted")
-SOURCE_FORMATS = ("kitti", "tum", "single")
+SOURCE_FORMATS = ("kitti", "tum", "single", "colmap", "kapture")
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",

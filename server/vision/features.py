@@ -128,3 +128,54 @@ def extract_features(image_gray: np.ndarray, config: OrbConfig = OrbConfig()) ->
         keypoints_px=points_px,
         descriptors=np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(-1, DESCRIPTOR_BYTES),
     )
+
+
+def _intensity_centroid_angles_deg(gray: np.ndarray, centres: np.ndarray, radius: int):
+    """ORB's orientation (intensity centroid over a disc of ``radius``) at integer pixel
+    centres (N, 2) int (x, y), in degrees [0, 360), as OpenCV's ORB computes it at level 0."""
+    dy, dx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    disc = (dx * dx + dy * dy) <= radius * radius + radius  # OpenCV's rounded circle
+    image = gray.astype(np.float64)
+    angles = np.empty(len(centres), dtype=np.float64)
+    for i, (x, y) in enumerate(centres):
+        patch = image[y - radius : y + radius + 1, x - radius : x + radius + 1] * disc
+        angles[i] = np.degrees(np.arctan2((dy * patch).sum(), (dx * patch).sum()))
+    return np.mod(angles, 360.0)
+
+
+def describe_keypoints(
+    image_gray: np.ndarray, keypoints_px: np.ndarray, config: OrbConfig = OrbConfig()
+) -> tuple[np.ndarray, np.ndarray]:
+    """ORB descriptors at given pixel positions (e.g. a COLMAP model's observations), as
+    :func:`extract_features` would describe a keypoint detected there at full resolution:
+    same blur, ORB's own orientation (intensity centroid) and patch.
+
+    keypoints_px: (N, 2) float pixel (x, y), OpenCV convention. Returns (kept (N,) bool,
+    descriptors (K, 32) uint8) for the K kept keypoints: those whose patch lies inside the
+    image (closer than ``edge_threshold`` to a border: dropped, as ORB drops them).
+    """
+    gray = as_gray_uint8(image_gray)
+    points = np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2)
+    height, width = gray.shape
+    border = config.edge_threshold
+    centres = np.rint(points).astype(np.int64)
+    kept = (
+        np.all(np.isfinite(points), axis=1)
+        & (centres[:, 0] >= border)
+        & (centres[:, 0] < width - border)
+        & (centres[:, 1] >= border)
+        & (centres[:, 1] < height - border)
+    )
+    if not kept.any():
+        return kept, np.zeros((0, DESCRIPTOR_BYTES), dtype=np.uint8)
+    if config.blur_ksize > 1:
+        gray = cv2.GaussianBlur(gray, (config.blur_ksize, config.blur_ksize), 0)
+    angles = _intensity_centroid_angles_deg(gray, centres[kept], config.edge_threshold // 2)
+    keypoints = [
+        cv2.KeyPoint(float(x), float(y), float(config.edge_threshold), float(a), 0.0, 0)
+        for (x, y), a in zip(points[kept], angles, strict=True)
+    ]
+    described, descriptors = _create_orb(config).compute(gray, keypoints)
+    if descriptors is None or len(described) != len(keypoints):
+        raise InvalidInputError("ORB dropped keypoints inside the border")  # never expected
+    return kept, np.ascontiguousarray(descriptors, dtype=np.uint8)

@@ -78,3 +78,24 @@ def test_concurrent_calls_give_the_serial_result():
     with ThreadPoolExecutor(max_workers=4) as pool:
         parallel = list(pool.map(lambda image: extract_features(image).descriptors, images))
     assert all(np.array_equal(a, b) for a, b in zip(serial, parallel, strict=True))
+
+
+def test_describe_keypoints_reproduces_orb_at_its_own_full_resolution_detections():
+    """ORB described at given pixels (a reconstruction's observations) equals ORB's own
+    description of the keypoints it detected there at pyramid level 0; a point closer to
+    the border than ORB's patch is dropped."""
+    import cv2
+
+    from monoloc.server.vision.features import _create_orb, describe_keypoints
+
+    image = data.camera()
+    config = OrbConfig()
+    blurred = cv2.GaussianBlur(image, (config.blur_ksize, config.blur_ksize), 0)
+    keypoints, descriptors = _create_orb(config).detectAndCompute(blurred, None)
+    level0 = [i for i, k in enumerate(keypoints) if k.octave == 0]
+    assert len(level0) > 100
+    pixels = np.array([keypoints[i].pt for i in level0] + [[3.0, 3.0]])
+    kept, described = describe_keypoints(image, pixels, config)
+    assert kept[:-1].all() and not kept[-1]
+    differing_bits = np.unpackbits(described ^ descriptors[level0], axis=1).sum(axis=1)
+    assert np.mean(differing_bits == 0) > 0.95 and differing_bits.max() <= 4
