@@ -207,6 +207,14 @@ def T_from_pose(position, orientation) -> np.ndarray:
     return T
 
 
+def T_from_pose_row(row: np.ndarray) -> np.ndarray:
+    """(4, 4) from a pose row ``t x y z qx qy qz qw``."""
+    T = np.eye(4)
+    T[:3, :3] = R_from_quaternion_xyzw(np.asarray(row[4:8], dtype=np.float64))
+    T[:3, 3] = row[1:4]
+    return T
+
+
 def _pose_row(t_s: float, position, orientation) -> list[float]:
     q = [orientation.x, orientation.y, orientation.z, orientation.w]
     return [t_s, position.x, position.y, position.z, *q]
