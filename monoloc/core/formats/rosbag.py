@@ -166,7 +166,8 @@ def intrinsics_from_camera_info(msg) -> CameraIntrinsics:
             f"CameraInfo without a valid K or size (fx={K[0, 0]}, fy={K[1, 1]}, "
             f"{msg.width}x{msg.height})"
         )
-    return CameraIntrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], int(msg.width), int(msg.height))
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    return CameraIntrinsics(fx, fy, cx, cy, int(msg.width), int(msg.height))
 
 
 def pointcloud_xyz(msg) -> np.ndarray:
