@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import io
 import threading
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -71,13 +72,14 @@ class _BagImages:
     def __init__(self, root: Path, topic: str, times_ns: dict[Path, int]) -> None:
         self.root, self.topic, self.times_ns = root, topic, times_ns
         self._lock = threading.Lock()
-        self._context = self._reader = None
+        self._reader = None
 
     def __call__(self, key: Path) -> bytes:
         with self._lock:
             if self._reader is None:
-                self._context = bag.open_bag(self.root)
-                self._reader = self._context.__enter__()
+                self._reader = bag.open_reader(self.root)
+                # closed with this object, or at exit (before the interpreter tears down)
+                weakref.finalize(self, self._reader.close)
             msgtype, msg = bag.read_message(self._reader, self.topic, self.times_ns[key])
         if msgtype == bag.COMPRESSED_IMAGE:
             return bytes(msg.data)
@@ -144,7 +146,10 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
             raise InvalidInputError(
                 f"{root}: no image topic (sensor_msgs/Image or CompressedImage)"
             )
-        odometry_types = {t: k for t, k in types.items() if t != given.get("truth")}
+        # the truth topic is not the vehicle's odometry unless named as both
+        odometry_types = {
+            t: k for t, k in types.items() if t != given.get("truth") or "odometry" in given
+        }
         odometry = bag.choose_topic(
             odometry_types, (bag.ODOMETRY,), given.get("odometry"), "odometry", root
         )

@@ -104,6 +104,8 @@ class GeoReference:
         T = np.asarray(T_ecef_from_world, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise InvalidInputError("T_ecef_from_world must be a finite 4x4 matrix")
+        if np.abs(T[:3, :3]).max() > 1.0 + 1e-6:  # (and no overflow in the check below)
+            raise InvalidInputError("T_ecef_from_world is not a rigid transform (|R_ij| > 1)")
         check_rigid(T, "T_ecef_from_world", tol=1e-6)
         norm = float(np.linalg.norm(T[:3, 3]))
         if not _MIN_ECEF_NORM_M <= norm <= _MAX_ECEF_NORM_M:

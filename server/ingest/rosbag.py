@@ -29,6 +29,7 @@ outside it).
 from __future__ import annotations
 
 import threading
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,7 +69,6 @@ class RosbagRun:
     format: str = "rosbag"
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _reader: object = field(default=None, repr=False)
-    _context: object = field(default=None, repr=False)
 
     @property
     def n_frames(self) -> int:
@@ -81,15 +81,10 @@ class RosbagRun:
     def _message(self, topic: str, t_ns: int):
         with self._lock:
             if self._reader is None:
-                self._context = bag.open_bag(self.root)
-                self._reader = self._context.__enter__()
+                self._reader = bag.open_reader(self.root)
+                # closed with this run, or at exit (before the interpreter tears down)
+                weakref.finalize(self, self._reader.close)
             return bag.read_message(self._reader, topic, t_ns)
-
-    def close(self) -> None:
-        with self._lock:
-            if self._context is not None:
-                self._context.__exit__(None, None, None)
-                self._context = self._reader = None
 
     def read_image(self, frame: RosbagFrame) -> tuple[bytes, np.ndarray]:
         """(the message's image bytes, the (H, W) uint8 grayscale image)."""

@@ -74,10 +74,10 @@ def _any_reader():
     return AnyReader
 
 
-@contextmanager
-def open_bag(path: Path) -> Iterator:
-    """An open ``rosbags.highlevel.AnyReader`` of the bag at ``path`` (a rosbag2 folder or
-    its .db3 / .mcap file, or a ROS 1 .bag); InputFileError naming it if it is none."""
+def open_reader(path: Path):
+    """An opened ``rosbags.highlevel.AnyReader`` of the bag at ``path`` (a rosbag2 folder
+    or its .db3 / .mcap file, or a ROS 1 .bag); InputFileError naming it if it is none.
+    The caller closes it (``open_bag`` does)."""
     path = Path(path)
     if path.is_file() and path.suffix in (".db3", ".mcap"):
         path = path.parent  # rosbag2: the folder holds metadata.yaml
@@ -91,6 +91,13 @@ def open_bag(path: Path) -> Iterator:
         reader.open()
     except (AnyReaderError, OSError, ValueError) as exc:
         raise InputFileError(path, f"not a readable ROS bag ({exc})") from exc
+    return reader
+
+
+@contextmanager
+def open_bag(path: Path) -> Iterator:
+    """``open_reader`` as a context manager."""
+    reader = open_reader(path)
     try:
         yield reader
     finally:

@@ -166,3 +166,32 @@ def test_cli_ingests_a_bag_and_reports_a_bad_one_in_one_line(
         f"error: {bag}: no topic '/nowhere' (pose); topics: ['/camera/camera_info', "
         "'/camera/image_raw/compressed', '/odom', '/tf_static', '/velodyne_points']"
     )
+
+
+def test_the_vehicle_replays_a_raw_image_bag_with_tf_and_truth(sim_run, tmp_path):
+    import cv2
+
+    from monoloc.client.bag_replay import read_bag_run
+
+    _, run = sim_run
+    bag = write_sim_bag(run, tmp_path / "replay_tf", poses="tf", three_d="none")
+    replay = read_bag_run(bag)
+    assert len(replay) == len(run.images)
+    np.testing.assert_allclose(replay.timestamps_s - replay.timestamps_s[0], run.times_s, atol=1e-6)
+    for i in (0, len(replay) - 1):  # raw mono8 -> PNG: the same pixels
+        png = np.frombuffer(replay.image_bytes(i), dtype=np.uint8)
+        sent = cv2.imdecode(png, cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(sent, cv2.imread(str(run.images[i]), cv2.IMREAD_GRAYSCALE))
+    # no Odometry: speed and yaw rate differentiated from /tf (straight, steady street)
+    assert any("differentiated from /tf" in note for note in replay.notes)
+    np.testing.assert_allclose(replay.signals[:, 0], run.signals[:, 0], atol=0.05)
+    np.testing.assert_allclose(replay.signals[:, 1], run.signals[:, 1], atol=0.01)
+    assert replay.truth_world is None
+
+    bag = write_sim_bag(run, tmp_path / "replay_odom", image="compressed", three_d="none")
+    replay = read_bag_run(bag, {"odometry": "/odom", "truth": "/odom"})
+    np.testing.assert_allclose(replay.signals, run.signals, atol=1e-12)
+    truth = planar_from_T_world_from_cam(run.T_world_from_cam)
+    np.testing.assert_allclose(replay.truth_world, truth, atol=1e-9)
+    with pytest.raises(InvalidInputError, match="unknown topic role"):
+        read_bag_run(bag, {"camera": "/camera/image_raw/compressed"})
