@@ -64,13 +64,16 @@ class GeoOrigin:
             )
 
 
-def R_ecef_from_enu(lat_deg: float, lon_deg: float) -> np.ndarray:
-    """(3, 3) whose columns are the local East, North, Up unit vectors in ECEF (pymap3d's
-    ``enu2uvw`` applied to the three axes)."""
+def R_ecef_from_enu(lat_deg, lon_deg) -> np.ndarray:
+    """(3, 3) (or (N, 3, 3) for arrays of N latitudes and longitudes) whose columns are the
+    local East, North, Up unit vectors in ECEF (pymap3d's ``enu2uvw`` of the three axes)."""
     import pymap3d
 
-    columns = [pymap3d.enu2uvw(*axis, lat_deg, lon_deg) for axis in np.eye(3)]
-    return np.array(columns, dtype=np.float64).T
+    lat, lon = np.asarray(lat_deg, dtype=np.float64), np.asarray(lon_deg, dtype=np.float64)
+    ones, zeros = np.ones_like(lat), np.zeros_like(lat)
+    axes = ((ones, zeros, zeros), (zeros, ones, zeros), (zeros, zeros, ones))
+    columns = [np.stack(pymap3d.enu2uvw(*axis, lat, lon), axis=-1) for axis in axes]
+    return np.stack(columns, axis=-1)  # (..., 3 ECEF components, 3 axes)
 
 
 def _R_enu_from_world(x_axis_heading_deg: float) -> np.ndarray:
@@ -164,11 +167,21 @@ class GeoReference:
 
     def geopose(self, T_world_from_cam: np.ndarray) -> GeoPose:
         """The camera's OGC GeoPose (see the module docstring)."""
-        T = np.asarray(T_world_from_cam, dtype=np.float64)
-        lat, lon, h = self.geodetic_from_world(T[:3, 3])[0]
-        R_enu_from_cam = R_ecef_from_enu(lat, lon).T @ self.T_ecef_from_world[:3, :3] @ T[:3, :3]
-        q = quaternion_xyzw_from_R(R_enu_from_cam)
-        return GeoPose(float(lat), float(lon), float(h), tuple(float(v) for v in q))
+        return self.geoposes(np.asarray(T_world_from_cam)[None])[0]
+
+    def geoposes(self, T_world_from_cam: np.ndarray) -> list[GeoPose]:
+        """GeoPoses of (N, 4, 4) camera poses (one pymap3d call per step for all N)."""
+        T = np.asarray(T_world_from_cam, dtype=np.float64).reshape(-1, 4, 4)
+        if len(T) == 0:
+            return []
+        geodetic = self.geodetic_from_world(T[:, :3, 3])
+        R_enu_from_ecef = np.swapaxes(R_ecef_from_enu(geodetic[:, 0], geodetic[:, 1]), 1, 2)
+        R_enu_from_cam = R_enu_from_ecef @ self.T_ecef_from_world[:3, :3] @ T[:, :3, :3]
+        out = []
+        for (lat, lon, h), R in zip(geodetic, R_enu_from_cam, strict=True):
+            q = quaternion_xyzw_from_R(R)
+            out.append(GeoPose(float(lat), float(lon), float(h), tuple(float(v) for v in q)))
+        return out
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from monoloc.server.api.schemas_localize import (
     RejectedPublic,
     RetrievedPublic,
 )
-from monoloc.server.geo import GeoReference
+from monoloc.server.geo import GeoPose, GeoReference
 from monoloc.server.localize import LocalizationResult, PoseHypothesis
 from monoloc.server.storage.records import (
     EntrySummary,
@@ -125,12 +125,9 @@ def job_public(j: JobRecord) -> s.JobPublic:
     return s.JobPublic.model_validate(replace(j, params=params))
 
 
-def hypothesis(h: PoseHypothesis, geo: GeoReference | None = None) -> HypothesisPublic:
-    geopose = None
-    if geo is not None:
-        geopose = GeoPosePublic.model_validate(geo.geopose(h.T_world_from_cam).to_json())
+def hypothesis(h: PoseHypothesis, geopose: GeoPose | None = None) -> HypothesisPublic:
     return HypothesisPublic(
-        geopose=geopose,
+        geopose=None if geopose is None else GeoPosePublic.model_validate(geopose.to_json()),
         entry_id=h.entry_id,
         pose=planar(h.pose_world),
         entry_pose=planar(h.entry_pose_world),
@@ -155,10 +152,13 @@ def localize_response(
 ) -> LocalizeResponse:
     """The answer; with ``geo`` (the map's reference) every hypothesis carries a GeoPose."""
     ordered = sorted(result.hypotheses, key=lambda h: (-h.n_inliers, h.entry_id))
+    geoposes: list[GeoPose | None] = [None] * len(ordered)
+    if geo is not None and ordered:
+        geoposes = list(geo.geoposes(np.stack([h.T_world_from_cam for h in ordered])))
     return LocalizeResponse(
         map_id=map_id,
         map_version=map_version,
-        hypotheses=[hypothesis(h, geo) for h in ordered],
+        hypotheses=[hypothesis(h, g) for h, g in zip(ordered, geoposes, strict=True)],
         retrieved=[
             RetrievedPublic(entry_id=int(i), distance=float(d))
             for i, d in zip(result.retrieved_ids, result.retrieved_distances, strict=True)
