@@ -278,9 +278,10 @@ def ingest_run(
     should_stop: Callable[[], bool] | None = None,
     config: IngestConfig = IngestConfig(),
 ) -> IngestSummary:
-    """Add the frames of ``source`` (a ``KittiSequence``, ``TumRun`` or ``RosbagRun``) to map ``map_id``
-    as entries of run ``run_id`` (created by the caller). Idempotent and resumable (see
-    the module docstring). ``progress(done, total)`` is called after every frame;
+    """Add the frames of ``source`` (a ``KittiSequence``, ``TumRun`` or ``RosbagRun``) to
+    map ``map_id`` as entries of run ``run_id`` (created by the caller). Idempotent and
+    resumable (see the module docstring). ``progress(done, total)`` is called after every
+    frame;
     ``should_stop()`` is polled between frames (True: commit what is built, mark the run
     interrupted, return). Raises InvalidInputError naming the file on bad input, after
     committing the entries of the frames before it and marking the run failed.
