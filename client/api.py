@@ -57,6 +57,15 @@ class LocalizeAnswer:
         best = max(hyps, key=lambda h: h.get("n_inliers", 0))
         return np.array([best["pose"]["x_m"], best["pose"]["y_m"], best["pose"]["yaw_rad"]])
 
+    @property
+    def best_geopose(self) -> dict | None:
+        """The OGC GeoPose ({"position": {lat, lon, h}, "quaternion": {x, y, z, w}}) of the
+        hypothesis ``best_pose_world`` gives, when the map is geo-referenced; else None."""
+        hyps = [h for h in self.raw.get("hypotheses") or [] if not h.get("joint", False)]
+        if not hyps:
+            return None
+        return max(hyps, key=lambda h: h.get("n_inliers", 0)).get("geopose")
+
     @classmethod
     def from_stream(cls, data: dict) -> LocalizeAnswer:
         """One answer of the WebSocket stream: a localize answer, a dropped frame or a

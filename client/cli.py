@@ -9,7 +9,9 @@ import typer
 
 def drive(
     run_dir: Path = typer.Argument(
-        ..., help="KITTI sequence (or dataset root with --sequence) or TUM RGB-D run folder"
+        ...,
+        help="KITTI sequence (or dataset root with --sequence), TUM RGB-D run folder, or a "
+        "ROS 2 bag (folder or .mcap/.db3)",
     ),
     server: str = typer.Option("http://127.0.0.1:8000", help="map server base URL"),
     map_ref: str = typer.Option(..., "--map", help="map id or name"),
@@ -28,13 +30,19 @@ def drive(
         None, help="fit the lever arm on this recorded run with poses (e.g. the training run)"
     ),
     out: Path = typer.Option(Path("out/drive"), help="prefix of the trajectory files"),
+    topic: list[str] | None = typer.Option(
+        None,
+        help="ROS bag: ROLE=TOPIC (roles image, odometry, truth), repeatable; image and "
+        "odometry are found by type when the bag has one of each",
+    ),
 ) -> None:
     """Stream a run's frames, run the filter, write TUM + KITTI trajectories, print metrics."""
     from rich.console import Console
     from rich.progress import Progress
 
     from monoloc.client.api import MonolocClient
-    from monoloc.client.drive import DriveConfig, write_outputs
+    from monoloc.client.bag_replay import is_bag, read_bag_run
+    from monoloc.client.drive import DriveConfig, write_geojson, write_outputs
     from monoloc.client.drive import drive as run_drive
     from monoloc.client.motion import MotionConfig, fit_lever_arm_m
     from monoloc.client.particle_filter import FilterConfig
@@ -43,7 +51,10 @@ def drive(
     from monoloc.core.errors import InvalidInputError
 
     console = Console(stderr=True)
-    run = read_run(run_dir, sequence).select(parse_frames(frames))
+    if is_bag(run_dir):
+        run = read_bag_run(run_dir, _topics(topic)).select(parse_frames(frames))
+    else:
+        run = read_run(run_dir, sequence).select(parse_frames(frames))
     for note in run.notes:
         console.print(f"[yellow]note:[/] {note}")
     if lever_arm_m is None and lever_arm_from is not None:
@@ -86,5 +97,17 @@ def drive(
     for note in result.notes[len(run.notes) :]:
         console.print(f"[yellow]note:[/] {note}")
     tum, kitti = write_outputs(result, out)
+    geojson = write_geojson(result, out)
     Console().print(metrics_table(result))
-    console.print(f"trajectories: {tum}, {kitti}")
+    console.print(f"trajectories: {tum}, {kitti}" + (f", {geojson}" if geojson else ""))
+
+
+def _topics(items: list[str] | None) -> dict[str, str]:
+    """``["image=/cam/image_raw", ...]`` -> {"image": "/cam/image_raw", ...}."""
+    topics: dict[str, str] = {}
+    for item in items or []:
+        role, sep, name = item.partition("=")
+        if not sep or not role.strip() or not name.strip():
+            raise typer.BadParameter(f"--topic must look like ROLE=TOPIC, got {item!r}")
+        topics[role.strip()] = name.strip()
+    return topics

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient
+from monoloc.client.geojson import track_geojson, write_track_geojson
 from monoloc.client.localizer import StreamLocalizer, check_answer_seq
 from monoloc.client.particle_filter import FilterConfig
 from monoloc.client.replay import ReplayRun
@@ -58,6 +59,8 @@ class DriveResult:
     errors: dict[int, str] = field(default_factory=dict)
     # When each frame was sent, in seconds after the drive started (N,).
     sent_at_s: np.ndarray | None = None
+    # Per frame: the OGC GeoPose of the best hypothesis (geo-referenced maps), or None.
+    geoposes: list[dict | None] = field(default_factory=list)
 
     @property
     def frames_per_s(self) -> float:
@@ -76,6 +79,7 @@ class _DriveLog:
         self.best_world = np.full((n, 3), np.nan)
         self.timings_ms: list[dict[str, float]] = [{} for _ in range(n)]
         self.errors: dict[int, str] = {}
+        self.geoposes: list[dict | None] = [None] * n
 
     def sent(self, i: int) -> None:
         self.sent_at_s[i] = time.perf_counter() - self.start
@@ -90,6 +94,7 @@ class _DriveLog:
         self.n_hypotheses[i] = len(answer.hypotheses)
         self.timings_ms[i] = answer.timings_ms
         self.best_world[i] = answer.best_pose_world
+        self.geoposes[i] = answer.best_geopose
 
     def result(self, run: ReplayRun, estimates_world: np.ndarray) -> DriveResult:
         wall = time.perf_counter() - self.start
@@ -116,6 +121,7 @@ class _DriveLog:
             notes,
             self.errors,
             self.sent_at_s,
+            self.geoposes,
         )
 
 
@@ -157,7 +163,7 @@ def drive(
         if config.realtime:
             _drive_realtime(stream, run, tracker, log, config.k, recorded)
         else:
-            images = (path.read_bytes() for path in run.image_paths)
+            images = (run.image_bytes(i) for i in range(len(run)))
             localizer = _Timed(StreamLocalizer(stream, run.timestamps_s), log)
             track(tracker, localizer, images, config.k, recorded)
     return log.result(run, tracker.estimates_world)
@@ -194,8 +200,8 @@ def _drive_realtime(
     def sender() -> None:
         t0 = time.perf_counter()
         try:
-            for i, path in enumerate(run.image_paths):
-                image = path.read_bytes()
+            for i in range(len(run)):
+                image = run.image_bytes(i)
                 due = float(run.timestamps_s[i] - run.timestamps_s[0])
                 delay = due - (time.perf_counter() - t0)
                 if delay > 0:
@@ -222,6 +228,17 @@ def _drive_realtime(
         thread.join(timeout=5.0)
     if errors:
         raise errors[0]
+
+
+def write_geojson(result: DriveResult, out_prefix: Path) -> Path | None:
+    """``<prefix>.geojson`` of the track when the answers carried GeoPoses (the map is
+    geo-referenced; monoloc.client.geojson); None otherwise."""
+    collection = track_geojson(
+        result.run.name, result.run.timestamps_s, result.geoposes, result.estimates_world
+    )
+    if collection is None:
+        return None
+    return write_track_geojson(out_prefix.with_name(out_prefix.name + ".geojson"), collection)
 
 
 def write_outputs(result: DriveResult, out_prefix: Path) -> tuple[Path, Path]:

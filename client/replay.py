@@ -9,6 +9,7 @@ formats are ``monoloc.core.formats``; this module aligns them into a run.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,9 +46,17 @@ class ReplayRun:
     notes: list[str] = field(default_factory=list)
     # Camera ahead of the speed reference point (m), when the recording says so.
     lever_arm_m: float | None = None
+    # How to read an image's encoded bytes from its entry of ``image_paths``: the file's
+    # bytes by default; a ROS bag's images are messages (monoloc.client.bag_replay).
+    read_image: Callable[[Path], bytes] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.image_paths)
+
+    def image_bytes(self, i: int) -> bytes:
+        """The encoded (PNG/JPEG) image of frame ``i``."""
+        path = self.image_paths[i]
+        return path.read_bytes() if self.read_image is None else self.read_image(path)
 
     def select(self, frames: slice) -> ReplayRun:
         """The frames ``frames`` selects (python slice semantics), e.g. the test part."""
@@ -65,6 +74,7 @@ class ReplayRun:
             truth,
             notes,
             self.lever_arm_m,
+            self.read_image,
         )
 
 

@@ -118,9 +118,9 @@ def map_stats(
 @map_app.command("ingest")
 def map_ingest(
     ctx: typer.Context,
-    path: Annotated[Path, typer.Argument(help="KITTI dataset root or sequence; TUM run.")],
+    path: Annotated[Path, typer.Argument(help="KITTI dataset root or sequence; TUM run; ROS bag.")],
     map_ref: MapRef,
-    fmt: Annotated[str, typer.Option("--format", help="kitti | tum")] = "kitti",
+    fmt: Annotated[str, typer.Option("--format", help="kitti | tum | rosbag")] = "kitti",
     sequence: Annotated[str | None, typer.Option(help="KITTI sequence (NN).")] = None,
     frames: Annotated[
         str | None, typer.Option(help="Frame range A:B (Python slice: 0:3860 = frames 0..3859).")
@@ -138,8 +138,16 @@ def map_ingest(
     cy: float | None = None,
     width: int | None = None,
     height: int | None = None,
+    topic: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="rosbag: ROLE=TOPIC (roles image, camera_info, depth, cloud, pose); "
+            "repeatable; a role left out is found by message type."
+        ),
+    ] = None,
 ) -> None:
-    """Ingest a KITTI sequence or a TUM RGB-D run into a map (idempotent, resumable)."""
+    """Ingest a KITTI sequence, a TUM RGB-D run or a ROS 2 bag into a map (idempotent,
+    resumable)."""
     from monoloc.server.entry_builder import BuildConfig
     from monoloc.server.ingest.common import parse_frame_range
     from monoloc.server.ingest.manage import CameraOverrides, ingest_source, open_source
@@ -155,6 +163,7 @@ def map_ingest(
         frames=parse_frame_range(frames),
         camera=intrinsics,
         tum_camera=camera,
+        topics=parse_topics(topic),
     )
     config = IngestConfig(build=BuildConfig(), workers=workers, skip_bad_frames=skip_bad_frames)
     tag_list = tuple(t.strip() for t in tags.split(",") if t.strip())
@@ -163,6 +172,17 @@ def map_ingest(
             factory, map_ref, source, kind=kind, tags=tag_list, config=config, progress=update
         )
     print_ingest_summary(summary)
+
+
+def parse_topics(items: list[str] | None) -> dict[str, str]:
+    """``["image=/cam/image_raw", ...]`` -> {"image": "/cam/image_raw", ...}."""
+    topics: dict[str, str] = {}
+    for item in items or []:
+        role, sep, name = item.partition("=")
+        if not sep or not role.strip() or not name.strip():
+            raise typer.BadParameter(f"--topic must look like ROLE=TOPIC, got {item!r}")
+        topics[role.strip()] = name.strip()
+    return topics
 
 
 @map_app.command("vocab")

@@ -10,11 +10,13 @@ import numpy as np
 
 from monoloc.server.api import schemas as s
 from monoloc.server.api.schemas_localize import (
+    GeoPosePublic,
     HypothesisPublic,
     LocalizeResponse,
     RejectedPublic,
     RetrievedPublic,
 )
+from monoloc.server.geo import GeoPose, GeoReference
 from monoloc.server.localize import LocalizationResult, PoseHypothesis
 from monoloc.server.storage.records import (
     EntrySummary,
@@ -70,8 +72,20 @@ def map_public(m: MapRecord, vocab: VocabularyRecord) -> s.MapPublic:
         version=m.version,
         n_entries=m.n_entries,
         calibrated=bool(m.calibration),
+        geo_reference=geo_reference_public(m.geo_reference),
         created_at=m.created_at,
         updated_at=m.updated_at,
+    )
+
+
+def geo_reference_public(stored: dict[str, Any] | None) -> s.GeoReferencePublic | None:
+    """The stored reference (``GeoReference.to_dict``) as the API shows it."""
+    if stored is None:
+        return None
+    origin = stored.get("origin")
+    return s.GeoReferencePublic(
+        origin=None if origin is None else s.GeoOriginSpec(**origin),
+        T_ecef_from_world=list(stored["T_ecef_from_world"]),
     )
 
 
@@ -111,8 +125,9 @@ def job_public(j: JobRecord) -> s.JobPublic:
     return s.JobPublic.model_validate(replace(j, params=params))
 
 
-def hypothesis(h: PoseHypothesis) -> HypothesisPublic:
+def hypothesis(h: PoseHypothesis, geopose: GeoPose | None = None) -> HypothesisPublic:
     return HypothesisPublic(
+        geopose=None if geopose is None else GeoPosePublic.model_validate(geopose.to_json()),
         entry_id=h.entry_id,
         pose=planar(h.pose_world),
         entry_pose=planar(h.entry_pose_world),
@@ -133,12 +148,17 @@ def localize_response(
     result: LocalizationResult,
     timings_ms: dict[str, float],
     seed: int,
+    geo: GeoReference | None = None,
 ) -> LocalizeResponse:
+    """The answer; with ``geo`` (the map's reference) every hypothesis carries a GeoPose."""
     ordered = sorted(result.hypotheses, key=lambda h: (-h.n_inliers, h.entry_id))
+    geoposes: list[GeoPose | None] = [None] * len(ordered)
+    if geo is not None and ordered:
+        geoposes = list(geo.geoposes(np.stack([h.T_world_from_cam for h in ordered])))
     return LocalizeResponse(
         map_id=map_id,
         map_version=map_version,
-        hypotheses=[hypothesis(h) for h in ordered],
+        hypotheses=[hypothesis(h, g) for h, g in zip(ordered, geoposes, strict=True)],
         retrieved=[
             RetrievedPublic(entry_id=int(i), distance=float(d))
             for i, d in zip(result.retrieved_ids, result.retrieved_distances, strict=True)

@@ -21,6 +21,7 @@ from monoloc.server.api.convert import localize_response
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
+from monoloc.server.geo import GeoReference
 from monoloc.server.localize import LocalizeConfig
 
 
@@ -60,7 +61,9 @@ def localize_encoded(
     timings = {"decode": decode_ms, **result.timings_ms}
     timings["total"] = result.timings_ms.get("total", 0.0) + decode_ms
     state.metrics.observe_localize(timings)
-    return localize_response(map_id, version, result, timings, seed)
+    stored = state.registry.get(map_id).record.geo_reference
+    geo = GeoReference.from_dict(stored) if stored is not None else None
+    return localize_response(map_id, version, result, timings, seed, geo)
 
 
 async def localize_bytes(

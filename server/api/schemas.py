@@ -110,6 +110,11 @@ class MapCreate(BaseModel):
         description="1-64 letters, digits, '.', '_' or '-', starting with a letter or digit.",
     )
     camera: Camera
+    geo_reference: GeoReferenceUpdate | None = Field(
+        default=None,
+        description="Optional: places the map on the WGS84 ellipsoid, so that answers carry "
+        "OGC GeoPoses (also settable later: PUT /v1/maps/{map_id}/geo-reference).",
+    )
     vocabulary: str = Field(
         default="default",
         pattern=VOCABULARY_REF_PATTERN,
@@ -117,6 +122,74 @@ class MapCreate(BaseModel):
         "already stored (e.g. trained for another map). For a vocabulary trained on this "
         "map's own data, upload its first run with train_vocabulary=true.",
     )
+
+
+_GEO_ORIGIN_EXAMPLE = dict(lat_deg=48.858370, lon_deg=2.294481, h_m=35.0, x_axis_heading_deg=90.0)
+
+
+class GeoOriginSpec(BaseModel):
+    """WGS84 position of the map world's origin and the compass heading of its +X axis."""
+
+    model_config = ConfigDict(
+        strict=True, allow_inf_nan=False, json_schema_extra={"examples": [_GEO_ORIGIN_EXAMPLE]}
+    )
+    lat_deg: float = Field(ge=-90.0, le=90.0, description="WGS84 latitude (degrees).")
+    lon_deg: float = Field(ge=-180.0, le=180.0, description="WGS84 longitude (degrees).")
+    h_m: float = Field(
+        default=0.0,
+        ge=-12_000.0,
+        le=100_000.0,
+        description="Height above the WGS84 ellipsoid (m) of the world's origin (z = 0).",
+    )
+    x_axis_heading_deg: float = Field(
+        ge=0.0,
+        lt=360.0,
+        description="Compass heading of the world's +X axis, degrees clockwise from true "
+        "north (90: +X points east; the world is then the origin's local ENU frame).",
+    )
+
+
+class GeoReferenceUpdate(BaseModel):
+    """A map's geographic reference: exactly one of ``origin`` and ``T_ecef_from_world``
+    (422 otherwise, or when the transform is not rigid or not near the Earth's surface)."""
+
+    model_config = strict_example(origin=_GEO_ORIGIN_EXAMPLE)
+    origin: GeoOriginSpec | None = None
+    T_ecef_from_world: list[Annotated[float, Field(allow_inf_nan=False)]] | None = Field(
+        default=None,
+        min_length=16,
+        max_length=16,
+        description="Rigid transform from the map's world to WGS84 ECEF (m), 4x4 row-major.",
+    )
+
+    def to_reference(self) -> dict[str, Any]:
+        """The storage form (``monoloc.server.geo.GeoReference``), checked."""
+        from monoloc.core.errors import InvalidInputError
+        from monoloc.server.geo import GeoReference
+
+        if (self.origin is None) == (self.T_ecef_from_world is None):
+            raise InvalidInputError("give exactly one of origin and T_ecef_from_world")
+        values = {"T_ecef_from_world": self.T_ecef_from_world}
+        if self.origin is not None:
+            values = {"origin": self.origin.model_dump()}
+        return GeoReference.from_dict(values).to_dict()
+
+
+class GeoReferencePublic(BaseModel):
+    """The map's geographic reference: the origin when it was given as one, and always the
+    transform from the map's world to WGS84 ECEF."""
+
+    model_config = example(
+        origin=_GEO_ORIGIN_EXAMPLE,
+        T_ecef_from_world=[
+            -0.04004, -0.75248, 0.6574, 4200961.4,
+            0.9992, -0.03015, 0.02634, 168322.7,
+            0.0, 0.65792, 0.75309, 4780237.2,
+            0.0, 0.0, 0.0, 1.0,
+        ],
+    )  # fmt: skip
+    origin: GeoOriginSpec | None
+    T_ecef_from_world: list[float] = Field(min_length=16, max_length=16)
 
 
 class VocabularyPublic(BaseModel):
@@ -157,6 +230,9 @@ class MapPublic(BaseModel):
     version: int = Field(description="Bumped by every entry add/remove and vocabulary change.")
     n_entries: int
     calibrated: bool = Field(description="Whether the measurement model was calibrated.")
+    geo_reference: GeoReferencePublic | None = Field(
+        default=None, description="The map's geographic reference; null: not geo-referenced."
+    )
     created_at: datetime
     updated_at: datetime
 

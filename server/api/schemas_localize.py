@@ -195,6 +195,38 @@ _TIMINGS = {
 }
 
 
+class GeoPosition(BaseModel):
+    lat: float = Field(description="WGS84 latitude (degrees).")
+    lon: float = Field(description="WGS84 longitude (degrees).")
+    h: float = Field(description="Height above the WGS84 ellipsoid (m).")
+
+
+class GeoQuaternion(BaseModel):
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+class GeoPosePublic(BaseModel):
+    """OGC GeoPose 1.0 Basic-Quaternion of the query camera: its centre's WGS84 position,
+    and the unit quaternion (Hamilton) rotating the camera frame (OpenCV: x right, y down,
+    z forward) into the local East-North-Up frame at that position (``R_enu_from_cam``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "position": {"lat": 48.858482, "lon": 2.294651, "h": 36.65},
+                    "quaternion": {"x": -0.7071068, "y": 0.0, "z": 0.0, "w": 0.7071068},
+                }
+            ]
+        }
+    )
+    position: GeoPosition
+    quaternion: GeoQuaternion
+
+
 class HypothesisPublic(BaseModel):
     """One accepted PnP solution against one retrieved entry (METHOD.md s. 6 step 5)."""
 
@@ -218,6 +250,11 @@ class HypothesisPublic(BaseModel):
     )
     entry_ids: list[int] = Field(
         default_factory=list, description="Joint pose: the entries whose inliers it used."
+    )
+    geopose: GeoPosePublic | None = Field(
+        default=None,
+        description="The pose as an OGC GeoPose (Basic-Quaternion) when the map has a "
+        "geographic reference; null otherwise.",
     )
     method: str = Field(
         default="ransac",

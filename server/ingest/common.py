@@ -2,12 +2,14 @@
 pipeline consumes, and image decoding. (The text files' formats are
 ``monoloc.core.formats``; their errors, ``InputFileError``, name the file and line.)
 
-A reader (``kitti.read_kitti_sequence``, ``tum.read_tum_run``) validates a recording's
-metadata completely when it is opened and returns a *source*: an object with
-``format`` ("kitti" | "tum"), ``name``, ``intrinsics``, ``frames`` (a list of frame
-records, each with ``index``, ``timestamp_s``, ``image_path``, ``T_world_from_cam``),
-``read_skips`` (frames dropped at read time, reason -> count) and
-``load(frame) -> LoadedFrame``, which reads the frame's files (thread-safe).
+A reader (``kitti.read_kitti_sequence``, ``tum.read_tum_run``, ``rosbag.read_rosbag_run``)
+validates a recording's metadata completely when it is opened and returns a *source*: an
+object with ``format`` ("kitti" | "tum" | "rosbag"), ``name``, ``intrinsics``, ``frames``
+(a list of frame records, each with ``index``, ``timestamp_s``, ``image_path``,
+``T_world_from_cam``), ``read_skips`` (frames dropped at read time, reason -> count) and
+``load(frame) -> LoadedFrame``, which reads the frame's files (thread-safe). A source
+whose images are not files (a ROS bag: ``image_path`` then only names the message) also
+has ``read_image(frame) -> (bytes, (H, W) uint8 image)``.
 """
 
 from __future__ import annotations

@@ -134,8 +134,10 @@ def open_source(
     frames: slice | None = None,
     camera: CameraIntrinsics | None = None,
     tum_camera: str | None = None,
+    topics: dict[str, str] | None = None,
 ):
-    """Open (and validate) a KITTI sequence or a TUM run."""
+    """Open (and validate) a KITTI sequence, a TUM run or a ROS bag (``topics``: role ->
+    topic, see ``monoloc.server.ingest.rosbag``)."""
     if fmt == "kitti":
         from monoloc.server.ingest.kitti import read_kitti_sequence
 
@@ -144,7 +146,11 @@ def open_source(
         from monoloc.server.ingest.tum import read_tum_run
 
         return read_tum_run(path, intrinsics=camera, camera=tum_camera, frames=frames)
-    raise InvalidInputError(f"unknown format {fmt!r}: kitti or tum")
+    if fmt == "rosbag":
+        from monoloc.server.ingest.rosbag import read_rosbag_run
+
+        return read_rosbag_run(path, topics=topics, intrinsics=camera, frames=frames)
+    raise InvalidInputError(f"unknown format {fmt!r}: kitti, tum or rosbag")
 
 
 def ingest_source(

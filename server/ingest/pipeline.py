@@ -103,11 +103,18 @@ def _worker_setup() -> None:
     cv2.setNumThreads(1)
 
 
-def _hash_frame(frame) -> tuple[str, str] | InputFileError:
-    """(content hash, bytes hash) of the frame's image, or the error reading it."""
+def _hash_frame(source, frame) -> tuple[str, str] | InputFileError:
+    """(content hash, bytes hash) of the frame's image, or the error reading it. A source
+    whose images are not files (a ROS bag) reads them itself: ``read_image(frame)`` ->
+    (bytes, (H, W) uint8 image)."""
     try:
-        data = read_bytes(frame.image_path, "image")
-        return content_hash(decode_gray(data, frame.image_path)), bytes_hash(data)
+        read_image = getattr(source, "read_image", None)
+        if read_image is not None:
+            data, image = read_image(frame)
+        else:
+            data = read_bytes(frame.image_path, "image")
+            image = decode_gray(data, frame.image_path)
+        return content_hash(image), bytes_hash(data)
     except InputFileError as exc:
         return exc
 
@@ -233,14 +240,16 @@ def _load_vocabulary(factory, map_id: int, source) -> tuple[Vocabulary, int]:
 _ABSENT = object()
 
 
-def _new_frames(pool: ThreadPoolExecutor, frames: list, factory, map_id: int, writer, chunk: int):
+def _new_frames(
+    pool: ThreadPoolExecutor, source, frames: list, factory, map_id: int, writer, chunk: int
+):
     """The frames whose image is not in the map yet, hashed
     ``chunk`` at a time (threads). The others are counted: as added if this run stored
     them (an earlier attempt), else as ``already_in_map``. A frame whose image cannot be
     read is passed on: the build stage reports it in order, by the run's bad-frame policy."""
     for lo in range(0, len(frames), chunk):
         part = frames[lo : lo + chunk]
-        digests = list(pool.map(_hash_frame, part))
+        digests = list(pool.map(lambda frame: _hash_frame(source, frame), part))
         known = [h for d in digests if isinstance(d, tuple) for h in d]
         with session_scope(factory) as session:
             runs = entries_repo.runs_of_hashes(session, map_id, known) if known else {}
@@ -269,9 +278,10 @@ def ingest_run(
     should_stop: Callable[[], bool] | None = None,
     config: IngestConfig = IngestConfig(),
 ) -> IngestSummary:
-    """Add the frames of ``source`` (a ``KittiSequence`` or ``TumRun``) to map ``map_id``
-    as entries of run ``run_id`` (created by the caller). Idempotent and resumable (see
-    the module docstring). ``progress(done, total)`` is called after every frame;
+    """Add the frames of ``source`` (a ``KittiSequence``, ``TumRun`` or ``RosbagRun``) to
+    map ``map_id`` as entries of run ``run_id`` (created by the caller). Idempotent and
+    resumable (see the module docstring). ``progress(done, total)`` is called after every
+    frame;
     ``should_stop()`` is polled between frames (True: commit what is built, mark the run
     interrupted, return). Raises InvalidInputError naming the file on bad input, after
     committing the entries of the frames before it and marking the run failed.
@@ -292,7 +302,9 @@ def ingest_run(
             threadpool_limits(1),
             ThreadPoolExecutor(config.workers, initializer=_worker_setup) as pool,
         ):
-            todo = _new_frames(pool, frames, session_factory, map_id, writer, config.hash_chunk)
+            todo = _new_frames(
+                pool, source, frames, session_factory, map_id, writer, config.hash_chunk
+            )
             interrupted = _build_and_write(
                 pool,
                 source,

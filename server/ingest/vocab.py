@@ -42,8 +42,13 @@ DEFAULT_TRAINING_IMAGES = 300
 _BATCH = 64
 
 
-def _features_of(path: Path, orb: OrbConfig) -> np.ndarray:
-    return extract_features(decode_gray(read_bytes(path, "image"), path), orb).descriptors
+def _features_of(source, frame, orb: OrbConfig) -> np.ndarray:
+    read_image = getattr(source, "read_image", None)  # a ROS bag's images are messages
+    if read_image is not None:
+        image = read_image(frame)[1]
+    else:
+        image = decode_gray(read_bytes(frame.image_path, "image"), frame.image_path)
+    return extract_features(image, orb).descriptors
 
 
 def training_descriptors(
@@ -63,7 +68,7 @@ def training_descriptors(
     picks = np.unique(np.linspace(0, len(frames) - 1, min(max_images, len(frames))).astype(int))
     cv2.setNumThreads(1)
     with threadpool_limits(1), ThreadPoolExecutor(workers) as pool:
-        sets = list(pool.map(lambda i: _features_of(frames[i].image_path, orb), picks))
+        sets = list(pool.map(lambda i: _features_of(source, frames[i], orb), picks))
     return np.concatenate(sets), len(picks)
 
 

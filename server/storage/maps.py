@@ -114,6 +114,7 @@ def _map_record(row: Map, vocab_hash: str, n_entries: int) -> MapRecord:
         n_entries=int(n_entries),
         created_at=row.created_at,
         updated_at=row.updated_at,
+        geo_reference=row.geo_reference,
     )
 
 
@@ -289,5 +290,21 @@ def set_calibration(
     if row is None:
         raise NotFoundError(f"map {map_id} does not exist")
     row.calibration = value
+    session.flush()
+    return get_map(session, map_id)
+
+
+def set_geo_reference(
+    session: Session, map_id: int, geo_reference: Mapping[str, Any] | None
+) -> MapRecord:
+    """Store (or clear, with None) the map's geographic reference: a dict checked by
+    ``monoloc.server.geo.GeoReference.from_dict`` (InvalidInputError if it is none)."""
+    from monoloc.server.geo import GeoReference
+
+    value = None if geo_reference is None else GeoReference.from_dict(geo_reference).to_dict()
+    row = session.get(Map, map_id)
+    if row is None:
+        raise NotFoundError(f"map {map_id} does not exist")
+    row.geo_reference = value
     session.flush()
     return get_map(session, map_id)

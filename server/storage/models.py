@@ -32,7 +32,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 RUN_STATUSES = ("pending", "running", "done", "failed", "interrupted")
 JOB_STATES = ("queued", "running", "done", "failed", "interrupted")
-SOURCE_FORMATS = ("kitti", "tum", "single", "colmap", "kapture")
+SOURCE_FORMATS = ("kitti", "tum", "single", "colmap", "kapture", "rosbag")
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -110,6 +110,8 @@ class Map(Base):
     # stamped with it so a stale index is detected.
     version: Mapped[int] = mapped_column(default=0, server_default=text("0"))
     calibration: Mapped[dict[str, Any] | None]
+    # WGS84 reference of the map's world (server/geo.py GeoReference.to_dict), or NULL.
+    geo_reference: Mapped[dict[str, Any] | None]
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
 

@@ -72,6 +72,19 @@ def test_a_server_command_names_the_extra_it_needs(bare_venv, tmp_path):
     assert len(done.stderr.strip().splitlines()) == 1
 
 
+def test_driving_a_bag_names_the_formats_extra(bare_venv, tmp_path):
+    bag = tmp_path / "drive_bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    args = [str(bare_venv / "bin" / "monoloc"), "drive", str(bag), "--map", "m", "--key", "k"]
+    done = _run(args, cwd=tmp_path)
+    assert done.returncode == 1
+    assert "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "error: reading ROS bags needs the 'rosbags' package: pip install 'monoloc[formats]'"
+    ]
+
+
 def test_the_bare_install_drives_a_run_against_a_full_server(bare_venv, live_map, tmp_path):
     out = tmp_path / "traj" / "query"
     env = dict(os.environ, COLUMNS="160", MONOLOC_API_KEY=live_map.keys.localize)

@@ -275,7 +275,12 @@ def entry_keypoints(
     response_class=Response,
     responses={
         200: {
-            "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}},
+            "content": {
+                "image/jpeg": {
+                    "schema": {"type": "string", "format": "binary"},
+                    "example": "(JPEG bytes: FF D8 FF E0 ...)",
+                }
+            },
             "description": "A grey JPEG of the entry's reference image, at most 640 px on its "
             "longer side (keypoint pixels scale by its width / the entry's image width).",
         },

@@ -5,6 +5,7 @@ from __future__ import annotations
 from monoloc.server.api.routes import (
     calibration,
     entries,
+    geo,
     health,
     jobs,
     keys,
@@ -24,6 +25,7 @@ ROUTERS = [
     localize.router,
     stream.router,
     calibration.router,
+    geo.router,
     keys.router,
     health.router,
 ]

@@ -61,7 +61,10 @@ def create_map(
     c = body.camera
     camera = CameraIntrinsics(c.fx, c.fy, c.cx, c.cy, c.width_px, c.height_px)
     vocabulary_id = _vocabulary_id(session, body.vocabulary)
+    geo = body.geo_reference.to_reference() if body.geo_reference is not None else None
     record = maps_repo.create_map(session, body.name, camera, vocabulary_id)
+    if geo is not None:
+        maps_repo.set_geo_reference(session, record.id, geo)
     session.commit()
     registry.get(record.id)  # an empty index, so /readyz and queries see the map at once
     return _detail(session, registry, record.id)

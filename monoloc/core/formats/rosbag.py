@@ -1,0 +1,364 @@
+"""ROS 2 bags (rosbag2, sqlite3 or mcap storage; ROS 1 bags too), read with ``rosbags``
+(pure Python, no ROS installation): what the map server's bag ingestion and the vehicle's
+bag replay share.
+
+``rosbags`` is not part of the bare vehicle install: it is imported when a bag is opened,
+and its absence is one error naming ``pip install 'monoloc[formats]'``.
+
+Messages understood (ROS 2 names; REP-103 frames):
+
+- ``sensor_msgs/msg/Image`` (mono8, mono16, 8UC1, 16UC1, 32FC1, rgb8, bgr8, rgba8, bgra8)
+  and ``sensor_msgs/msg/CompressedImage`` (JPEG/PNG bytes): camera and depth images;
+- ``sensor_msgs/msg/CameraInfo``: the pinhole K (distortion is not applied: rectified
+  images are expected);
+- ``sensor_msgs/msg/PointCloud2`` with float32 x, y, z fields: LiDAR scans;
+- ``nav_msgs/msg/Odometry``: poses (``pose.pose``: ``T_<header.frame_id>_from_<child>``)
+  and the vehicle's speed and yaw rate (``twist.twist.linear.x``, ``angular.z`` in the
+  child frame);
+- ``tf2_msgs/msg/TFMessage`` on ``/tf`` and ``/tf_static``: transforms.
+
+Frames: ROS worlds (``map``, ``odom``) are z-up like monoloc's, and a camera's optical
+frame (``*_optical_frame``: x right, y down, z forward) is OpenCV's, so
+``T_world_from_cam = T_world_from_body(t) @ T_body_from_optical`` needs no axis change.
+Times: a message's ``header.stamp`` (sensor time) in seconds; the bag's own receive time
+(integer ns) is only used to find a message again.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InputFileError, InvalidInputError, MonolocError
+from monoloc.core.geometry import R_from_quaternion_xyzw, invert_rigid
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+POINT_CLOUD = "sensor_msgs/msg/PointCloud2"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
+MISSING_ROSBAGS = "reading ROS bags needs the 'rosbags' package: pip install 'monoloc[formats]'"
+
+# encoding -> (numpy dtype, channels)
+_RAW_ENCODINGS = {
+    "mono8": ("u1", 1),
+    "8uc1": ("u1", 1),
+    "mono16": ("u2", 1),
+    "16uc1": ("u2", 1),
+    "32fc1": ("f4", 1),
+    "rgb8": ("u1", 3),
+    "bgr8": ("u1", 3),
+    "8uc3": ("u1", 3),
+    "rgba8": ("u1", 4),
+    "bgra8": ("u1", 4),
+}
+# PointField datatypes (sensor_msgs/PointField constants) -> numpy
+_POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def _any_reader():
+    try:
+        from rosbags.highlevel import AnyReader
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and exc.name.split(".")[0] == "rosbags":
+            raise MonolocError(MISSING_ROSBAGS) from exc
+        raise
+    return AnyReader
+
+
+def open_reader(path: Path):
+    """An opened ``rosbags.highlevel.AnyReader`` of the bag at ``path`` (a rosbag2 folder
+    or its .db3 / .mcap file, or a ROS 1 .bag); InputFileError naming it if it is none.
+    The caller closes it (``open_bag`` does)."""
+    path = Path(path)
+    if path.is_file() and path.suffix in (".db3", ".mcap"):
+        path = path.parent  # rosbag2: the folder holds metadata.yaml
+    if not path.exists():
+        raise InputFileError(path, "no such bag")
+    reader_class = _any_reader()
+    from rosbags.highlevel import AnyReaderError
+
+    try:
+        reader = reader_class([path])
+        reader.open()
+    except (AnyReaderError, OSError, ValueError) as exc:
+        raise InputFileError(path, f"not a readable ROS bag ({exc})") from exc
+    return reader
+
+
+@contextmanager
+def open_bag(path: Path) -> Iterator:
+    """``open_reader`` as a context manager."""
+    reader = open_reader(path)
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def topic_types(reader) -> dict[str, str]:
+    """topic -> message type of every connection of the bag."""
+    return {c.topic: c.msgtype for c in reader.connections}
+
+
+def choose_topic(
+    topics: dict[str, str], types: Sequence[str], given: str | None, what: str, bag: Path
+) -> str | None:
+    """The topic for ``what``: ``given`` (checked), else the only topic of one of
+    ``types`` (None when there is none; InvalidInputError when several compete)."""
+    if given is not None:
+        if given not in topics:
+            raise InvalidInputError(f"{bag}: no topic {given!r} ({what}); topics: {sorted(topics)}")
+        if topics[given] not in types:
+            raise InvalidInputError(
+                f"{bag}: topic {given!r} is {topics[given]}, not a {what} ({', '.join(types)})"
+            )
+        return given
+    found = sorted(t for t, kind in topics.items() if kind in types)
+    if len(found) > 1:
+        raise InvalidInputError(
+            f"{bag}: several {what} topics {found}: name one (e.g. --topic {what}={found[0]})"
+        )
+    return found[0] if found else None
+
+
+def stamp_s(header) -> float:
+    """A header's stamp in seconds."""
+    return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
+
+
+def raw_image_array(msg) -> np.ndarray:
+    """A ``sensor_msgs/Image``'s pixels: (H, W) or (H, W, C) in its own encoding's dtype,
+    channel order as encoded (rgb8 stays RGB, bgr8 BGR). InvalidInputError on an encoding
+    not listed in the module docstring or a buffer too short for height x step."""
+    encoding = str(msg.encoding).lower()
+    if encoding not in _RAW_ENCODINGS:
+        raise InvalidInputError(
+            f"unsupported image encoding {msg.encoding!r}; one of {sorted(_RAW_ENCODINGS)}"
+        )
+    kind, channels = _RAW_ENCODINGS[encoding]
+    dtype = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = w * channels * dtype.itemsize
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if h <= 0 or w <= 0 or step < row_bytes or data.size < h * step:
+        raise InvalidInputError(
+            f"image message of {data.size} bytes does not hold {h} rows of {step} bytes "
+            f"({w} px x {channels} x {dtype.itemsize} B)"
+        )
+    rows = data[: h * step].reshape(h, step)[:, :row_bytes]
+    pixels = np.ascontiguousarray(rows).view(dtype).reshape(h, w, channels)
+    pixels = pixels.astype(dtype.newbyteorder("="), copy=False)
+    return pixels[:, :, 0] if channels == 1 else pixels
+
+
+def image_encoding(msg) -> str:
+    """The raw encoding's name, lower-case (``sensor_msgs/Image`` only)."""
+    return str(msg.encoding).lower()
+
+
+def intrinsics_from_camera_info(msg) -> CameraIntrinsics:
+    """Pinhole intrinsics from a ``CameraInfo``'s K (row-major 3x3) and image size."""
+    K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or msg.width <= 0 or msg.height <= 0:
+        raise InvalidInputError(
+            f"CameraInfo without a valid K or size (fx={K[0, 0]}, fy={K[1, 1]}, "
+            f"{msg.width}x{msg.height})"
+        )
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    return CameraIntrinsics(fx, fy, cx, cy, int(msg.width), int(msg.height))
+
+
+def pointcloud_xyz(msg) -> np.ndarray:
+    """(N, 3) float32 x, y, z of a ``PointCloud2`` (points with a non-finite coordinate
+    dropped)."""
+    fields = {f.name: f for f in msg.fields}
+    if not all(name in fields for name in "xyz"):
+        raise InvalidInputError(f"PointCloud2 without x, y, z fields (has {sorted(fields)})")
+    order = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for name in "xyz":
+        f = fields[name]
+        if f.datatype not in _POINT_FIELD_TYPES:
+            raise InvalidInputError(f"PointCloud2 field {name!r} has datatype {f.datatype}")
+        names.append(name)
+        formats.append(order + _POINT_FIELD_TYPES[f.datatype])
+        offsets.append(int(f.offset))
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                      "itemsize": int(msg.point_step)})  # fmt: skip
+    n = int(msg.width) * int(msg.height)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if data.size < n * int(msg.point_step):
+        raise InvalidInputError(f"PointCloud2 of {data.size} bytes holds fewer than {n} points")
+    records = data[: n * int(msg.point_step)].view(dtype)
+    xyz = np.column_stack([records[name].astype(np.float32) for name in names])
+    return xyz[np.all(np.isfinite(xyz), axis=1)]
+
+
+def T_from_pose(position, orientation) -> np.ndarray:
+    """(4, 4) from a ROS position/translation and an orientation/rotation quaternion."""
+    q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=np.float64)
+    norm = np.linalg.norm(q)
+    if not np.isfinite(norm) or norm < 1e-9:
+        raise InvalidInputError(f"invalid quaternion {q.tolist()}")
+    T = np.eye(4)
+    T[:3, :3] = R_from_quaternion_xyzw(q / norm)
+    T[:3, 3] = [position.x, position.y, position.z]
+    return T
+
+
+def T_from_pose_row(row: np.ndarray) -> np.ndarray:
+    """(4, 4) from a pose row ``t x y z qx qy qz qw``."""
+    T = np.eye(4)
+    T[:3, :3] = R_from_quaternion_xyzw(np.asarray(row[4:8], dtype=np.float64))
+    T[:3, 3] = row[1:4]
+    return T
+
+
+def _pose_row(t_s: float, position, orientation) -> list[float]:
+    q = [orientation.x, orientation.y, orientation.z, orientation.w]
+    return [t_s, position.x, position.y, position.z, *q]
+
+
+@dataclass
+class FrameTree:
+    """Transforms of a bag: static edges (``/tf_static``) and time series of dynamic ones
+    (``/tf``) as rows ``t x y z qx qy qz qw`` of ``T_parent_from_child``."""
+
+    static: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    dynamic: dict[tuple[str, str], list[list[float]]] = field(default_factory=dict)
+
+    def add(self, msg, is_static: bool) -> None:
+        for tf in msg.transforms:
+            key = (tf.header.frame_id.lstrip("/"), tf.child_frame_id.lstrip("/"))
+            if is_static:
+                self.static[key] = T_from_pose(tf.transform.translation, tf.transform.rotation)
+            else:
+                row = _pose_row(stamp_s(tf.header), tf.transform.translation, tf.transform.rotation)
+                self.dynamic.setdefault(key, []).append(row)
+
+    def static_between(self, parent: str, child: str) -> np.ndarray | None:
+        """``T_parent_from_child`` through static transforms (either direction), or None
+        when the frames are not connected by them."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        if parent == child:
+            return np.eye(4)
+        edges: dict[str, list[tuple[str, np.ndarray]]] = {}
+        for (a, b), T_a_from_b in self.static.items():
+            edges.setdefault(a, []).append((b, T_a_from_b))
+            edges.setdefault(b, []).append((a, invert_rigid(T_a_from_b)))
+        seen, queue = {parent}, deque([(parent, np.eye(4))])
+        while queue:
+            frame, T_parent_from_frame = queue.popleft()
+            for nxt, T_frame_from_next in edges.get(frame, []):
+                if nxt in seen:
+                    continue
+                T = T_parent_from_frame @ T_frame_from_next
+                if nxt == child:
+                    return T
+                seen.add(nxt)
+                queue.append((nxt, T))
+        return None
+
+    def dynamic_rows(self, parent: str | None, bag: Path) -> tuple[str, str, np.ndarray]:
+        """(world, body, rows (N, 8) sorted by time) of the one dynamic edge from
+        ``parent`` (any parent when None). Chains of dynamic transforms (map -> odom ->
+        base_link) are not composed: give an Odometry topic for those bags."""
+        edges = [k for k in self.dynamic if parent is None or k[0] == parent.lstrip("/")]
+        if len(edges) != 1:
+            raise InvalidInputError(
+                f"{bag}: poses from /tf need exactly one moving transform"
+                f"{'' if parent is None else f' from {parent!r}'}, found {sorted(edges)}: "
+                "name an Odometry topic instead (--topic pose=...)"
+            )
+        rows = np.asarray(self.dynamic[edges[0]], dtype=np.float64)
+        return edges[0][0], edges[0][1], rows[np.argsort(rows[:, 0], kind="stable")]
+
+
+def read_frame_tree(reader) -> FrameTree:
+    """Every ``/tf`` and ``/tf_static`` message of the bag."""
+    tree = FrameTree()
+    connections = [c for c in reader.connections if c.msgtype == TF_MESSAGE]
+    for connection, _, raw in reader.messages(connections=connections):
+        msg = reader.deserialize(raw, connection.msgtype)
+        tree.add(msg, is_static=connection.topic.rstrip("/").endswith("tf_static"))
+    return tree
+
+
+@dataclass(frozen=True)
+class OdometryTrack:
+    """An Odometry topic: poses as rows ``t x y z qx qy qz qw`` of
+    ``T_world_from_body`` (N, 8), and signals (N, 3) ``t speed_mps yaw_rate_radps``;
+    ``world``/``body`` are the header and child frame ids."""
+
+    world: str
+    body: str
+    pose_rows: np.ndarray
+    signal_rows: np.ndarray
+
+
+def read_odometry(reader, topic: str) -> OdometryTrack:
+    """All messages of the ``nav_msgs/Odometry`` topic, sorted by stamp."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    poses, signals, world, body = [], [], "", ""
+    for connection, _, raw in reader.messages(connections=connections):
+        msg = reader.deserialize(raw, connection.msgtype)
+        t = stamp_s(msg.header)
+        world, body = msg.header.frame_id.lstrip("/"), msg.child_frame_id.lstrip("/")
+        poses.append(_pose_row(t, msg.pose.pose.position, msg.pose.pose.orientation))
+        signals.append([t, msg.twist.twist.linear.x, msg.twist.twist.angular.z])
+    if not poses:
+        raise InvalidInputError(f"topic {topic!r} holds no Odometry message")
+    pose_rows, signal_rows = np.asarray(poses), np.asarray(signals)
+    order = np.argsort(pose_rows[:, 0], kind="stable")
+    return OdometryTrack(world, body, pose_rows[order], signal_rows[order])
+
+
+@dataclass(frozen=True)
+class BagImage:
+    """Where one image message is: its topic, bag time (ns, to read it again), stamp (s)
+    and frame id."""
+
+    topic: str
+    bag_time_ns: int
+    stamp_s: float
+    frame_id: str
+
+
+def list_images(reader, topic: str) -> list[BagImage]:
+    """Every message of an image topic, in bag order (only headers are kept)."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    images = []
+    for connection, t_ns, raw in reader.messages(connections=connections):
+        msg = reader.deserialize(raw, connection.msgtype)
+        images.append(BagImage(topic, int(t_ns), stamp_s(msg.header), msg.header.frame_id))
+    return images
+
+
+def read_message(reader, topic: str, bag_time_ns: int):
+    """(message type, message) of the first message of ``topic`` at bag time
+    ``bag_time_ns``; InvalidInputError if there is none."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    for connection, t_ns, raw in reader.messages(
+        connections=connections, start=bag_time_ns, stop=bag_time_ns + 1
+    ):
+        if t_ns == bag_time_ns:
+            return connection.msgtype, reader.deserialize(raw, connection.msgtype)
+    raise InvalidInputError(f"no message of {topic!r} at bag time {bag_time_ns} ns")
+
+
+def signals_at(signal_rows: np.ndarray, times_s: np.ndarray) -> np.ndarray:
+    """Speed and yaw rate (N, 2) at ``times_s``, linearly interpolated between the rows
+    ``t speed yaw_rate`` (held constant beyond the ends)."""
+    t = signal_rows[:, 0]
+    return np.column_stack(
+        [np.interp(times_s, t, signal_rows[:, 1]), np.interp(times_s, t, signal_rows[:, 2])]
+    )

@@ -1,0 +1,246 @@
+"""Write a ROS 2 bag (rosbags' writer, sqlite3 storage) from a sim run in KITTI layout, the
+way a car would record it: camera images (raw mono8 or PNG CompressedImage), CameraInfo,
+a LiDAR PointCloud2 in the velodyne frame (or a 32FC1 depth image), the ground-truth
+poses and the vehicle's speed and yaw rate as nav_msgs/Odometry of ``base_link`` (or the
+poses as a moving /tf transform), and the rig in /tf_static."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from monoloc.core.formats import kitti as kitti_format
+from monoloc.core.formats import vehicle as vehicle_format
+from monoloc.core.geometry import invert_rigid, kitti_to_zup, quaternion_xyzw_from_R
+
+T0_S = 1_700_000_000  # stamps start here (a real recording's epoch time)
+# base_link (x forward, y left, z up) <- camera optical frame (x right, y down, z forward):
+# the camera 1.2 m ahead of the base and 1.5 m up
+T_BASE_FROM_CAM = np.array(
+    [[0.0, 0.0, 1.0, 1.2], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 1.5], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+@dataclass(frozen=True)
+class SimRun:
+    """A sim run's files: images, scans, depth images, calib, poses and signals."""
+
+    seq_dir: Path
+    images: list[Path]
+    scans: list[Path]
+    times_s: np.ndarray
+    T_world_from_cam: np.ndarray  # (N, 4, 4) z-up
+    T_cam_from_lidar: np.ndarray
+    K: np.ndarray
+    signals: np.ndarray  # (N, 2) speed, yaw rate
+
+    @classmethod
+    def read(cls, root: Path, seq: str) -> SimRun:
+        seq_dir = root / "sequences" / seq
+        calib = kitti_format.read_calib(seq_dir / "calib.txt")
+        P0 = calib.P_image_from_cam0[0]
+        Tr = calib.T_cam0_from_lidar
+        poses = kitti_to_zup(kitti_format.read_poses(root / "poses" / f"{seq}.txt"))
+        signals = vehicle_format.read_vehicle(seq_dir / "vehicle.txt")
+        return cls(
+            seq_dir,
+            sorted((seq_dir / "image_0").glob("*.png")),
+            sorted((seq_dir / "velodyne").glob("*.bin")),
+            kitti_format.read_times(seq_dir / "times.txt"),
+            poses,
+            Tr,
+            P0[:, :3],
+            np.column_stack([signals.speed_mps, signals.yaw_rate_radps]),
+        )
+
+
+def _time(typestore, t_s: float):
+    Time = typestore.types["builtin_interfaces/msg/Time"]
+    total_ns = round(t_s * 1e9)
+    return Time(sec=total_ns // 10**9, nanosec=total_ns % 10**9)
+
+
+def _header(typestore, t_s: float, frame_id: str):
+    Header = typestore.types["std_msgs/msg/Header"]
+    return Header(stamp=_time(typestore, t_s), frame_id=frame_id)
+
+
+def _pose_parts(typestore, T: np.ndarray):
+    types = typestore.types
+    q = quaternion_xyzw_from_R(T[:3, :3])
+    quaternion = types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])
+    return T[:3, 3], quaternion
+
+
+def _transform(typestore, t_s: float, parent: str, child: str, T: np.ndarray):
+    types = typestore.types
+    translation, rotation = _pose_parts(typestore, T)
+    return types["geometry_msgs/msg/TransformStamped"](
+        header=_header(typestore, t_s, parent),
+        child_frame_id=child,
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](*translation), rotation=rotation
+        ),
+    )
+
+
+def _odometry(typestore, t_s: float, T_world_from_base: np.ndarray, speed: float, yaw_rate: float):
+    types = typestore.types
+    position, orientation = _pose_parts(typestore, T_world_from_base)
+    vec = types["geometry_msgs/msg/Vector3"]
+    return types["nav_msgs/msg/Odometry"](
+        header=_header(typestore, t_s, "map"),
+        child_frame_id="base_link",
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](*position), orientation=orientation
+            ),
+            covariance=np.zeros(36),
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](
+                linear=vec(speed, 0.0, 0.0), angular=vec(0.0, 0.0, yaw_rate)
+            ),
+            covariance=np.zeros(36),
+        ),
+    )
+
+
+def _image(typestore, t_s: float, pixels: np.ndarray, encoding: str, frame_id: str):
+    item = pixels.dtype.itemsize * (pixels.shape[2] if pixels.ndim == 3 else 1)
+    return typestore.types["sensor_msgs/msg/Image"](
+        header=_header(typestore, t_s, frame_id),
+        height=pixels.shape[0],
+        width=pixels.shape[1],
+        encoding=encoding,
+        is_bigendian=0,
+        step=pixels.shape[1] * item,
+        data=np.frombuffer(np.ascontiguousarray(pixels).tobytes(), dtype=np.uint8),
+    )
+
+
+def _cloud(typestore, t_s: float, points: np.ndarray):
+    types = typestore.types
+    Field = types["sensor_msgs/msg/PointField"]
+    fields = [Field(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")]
+    fields.append(Field(name="intensity", offset=12, datatype=7, count=1))
+    data = np.ascontiguousarray(points[:, :4], dtype="<f4")
+    return types["sensor_msgs/msg/PointCloud2"](
+        header=_header(typestore, t_s, "velodyne"),
+        height=1,
+        width=len(data),
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * len(data),
+        data=np.frombuffer(data.tobytes(), dtype=np.uint8),
+        is_dense=True,
+    )
+
+
+def _camera_info(typestore, t_s: float, K: np.ndarray, width: int, height: int):
+    types = typestore.types
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    return types["sensor_msgs/msg/CameraInfo"](
+        header=_header(typestore, t_s, "camera_optical"),
+        height=height,
+        width=width,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=K.ravel().astype(np.float64),
+        r=np.eye(3).ravel(),
+        p=P.ravel(),
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
+
+
+def write_sim_bag(
+    run: SimRun,
+    out: Path,
+    *,
+    image: str = "raw",  # raw | compressed
+    three_d: str = "cloud",  # cloud | depth | none
+    poses: str = "odometry",  # odometry | tf | none
+) -> Path:
+    """Write the bag folder ``out`` (see the module docstring); returns it."""
+    import cv2
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    first = cv2.imread(str(run.images[0]), cv2.IMREAD_GRAYSCALE)
+    height, width = first.shape
+    with Writer(out, version=8) as writer:
+
+        def connection(topic: str, msgtype: str):
+            return writer.add_connection(topic, msgtype, typestore=store)
+
+        def write(conn, t_s: float, msg, latency_s: float = 0.003) -> None:
+            data = store.serialize_cdr(msg, conn.msgtype)
+            writer.write(conn, round((t_s + latency_s) * 1e9), data)
+
+        tf_static = connection("/tf_static", "tf2_msgs/msg/TFMessage")
+        info = connection("/camera/camera_info", "sensor_msgs/msg/CameraInfo")
+        if image == "raw":
+            camera = connection("/camera/image_raw", "sensor_msgs/msg/Image")
+        else:
+            camera = connection("/camera/image_raw/compressed", "sensor_msgs/msg/CompressedImage")
+        if three_d == "cloud":
+            cloud = connection("/velodyne_points", "sensor_msgs/msg/PointCloud2")
+        elif three_d == "depth":
+            depth = connection("/camera/depth/image", "sensor_msgs/msg/Image")
+        if poses == "odometry":
+            odom = connection("/odom", "nav_msgs/msg/Odometry")
+        elif poses == "tf":
+            tf = connection("/tf", "tf2_msgs/msg/TFMessage")
+        TFMessage = store.types["tf2_msgs/msg/TFMessage"]
+        t_first = T0_S + float(run.times_s[0])
+        T_base_from_velo = T_BASE_FROM_CAM @ run.T_cam_from_lidar
+        statics = [
+            _transform(store, t_first, "base_link", "camera_optical", T_BASE_FROM_CAM),
+            _transform(store, t_first, "base_link", "velodyne", _orthonormal(T_base_from_velo)),
+        ]
+        write(tf_static, t_first, TFMessage(transforms=statics), latency_s=0.0)
+        for i, path in enumerate(run.images):
+            t = T0_S + float(run.times_s[i])
+            T_world_from_base = run.T_world_from_cam[i] @ invert_rigid(T_BASE_FROM_CAM)
+            if poses == "odometry":
+                speed, yaw_rate = run.signals[i]
+                write(odom, t, _odometry(store, t, T_world_from_base, speed, yaw_rate))
+            elif poses == "tf":
+                moving = _transform(store, t, "map", "base_link", T_world_from_base)
+                write(tf, t, TFMessage(transforms=[moving]))
+            write(info, t, _camera_info(store, t, run.K, width, height))
+            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if image == "raw":
+                write(camera, t, _image(store, t, gray, "mono8", "camera_optical"))
+            else:
+                msg = store.types["sensor_msgs/msg/CompressedImage"](
+                    header=_header(store, t, "camera_optical"),
+                    format="png",
+                    data=np.frombuffer(path.read_bytes(), dtype=np.uint8),
+                )
+                write(camera, t, msg)
+            if three_d == "cloud":
+                points = np.fromfile(run.scans[i], dtype=np.float32).reshape(-1, 4)
+                write(cloud, t + 0.01, _cloud(store, t + 0.01, points))
+            elif three_d == "depth":
+                raw = cv2.imread(str(run.seq_dir / "depth" / path.name), cv2.IMREAD_UNCHANGED)
+                depth_m = raw.astype(np.float32) / 256.0  # the sim's KITTI depth encoding
+                write(depth, t, _image(store, t, depth_m, "32FC1", "camera_optical"))
+    return out
+
+
+def _orthonormal(T: np.ndarray) -> np.ndarray:
+    """Re-orthonormalise a composed rigid transform (float round-off)."""
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = u @ vt
+    return out
