@@ -134,12 +134,19 @@ def open_source(
     frames: slice | None = None,
     camera: CameraIntrinsics | None = None,
     tum_camera: str | None = None,
+    depth_from: str = "lidar",
 ):
-    """Open (and validate) a KITTI sequence or a TUM run."""
+    """Open (and validate) a KITTI sequence or a TUM run. ``depth_from``: where a KITTI
+    sequence's keypoint depth comes from, ``lidar`` (velodyne/) or ``stereo`` (image_1/
+    and P1); a TUM run has its depth camera."""
     if fmt == "kitti":
         from monoloc.server.ingest.kitti import read_kitti_sequence
 
-        return read_kitti_sequence(path, sequence, frames)
+        return read_kitti_sequence(path, sequence, frames, depth_from=depth_from)
+    if depth_from != "lidar" and fmt == "tum":
+        raise InvalidInputError(
+            f"--depth-from {depth_from} is for KITTI sequences; a TUM run has its depth images"
+        )
     if fmt == "tum":
         from monoloc.server.ingest.tum import read_tum_run
 
