@@ -32,6 +32,7 @@ from monoloc.core.errors import InvalidInputError
 from monoloc.server.vision.depth import DepthAssociationConfig, backproject, depth_at_keypoints
 
 SGBM_DISPARITY_SCALE = 16  # StereoSGBM returns fixed-point disparities * 16
+SGBM_MODES = ("sgbm", "sgbm_3way", "hh")
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,9 @@ class StereoConfig:
 
     min_depth_m sets the disparity search range (fx * baseline / min_depth_m, rounded up
     to a multiple of 16 and capped at ``max_disparities``); block_size_px is SGBM's
-    matched block (odd); p1 / p2 are its smoothness penalties per block pixel."""
+    matched block (odd); p1 / p2 are its smoothness penalties per block pixel; mode is
+    OpenCV's ``sgbm`` (5 paths), ``sgbm_3way`` (faster, the default) or ``hh`` (8 paths,
+    full image)."""
 
     min_depth_m: float = 2.5
     max_depth_m: float = 40.0
@@ -55,8 +58,11 @@ class StereoConfig:
     window_radius_px: int = 1
     min_pixels: int = 4
     max_relative_spread: float = 0.05
+    mode: str = "sgbm_3way"
 
     def __post_init__(self) -> None:
+        if self.mode not in SGBM_MODES:
+            raise InvalidInputError(f"unknown SGBM mode {self.mode!r}: {', '.join(SGBM_MODES)}")
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise InvalidInputError(
                 f"stereo depths need 0 < min_depth_m < max_depth_m, got {self.min_depth_m}, "
@@ -122,7 +128,11 @@ def disparity_map(
         speckleWindowSize=config.speckle_window_px,
         speckleRange=config.speckle_range_px * SGBM_DISPARITY_SCALE,
         preFilterCap=63,
-        mode=cv2.STEREO_SGBM_MODE_SGBM,
+        mode={
+            "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
+            "sgbm_3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+            "hh": cv2.STEREO_SGBM_MODE_HH,
+        }[config.mode],
     )
     raw = matcher.compute(left_gray, right_gray)
     disparity = raw.astype(np.float32) / SGBM_DISPARITY_SCALE
