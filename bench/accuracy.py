@@ -6,6 +6,8 @@ query never see), and localizes the `query` run with each variant of
 monoloc.evaluation. With a `nightmap` run in the dataset, the `night` query is run twice:
 against the day map, and after adding the night entries. Prints the table next to the
 paper's numbers and the goals; writes bench/results/accuracy_<scenario>.json.
+Then (unless `--no-stereo`) the same city recorded with a stereo camera: a map built with
+stereo depth against the LiDAR-built map of the same run, same query (bench/stereo.py).
 Indoor (`--scenario indoor`): the 1:10 car's query lap against the map lap, then against
 the map plus the off-center lap (the paper's augmentation), next to the paper's indoor
 open-loop figures.
@@ -136,6 +138,11 @@ def main() -> None:
     parser.add_argument(
         "--no-floor", action="store_true", help="skip the error floor (recording errors off)"
     )
+    parser.add_argument(
+        "--no-stereo",
+        action="store_true",
+        help="skip the stereo-built map vs the LiDAR-built map (bench/stereo.py)",
+    )
     args = parser.parse_args()
     limit_threads()
     if args.scenario == "indoor":
@@ -154,6 +161,13 @@ def main() -> None:
         print("\nerror floor: the same pipeline on the same city with the recording errors off")
         floor = urban_city(exact_root, exact_meta, night=False, variants=("full", "best_pnp"))
         out["floor"] = floor
+    if not args.no_stereo:
+        import stereo
+
+        stereo_root = root.with_name(root.name + "_stereo")
+        stereo_meta = stereo.ensure_stereo_dataset(stereo_root, args.size, args.frames, args.seed)
+        print("\nmaps from a stereo camera: same map, train and query runs, LiDAR beside stereo")
+        out["stereo"] = stereo.compare(stereo_root, stereo_meta)
     print_goals(out)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "accuracy_urban.json").write_text(json.dumps(out, indent=2) + "\n")

@@ -88,7 +88,32 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
     prov = data.get("calibration", {}).get("provenance")
     if prov:
         out += ["", f"Calibration: {json.dumps(prov)}"]
+    if data.get("stereo"):
+        out += ["", *stereo_lines(data["stereo"])]
     return out + [""]
+
+
+def stereo_lines(data: dict) -> list[str]:
+    """The stereo-built map beside the LiDAR-built one (bench/stereo.py's figures)."""
+    d, lid, ste = data["depth"], data["lidar"], data["stereo"]
+    rows = []
+    for source, r in (("lidar", lid), ("stereo", ste)):
+        full = r["query"]["full"]
+        rows.append(
+            [
+                source,
+                d[source]["keypoints_with_depth"],
+                d[source]["rel_error_median"],
+                d[source]["share_error_over_10pct"],
+                r["entries"],
+                full["position_rmse_m"],
+                full["position_median_m"],
+                full["heading_rmse_deg"],
+            ]
+        )
+    header = ["depth from", "keypoints with depth", "depth error median", "error > 10 %"]
+    header += ["entries", "query RMSE m", "median m", "heading deg"]
+    return ["Maps from a stereo camera (same runs, bench/stereo.py):", "", table(header, rows)]
 
 
 def plot_accuracy(data: dict | None, name: str) -> str | None:
@@ -359,6 +384,12 @@ def main() -> None:
         plot = plot_accuracy(data, scenario)
         if plot:
             lines += [f"![accuracy {scenario}]({plot})", ""]
+    stereo = load("stereo")
+    if stereo:
+        seed, frames = stereo.get("seed", "?"), stereo.get("frames_per_run", "?")
+        lines += [f"## Stereo vs LiDAR maps, {stereo.get('size')} city, seed {seed}", ""]
+        lines += [f"{frames} frames per run, from `python bench/stereo.py`.", ""]
+        lines += [*stereo_lines(stereo), ""]
     lines += crash_section(load("crash"))
     (HERE / "REPORT.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {HERE / 'REPORT.md'}")

@@ -43,8 +43,7 @@ from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
 from monoloc.core.measurement import CovarianceModel, MeasurementModel
 from monoloc.server.entry_builder import (
     BuildConfig,
-    DepthSource,
-    LidarSource,
+    Source3d,
     TooFewPointsError,
     build_entry,
 )
@@ -109,11 +108,12 @@ def check_run_length(n_frames: int, config: CalibrationConfig, what: str) -> Non
 @dataclass(frozen=True)
 class TrainingFrame:
     """One frame of a training run: (H, W) uint8 grayscale image, true T_world_from_cam
-    (4, 4) in the z-up world, and its 3D source (LiDAR scan or depth image)."""
+    (4, 4) in the z-up world, and its 3D source (LiDAR scan, depth image or the right
+    image of a stereo pair)."""
 
     image_gray: np.ndarray
     T_world_from_cam: np.ndarray
-    source: LidarSource | DepthSource
+    source: Source3d
 
 
 @dataclass(frozen=True)

@@ -1,11 +1,11 @@
 """Turn a reference image with a pose and a 3D source into a map entry (METHOD.md s. 5).
 
 Pure: arrays in, a ``NewEntry`` out. The 3D source is one of a LiDAR scan with its
-extrinsics, a registered depth image with its scale, explicit points for the image's ORB
-keypoints, or observed points (a reconstruction's own 2D observations with their 3D
-points, described with ORB where they are). VLAD is computed from all of the image's
-ORB descriptors (as at query time); the entry keeps only the keypoints that have a 3D
-point.
+extrinsics, a registered depth image with its scale, the right image of a rectified
+stereo pair with its baseline, explicit points for the image's ORB keypoints, or observed
+points (a reconstruction's own 2D observations with their 3D points, described with ORB
+where they are). VLAD is computed from all of the image's ORB descriptors (as at query
+time); the entry keeps only the keypoints that have a 3D point.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from monoloc.server.vision.features import (
     describe_keypoints,
     extract_features,
 )
+from monoloc.server.vision.stereo import StereoConfig, points_from_stereo
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -62,9 +63,22 @@ class ObservedPoints:
 
 
 @dataclass(frozen=True)
+class StereoSource:
+    """The right image (H, W) uint8 of a rectified pair whose left image is the entry's,
+    taken ``baseline_m`` to the right of it (``monoloc.server.vision.stereo``)."""
+
+    right_gray: np.ndarray
+    baseline_m: float
+
+
+Source3d = LidarSource | DepthSource | StereoSource
+
+
+@dataclass(frozen=True)
 class BuildConfig:
     orb: OrbConfig = field(default_factory=OrbConfig)
     depth: DepthAssociationConfig = field(default_factory=DepthAssociationConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
     min_points: int = 20  # an entry with fewer 3D keypoints cannot support PnP
     # The console shows each entry's image: a grey JPEG, its longer side at most this
     # many pixels (0 keeps no image), at this JPEG quality. ~20 kB for a KITTI frame.
@@ -103,11 +117,24 @@ class TooFewPointsError(InvalidInputError):
 
 def points_for(
     features: Features,
-    source: LidarSource | DepthSource,
+    source: Source3d,
     intrinsics: CameraIntrinsics,
     config: BuildConfig,
+    image_gray: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(points_cam (N, 3), has_point (N,)) for the image's keypoints from the 3D source."""
+    """(points_cam (N, 3), has_point (N,)) for the image's keypoints from the 3D source
+    (a stereo source also needs the (left) ``image_gray`` the features came from)."""
+    if isinstance(source, StereoSource):
+        if image_gray is None:
+            raise InvalidInputError("stereo depth needs the left image")
+        return points_from_stereo(
+            features.keypoints_px,
+            image_gray,
+            source.right_gray,
+            source.baseline_m,
+            intrinsics,
+            config.stereo,
+        )
     if isinstance(source, LidarSource):
         T = check_rigid(source.T_cam_from_lidar, "T_cam_from_lidar")
         return points_from_lidar(
@@ -127,7 +154,7 @@ def build_entry(
     image_gray: np.ndarray,
     source_hash: str,
     T_world_from_cam: np.ndarray,
-    source: LidarSource | DepthSource | ObservedPoints | np.ndarray,
+    source: Source3d | ObservedPoints | np.ndarray,
     intrinsics: CameraIntrinsics,
     vocabulary: Vocabulary,
     vocabulary_id: int | None,
@@ -166,8 +193,8 @@ def build_entry(
             tags,
             timestamp_s,
         )
-    if isinstance(source, LidarSource | DepthSource):
-        points_cam, has = points_for(features, source, intrinsics, config)
+    if isinstance(source, LidarSource | DepthSource | StereoSource):
+        points_cam, has = points_for(features, source, intrinsics, config, image_gray)
     else:
         points_cam = np.asarray(source, dtype=np.float32)
         if points_cam.shape != (len(features), 3):

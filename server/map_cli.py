@@ -132,6 +132,13 @@ def map_ingest(
     ] = False,
     workers: Annotated[int, typer.Option(help="Threads building entries.")] = 2,
     camera: Annotated[str | None, typer.Option(help="TUM: freiburg1|2|3|default.")] = None,
+    depth_from: Annotated[
+        str,
+        typer.Option(
+            help="KITTI: where keypoint depth comes from: lidar (velodyne/) or stereo "
+            "(the right camera image_1/ and P1 of calib.txt; no LiDAR needed)."
+        ),
+    ] = "lidar",
     fx: float | None = None,
     fy: float | None = None,
     cx: float | None = None,
@@ -164,6 +171,7 @@ def map_ingest(
         camera=intrinsics,
         tum_camera=camera,
         topics=parse_topics(topic),
+        depth_from=depth_from,
     )
     config = IngestConfig(build=BuildConfig(), workers=workers, skip_bad_frames=skip_bad_frames)
     tag_list = tuple(t.strip() for t in tags.split(",") if t.strip())
@@ -250,6 +258,9 @@ def map_calibrate(
     k: Annotated[int, typer.Option(help="Map entries per query, closest by pose.")] = 10,
     seed: Annotated[int, typer.Option(help="RANSAC seed.")] = 0,
     camera: Annotated[str | None, typer.Option(help="TUM: freiburg1|2|3|default.")] = None,
+    depth_from: Annotated[
+        str, typer.Option(help="KITTI: keypoint depth from lidar or stereo.")
+    ] = "lidar",
 ) -> None:
     """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
     store it with its provenance (a recorded job; the run is not added to the map)."""
@@ -262,9 +273,16 @@ def map_calibrate(
     _, factory = open_database(ctx)
     config = CalibrationConfig(k=k)
     source = open_source(
-        fmt, run, sequence=sequence, frames=parse_frame_range(frames), tum_camera=camera
+        fmt,
+        run,
+        sequence=sequence,
+        frames=parse_frame_range(frames),
+        tum_camera=camera,
+        depth_from=depth_from,
     )
     params = {"format": fmt, "path": str(run), "sequence": sequence, "frames": frames}
+    if depth_from != "lidar":
+        params["depth_from"] = depth_from
     with progress_bar(f"calibrating on {source.name}") as update:
         job, calibration = run_calibration_job(
             factory, map_ref, source, params=params, config=config, seed=seed, progress=update

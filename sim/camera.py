@@ -263,12 +263,16 @@ def render(
     config: CameraConfig = CameraConfig(),
     previous_exposure: float | None = None,
     render_config: RenderConfig = RenderConfig(),
+    exposure: float | None = None,
 ) -> CameraFrame:
-    """One camera frame of ``scene`` from ``T_world_from_cam`` (OpenCV camera axes)."""
+    """One camera frame of ``scene`` from ``T_world_from_cam`` (OpenCV camera axes).
+    ``exposure`` fixes the exposure instead of the auto-exposure (a stereo rig's second
+    camera takes the first one's, as synchronised stereo heads do)."""
     raster = rasterize(
         scene, bank, T_world_from_cam, intrinsics, render_config, night=lighting.night
     )
     radiance = shade(raster, scene, T_world_from_cam, intrinsics, lighting)
-    exposure = auto_exposure(radiance, config, previous_exposure)
+    if exposure is None:
+        exposure = auto_exposure(radiance, config, previous_exposure)
     image = expose(radiance, exposure, config, rng)
     return CameraFrame(image=image, depth_m=raster.depth_m, exposure=exposure)

@@ -31,6 +31,12 @@ def generate(
         False,
         help="also write exact depth maps under sequences/NN/depth/ (uint16 PNG, metres * 256)",
     ),
+    stereo: bool = typer.Option(
+        False,
+        help="urban: also render the right camera (sequences/NN/image_1/, KITTI's 0.54 m "
+        "baseline, P1 in calib.txt) for `map ingest --depth-from stereo`; about doubles "
+        "the rendering time",
+    ),
     no_errors: bool = typer.Option(False, help="exact geometry: no recording errors"),
     workers: int = typer.Option(1, help="worker processes (runs are rendered in chunks)"),
 ) -> None:
@@ -51,6 +57,7 @@ def generate(
         max_frames=frames,
         image_scale=scale,
         write_depth=depth,
+        write_stereo=stereo,
         query_lighting=query_lighting,
         errors=RecordingErrors.none() if no_errors else RecordingErrors(),
         workers=workers,

@@ -36,7 +36,11 @@ SCENARIOS = ("urban", "indoor")
 @dataclass(frozen=True)
 class GenerateConfig:
     """What to generate. ``max_frames`` caps each run; ``image_scale`` resizes the camera
-    (scaled intrinsics) for quick tests; ``write_depth`` adds sequences/NN/depth/.
+    (scaled intrinsics) for quick tests; ``write_depth`` adds sequences/NN/depth/;
+    ``write_stereo`` renders the right camera too (sequences/NN/image_1/, baseline
+    ``rig.stereo_baseline_m``, P1 in calib.txt; urban only; off by default because it
+    doubles the camera's rendering time); ``write_lidar=False`` leaves velodyne/ empty
+    (a fleet without LiDAR).
 
     Scenario ``indoor`` (TUM RGB-D layout, ``monoloc.sim.indoor.generate``) uses scenario, size,
     seed, runs (from map, query, train, offcenter; the default means all four),
@@ -52,6 +56,7 @@ class GenerateConfig:
     image_scale: float = 1.0
     write_depth: bool = False
     write_lidar: bool = True
+    write_stereo: bool = False
     query_lighting: str = "day"
     errors: RecordingErrors = field(default_factory=RecordingErrors)
     lidar: LidarConfig = field(default_factory=LidarConfig)
@@ -88,8 +93,16 @@ class GenerateConfig:
         if not 0.05 <= self.image_scale <= 1.0:
             raise InvalidInputError(f"image_scale must be in [0.05, 1], got {self.image_scale}")
         if self.scenario == "indoor":
+            if self.write_stereo:
+                raise InvalidInputError(
+                    "stereo (image_1) is written for the urban scenario (KITTI layout) only"
+                )
             room_configs(self.size) if self.indoor is None else None
             return
+        if not self.rig.stereo_baseline_m > 0:
+            raise InvalidInputError(
+                f"the stereo baseline must be > 0 m, got {self.rig.stereo_baseline_m}"
+            )
         CityConfig.preset(self.size) if self.city is None else None
         Lighting.preset(self.query_lighting)
 

@@ -2,6 +2,7 @@
 files' formats are ``monoloc.core.formats.kitti`` and ``monoloc.core.formats.vehicle``.
 
 <root>/sequences/NN/image_0/%06d.png   uint8 gray
+<root>/sequences/NN/image_1/%06d.png   optional: uint8 gray, the right camera (P1)
 <root>/sequences/NN/velodyne/%06d.bin  float32 (x, y, z, reflectance), LiDAR frame
 <root>/sequences/NN/depth/%06d.png     optional: uint16 z-depth * 256, 0 = none
                                        (KITTI depth-benchmark encoding)
@@ -30,15 +31,18 @@ def sequence_dir(root: Path, seq_id: str) -> Path:
     return Path(root) / "sequences" / seq_id
 
 
-def projection_matrices(K: np.ndarray) -> list[np.ndarray]:
-    """P0..P3 (3, 4) like KITTI's: cam 0 = K [I | 0]; cam 1 the right gray camera; cams
-    2, 3 colour cameras (not rendered, listed for format compatibility)."""
+def projection_matrices(
+    K: np.ndarray, stereo_baseline_m: float = KITTI_STEREO_BASELINE_M
+) -> list[np.ndarray]:
+    """P0..P3 (3, 4) like KITTI's: cam 0 = K [I | 0]; cam 1 the right gray camera,
+    ``stereo_baseline_m`` to the right (P1 = K [I | (-b, 0, 0)]); cams 2, 3 colour cameras
+    (not rendered, listed for format compatibility)."""
     out = []
     for baseline in (
         0.0,
-        KITTI_STEREO_BASELINE_M,
+        stereo_baseline_m,
         KITTI_COLOUR_OFFSET_M,
-        KITTI_COLOUR_OFFSET_M + KITTI_STEREO_BASELINE_M,
+        KITTI_COLOUR_OFFSET_M + stereo_baseline_m,
     ):
         P = np.zeros((3, 4))
         P[:, :3] = K
@@ -47,10 +51,16 @@ def projection_matrices(K: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def write_calib(path: Path, K: np.ndarray, T_cam_from_lidar: np.ndarray) -> None:
+def write_calib(
+    path: Path,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    stereo_baseline_m: float = KITTI_STEREO_BASELINE_M,
+) -> None:
     """calib.txt: ``P0: 12 numbers`` ... ``P3:``, ``Tr: 12 numbers``."""
+    projections = tuple(projection_matrices(K, stereo_baseline_m))
     with open(path, "w") as handle:
-        kitti.write_calib(handle, kitti.KittiCalib(tuple(projection_matrices(K)), T_cam_from_lidar))
+        kitti.write_calib(handle, kitti.KittiCalib(projections, T_cam_from_lidar))
 
 
 def write_poses(path: Path, T_world_from_cam: np.ndarray) -> None:

@@ -51,12 +51,20 @@ class SensorRig:
     lidar_above_camera_m: float = 0.08
     lidar_left_of_camera_m: float = -0.004
     lidar_mount_rpy_rad: tuple[float, float, float] = (0.004, -0.006, 0.008)
+    stereo_baseline_m: float = 0.5371657  # KITTI's: camera 1 sits this far right of camera 0
 
     def T_vehicle_from_cam(self) -> np.ndarray:
         T = np.eye(4)
         T[:3, :3] = R_world_from_cam_level(0.0)
         T[:3, 3] = [self.camera_ahead_of_rear_axle_m, 0.0, self.camera_height_m]
         return T
+
+    def T_vehicle_from_cam1(self) -> np.ndarray:
+        """The right camera of the stereo pair: camera 0 moved ``stereo_baseline_m`` along
+        its own +x (a rectified pair, like KITTI's gray cameras 0 and 1)."""
+        T_cam0_from_cam1 = np.eye(4)
+        T_cam0_from_cam1[0, 3] = self.stereo_baseline_m
+        return self.T_vehicle_from_cam() @ T_cam0_from_cam1
 
     def T_vehicle_from_lidar(self) -> np.ndarray:
         roll, pitch, yaw = self.lidar_mount_rpy_rad

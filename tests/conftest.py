@@ -11,6 +11,10 @@ fresh database on ``MONOLOC_TEST_POSTGRES_URL``'s server if set, else on a throw
 server this session starts itself (``tests/pg_cluster.py``; ``make test`` installs the
 Debian ``postgresql`` package when none is installed). Skipped only when no server can
 be found at all.
+
+``stereo_dataset``: a tiny sim city run (6 frames, half-size images, exact geometry) with
+the right camera (image_1, P1), LiDAR scans and true depth images, written once per
+session; tests that change it work on a copy.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from __future__ import annotations
 import os
 import socket
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from pg_cluster import fresh_database, start_throwaway_postgres
@@ -60,3 +65,25 @@ def postgres_url(postgres_admin_url) -> Iterator[str]:
     """A fresh, empty PostgreSQL database for one test."""
     with fresh_database(postgres_admin_url) as url:
         yield url
+
+
+@pytest.fixture(scope="session")
+def stereo_dataset(tmp_path_factory) -> Path:
+    """Dataset root of sequence 00 (a map run) with image_0, image_1, velodyne and depth."""
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.lidar import LidarConfig
+    from monoloc.sim.recording import RecordingErrors
+
+    root = tmp_path_factory.mktemp("stereo")
+    config = GenerateConfig(
+        seed=3,
+        runs=("map",),
+        max_frames=6,
+        image_scale=0.5,
+        write_depth=True,
+        write_stereo=True,
+        errors=RecordingErrors.none(),
+        lidar=LidarConfig(azimuth_steps=1000),
+    )
+    generate_dataset(config, root)
+    return root

@@ -67,6 +67,7 @@ class RunUpload:
     sequence: str | None
     frames: str | None
     source_name: str
+    depth_from: str = "lidar"
 
 
 def check_upload_parts(archive: UploadFile | None, files: list[UploadFile] | None) -> None:
@@ -90,11 +91,13 @@ def unpack_upload(
     return save_file_set([(f.filename or "", f.file) for f in files], staging, limits, "upload")
 
 
-def open_uploaded_run(staging: Path, fmt: str, sequence: str | None, frames: str | None):
+def open_uploaded_run(
+    staging: Path, fmt: str, sequence: str | None, frames: str | None, depth_from: str = "lidar"
+):
     """The reader's validated view of the unpacked run (a KittiSequence or a TumRun);
     InvalidInputError without the staging path if it is unusable or has no frames."""
     try:
-        source = open_source(fmt, dataset_root(staging), sequence, frames)
+        source = open_source(fmt, dataset_root(staging), sequence, frames, depth_from)
     except InvalidInputError as exc:
         message = str(exc).replace(str(staging.resolve()) + "/", "").replace(str(staging), "")
         raise InvalidInputError(f"the uploaded {fmt} run is not usable: {message}") from exc
@@ -118,7 +121,7 @@ def store_upload(
     final: Path | None = None
     try:
         unpacked = unpack_upload(state, staging, archive, files)
-        source = open_uploaded_run(staging, up.format, up.sequence, up.frames)
+        source = open_uploaded_run(staging, up.format, up.sequence, up.frames, up.depth_from)
         with session_scope(state.sessions) as session:
             job, extra = record(session, source)
             final = uploads_dir(state.settings) / str(job.id)

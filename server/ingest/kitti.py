@@ -5,8 +5,15 @@ Layout (the real dataset's)::
     <root>/sequences/NN/calib.txt        "P0: 12 numbers" ... "Tr: 12 numbers"
     <root>/sequences/NN/times.txt        one timestamp (s) per frame
     <root>/sequences/NN/image_0/%06d.png grayscale left camera
+    <root>/sequences/NN/image_1/%06d.png grayscale right camera (read with depth_from="stereo")
     <root>/sequences/NN/velodyne/%06d.bin float32 (x, y, z, reflectance) in the LiDAR frame
     <root>/poses/NN.txt                  3x4 T_kittiworld_from_cam0 per line, row-major
+
+``depth_from`` says where the keypoints' depth comes from: ``lidar`` (the default: the
+velodyne scans, which must all be there) or ``stereo`` (the right camera: image_1 must
+hold one image per frame, of image_0's size, and calib.txt a P1 that forms a rectified
+pair with P0: the same camera matrix, the right camera along +x; velodyne/ is then not
+needed, so a fleet without LiDAR can map).
 
 ``root`` may be the dataset root (``sequence`` names NN; optional when there is only
 one sequence) or a sequence folder itself; then the poses are ``<seq>/poses.txt`` if
@@ -42,6 +49,8 @@ from monoloc.core.geometry import kitti_to_zup
 from monoloc.server.ingest.common import LoadedFrame, decode_gray, png_size, read_bytes
 
 LIDAR_POINT_BYTES = 16  # float32 x, y, z, reflectance
+DEPTH_SOURCES = ("lidar", "stereo")
+RECTIFIED_TOL = 1e-6  # relative: P1's camera matrix must equal P0's
 
 
 @dataclass(frozen=True)
@@ -67,6 +76,7 @@ class KittiFrame:
     image_path: Path
     scan_path: Path
     T_world_from_cam: np.ndarray = field(repr=False)
+    right_image_path: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -84,6 +94,8 @@ class KittiSequence:
     n_frames_total: int = 0
     format: str = "kitti"
     read_skips: dict[str, int] = field(default_factory=dict)
+    depth_from: str = "lidar"
+    stereo_baseline_m: float | None = None
 
     @property
     def n_frames(self) -> int:
@@ -96,11 +108,23 @@ class KittiSequence:
         return str(self.root)
 
     def load(self, frame: KittiFrame) -> LoadedFrame:
-        """Read the frame's image and scan (thread-safe; no database access)."""
-        from monoloc.server.entry_builder import LidarSource
+        """Read the frame's image and scan, or its right image when the depth comes from
+        stereo (thread-safe; no database access)."""
+        from monoloc.server.entry_builder import LidarSource, StereoSource
 
         data = read_bytes(frame.image_path, "image")
         image = decode_gray(data, frame.image_path)
+        if self.depth_from == "stereo":
+            right_path = frame.right_image_path
+            assert right_path is not None and self.stereo_baseline_m is not None
+            right = decode_gray(read_bytes(right_path, "image"), right_path)
+            if right.shape != image.shape:
+                raise InputFileError(
+                    right_path,
+                    f"right image is {right.shape[1]}x{right.shape[0]}, the left "
+                    f"{image.shape[1]}x{image.shape[0]}: a rectified pair has one size",
+                )
+            return LoadedFrame(data, image, StereoSource(right, self.stereo_baseline_m))
         return LoadedFrame(
             data, image, LidarSource(read_scan(frame.scan_path), self.T_cam_from_lidar)
         )
@@ -127,6 +151,35 @@ def read_kitti_calibration(path: Path) -> KittiCalibration:
     P0 = calib.P_image_from_cam0[0]
     fx, fy, cx, cy = (float(v) for v in (P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2]))
     return KittiCalibration(fx, fy, cx, cy, calib.T_cam0_from_lidar)
+
+
+def stereo_baseline_m(path: Path) -> float:
+    """The baseline (m) of the rectified pair P0 / P1 of a calib.txt: P1 = P0 but for
+    its translation, camera 1 to the right of camera 0 (KITTI: 0.54 m); InputFileError
+    naming the file otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "calibration file is missing")
+    projections = kitti_format.read_calib(path).P_image_from_cam0
+    if len(projections) < 2:
+        raise InputFileError(path, "no P1 line: stereo depth needs the right camera's P1")
+    P0, P1 = projections[0], projections[1]
+    scale = float(np.abs(P0[:, :3]).max())
+    if not np.allclose(P1[:, :3], P0[:, :3], rtol=0.0, atol=RECTIFIED_TOL * scale) or not (
+        np.isclose(P1[1, 3], P0[1, 3], atol=RECTIFIED_TOL * scale)
+        and np.isclose(P1[2, 3], P0[2, 3], atol=RECTIFIED_TOL * scale)
+    ):
+        raise InputFileError(
+            path,
+            "P0 and P1 are not a rectified stereo pair (P1 must be P0 with only its "
+            "x translation changed)",
+        )
+    baseline = float((P0[0, 3] - P1[0, 3]) / P0[0, 0])
+    if not baseline > 0:
+        raise InputFileError(
+            path, f"P1 puts camera 1 {baseline:.4f} m along x: it must be to the right (> 0)"
+        )
+    return baseline
 
 
 def read_kitti_poses(path: Path) -> np.ndarray:
@@ -189,13 +242,29 @@ def _check_files(folder: Path, suffix: str, n: int, counted_by: Path) -> dict[st
     return sizes
 
 
+def _check_scans(folder: Path, n: int, counted_by: Path) -> None:
+    for scan_name, size in _check_files(folder, ".bin", n, counted_by).items():
+        if size % LIDAR_POINT_BYTES:
+            raise InputFileError(
+                folder / scan_name,
+                f"size {size} bytes is not a multiple of {LIDAR_POINT_BYTES} (x, y, z, r float32)",
+            )
+
+
 def read_kitti_sequence(
-    root: Path, sequence: str | None = None, frames: slice | None = None
+    root: Path,
+    sequence: str | None = None,
+    frames: slice | None = None,
+    depth_from: str = "lidar",
 ) -> KittiSequence:
     """Open and validate a KITTI odometry sequence (see the module docstring)."""
+    if depth_from not in DEPTH_SOURCES:
+        raise InvalidInputError(f"unknown depth source {depth_from!r}: use lidar or stereo")
     folder, name, poses_path = _resolve(Path(root), sequence)
     calib_path = folder / "calib.txt"
     calibration = read_kitti_calibration(calib_path)
+    stereo = depth_from == "stereo"
+    baseline_m = stereo_baseline_m(calib_path) if stereo else None
     poses = read_kitti_poses(poses_path)
     n = len(poses)
     times_path = folder / "times.txt"
@@ -207,14 +276,18 @@ def read_kitti_sequence(
             times_path, f"has {len(times)} timestamps but {poses_path} has {n} poses"
         )
     _check_files(folder / "image_0", ".png", n, poses_path)
-    scan_sizes = _check_files(folder / "velodyne", ".bin", n, poses_path)
-    for scan_name, size in scan_sizes.items():
-        if size % LIDAR_POINT_BYTES:
-            raise InputFileError(
-                folder / "velodyne" / scan_name,
-                f"size {size} bytes is not a multiple of {LIDAR_POINT_BYTES} (x, y, z, r float32)",
-            )
     width, height = png_size(folder / "image_0" / "000000.png")
+    if stereo:
+        _check_files(folder / "image_1", ".png", n, poses_path)
+        right_size = png_size(folder / "image_1" / "000000.png")
+        if right_size != (width, height):
+            raise InputFileError(
+                folder / "image_1" / "000000.png",
+                f"is {right_size[0]}x{right_size[1]}, image_0 is {width}x{height}: a "
+                "rectified pair has one size",
+            )
+    else:
+        _check_scans(folder / "velodyne", n, poses_path)
     T_world_from_cam = kitti_to_zup(poses)
     indices = range(n)[frames] if frames is not None else range(n)
     selected = [
@@ -224,6 +297,7 @@ def read_kitti_sequence(
             image_path=folder / "image_0" / f"{i:06d}.png",
             scan_path=folder / "velodyne" / f"{i:06d}.bin",
             T_world_from_cam=T_world_from_cam[i],
+            right_image_path=folder / "image_1" / f"{i:06d}.png" if stereo else None,
         )
         for i in indices
     ]
@@ -236,4 +310,6 @@ def read_kitti_sequence(
         T_cam_from_lidar=calibration.T_cam_from_lidar,
         frames=selected,
         n_frames_total=n,
+        depth_from=depth_from,
+        stereo_baseline_m=baseline_m,
     )

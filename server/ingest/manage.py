@@ -135,13 +135,21 @@ def open_source(
     camera: CameraIntrinsics | None = None,
     tum_camera: str | None = None,
     topics: dict[str, str] | None = None,
+    depth_from: str = "lidar",
 ):
     """Open (and validate) a KITTI sequence, a TUM run or a ROS bag (``topics``: role ->
-    topic, see ``monoloc.server.ingest.rosbag``)."""
+    topic, see ``monoloc.server.ingest.rosbag``). ``depth_from``: where a KITTI sequence's
+    keypoint depth comes from, ``lidar`` (velodyne/) or ``stereo`` (image_1/ and P1); a
+    TUM run has its depth camera."""
     if fmt == "kitti":
         from monoloc.server.ingest.kitti import read_kitti_sequence
 
-        return read_kitti_sequence(path, sequence, frames)
+        return read_kitti_sequence(path, sequence, frames, depth_from=depth_from)
+    if depth_from != "lidar":
+        raise InvalidInputError(
+            f"--depth-from {depth_from} is for KITTI sequences; a {fmt} run brings its own "
+            "depth (depth images or point clouds)"
+        )
     if fmt == "tum":
         from monoloc.server.ingest.tum import read_tum_run
 

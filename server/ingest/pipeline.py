@@ -130,7 +130,8 @@ def _build(
     try:
         loaded = source.load(frame)
     except InputFileError as exc:
-        kind = "image" if exc.path == frame.image_path else getattr(source, "format", "")
+        images = (frame.image_path, getattr(frame, "right_image_path", None))
+        kind = "image" if exc.path in images else getattr(source, "format", "")
         reason = {"image": "unreadable_image", "kitti": "unreadable_scan"}.get(
             kind, "unreadable_depth"
         )

@@ -111,7 +111,6 @@ class VocabularyChange:
 
 
 def _reopen(source_format: str, source_name: str):
-    from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.ingest.tum import read_tum_run
 
     path = Path(source_name)
@@ -119,12 +118,22 @@ def _reopen(source_format: str, source_name: str):
         return None
     try:
         if source_format == "kitti":
-            return read_kitti_sequence(path)
+            return _reopen_kitti(path)
         if source_format == "tum":
             return read_tum_run(path, camera="default")  # intrinsics unused here
     except MonolocError as exc:
         log.info("run source %s cannot be reopened: %s", source_name, exc)
     return None
+
+
+def _reopen_kitti(path: Path):
+    """Only the images are read again: a run mapped from stereo may have no scans."""
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+
+    try:
+        return read_kitti_sequence(path)
+    except MonolocError:
+        return read_kitti_sequence(path, depth_from="stereo")
 
 
 def _image_paths_by_hash(session_factory, map_id: int) -> dict[str, Path]:

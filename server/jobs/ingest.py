@@ -66,7 +66,11 @@ def run_ingest(ctx: JobContext) -> dict[str, Any]:
         raise ConflictError(f"the upload of job {job.id} is gone; upload the run again")
     params = job.params
     source = open_source(
-        params["format"], dataset_root(upload), params.get("sequence"), params.get("frames")
+        params["format"],
+        dataset_root(upload),
+        params.get("sequence"),
+        params.get("frames"),
+        params.get("depth_from", "lidar"),
     )
     vocabulary = _train_vocabulary(ctx, source) if params.get("train_vocabulary") else None
 

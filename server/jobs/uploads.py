@@ -36,11 +36,20 @@ def dataset_root(dest: Path) -> Path:
     return root
 
 
-def open_source(fmt: str, root: Path, sequence: str | None, frames: str | None):
-    """The reader's view of an unpacked run: a KittiSequence or a TumRun (validated)."""
+def open_source(
+    fmt: str, root: Path, sequence: str | None, frames: str | None, depth_from: str = "lidar"
+):
+    """The reader's view of an unpacked run: a KittiSequence (its keypoint depth from
+    ``depth_from``: lidar or stereo) or a TumRun (validated)."""
     frame_range = parse_frame_range(frames)
     if fmt == "kitti":
-        return read_kitti_sequence(root, sequence=sequence, frames=frame_range)
+        return read_kitti_sequence(
+            root, sequence=sequence, frames=frame_range, depth_from=depth_from
+        )
+    if depth_from != "lidar":
+        raise InvalidInputError(
+            f"depth_from={depth_from} is for KITTI runs; a TUM run has its depth images"
+        )
     if fmt == "tum":
         return read_tum_run(root, frames=frame_range)
     raise InvalidInputError(f"unknown run format {fmt!r}: use kitti or tum")

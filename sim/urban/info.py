@@ -79,6 +79,12 @@ def dataset_info(config, plans, written, frames) -> dict:
             if config.write_depth
             else None
         ),
+        "stereo": (
+            f"sequences/NN/image_1/%06d.png: the right camera, P1 in calib.txt, baseline "
+            f"{config.rig.stereo_baseline_m:g} m"
+            if config.write_stereo
+            else None
+        ),
         "sequences": [
             {
                 "id": p.seq_id,

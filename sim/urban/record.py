@@ -47,9 +47,12 @@ def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
 def write_run_metadata(plan, written: WrittenRun, frames: dict, config, out_dir: Path) -> None:
     """calib.txt, times.txt, vehicle.txt and poses/NN.txt of one run."""
     seq = kw.sequence_dir(out_dir, plan.seq_id)
-    for sub in ("image_0", "velodyne") + (("depth",) if config.write_depth else ()):
+    subs = ("image_0", "velodyne") + (("depth",) if config.write_depth else ())
+    for sub in subs + (("image_1",) if config.write_stereo else ()):
         (seq / sub).mkdir(parents=True, exist_ok=True)
-    kw.write_calib(seq / "calib.txt", config.intrinsics().K, written.Tr_written)
+    kw.write_calib(
+        seq / "calib.txt", config.intrinsics().K, written.Tr_written, config.rig.stereo_baseline_m
+    )
     times = plan.frame_times_s - plan.frame_times_s[0]
     kw.write_times(seq / "times.txt", times)
     kw.write_vehicle(seq / "vehicle.txt", times, written.speed_mps, written.yaw_rate_radps)
@@ -103,6 +106,20 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
         T_wv = plan.states.T_world_from_vehicle(np.array([t]))[0]
         frame = render(scene, bank, T_wv @ T_v_cam, intrinsics, plan.lighting, rng, cam_cfg)
         kw.write_image(seq / "image_0" / f"{k:06d}.png", frame.image)
+        if config.write_stereo:
+            # Its own sensor noise (a stream of its own, so image_0 and the scan keep
+            # their bytes), camera 0's exposure: a synchronised stereo head.
+            right = render(
+                scene,
+                bank,
+                T_wv @ rig.T_vehicle_from_cam1(),
+                intrinsics,
+                plan.lighting,
+                np.random.default_rng([plan.seed, 4, k]),
+                cam_cfg,
+                exposure=frame.exposure,
+            )
+            kw.write_image(seq / "image_1" / f"{k:06d}.png", right.image)
         if config.write_depth:
             kw.write_depth(seq / "depth" / f"{k:06d}.png", frame.depth_m)
         if config.write_lidar:

@@ -1,4 +1,5 @@
-"""Mapping runs (map:write): upload a KITTI sequence or a TUM RGB-D run, as one archive
+"""Mapping runs (map:write): upload a KITTI sequence (with LiDAR scans, or a stereo pair:
+``depth_from=stereo``) or a TUM RGB-D run, as one archive
 (tar, tar.gz/bz2/xz, zip) or as a multipart set of files whose names are their paths
 inside the run (``sequences/00/image_0/000000.png``); list and get runs.
 
@@ -12,7 +13,7 @@ shared with the calibration route).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import anyio
 from fastapi import APIRouter, Form, UploadFile, status
@@ -86,6 +87,7 @@ def _store(
             "upload": True,
             "source_name": up.source_name,
             "train_vocabulary": ingest.train_vocabulary,
+            "depth_from": up.depth_from,
         }
         job = jobs_repo.create_job(
             session, "ingest", map_id=up.map_id, run_id=run.id, params=params, message="queued"
@@ -129,11 +131,18 @@ async def upload_run(
             description="Comma-separated tags for every entry, e.g. night,off-center.",
         ),
     ] = None,
+    depth_from: Annotated[
+        Literal["lidar", "stereo"],
+        Form(
+            description="KITTI runs: keypoint depth from the LiDAR scans (velodyne/) or from "
+            "the stereo pair (image_1/ and P1 in calib.txt; the upload then needs no scans)."
+        ),
+    ] = "lidar",
 ) -> UploadAccepted:
     """Stores the upload and queues its ingestion; follow the job at /v1/jobs/{id}."""
     check_upload_parts(archive, files)
     runs_repo.check_kind(kind, "run")
-    up = RunUpload(map_id, format, sequence, frames, upload_name(archive))
+    up = RunUpload(map_id, format, sequence, frames, upload_name(archive), depth_from)
     ingest = _Ingest(
         kind, normalise_tags(t for t in (tags or "").split(",") if t.strip()), train_vocabulary
     )
