@@ -1,5 +1,5 @@
 """A map's geographic reference (get: localize; put and delete: map:write). With one,
-localize and stream answers carry each hypothesis as an OGC GeoPose (server/geo.py).
+localize and stream answers carry each hypothesis as an OGC GeoPose (monoloc/core/geo.py).
 
 This replica answers with a new reference at once; other replicas pick it up when they
 next check the map (``MONOLOC_REPLICA_SYNC_S``), as with a calibration."""

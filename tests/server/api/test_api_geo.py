@@ -13,8 +13,8 @@ import pytest
 from api_helpers import camera_of, frame_png, ground_truth, live_server, make_settings
 from rosbag_helpers import SimRun, write_sim_bag
 
+from monoloc.core.geo import GeoOrigin, GeoReference, R_ecef_from_enu
 from monoloc.core.geometry import R_from_quaternion_xyzw
-from monoloc.server.geo import GeoOrigin, GeoReference, R_ecef_from_enu
 
 ORIGIN = dict(lat_deg=52.516275, lon_deg=13.377704, h_m=74.0, x_axis_heading_deg=30.0)
 
