@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from monoloc.core.geo import GeoOrigin, GeoReference
 from monoloc.core.geometry import T_world_from_cam_planar
 from monoloc.server.api.convert import localize_response
-from monoloc.server.geo import GeoOrigin, GeoReference
 from monoloc.server.localize import LocalizationResult, PoseHypothesis
 
 RESULTS = Path(__file__).parent / "results"

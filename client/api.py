@@ -10,6 +10,7 @@ header and the encoded image.
 from __future__ import annotations
 
 import json
+import math
 import struct
 import time
 from collections.abc import Iterator
@@ -20,6 +21,7 @@ import httpx
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
+from monoloc.core.geo import GeoReference
 from monoloc.core.measurement import Hypotheses, MeasurementModel
 from monoloc.core.prior import RetrievalPrior
 
@@ -51,20 +53,31 @@ class LocalizeAnswer:
     def best_pose_world(self) -> np.ndarray:
         """Pose (3,) of the per-entry hypothesis with the most PnP inliers (a joint one
         aside); NaN without one."""
-        hyps = [h for h in self.raw.get("hypotheses") or [] if not h.get("joint", False)]
-        if not hyps:
+        best = self._best_raw()
+        if best is None:
             return np.full(3, np.nan)
-        best = max(hyps, key=lambda h: h.get("n_inliers", 0))
         return np.array([best["pose"]["x_m"], best["pose"]["y_m"], best["pose"]["yaw_rad"]])
 
     @property
     def best_geopose(self) -> dict | None:
         """The OGC GeoPose ({"position": {lat, lon, h}, "quaternion": {x, y, z, w}}) of the
         hypothesis ``best_pose_world`` gives, when the map is geo-referenced; else None."""
+        best = self._best_raw()
+        return None if best is None else best.get("geopose")
+
+    @property
+    def best_height_m(self) -> float:
+        """World z (m) of the camera centre of the hypothesis ``best_pose_world`` gives
+        (its ``T_world_from_cam``); NaN without one."""
+        best = self._best_raw()
+        T = (best or {}).get("T_world_from_cam")
+        if not isinstance(T, list) or len(T) != 16:
+            return math.nan
+        return float(T[11])  # row 2, column 3 of the row-major 4x4
+
+    def _best_raw(self) -> dict | None:
         hyps = [h for h in self.raw.get("hypotheses") or [] if not h.get("joint", False)]
-        if not hyps:
-            return None
-        return max(hyps, key=lambda h: h.get("n_inliers", 0)).get("geopose")
+        return max(hyps, key=lambda h: h.get("n_inliers", 0)) if hyps else None
 
     @classmethod
     def from_stream(cls, data: dict) -> LocalizeAnswer:
@@ -299,6 +312,22 @@ class MonolocClient:
         """The map's calibrated measurement model, and whether it was calibrated."""
         data = self.request("GET", f"/v1/maps/{map_id}/calibration").json()
         return MeasurementModel.from_dict(data), bool(data.get("calibrated", False))
+
+    def geo_reference(self, map_id: int) -> GeoReference | None:
+        """The map's geographic reference (``GET /v1/maps/{id}/geo-reference``, scope
+        localize), or None when the map has none (the route's 404; a missing map has
+        already failed on any other call by then). A reference the server sends that
+        does not parse raises ServerError."""
+        try:
+            data = self.request("GET", f"/v1/maps/{map_id}/geo-reference").json()
+        except NotFoundError:
+            return None
+        if not isinstance(data, dict):
+            raise ServerError(f"malformed geo reference of map {map_id}: {str(data)[:100]}")
+        try:
+            return GeoReference.from_dict(data)
+        except (InvalidInputError, TypeError, ValueError) as exc:
+            raise ServerError(f"malformed geo reference of map {map_id}: {exc}") from exc
 
     def stream(self, map_id: int, timeout_s: float = 30.0) -> FrameStream:
         """Open the map's WebSocket stream, retried like :meth:`request` when the server

@@ -100,6 +100,10 @@ def drive(
     geojson = write_geojson(result, out)
     Console().print(metrics_table(result))
     console.print(f"trajectories: {tum}, {kitti}" + (f", {geojson}" if geojson else ""))
+    if result.geo_reference is None:
+        console.print(f"no GeoJSON track: map {map_ref} has no geographic reference")
+    elif geojson is None:
+        console.print("no GeoJSON track: the filter gave no estimate")
 
 
 def _topics(items: list[str] | None) -> dict[str, str]:

@@ -6,6 +6,9 @@ once, in order; an answer out of order is an error (the stream guarantees the or
 In real-time mode frames are sent at their recorded times from a thread and the server
 may drop stale ones; a dropped frame, like a frame the server answered with an error, is
 a prediction-only step.
+
+The map's geographic reference is read once, before the first frame; with one, the
+drive's track can also be written as GeoJSON (monoloc.client.geojson).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from monoloc.client.replay import ReplayRun
 from monoloc.client.tracking import PriorConfig, Tracker, track
 from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics, write_trajectory_files
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.geo import GeoReference
 from monoloc.core.measurement import MeasurementModel
 from monoloc.core.prior import RetrievalPrior
 
@@ -61,6 +65,10 @@ class DriveResult:
     sent_at_s: np.ndarray | None = None
     # Per frame: the OGC GeoPose of the best hypothesis (geo-referenced maps), or None.
     geoposes: list[dict | None] = field(default_factory=list)
+    # Per frame (N,): world z (m) of the best hypothesis' camera, NaN without one.
+    best_height_m: np.ndarray | None = None
+    # The map's geographic reference when it has one (read once per drive).
+    geo_reference: GeoReference | None = None
 
     @property
     def frames_per_s(self) -> float:
@@ -77,6 +85,7 @@ class _DriveLog:
         self.latency_ms = np.full(n, np.nan)
         self.sent_at_s = np.full(n, np.nan)
         self.best_world = np.full((n, 3), np.nan)
+        self.best_height_m = np.full(n, np.nan)
         self.timings_ms: list[dict[str, float]] = [{} for _ in range(n)]
         self.errors: dict[int, str] = {}
         self.geoposes: list[dict | None] = [None] * n
@@ -94,9 +103,12 @@ class _DriveLog:
         self.n_hypotheses[i] = len(answer.hypotheses)
         self.timings_ms[i] = answer.timings_ms
         self.best_world[i] = answer.best_pose_world
+        self.best_height_m[i] = answer.best_height_m
         self.geoposes[i] = answer.best_geopose
 
-    def result(self, run: ReplayRun, estimates_world: np.ndarray) -> DriveResult:
+    def result(
+        self, run: ReplayRun, estimates_world: np.ndarray, geo: GeoReference | None
+    ) -> DriveResult:
         wall = time.perf_counter() - self.start
         metrics = None
         if run.truth_world is not None:
@@ -122,6 +134,8 @@ class _DriveLog:
             self.errors,
             self.sent_at_s,
             self.geoposes,
+            self.best_height_m,
+            geo,
         )
 
 
@@ -140,9 +154,11 @@ def drive(
     config: DriveConfig = DriveConfig(),
     progress: Callable[[int, int], None] | None = None,
 ) -> DriveResult:
-    """Replay ``run`` over the WebSocket stream and return the filtered trajectory."""
+    """Replay ``run`` over the WebSocket stream and return the filtered trajectory (with
+    the map's geographic reference, read first, when it has one)."""
     if len(run) == 0:
         raise InvalidInputError(f"{run.name}: no frames to replay (check the frame range)")
+    geo = client.geo_reference(map_id)
     tracker = Tracker(
         run_filter_config(config.filter, run),
         model,
@@ -166,7 +182,7 @@ def drive(
             images = (run.image_bytes(i) for i in range(len(run)))
             localizer = _Timed(StreamLocalizer(stream, run.timestamps_s), log)
             track(tracker, localizer, images, config.k, recorded)
-    return log.result(run, tracker.estimates_world)
+    return log.result(run, tracker.estimates_world, geo)
 
 
 class _Timed:
@@ -231,10 +247,19 @@ def _drive_realtime(
 
 
 def write_geojson(result: DriveResult, out_prefix: Path) -> Path | None:
-    """``<prefix>.geojson`` of the track when the answers carried GeoPoses (the map is
-    geo-referenced; monoloc.client.geojson); None otherwise."""
+    """``<prefix>.geojson`` of the filter's track (monoloc.client.geojson) when the map is
+    geo-referenced and the filter gave an estimate; None otherwise."""
+    if result.geo_reference is None:
+        return None
+    n = len(result.estimates_world)
     collection = track_geojson(
-        result.run.name, result.run.timestamps_s, result.geoposes, result.estimates_world
+        result.run.name,
+        result.geo_reference,
+        result.run.timestamps_s,
+        result.estimates_world,
+        result.n_hypotheses,
+        result.best_height_m if result.best_height_m is not None else np.full(n, np.nan),
+        result.geoposes or [None] * n,
     )
     if collection is None:
         return None

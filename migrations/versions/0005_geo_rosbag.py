@@ -5,7 +5,7 @@ Revises: 0004
 Create Date: 2026-11-23
 
 ``maps.geo_reference``: the map's geographic reference (JSON, NULL when the map is not
-geo-referenced; ``monoloc.server.geo.GeoReference.to_dict``). ``runs.source_format``
+geo-referenced; ``monoloc.core.geo.GeoReference.to_dict``). ``runs.source_format``
 also accepts ``rosbag``.
 """
 

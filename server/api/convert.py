@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from monoloc.core.geo import GeoPose, GeoReference
 from monoloc.server.api import schemas as s
 from monoloc.server.api.schemas_localize import (
     GeoPosePublic,
@@ -16,7 +17,6 @@ from monoloc.server.api.schemas_localize import (
     RejectedPublic,
     RetrievedPublic,
 )
-from monoloc.server.geo import GeoPose, GeoReference
 from monoloc.server.localize import LocalizationResult, PoseHypothesis
 from monoloc.server.storage.records import (
     EntrySummary,

@@ -17,11 +17,11 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.geo import GeoReference
 from monoloc.server.api.convert import localize_response
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
-from monoloc.server.geo import GeoReference
 from monoloc.server.localize import LocalizeConfig
 
 

@@ -163,9 +163,9 @@ class GeoReferenceUpdate(BaseModel):
     )
 
     def to_reference(self) -> dict[str, Any]:
-        """The storage form (``monoloc.server.geo.GeoReference``), checked."""
+        """The storage form (``monoloc.core.geo.GeoReference``), checked."""
         from monoloc.core.errors import InvalidInputError
-        from monoloc.server.geo import GeoReference
+        from monoloc.core.geo import GeoReference
 
         if (self.origin is None) == (self.T_ecef_from_world is None):
             raise InvalidInputError("give exactly one of origin and T_ecef_from_world")

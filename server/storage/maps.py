@@ -298,8 +298,8 @@ def set_geo_reference(
     session: Session, map_id: int, geo_reference: Mapping[str, Any] | None
 ) -> MapRecord:
     """Store (or clear, with None) the map's geographic reference: a dict checked by
-    ``monoloc.server.geo.GeoReference.from_dict`` (InvalidInputError if it is none)."""
-    from monoloc.server.geo import GeoReference
+    ``monoloc.core.geo.GeoReference.from_dict`` (InvalidInputError if it is none)."""
+    from monoloc.core.geo import GeoReference
 
     value = None if geo_reference is None else GeoReference.from_dict(geo_reference).to_dict()
     row = session.get(Map, map_id)

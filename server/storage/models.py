@@ -110,7 +110,7 @@ class Map(Base):
     # stamped with it so a stale index is detected.
     version: Mapped[int] = mapped_column(default=0, server_default=text("0"))
     calibration: Mapped[dict[str, Any] | None]
-    # WGS84 reference of the map's world (server/geo.py GeoReference.to_dict), or NULL.
+    # WGS84 reference of the map's world (monoloc/core/geo.py GeoReference.to_dict), or NULL.
     geo_reference: Mapped[dict[str, Any] | None]
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)

@@ -52,7 +52,7 @@ class MapRecord:
     n_entries: int
     created_at: datetime
     updated_at: datetime
-    # server/geo.py GeoReference.to_dict(), or None: the map is not geo-referenced
+    # monoloc/core/geo.py GeoReference.to_dict(), or None: the map is not geo-referenced
     geo_reference: dict[str, Any] | None = None
 
 

@@ -85,6 +85,9 @@ class FakeClient:
     def stream(self, map_id, timeout_s=30.0):
         return self._stream
 
+    def geo_reference(self, map_id):
+        return None  # a map without a geographic reference
+
 
 CONFIG = DriveConfig(filter=FilterConfig(n_particles=300))
 

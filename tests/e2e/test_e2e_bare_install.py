@@ -64,6 +64,21 @@ def test_the_bare_install_holds_no_heavy_dependency(bare_venv):
     assert json.loads(done.stdout) == []
 
 
+def test_the_bare_install_converts_a_track_to_wgs84(bare_venv):
+    # pymap3d is a base dependency: the vehicle writes its GeoJSON track without extras
+    probe = (
+        "import json; from monoloc.core.geo import GeoOrigin, GeoReference; "
+        "from monoloc.core.geometry import T_world_from_cam_planar; "
+        "ref = GeoReference.from_origin(GeoOrigin(52.5, 13.4, 40.0, 90.0)); "
+        "print(json.dumps(ref.geopose(T_world_from_cam_planar(0.0, 0.0, 0.0, 1.5)).to_json()))"
+    )
+    done = _run([str(bare_venv / "bin" / "python"), "-c", probe])
+    assert done.returncode == 0, done.stderr
+    position = json.loads(done.stdout)["position"]
+    assert abs(position["lat"] - 52.5) < 1e-9 and abs(position["lon"] - 13.4) < 1e-9
+    assert abs(position["h"] - 41.5) < 1e-6
+
+
 def test_a_server_command_names_the_extra_it_needs(bare_venv, tmp_path):
     done = _run([str(bare_venv / "bin" / "monoloc"), "serve"], cwd=tmp_path)
     assert done.returncode == 1

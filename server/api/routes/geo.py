@@ -1,5 +1,7 @@
 """A map's geographic reference (get: localize; put and delete: map:write). With one,
-localize and stream answers carry each hypothesis as an OGC GeoPose (server/geo.py).
+localize and stream answers carry each hypothesis as an OGC GeoPose (monoloc/core/geo.py).
+A vehicle's localize key reads it on purpose: ``monoloc drive`` places its own filter's
+track with it, and the reference tells a vehicle nothing its answers' GeoPoses do not.
 
 This replica answers with a new reference at once; other replicas pick it up when they
 next check the map (``MONOLOC_REPLICA_SYNC_S``), as with a calibration."""

@@ -6,15 +6,16 @@ through the stream by the vehicle's loop, gives a GeoJSON track."""
 from __future__ import annotations
 
 import json
+import sys
+from dataclasses import replace
 
 import httpx
 import numpy as np
-import pytest
 from api_helpers import camera_of, frame_png, ground_truth, live_server, make_settings
 from rosbag_helpers import SimRun, write_sim_bag
 
+from monoloc.core.geo import GeoOrigin, GeoReference, R_ecef_from_enu
 from monoloc.core.geometry import R_from_quaternion_xyzw
-from monoloc.server.geo import GeoOrigin, GeoReference, R_ecef_from_enu
 
 ORIGIN = dict(lat_deg=52.516275, lon_deg=13.377704, h_m=74.0, x_axis_heading_deg=30.0)
 
@@ -112,43 +113,131 @@ def test_localize_answers_carry_geoposes(sim_dataset, map_copy, client_on_copy):
         _check_geopose(hypothesis, ref)
 
 
-def test_driving_a_bag_writes_a_geojson_track(sim_dataset, map_copy, tmp_path):
-    from monoloc.client.api import MonolocClient
+def _drive_cli(url: str, map_copy, bag, out, monkeypatch, capsys, *extra: str) -> list[str]:
+    """``monoloc drive`` of the bag in-process; its stderr lines."""
+    from monoloc import cli
+
+    argv = ["drive", str(bag), "--server", url, "--map", str(map_copy.map_id)]
+    argv += ["--key", map_copy.keys.localize, "--particles", "300", "--out", str(out), *extra]
+    monkeypatch.setattr(sys, "argv", ["monoloc", *argv])
+    capsys.readouterr()
+    cli.main()
+    return capsys.readouterr().err.splitlines()
+
+
+def _independent_geodetic(x_m, y_m, z_m, origin: dict) -> np.ndarray:
+    """World -> WGS84 by pymap3d's ENU -> geodetic (not monoloc.core.geo's ECEF path): the
+    world is the origin's ENU turned by 90 deg - heading about up."""
+    import pymap3d
+
+    a = np.deg2rad(90.0 - origin["x_axis_heading_deg"])
+    east, north = x_m * np.cos(a) - y_m * np.sin(a), x_m * np.sin(a) + y_m * np.cos(a)
+    lat, lon, h = pymap3d.enu2geodetic(
+        east, north, z_m, origin["lat_deg"], origin["lon_deg"], origin["h_m"]
+    )
+    return np.column_stack([lat, lon, h])
+
+
+def test_driving_a_bag_writes_the_filters_track_as_geojson(
+    sim_dataset, map_copy, tmp_path, monkeypatch, capsys
+):
+    import cv2
+    import pymap3d
+
     from monoloc.client.bag_replay import read_bag_run
-    from monoloc.client.drive import DriveConfig, drive, write_geojson
-    from monoloc.core.measurement import MeasurementModel
+    from monoloc.core.formats import tum
 
     run = SimRun.read(sim_dataset, "01")
-    bag = write_sim_bag(run, tmp_path / "query_bag", image="compressed", three_d="none")
+    # three frames the camera sees nothing on: no hypotheses, the filter dead-reckons
+    blank_frames = (6, 7, 11)
+    shape = cv2.imread(str(run.images[0]), cv2.IMREAD_GRAYSCALE).shape
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full(shape, 128, np.uint8))
+    images = [blank if i in blank_frames else path for i, path in enumerate(run.images)]
+    bag = write_sim_bag(
+        replace(run, images=images), tmp_path / "query_bag", image="compressed", three_d="none"
+    )
     replay = read_bag_run(bag)
     assert len(replay) == len(run.images)
     np.testing.assert_allclose(replay.signals, run.signals, atol=1e-12)  # the Odometry twist
     assert replay.image_bytes(3) == run.images[3].read_bytes()  # PNG bytes sent as recorded
-    ref = GeoReference.from_origin(GeoOrigin(**ORIGIN))
+
     with live_server(make_settings(map_copy.data_dir)) as port:
         url = f"http://127.0.0.1:{port}"
+        # no geographic reference: trajectories, no GeoJSON, and one line that says so
+        plain = tmp_path / "plain" / "drive"
+        err = _drive_cli(url, map_copy, bag, plain, monkeypatch, capsys, "--frames", "0:4")
+        said = [line for line in err if "GeoJSON" in line]
+        assert said == [f"no GeoJSON track: map {map_copy.map_id} has no geographic reference"]
+        assert plain.with_name("drive.tum.txt").exists()
+        assert not plain.with_name("drive.geojson").exists()
+
         r = httpx.put(
             f"{url}/v1/maps/{map_copy.map_id}/geo-reference",
             json={"origin": ORIGIN},
             headers=map_copy.keys.header("write"),
         )
         assert r.status_code == 200, r.text
-        with MonolocClient(url, map_copy.keys.localize) as client:
-            result = drive(client, map_copy.map_id, replay, MeasurementModel(), DriveConfig())
-    path = write_geojson(result, tmp_path / "out" / "drive")
-    assert path is not None and path.name == "drive.geojson"
-    collection = json.loads(path.read_text())
+        out = tmp_path / "geo" / "drive"
+        err = _drive_cli(url, map_copy, bag, out, monkeypatch, capsys)
+        assert not [line for line in err if "no GeoJSON" in line]
+
+    estimates = tum.read_trajectory(out.with_name("drive.tum.txt"))
+    collection = json.loads(out.with_name("drive.geojson").read_text())
     assert collection["type"] == "FeatureCollection"
     line, points = collection["features"][0], collection["features"][1:]
-    answered = [i for i, g in enumerate(result.geoposes) if g is not None]
-    assert len(answered) >= len(replay) // 2
     assert line["geometry"]["type"] == "LineString"
-    assert len(line["geometry"]["coordinates"]) == len(points) == len(answered)
-    for point in points:
-        i = point["properties"]["frame"]
-        lon, lat, h = point["geometry"]["coordinates"]
-        assert point["properties"]["t_s"] == pytest.approx(replay.timestamps_s[i])
-        # the frame's GeoPose is within half a metre of its true position
-        world = ref.world_from_geodetic(np.array([lat, lon, h]))[0]
-        truth = ground_truth(sim_dataset, "01", i)[:3, 3]
-        assert np.linalg.norm(world[:2] - truth[:2]) < 0.5, (i, world, truth)
+    frames = [p["properties"]["frame"] for p in points]
+    # one point per TUM row, in order: the filter's track, not the answered frames
+    assert len(frames) == len(estimates) >= len(replay) - 2 and frames == sorted(frames)
+    np.testing.assert_allclose(
+        [p["properties"]["t_s"] for p in points], estimates.timestamps_s, atol=1e-6
+    )
+    coordinates = np.array(line["geometry"]["coordinates"])
+    assert coordinates.tolist() == [p["geometry"]["coordinates"] for p in points]
+
+    # the positions are pymap3d's conversion of the TUM estimates (at the height stated
+    # per point) to the millimetre
+    z_m = np.array([p["properties"]["estimate_world"]["z_m"] for p in points])
+    x_m, y_m, tum_z_m = estimates.position_world_m.T
+    expected = _independent_geodetic(x_m, y_m, z_m, ORIGIN)
+    lon, lat, h = coordinates.T
+    offset_enu_m = np.column_stack(pymap3d.geodetic2enu(lat, lon, h, *expected.T))
+    assert np.abs(offset_enu_m).max() < 1e-3, offset_enu_m
+    ref = GeoReference.from_origin(GeoOrigin(**ORIGIN))
+    got_world = ref.world_from_geodetic(coordinates[:, [1, 0, 2]])
+    assert np.all(tum_z_m == 0.0)  # the TUM file's planar track; the GeoJSON adds a height
+    # the height: the camera's (1.5 m in the sim), from the hypotheses, within PnP's scatter
+    truths = np.stack([ground_truth(sim_dataset, "01", i) for i in frames])
+    assert np.all(np.abs(z_m - truths[:, 2, 3]) < 0.1), (z_m, truths[:, 2, 3])
+    # and the estimate follows the truth, dead-reckoned frames too
+    errors_m = np.linalg.norm(got_world[:, :2] - truths[:, :2, 3], axis=1)
+    assert np.all(errors_m < 0.5), errors_m
+
+    # the orientation: the TUM rotation (a level camera along the estimate's yaw) in ENU
+    a = np.deg2rad(90.0 - ORIGIN["x_axis_heading_deg"])
+    R_enu_from_world = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    for point, T in zip(points, estimates.T_world_from_cam, strict=True):
+        q = point["properties"]["geopose"]["quaternion"]
+        R_enu_from_cam = R_from_quaternion_xyzw([q["x"], q["y"], q["z"], q["w"]])
+        # (the local ENU frames of points ~100 m apart differ by < 1e-5 rad)
+        np.testing.assert_allclose(R_enu_from_cam, R_enu_from_world @ T[:3, :3], atol=1e-4)
+        position = point["properties"]["geopose"]["position"]
+        assert [position["lon"], position["lat"], position["h"]] == point["geometry"]["coordinates"]
+
+    # the blank frames are in the track as dead reckoning, without a hypothesis' GeoPose;
+    # the others carry their best hypothesis' GeoPose beside the estimate's
+    by_frame = {p["properties"]["frame"]: p["properties"] for p in points}
+    for i in blank_frames:
+        assert by_frame[i]["source"] == "dead_reckoning", by_frame[i]
+        assert by_frame[i]["n_hypotheses"] == 0 and by_frame[i]["best_hypothesis_geopose"] is None
+    updated = [i for i, p in by_frame.items() if p["source"] == "measurement_update"]
+    assert len(updated) >= len(replay) // 2
+    for i in updated:
+        best = by_frame[i]["best_hypothesis_geopose"]
+        assert by_frame[i]["n_hypotheses"] > 0 and best is not None
+        world = ref.world_from_geodetic(
+            np.array([best["position"]["lat"], best["position"]["lon"], best["position"]["h"]])
+        )[0]
+        assert np.linalg.norm(world[:2] - truths[frames.index(i), :2, 3]) < 0.5
+    assert [p["source"] for p in by_frame.values()].count("initialisation") == 1

@@ -1,4 +1,4 @@
-"""Geo-referenced maps (server/geo.py): conversions checked against known points to the
+"""Geo-referenced maps (monoloc/core/geo.py): conversions checked against known points to the
 millimetre, round trips, and the GeoPose orientation convention (R_enu_from_cam)."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.geo import GeoOrigin, GeoReference
 from monoloc.core.geometry import R_from_quaternion_xyzw, T_world_from_cam_planar
-from monoloc.server.geo import GeoOrigin, GeoReference
 
 MM = 1e-3
 WGS84_A_M = 6_378_137.0

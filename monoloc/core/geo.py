@@ -1,5 +1,7 @@
 """Geo-referenced maps: the map's z-up world placed on the WGS84 ellipsoid, and poses
-answered as OGC GeoPose (Basic-Quaternion). Conversions through ``pymap3d``.
+given as OGC GeoPose (Basic-Quaternion). Conversions through ``pymap3d`` (pure Python,
+a base dependency). The one implementation: the server answers hypotheses with it, the
+vehicle (``monoloc.client.geojson``) converts its filter's track with it.
 
 A reference is given one of two ways, and is held as ``T_ecef_from_world`` (4, 4):
 
