@@ -19,7 +19,7 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.render import Raster, RenderConfig, rasterize
-from monoloc.sim.scene import KIND_LAMP, Scene
+from monoloc.sim.scene import KIND_LAMP, KIND_ROAD, Scene
 from monoloc.sim.textures import TextureBank
 
 LIGHTINGS = ("day", "dusk", "night")
@@ -73,7 +73,7 @@ class Lighting:
             az,
             -0.3,
             sun_strength=0.0,
-            ambient=0.0015,
+            ambient=0.0005,
             sky_horizon=0.004,
             sky_zenith=0.0015,
             lamp_strength=1.0,
@@ -131,17 +131,24 @@ def shade(
     T_world_from_cam: np.ndarray,
     intrinsics: CameraIntrinsics,
     lighting: Lighting,
+    material_gain: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Radiance (H, W) float32 of a textured raster under ``lighting``, sky included."""
+    """Radiance (H, W) float32 of a textured raster under ``lighting``, sky included.
+    ``material_gain``: optional (n_textures,) factor on each texture's albedo (a run's
+    illuminant colour as a mono sensor sees it)."""
     lut = np.append(lighting_lut(scene, lighting), 0.0)  # index -1 -> sky (set below)
     ids = raster.quad_id
-    radiance = raster.albedo.astype(np.float32) * (lut[ids] / 255.0)
+    albedo = raster.albedo.astype(np.float32)
+    if material_gain is not None:
+        per_quad = np.append(material_gain[scene.quads.texture], 1.0).astype(np.float32)
+        albedo = albedo * per_quad[ids]
+    radiance = albedo * (lut[ids] / 255.0)
     sky = ids < 0
     if sky.any():
         radiance[sky] = _sky(T_world_from_cam, intrinsics, lighting)[sky]
     if lighting.lamp_strength > 0 or lighting.headlights > 0:
         radiance += (
-            raster.albedo.astype(np.float32)
+            albedo
             / 255.0
             * _artificial_light(raster, scene, T_world_from_cam, intrinsics, lighting)
         )
@@ -163,9 +170,37 @@ def _sky(T_world_from_cam, k: CameraIntrinsics, lighting: Lighting) -> np.ndarra
     return (lighting.sky_horizon * (1 - mix) + lighting.sky_zenith * mix).astype(np.float32)
 
 
+# Street lamps (lights with a throw direction): a cut-off luminaire throws its light
+# down (intensity ~ cos(angle from the nadir)^LAMP_DOWNWARD_POWER, nothing above the
+# horizontal) and a house-side shield keeps most of it off the buildings behind it
+# (LAMP_HOUSE_SIDE of the road-side intensity). The carriageway is glossy: seen at
+# grazing angles it mirrors the lamps ahead in long bright streaks (Blinn-Phong lobe)
+# and sends the car's own low beams back towards the camera (asphalt backscatters at
+# grazing incidence), so that the lit road, not the facades, fills a night frame.
+LAMP_POWER = 4.0
+LAMP_DOWNWARD_POWER = 2.0
+LAMP_HOUSE_SIDE = 0.2
+ROAD_GLOSS = 3.0
+ROAD_GLOSS_EXPONENT = 12.0
+ROAD_HEADLIGHT_BACKSCATTER = 0.35
+
+
+def lamp_intensity(to_point: np.ndarray, throw: np.ndarray) -> np.ndarray:
+    """Relative intensity (...,) of a lamp towards points ``to_point`` (..., 3) (world
+    vectors from the lamp) given its horizontal ``throw`` direction (3,); an all-zero
+    ``throw`` is a bare bulb (1 everywhere)."""
+    if not np.any(throw):
+        return np.ones(to_point.shape[:-1])
+    dist = np.linalg.norm(to_point, axis=-1) + 1e-9
+    down = np.clip(-to_point[..., 2] / dist, 0.0, 1.0)
+    house = np.clip(-(to_point @ throw) / dist, 0.0, 1.0)  # how far behind the lamp
+    return down**LAMP_DOWNWARD_POWER * (1.0 - (1.0 - LAMP_HOUSE_SIDE) * house)
+
+
 def _artificial_light(raster, scene, T_world_from_cam, k, lighting, step: int = 4):
     """(H, W) irradiance from street lamps and headlights, computed every ``step``
-    pixels and interpolated (lighting is smooth)."""
+    pixels and interpolated (lighting is smooth); on the carriageway it includes the
+    lamps' glossy reflection towards the camera."""
     import cv2
 
     ids = raster.quad_id[::step, ::step]
@@ -181,6 +216,8 @@ def _artificial_light(raster, scene, T_world_from_cam, k, lighting, step: int = 
     to_cam = t - pts
     flip = np.einsum("ijk,ijk->ij", normals, to_cam) < 0
     normals = np.where(flip[..., None], -normals, normals)
+    view = to_cam / (np.linalg.norm(to_cam, axis=-1, keepdims=True) + 1e-9)
+    road = scene.quads.kind[np.maximum(ids, 0)] == KIND_ROAD
     irradiance = np.zeros((hs, ws), np.float64)
     lights = scene.light_positions
     if lighting.lamp_strength > 0 and len(lights):
@@ -188,10 +225,20 @@ def _artificial_light(raster, scene, T_world_from_cam, k, lighting, step: int = 
         for li in near:
             d = lights[li] - pts
             dist2 = np.einsum("ijk,ijk->ij", d, d) + 1.0
-            cos_in = np.clip(np.einsum("ijk,ijk->ij", normals, d) / np.sqrt(dist2), 0, None)
-            irradiance += (
-                lighting.lamp_strength * scene.light_intensities[li] * 1.5 * cos_in / dist2
-            )
+            to_light = d / np.sqrt(dist2)[..., None]
+            cos_in = np.clip(np.einsum("ijk,ijk->ij", normals, to_light), 0, None)
+            throw = scene.light_directions[li]
+            if np.any(throw):
+                gain = LAMP_POWER * lamp_intensity(-d, throw)
+            else:
+                gain = 1.5  # a bare bulb (indoor ceiling lamps)
+            power = lighting.lamp_strength * scene.light_intensities[li] * gain / dist2
+            irradiance += power * cos_in
+            if road.any() and np.any(scene.light_directions[li]):
+                half = to_light + view
+                half /= np.linalg.norm(half, axis=-1, keepdims=True) + 1e-9
+                n_h = np.clip(np.einsum("ijk,ijk->ij", normals, half), 0, None)
+                irradiance += np.where(road, power * ROAD_GLOSS * n_h**ROAD_GLOSS_EXPONENT, 0.0)
     if lighting.headlights > 0:
         fwd = R[:, 2]
         origin = t + fwd * 0.5 - R[:, 1] * (-0.9)  # ~0.75 m above the road
@@ -200,7 +247,8 @@ def _artificial_light(raster, scene, T_world_from_cam, k, lighting, step: int = 
         dist = np.sqrt(dist2)
         cos_in = np.clip(np.einsum("ijk,ijk->ij", normals, d) / dist, 0, None)
         cone = np.clip((-(d @ fwd) / dist - 0.85) / 0.1, 0, 1)
-        irradiance += lighting.headlights * 4.0 * cone * cos_in / dist2
+        beam = lighting.headlights * 4.0 * cone / dist2
+        irradiance += beam * np.where(road, np.maximum(cos_in, ROAD_HEADLIGHT_BACKSCATTER), cos_in)
     irradiance[ids < 0] = 0.0
     return cv2.resize(
         irradiance.astype(np.float32), (k.width_px, k.height_px), interpolation=cv2.INTER_LINEAR
@@ -264,14 +312,16 @@ def render(
     previous_exposure: float | None = None,
     render_config: RenderConfig = RenderConfig(),
     exposure: float | None = None,
+    material_gain: np.ndarray | None = None,
 ) -> CameraFrame:
     """One camera frame of ``scene`` from ``T_world_from_cam`` (OpenCV camera axes).
     ``exposure`` fixes the exposure instead of the auto-exposure (a stereo rig's second
-    camera takes the first one's, as synchronised stereo heads do)."""
+    camera takes the first one's, as synchronised stereo heads do); ``material_gain`` as
+    in :func:`shade`."""
     raster = rasterize(
         scene, bank, T_world_from_cam, intrinsics, render_config, night=lighting.night
     )
-    radiance = shade(raster, scene, T_world_from_cam, intrinsics, lighting)
+    radiance = shade(raster, scene, T_world_from_cam, intrinsics, lighting, material_gain)
     if exposure is None:
         exposure = auto_exposure(radiance, config, previous_exposure)
     image = expose(radiance, exposure, config, rng)

@@ -2,7 +2,8 @@
 files carry the measured ones.
 
 ``RecordingErrors()`` is realistic and the default; ``RecordingErrors.none()`` makes the
-written geometry exact (tests that check geometry use it).
+written geometry exact (tests that check geometry use it; ``bench/accuracy.py`` uses it
+for the error floor). Where each default comes from: ``docs/sim.md``.
 """
 
 from __future__ import annotations
@@ -17,48 +18,72 @@ from monoloc.sim.vehicle import _rpy
 
 @dataclass(frozen=True)
 class RecordingErrors:
-    """Each error is off when its size is 0 (or the flag False).
+    """Each error is off when its size is 0 (or the flag False). Defaults: an RTK
+    GNSS/INS of the OXTS RT3000 class in city streets, a target-calibrated LiDAR, a
+    camera not triggered by the LiDAR (sources and figures: docs/sim.md).
 
-    lidar_motion_distortion: columns fire over the sweep while the car moves, points
-    not compensated. calib_translation_m / calib_rotation_rad: size of the error of the
-    written LiDAR-to-camera calibration. pose_error_m / pose_yaw_error_rad: standard
-    deviation of the slowly varying (time constant pose_error_time_s) error of written
-    poses (GNSS/INS-like). speed_*, yaw_rate_*: vehicle signal errors (scale factor,
-    bias, white noise). exposure_bias_ev: standard deviation of a run's exposure offset;
-    sensor_noise: camera shot/read noise on or off.
+    Ground-truth poses (map and query runs alike, each run its own draw), first-order
+    Gauss-Markov errors with correlation time ``pose_error_time_s`` (20 s: they wander
+    along the route, they are not white): ``pose_error_m`` horizontal RMS (0.05 m; RT3000
+    RTK 0.02 m 1 sigma in open sky, worse between buildings), ``pose_vertical_error_m``
+    (0.03 m), ``pose_yaw_error_rad`` (0.1 deg 1 sigma, dual-antenna heading),
+    ``pose_tilt_error_rad`` roll and pitch each (0.03 deg 1 sigma).
+
+    LiDAR: ``lidar_motion_distortion``: columns fire over the 0.1 s sweep while the car
+    moves, points not compensated. ``lidar_sync_offset_s``: the camera is not triggered
+    by the LiDAR: the instant the head faces forward is off the exposure by a run's own
+    offset, uniform in +-0.01 s (36 deg of head rotation at 10 Hz), plus
+    ``lidar_sync_jitter_s`` (0.002 s, 1 sigma) per frame. ``calib_translation_m`` /
+    ``calib_rotation_rad``: size of the error of a run's written LiDAR-to-camera
+    calibration (0.02 m, 0.2 deg: target-based calibration).
+
+    Camera: ``exposure_bias_ev``: 1 sigma of a run's auto-exposure offset (0.5 EV);
+    ``material_gain``: 1 sigma (log) of a run's per-material gray-level change (0.1: a
+    mono sensor under another illuminant colour sees coloured materials at other relative
+    gray levels); ``sensor_noise``: shot/read noise on or off.
+
+    Vehicle signals: ``speed_*``, ``yaw_rate_*`` (scale factor, bias, white noise).
     """
 
     lidar_motion_distortion: bool = True
-    calib_translation_m: float = 0.01
-    calib_rotation_rad: float = math.radians(0.1)
-    pose_error_m: float = 0.03
-    pose_vertical_error_m: float = 0.02
-    pose_yaw_error_rad: float = math.radians(0.05)
+    lidar_sync_offset_s: float = 0.01
+    lidar_sync_jitter_s: float = 0.002
+    calib_translation_m: float = 0.02
+    calib_rotation_rad: float = math.radians(0.2)
+    pose_error_m: float = 0.05
+    pose_vertical_error_m: float = 0.03
+    pose_yaw_error_rad: float = math.radians(0.1)
+    pose_tilt_error_rad: float = math.radians(0.03)
     pose_error_time_s: float = 20.0
     speed_scale_error: float = 0.01
     speed_bias_mps: float = 0.02
     speed_noise_mps: float = 0.05
     yaw_rate_bias_radps: float = 0.002
     yaw_rate_noise_radps: float = 0.005
-    exposure_bias_ev: float = 0.3
+    exposure_bias_ev: float = 0.5
+    material_gain: float = 0.1
     sensor_noise: bool = True
 
     @classmethod
     def none(cls) -> RecordingErrors:
-        """Exact geometry and signals (camera noise off too)."""
+        """Exact geometry and signals (camera noise and exposure changes off too)."""
         return cls(
             lidar_motion_distortion=False,
+            lidar_sync_offset_s=0.0,
+            lidar_sync_jitter_s=0.0,
             calib_translation_m=0.0,
             calib_rotation_rad=0.0,
             pose_error_m=0.0,
             pose_vertical_error_m=0.0,
             pose_yaw_error_rad=0.0,
+            pose_tilt_error_rad=0.0,
             speed_scale_error=0.0,
             speed_bias_mps=0.0,
             speed_noise_mps=0.0,
             yaw_rate_bias_radps=0.0,
             yaw_rate_noise_radps=0.0,
             exposure_bias_ev=0.0,
+            material_gain=0.0,
             sensor_noise=False,
         )
 
@@ -107,14 +132,17 @@ def apply_pose_errors(
     rng: np.random.Generator,
 ) -> np.ndarray:
     """(n, 4, 4) written poses: the true ones (n, 4, 4) with slowly varying horizontal and
-    vertical position offsets and a small heading error (about the camera's own centre)."""
+    vertical position offsets and small heading, roll and pitch errors (about the
+    camera's own centre)."""
     tau = errors.pose_error_time_s
     ex = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng)
     ey = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng)
     ez = smooth_random(times_s, errors.pose_vertical_error_m, tau, rng)
     eyaw = smooth_random(times_s, errors.pose_yaw_error_rad, tau, rng)
+    eroll = smooth_random(times_s, errors.pose_tilt_error_rad, tau, rng)
+    epitch = smooth_random(times_s, errors.pose_tilt_error_rad, tau, rng)
     out = np.array(T_world_from_cam, dtype=np.float64, copy=True)
-    out[:, :3, :3] = _rpy(np.zeros_like(eyaw), np.zeros_like(eyaw), eyaw) @ out[:, :3, :3]
+    out[:, :3, :3] = _rpy(eroll, epitch, eyaw) @ out[:, :3, :3]
     out[:, 0, 3] += ex
     out[:, 1, 3] += ey
     out[:, 2, 3] += ez
@@ -138,3 +166,29 @@ def measured_signals(
         + errors.yaw_rate_noise_radps * rng.standard_normal(len(yaw_rate_radps))
     )
     return np.maximum(speed, 0.0), yaw_rate
+
+
+def lidar_time_offsets_s(
+    n_frames: int, errors: RecordingErrors, rng: np.random.Generator
+) -> np.ndarray:
+    """(n,) time of each frame's sweep centre (head facing forward) minus the camera
+    exposure: the run's fixed offset, uniform in +-``lidar_sync_offset_s``, plus white
+    jitter of ``lidar_sync_jitter_s``. Zeros when both are 0."""
+    offset = rng.uniform(-1.0, 1.0) * errors.lidar_sync_offset_s
+    return offset + errors.lidar_sync_jitter_s * rng.standard_normal(n_frames)
+
+
+def exposure_bias_ev(errors: RecordingErrors, rng: np.random.Generator) -> float:
+    """A run's auto-exposure offset in EV (0 when ``exposure_bias_ev`` is 0)."""
+    return float(errors.exposure_bias_ev * rng.standard_normal())
+
+
+def material_gains(
+    n_textures: int, errors: RecordingErrors, rng: np.random.Generator
+) -> np.ndarray | None:
+    """(n_textures,) float32 factors on each texture's gray level for one run, log-normal
+    with ``material_gain``; None when it is 0. Draws are sequential, so the first m of n
+    gains are the gains of m textures."""
+    if errors.material_gain <= 0:
+        return None
+    return np.exp(errors.material_gain * rng.standard_normal(n_textures)).astype(np.float32)

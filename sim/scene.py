@@ -73,12 +73,15 @@ class Quads:
 @dataclass(frozen=True)
 class Scene:
     """Quads, the textures they reference, and point lights (M, 3) world positions with
-    (M,) intensities (used at night)."""
+    (M,) intensities (used at night) and (M, 3) throw directions: a street lamp's
+    horizontal unit vector towards the road (its shield dims the other side), zeros for
+    a light that shines the same all round."""
 
     quads: Quads
     textures: tuple[TextureSpec, ...]
     light_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     light_intensities: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    light_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def concat_scenes(scenes: list[Scene]) -> Scene:
@@ -98,6 +101,7 @@ def concat_scenes(scenes: list[Scene]) -> Scene:
         textures=tuple(textures),
         light_positions=np.concatenate([s.light_positions for s in scenes]).reshape(-1, 3),
         light_intensities=np.concatenate([s.light_intensities for s in scenes]),
+        light_directions=np.concatenate([s.light_directions for s in scenes]).reshape(-1, 3),
     )
 
 
@@ -108,7 +112,7 @@ class SceneBuilder:
         self._rows: list[tuple] = []
         self._textures: list[TextureSpec] = []
         self._texture_index: dict[TextureSpec, int] = {}
-        self._lights: list[tuple[np.ndarray, float]] = []
+        self._lights: list[tuple[np.ndarray, float, np.ndarray]] = []
 
     def texture(self, spec: TextureSpec) -> int:
         """Index of ``spec`` in this scene, adding it if new."""
@@ -151,8 +155,15 @@ class SceneBuilder:
             )
         )
 
-    def add_light(self, position_world, intensity: float) -> None:
-        self._lights.append((np.asarray(position_world, dtype=np.float64), intensity))
+    def add_light(self, position_world, intensity: float, direction_world=(0.0, 0.0, 0.0)) -> None:
+        """A point light; ``direction_world``: horizontal throw direction (see Scene)."""
+        self._lights.append(
+            (
+                np.asarray(position_world, dtype=np.float64),
+                intensity,
+                np.asarray(direction_world, dtype=np.float64),
+            )
+        )
 
     def build(self) -> Scene:
         names = list(Quads.__dataclass_fields__)
@@ -170,6 +181,7 @@ class SceneBuilder:
         return Scene(
             quads=Quads(**arrays),
             textures=tuple(self._textures),
-            light_positions=np.array([p for p, _ in lights]).reshape(-1, 3),
-            light_intensities=np.array([i for _, i in lights], dtype=np.float64),
+            light_positions=np.array([p for p, _, _ in lights]).reshape(-1, 3),
+            light_intensities=np.array([i for _, i, _ in lights], dtype=np.float64),
+            light_directions=np.array([d for _, _, d in lights]).reshape(-1, 3),
         )

@@ -26,7 +26,11 @@ SIZE_PRESETS = {"small": (2, 2), "medium": (3, 3), "large": (5, 4)}
 
 @dataclass(frozen=True)
 class CityConfig:
-    """Layout and style of a city. Lengths in metres; ranges are (min, max)."""
+    """Layout and style of a city. Lengths in metres; ranges are (min, max).
+
+    Aliasing: each district has ``building_designs`` recurring buildings; a lot starts a
+    row of ``terrace_copies`` identical copies of one of them with probability
+    ``repeated_building_fraction`` (see ``monoloc.sim.urban.buildings``)."""
 
     blocks_x: int = 2
     blocks_y: int = 2
@@ -48,6 +52,9 @@ class CityConfig:
     empty_lot_fraction: float = 0.06
     tree_street_fraction: float = 0.5
     lamp_spacing_m: tuple[float, float] = (22.0, 32.0)
+    building_designs: int = 4
+    repeated_building_fraction: float = 0.25
+    terrace_copies: tuple[int, int] = (2, 4)
     facade_texels_per_m: float = 40.0
     ground_texels_per_m: float = 40.0
 

@@ -16,7 +16,12 @@ import numpy as np
 from monoloc.sim.scene import KIND_GROUND, KIND_ROAD, KIND_WALL, Scene, SceneBuilder
 from monoloc.sim.shapes import add_split_quad, add_wall, texture_size_px
 from monoloc.sim.textures import TextureSpec, texture_seed
-from monoloc.sim.urban.buildings import WALL_FOOT_M, add_building, add_frontage
+from monoloc.sim.urban.buildings import (
+    WALL_FOOT_M,
+    add_building,
+    add_frontage,
+    building_designs,
+)
 from monoloc.sim.urban.street_props import add_street_furniture
 
 KERB_M = 0.12
@@ -77,6 +82,9 @@ def _road_segment(builder, a_xy, b_xy, width, ppm, rng):
 def build_district_scene(grid, config, seed: int) -> tuple[Scene, np.ndarray]:
     """Static scene of one district and its parking spots (N, 3) of (x, y, yaw_rad)."""
     rng = np.random.default_rng(seed)
+    # Recurring facades draw from their own generator: the lots stay where they were.
+    design_rng = np.random.default_rng([seed, 1])
+    designs = (building_designs(design_rng, config), design_rng)
     b = SceneBuilder()
     gppm = config.ground_texels_per_m
     xs, ys = grid.xs, grid.ys
@@ -145,13 +153,13 @@ def build_district_scene(grid, config, seed: int) -> tuple[Scene, np.ndarray]:
         for j in range(len(ys) - 1):
             kerb = (xs[i] + hx[i], ys[j] + hy[j], xs[i + 1] - hx[i + 1], ys[j + 1] - hy[j + 1])
             side = (grid.side_w_x[i], grid.side_w_y[j], grid.side_w_x[i + 1], grid.side_w_y[j + 1])
-            _block(b, rng, config, kerb, side, (True, True, True, True))
-    _outer_ring(b, rng, config, grid)
+            _block(b, rng, config, kerb, side, (True, True, True, True), designs)
+    _outer_ring(b, rng, config, grid, designs)
     _parking_spots(grid, spots)
     return b.build(), np.concatenate(spots).reshape(-1, 3) if spots else np.zeros((0, 3))
 
 
-def _outer_ring(b, rng, config, grid):
+def _outer_ring(b, rng, config, grid, designs):
     """Buildings facing the perimeter streets from outside, and corner buildings."""
     xs, ys = grid.xs, grid.ys
     hx, hy = grid.road_w_x / 2, grid.road_w_y / 2
@@ -167,7 +175,7 @@ def _outer_ring(b, rng, config, grid):
     ]
     outer = replace(config, empty_lot_fraction=0.0)  # no gaps onto the city's edge
     for kerb, side, facing in strips:
-        _block(b, rng, outer, kerb, side, facing)
+        _block(b, rng, outer, kerb, side, facing, designs)
     _backdrop(b, rng, config, (kx0 - depth, ky0 - depth, kx1 + depth, ky1 + depth))
     for cx, cy in ((kx0 - depth, ky0 - depth), (kx1, ky0 - depth), (kx0 - depth, ky1), (kx1, ky1)):
         corners = np.array([[cx, cy + depth], [cx + depth, cy + depth], [cx + depth, cy], [cx, cy]])
@@ -221,9 +229,11 @@ def _backdrop(b, rng, config, inner_rect):
             pos += w
 
 
-def _block(b, rng, config, kerb, side, facing):
+def _block(b, rng, config, kerb, side, facing, designs):
     """A block inside kerb rect (x0, y0, x1, y1): kerb faces, sidewalks of widths
-    (west, south, east, north) on the sides that face a street, interior, buildings."""
+    (west, south, east, north) on the sides that face a street, interior, buildings
+    (some showing the district's recurring facades: ``designs`` = (designs, their
+    generator))."""
     x0, y0, x1, y1 = kerb
     sw, ss, se, sn = (s if f else 0.0 for s, f in zip(side, facing, strict=True))
     gppm = config.ground_texels_per_m
@@ -278,7 +288,14 @@ def _block(b, rng, config, kerb, side, facing):
         fronts.append(((lx1, ly0 + cs), (lx1, ly1 - cn), (-1.0, 0.0), se))
     for start, end, normal, _ in fronts:
         add_frontage(
-            b, rng, config, np.array(start), np.array(end), np.array(normal), max(6.0, max_depth)
+            b,
+            rng,
+            config,
+            np.array(start),
+            np.array(end),
+            np.array(normal),
+            max(6.0, max_depth),
+            *designs,
         )
     for start, end, normal, walk_w in fronts:
         add_street_furniture(

@@ -97,6 +97,10 @@ def dataset_info(config, plans, written, frames) -> dict:
                 "frames": len(p.frame_times_s),
                 "route_length_m": round(p.route_length_m, 2),
                 "T_cam0_from_lidar_written": _matrix(written[p.seq_id].Tr_written),
+                "exposure_bias_ev": round(written[p.seq_id].draws.exposure_bias_ev, 4),
+                "lidar_time_offset_mean_s": round(
+                    float(np.mean(written[p.seq_id].draws.lidar_time_offsets_s)), 5
+                ),
             }
             for p in plans
         ],

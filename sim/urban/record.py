@@ -13,7 +13,14 @@ from monoloc.core.geometry import invert_rigid
 from monoloc.sim import kitti_writer as kw
 from monoloc.sim.camera import CameraConfig, render
 from monoloc.sim.lidar import firing_times_s, scan
-from monoloc.sim.recording import apply_pose_errors, measured_signals, perturb_calibration
+from monoloc.sim.recording import (
+    apply_pose_errors,
+    exposure_bias_ev,
+    lidar_time_offsets_s,
+    material_gains,
+    measured_signals,
+    perturb_calibration,
+)
 from monoloc.sim.scene import concat_scenes
 from monoloc.sim.textures import TextureBank
 from monoloc.sim.urban.city import build_city, parked_cars
@@ -24,12 +31,33 @@ from monoloc.sim.urban.textures import URBAN_TEXTURES
 @dataclass(frozen=True)
 class WrittenRun:
     """What a run's files carry: T_written (n, 4, 4) poses in the sim world (with the
-    recording's pose errors), Tr_written (4, 4) calibration, measured signals (n,)."""
+    recording's pose errors), Tr_written (4, 4) calibration, measured signals (n,); and
+    what its camera and LiDAR errors came out as (:class:`RunDraws`)."""
 
     T_written: np.ndarray
     Tr_written: np.ndarray
     speed_mps: np.ndarray
     yaw_rate_radps: np.ndarray
+    draws: RunDraws
+
+
+@dataclass(frozen=True)
+class RunDraws:
+    """A run's own draw of the camera and LiDAR errors: exposure offset (EV), each
+    frame's LiDAR sweep centre minus its exposure time (n,) s. Deterministic in the run's
+    seed; the rendering workers and dataset.json get the same values."""
+
+    exposure_bias_ev: float
+    lidar_time_offsets_s: np.ndarray
+
+
+def run_draws(plan, errors) -> RunDraws:
+    """The :class:`RunDraws` of ``plan`` under ``errors``."""
+    n = len(plan.frame_times_s)
+    return RunDraws(
+        exposure_bias_ev(errors, np.random.default_rng([plan.seed, 2])),
+        lidar_time_offsets_s(n, errors, np.random.default_rng([plan.seed, 4])),
+    )
 
 
 def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
@@ -41,7 +69,7 @@ def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
     Tr_written = perturb_calibration(config.rig.T_cam_from_lidar(), errors, rng)
     st = plan.states.sample(plan.frame_times_s)
     speed, yaw_rate = measured_signals(st["speed_mps"], st["yaw_rate_radps"], errors, rng)
-    return WrittenRun(T_written, Tr_written, speed, yaw_rate)
+    return WrittenRun(T_written, Tr_written, speed, yaw_rate, run_draws(plan, errors))
 
 
 def write_run_metadata(plan, written: WrittenRun, frames: dict, config, out_dir: Path) -> None:
@@ -91,9 +119,10 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
     seq = kw.sequence_dir(out_dir, plan.seq_id)
     rig, errors = config.rig, config.errors
     intrinsics = config.intrinsics()
-    run_rng = np.random.default_rng([plan.seed, 2])
+    draws = run_draws(plan, errors)
+    gains = material_gains(len(scene.textures), errors, np.random.default_rng([plan.seed, 5]))
     cam_cfg = config.camera
-    bias = float(run_rng.normal(0.0, errors.exposure_bias_ev)) if errors.exposure_bias_ev else 0.0
+    bias = draws.exposure_bias_ev
     cam_cfg = CameraConfig(
         **{**cam_cfg.__dict__, "exposure_bias_ev": cam_cfg.exposure_bias_ev + bias}
     )
@@ -104,7 +133,16 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
         t = float(plan.frame_times_s[k])
         rng = np.random.default_rng([plan.seed, 3, k])
         T_wv = plan.states.T_world_from_vehicle(np.array([t]))[0]
-        frame = render(scene, bank, T_wv @ T_v_cam, intrinsics, plan.lighting, rng, cam_cfg)
+        frame = render(
+            scene,
+            bank,
+            T_wv @ T_v_cam,
+            intrinsics,
+            plan.lighting,
+            rng,
+            cam_cfg,
+            material_gain=gains,
+        )
         kw.write_image(seq / "image_0" / f"{k:06d}.png", frame.image)
         if config.write_stereo:
             # Its own sensor noise (a stream of its own, so image_0 and the scan keep
@@ -118,14 +156,19 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
                 np.random.default_rng([plan.seed, 4, k]),
                 cam_cfg,
                 exposure=frame.exposure,
+                material_gain=gains,
             )
             kw.write_image(seq / "image_1" / f"{k:06d}.png", right.image)
         if config.write_depth:
             kw.write_depth(seq / "depth" / f"{k:06d}.png", frame.depth_m)
         if config.write_lidar:
+            t_sweep = t + float(draws.lidar_time_offsets_s[k])
             if errors.lidar_motion_distortion:
-                T_wl = plan.states.T_world_from_vehicle(firing_times_s(t, config.lidar)) @ T_v_lidar
+                T_wl = (
+                    plan.states.T_world_from_vehicle(firing_times_s(t_sweep, config.lidar))
+                    @ T_v_lidar
+                )
             else:
-                T_wl = T_wv @ T_v_lidar
+                T_wl = plan.states.T_world_from_vehicle(np.array([t_sweep]))[0] @ T_v_lidar
             points = scan(scene, T_wl, config.lidar, rng, bank)
             kw.write_velodyne(seq / "velodyne" / f"{k:06d}.bin", points)

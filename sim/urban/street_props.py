@@ -98,7 +98,9 @@ def _lamp(b, rng, p_xy, towards_road, z):
             ]
         )
     add_box(b, ac, z + pole_h - 0.1, z + pole_h, [metal] * 4, 40.0, KIND_POLE)
-    b.add_light((head_xy[0], head_xy[1], z + pole_h - 0.3), 1.0)
+    b.add_light(
+        (head_xy[0], head_xy[1], z + pole_h - 0.3), 1.0, (towards_road[0], towards_road[1], 0.0)
+    )
 
 
 def _tree(b, rng, p_xy, z):
