@@ -20,8 +20,10 @@ _NEW = "source_format IN ('kitti', 'tum', 'single', 'colmap', 'kapture')"
 
 
 def _replace_check(condition: str) -> None:
-    # SQLite cannot alter a constraint: batch mode copies the table (recreate="always").
-    with op.batch_alter_table("runs", recreate="always") as batch:
+    # SQLite cannot alter a constraint: batch mode copies the table there ("auto"), and
+    # alters it in place on PostgreSQL (a copy there would have to drop the primary key
+    # that entries and jobs refer to).
+    with op.batch_alter_table("runs") as batch:
         batch.drop_constraint(batch.f("ck_runs_source_format"), type_="check")
         batch.create_check_constraint(batch.f("ck_runs_source_format"), condition)
 
