@@ -60,10 +60,11 @@ class PnpConfig:
     twenty to 0.5 mm on the bench scene); minimal_solver: RANSAC's hypothesis solver, one of
     ``SOLVERS`` ("p3p": the fastest at equal accuracy in bench/vision.py).
 
-    Guided PnP (:func:`estimate_relative_pose_guided`): a pose guessed from elsewhere is
-    kept when, after ``guided_rounds`` rounds of inlier selection + LM on the entry's own
-    correspondences, it holds at least max(min_inliers, guided_min_inlier_ratio x matches)
-    inliers; otherwise the entry gets its own full RANSAC.
+    Guided PnP (:func:`estimate_relative_pose_guided`): a pose guessed from elsewhere
+    chooses the entry's consensus set (its correspondences within the threshold), which is
+    refit as RANSAC's would be; the result is kept when it holds at least
+    max(min_inliers, guided_min_inlier_ratio x matches) inliers; otherwise the entry gets
+    its own full RANSAC.
     """
 
     reprojection_error_px: float = 3.0
@@ -75,7 +76,6 @@ class PnpConfig:
     refine_iterations: int = 2
     minimal_solver: str = "p3p"
     guided_min_inlier_ratio: float = 0.3
-    guided_rounds: int = 2
 
     def __post_init__(self) -> None:
         if not self.reprojection_error_px > 0 or self.iterations < 1:
@@ -84,7 +84,7 @@ class PnpConfig:
             raise InvalidInputError(f"invalid PnpConfig {self}")
         if self.max_rotation_rad is not None and not self.max_rotation_rad > 0:
             raise InvalidInputError(f"PnpConfig.max_rotation_rad must be > 0: {self}")
-        if not 0.0 <= self.guided_min_inlier_ratio <= 1.0 or self.guided_rounds < 1:
+        if not 0.0 <= self.guided_min_inlier_ratio <= 1.0:
             raise InvalidInputError(f"invalid PnpConfig guided settings {self}")
         if self.minimal_solver not in SOLVERS:
             raise InvalidInputError(
@@ -381,8 +381,9 @@ def estimate_relative_pose_guided(
     """PnP seeded by poses found elsewhere (guided PnP), falling back to RANSAC.
 
     Each guess (4, 4) T_ref_from_query (e.g. another entry's hypothesis brought into this
-    entry's frame) is scored on this entry's own M correspondences; the guess with the most
-    inliers is refined on them (:func:`refine_from_pose`). The result is kept when it has at
+    entry's frame) is scored on this entry's own M correspondences; the inliers of the
+    guess with the most are refit as RANSAC's inliers are (SQPnP, re-selection, LM), so
+    the pose is the entry's own optimum, not the guess nudged. The result is kept when it has at
     least :func:`guided_min_inliers` inliers and passes the usual checks (``method`` is then
     "guided"); otherwise, or without guesses, the entry gets its own
     :func:`estimate_relative_pose`. Either way the pose comes from this entry's own
@@ -401,9 +402,14 @@ def estimate_relative_pose_guided(
         if best is None or count > best[0]:
             best = (count, R, t)
     if best is not None and best[0] >= _MIN_POINTS_FOR_SOLVER:
-        R, t, mask, errors_px = refine_from_pose(
-            points, pixels, best[1], best[2], K, config, config.guided_rounds
-        )
+        # The guess only chooses the consensus set, as RANSAC's best sample does: the pose
+        # is then this entry's own (SQPnP on that set, re-selection, LM), so it does not
+        # stay anchored to the guess along directions this entry constrains poorly.
+        mask, _ = _inliers(points, pixels, best[1], best[2], K, config.reprojection_error_px)
+        try:
+            R, t, mask, errors_px = _refit(points, pixels, mask, K, config)
+        except cv2.error:
+            R = None
         if R is not None and mask.sum() >= needed:
             T_query_from_ref = np.eye(4)
             T_query_from_ref[:3, :3], T_query_from_ref[:3, 3] = R, t
