@@ -139,8 +139,10 @@ def drive_case(
     study: StudyConfig,
     recorded_latency_ms: tuple[float, ...] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    record_dir: Path | None = None,
 ) -> LoopResult:
-    """One localized drive of the query lap over HTTP (``mode`` open|closed)."""
+    """One localized drive of the query lap over HTTP (``mode`` open|closed); with
+    ``record_dir``, its frames are also written there as a TUM run."""
     from monoloc.client.localizer import HttpLocalizer
 
     model, _ = client.measurement_model(map_id)
@@ -152,14 +154,21 @@ def drive_case(
         recorded_latency_ms=recorded_latency_ms,
         seed=study.seed + 100,
     )
-    return run_loop(
+    recorder = None
+    if record_dir is not None:
+        recorder = TumRecorder(record_dir, world, f"monoloc sim closed-loop {mode} drive")
+    result = run_loop(
         world,
         config,
         localizer=HttpLocalizer(client, map_id),
         model=model,
         filter_config=filter_config_for(world),
+        sink=recorder,
         progress=progress,
     )
+    if recorder is not None:
+        recorder.finish(result)
+    return result
 
 
 def build_map(
@@ -224,7 +233,13 @@ def run_study(
         mode = "open" if name == "open" else "closed"
         log(f"  driving: {name}")
         result = drive_case(
-            client, map_id, world, mode, study, recorded if mode == "closed" else None
+            client,
+            map_id,
+            world,
+            mode,
+            study,
+            recorded if mode == "closed" else None,
+            record_dir=out_dir / name.replace("+", "_") / "run",
         )
         if name == "open":
             lat = result.frames["latency_ms"]
@@ -248,3 +263,18 @@ def run_study(
         "cases": {name: c.metrics for name, c in cases.items()},
         "_results": {name: c.result for name, c in cases.items()},
     }
+
+
+def read_latencies(frames_csv: Path) -> tuple[float, ...]:
+    """The measured round trips (ms) of an earlier drive's frames.csv."""
+    import csv
+
+    try:
+        with open(frames_csv, newline="") as fh:
+            values = [float(row["latency_ms"]) for row in csv.DictReader(fh)]
+    except (OSError, KeyError, ValueError) as exc:
+        raise InvalidInputError(f"cannot read latencies from {frames_csv}: {exc}") from exc
+    values = [v for v in values if np.isfinite(v)]
+    if not values:
+        raise InvalidInputError(f"{frames_csv} holds no measured latency")
+    return tuple(values)
