@@ -12,7 +12,7 @@ import pytest
 from e2e_helpers import ADMIN_KEY, live_server, make_settings
 
 from monoloc.client.api import MonolocClient
-from monoloc.sim.closed_loop import LoopConfig, run_loop
+from monoloc.sim.closed_loop import LoopConfig
 from monoloc.sim.closed_loop_metrics import loop_metrics
 from monoloc.sim.closed_loop_record import write_loop_outputs
 from monoloc.sim.closed_loop_study import (
