@@ -74,6 +74,72 @@ class TumRecorder:
         return self.run_dir
 
 
+class KittiRecorder:
+    """A frame sink writing one KITTI odometry sequence (``sequences/00``: image_0/,
+    velodyne/ when mapping, calib.txt, times.txt, vehicle.txt; ``poses/00.txt``). Poses
+    are written as ``zup_to_kitti(T_world_from_cam)``, so that a server's KITTI import
+    (``kitti_to_zup``) puts the map in the sim's own world."""
+
+    SEQUENCE = "00"
+
+    def __init__(self, root: Path, world, source: str) -> None:
+        self.root = Path(root)
+        self.world = world
+        self.seq_dir = self.root / "sequences" / self.SEQUENCE
+        (self.seq_dir / "image_0").mkdir(parents=True, exist_ok=True)
+        self.times: list[float] = []
+        self.T_world_from_cam: list[np.ndarray] = []
+
+    def __call__(self, i: int, t_s: float, image, scan, T_world_from_cam) -> None:
+        from monoloc.sim import kitti_writer as kw
+
+        kw.write_image(self.seq_dir / "image_0" / f"{i:06d}.png", image)
+        if scan is not None:
+            (self.seq_dir / "velodyne").mkdir(exist_ok=True)
+            kw.write_velodyne(self.seq_dir / "velodyne" / f"{i:06d}.bin", scan)
+        self.times.append(t_s)
+        self.T_world_from_cam.append(np.asarray(T_world_from_cam))
+
+    def finish(self, result: LoopResult) -> Path:
+        from monoloc.core.geometry import zup_to_kitti
+        from monoloc.sim import kitti_writer as kw
+
+        times = np.asarray(self.times) - self.times[0]
+        kw.write_calib(
+            self.seq_dir / "calib.txt", self.world.intrinsics.K, self.world.T_cam_from_lidar
+        )
+        kw.write_times(self.seq_dir / "times.txt", times)
+        signals = result.frames["signals"]
+        kw.write_vehicle(self.seq_dir / "vehicle.txt", times, signals[:, 0], signals[:, 1])
+        (self.root / "poses").mkdir(exist_ok=True)
+        kw.write_poses(
+            self.root / "poses" / f"{self.SEQUENCE}.txt",
+            zup_to_kitti(np.stack(self.T_world_from_cam)),
+        )
+        return self.root
+
+
+def make_recorder(world, run_dir: Path, source: str):
+    """The world's recorder: TUM (indoor) or KITTI (urban) layout."""
+    if world.run_format == "kitti":
+        return KittiRecorder(run_dir, world, source)
+    return TumRecorder(run_dir, world, source)
+
+
+def run_archive(world, run_dir: Path, out: Path) -> tuple[Path, dict]:
+    """An uncompressed tar of a recorded run, and the upload fields that describe it."""
+    with tarfile.open(out, "w") as tar:
+        if world.run_format == "kitti":
+            seq = KittiRecorder.SEQUENCE
+            for name in ("calib.txt", "times.txt", "image_0", "velodyne"):
+                if (run_dir / "sequences" / seq / name).exists():
+                    tar.add(run_dir / "sequences" / seq / name, arcname=f"sequences/{seq}/{name}")
+            tar.add(run_dir / "poses" / f"{seq}.txt", arcname=f"poses/{seq}.txt")
+            return out, {"format": "kitti", "sequence": seq}
+        tar.add(run_dir, arcname=run_dir.name)
+    return out, {"format": "tum"}
+
+
 FRAME_COLUMNS = (
     "t_s",
     "true_x_m",
@@ -156,10 +222,3 @@ def _fmt(v) -> str:
     if isinstance(v, (int, np.integer)):
         return str(int(v))
     return "nan" if not np.isfinite(v) else f"{float(v):.6g}"
-
-
-def tar_run(run_dir: Path, out: Path) -> Path:
-    """An uncompressed tar of a recorded TUM run folder (for an upload)."""
-    with tarfile.open(out, "w") as tar:
-        tar.add(run_dir, arcname=run_dir.name)
-    return out

@@ -30,7 +30,7 @@ from monoloc.client.particle_filter import FilterConfig
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.closed_loop import LoopConfig, LoopResult, run_loop
 from monoloc.sim.closed_loop_metrics import SPIKE_FACTOR, loop_metrics
-from monoloc.sim.closed_loop_record import TumRecorder, tar_run, write_loop_outputs
+from monoloc.sim.closed_loop_record import make_recorder, run_archive, write_loop_outputs
 from monoloc.sim.closed_loop_world import Lap
 
 CASES = ("open", "closed", "closed+offcenter")
@@ -106,18 +106,18 @@ def create_map(client: MonolocClient, world, name: str) -> int:
 
 def record_lap(world, out_dir: Path, name: str, config: LoopConfig) -> tuple[Path, LoopResult]:
     """Drive and record a mapping lap (open loop, camera + depth) as a TUM run folder."""
-    recorder = TumRecorder(out_dir / name, world, f"monoloc sim closed-loop {name}")
+    recorder = make_recorder(world, out_dir / name, f"monoloc sim closed-loop {name}")
     result = run_loop(world, config, sink=recorder, with_depth=True)
     return recorder.finish(result), result
 
 
-def upload(client: MonolocClient, map_id: int, run_dir: Path, path: str, **fields) -> dict:
-    """Upload a recorded TUM run to ``path`` (runs or calibration jobs); wait for its job."""
+def upload(client: MonolocClient, map_id: int, world, run_dir: Path, path: str, **fields) -> dict:
+    """Upload a recorded run to ``path`` (runs or calibration jobs); wait for its job."""
     from monoloc import demo_io
 
-    archive = tar_run(run_dir, run_dir.with_suffix(".tar"))
+    archive, described = run_archive(world, run_dir, run_dir.with_suffix(".tar"))
     try:
-        answer = demo_io.upload_run(client, map_id, archive, path, format="tum", **fields)
+        answer = demo_io.upload_run(client, map_id, archive, path, **described, **fields)
     finally:
         archive.unlink(missing_ok=True)
     job_id = answer["job"]["id"] if "job" in answer else answer["id"]
@@ -156,7 +156,7 @@ def drive_case(
     )
     recorder = None
     if record_dir is not None:
-        recorder = TumRecorder(record_dir, world, f"monoloc sim closed-loop {mode} drive")
+        recorder = make_recorder(world, record_dir, f"monoloc sim closed-loop {mode} drive")
     result = run_loop(
         world,
         config,
@@ -182,7 +182,7 @@ def build_map(
         world, out_dir / "runs", "map", LoopConfig(mode="open", laps=study.map_laps, lap=MAP_LAP,
                                                    seed=study.seed + 1)
     )  # fmt: skip
-    job = upload(client, map_id, run_dir, "/v1/maps/{map_id}/runs", kind="map")
+    job = upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="map")
     info["map_frames"] = lap.n_frames
     log(f"  map: {lap.n_frames} centre-line frames ingested (job {job['id']})")
     if study.train_laps > 0:
@@ -191,7 +191,7 @@ def build_map(
             seed=study.seed + 2,
         )  # fmt: skip
         run_dir, lap = record_lap(world, out_dir / "runs", "train", train_cfg)
-        upload(client, map_id, run_dir, "/v1/maps/{map_id}/calibration/jobs")
+        upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/calibration/jobs")
         info["train_frames"] = lap.n_frames
         log(f"  calibrated on a {lap.n_frames}-frame training lap")
     return map_id, info
@@ -204,7 +204,7 @@ def add_offcenter(client, map_id, world, study: StudyConfig, out_dir: Path, log=
         seed=study.seed + 3,
     )  # fmt: skip
     run_dir, lap = record_lap(world, out_dir / "runs", "offcenter", config)
-    upload(client, map_id, run_dir, "/v1/maps/{map_id}/runs", kind="offcenter")
+    upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="offcenter")
     lateral = np.abs(lap.trace["lateral_m"])
     log(f"  +{lap.n_frames} off-center frames (lateral up to {lateral.max():.3f} m)")
     return {"offcenter_frames": lap.n_frames, "offcenter_lateral_max_m": float(lateral.max())}

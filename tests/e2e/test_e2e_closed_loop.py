@@ -39,7 +39,7 @@ def indoor_map(tmp_path_factory):
     with live_server(make_settings(root / "data")) as (url, _app):
         with MonolocClient(url, ADMIN_KEY, timeout_s=60.0) as client:
             map_id = create_map(client, world, "track")
-            job = upload(client, map_id, run_dir, "/v1/maps/{map_id}/runs", kind="map")
+            job = upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="map")
             assert job["state"] == "done"
             yield client, map_id, world, root, lap
 
@@ -98,3 +98,29 @@ def test_open_loop_follows_the_truth_and_recorded_latency_delays_the_estimate(in
     sent = slow.frames["sent"]
     assert sent[0] and not sent[1] and not sent[2] and sent[3]
     assert np.allclose(slow.frames["latency_ms"][sent], 150.0)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--mode", "sideways"], "--mode must be one of"),
+        (["--map", "track"], "--map needs --server"),
+        (["--scenario", "moon"], "scenario 'moon' is not available"),
+        (["--frames", "0"], "--frames must be at least 1"),
+    ],
+)
+def test_closed_loop_cli_refuses_bad_input_in_one_line(
+    monkeypatch, capsys, tmp_path, argv, message
+):
+    import sys
+
+    from monoloc import cli
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["monoloc", "sim", "closed-loop", "--out", str(out), *argv])
+    with pytest.raises(SystemExit) as exited:
+        cli.main()
+    err = capsys.readouterr().err.strip()
+    assert exited.value.code == 1
+    assert err.startswith("error: ") and message in err and "\n" not in err
+    assert not out.exists()  # refused before anything was started or written
