@@ -1,13 +1,15 @@
 """The closed-loop study (issue 16; METHOD.md section 10, the paper's indoor closed loop).
 
-Starts a map server, maps the indoor track with centre-line laps recorded by the sim's
-own vehicle, calibrates on a training lap, then drives the query laps three ways:
-open loop (the controller on the ground truth: the baseline, measured in this run),
-closed loop on the centre-line map, and closed loop after adding oscillating off-center
-laps. Prints the table and the goals; writes bench/results/closed_loop.json and
-bench/results/closed_loop_{trajectories,errors,loc_vs_tracking}.png.
+Starts a map server, maps the track (indoor: the 1:10 track's centre line; urban: the
+lane centre of the city's map route) with laps recorded by the sim's own vehicle,
+calibrates on a training lap, then drives the query laps three ways: open loop (the
+controller on the ground truth: the baseline, measured in this run), closed loop on the
+centre-line map, and closed loop after adding oscillating off-center laps. Prints the
+table and the goals; writes bench/results/closed_loop_<scenario>.json and
+bench/results/closed_loop_<scenario>_{trajectories,errors,loc_vs_tracking}.png.
+The city route is no loop: there, "laps" is the share of the route driven.
 
-Usage: python bench/closed_loop.py [--laps 3] [--size small] [--seed 0] [--out DIR]
+Usage: python bench/closed_loop.py [--scenario indoor|urban] [--laps N] [--size small]
 """
 
 from __future__ import annotations
@@ -83,51 +85,53 @@ def goals(summary: dict) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--laps", type=float, default=3.0)
+    parser.add_argument("--scenario", default="indoor", choices=("indoor", "urban"))
+    parser.add_argument("--laps", type=float, default=None, help="indoor 3, urban 0.25")
     parser.add_argument("--size", default="small")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--offcenter-laps", type=float, default=2.0)
-    parser.add_argument("--out", type=Path, default=Path("out/closed_loop_bench"))
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
     from monoloc.client.api import MonolocClient
     from monoloc.sim.closed_loop_plots import plot_cases
     from monoloc.sim.closed_loop_study import StudyConfig, run_study, serving
-    from monoloc.sim.closed_loop_world import IndoorLoopWorld
+    from monoloc.sim.closed_loop_world import WorldSpec, build_loop_world
 
     started = time.time()
-    world = IndoorLoopWorld(args.size, args.seed)
-    study = StudyConfig(laps=args.laps, offcenter_laps=args.offcenter_laps, seed=args.seed)
+    out = args.out or Path(f"out/closed_loop_bench_{args.scenario}")
+    world = build_loop_world(WorldSpec(args.scenario, args.size, args.seed))
+    if args.scenario == "indoor":
+        laps = args.laps or 3.0
+        study = StudyConfig(laps=laps, offcenter_laps=2.0, seed=args.seed)
+    else:  # a share of the route: map, off-center and query drives cover the same stretch
+        laps = args.laps or 0.25
+        study = StudyConfig(
+            laps=laps, map_laps=laps, offcenter_laps=laps, train_laps=0.15, seed=args.seed
+        )
 
     def log(text: str) -> None:
         print(f"[{time.time() - started:5.0f} s] {text}", flush=True)
 
-    with serving(args.out) as (url, key):
+    with serving(out) as (url, key):
         with MonolocClient(url, key, timeout_s=120.0) as client:
-            summary = run_study(client, world, study, args.out, log=log)
+            summary = run_study(client, world, study, out, log=log)
     results = summary.pop("_results")
-    print(f"indoor ({args.size} room, seed {args.seed}), {args.laps:g} laps per case:")
+    print(f"{args.scenario} ({args.size}, seed {args.seed}), {laps:g} laps per case:")
     print_table(summary["cases"])
     summary["goals"] = goals(summary)
-    summary["outdoor"] = (
-        "not run: the closed loop has no urban world adapter yet (sim/closed_loop_world.py "
-        "offers the indoor track only)"
-    )
-    print(f"outdoor (city): {summary['outdoor']}")
     RESULTS.mkdir(exist_ok=True)
     plots = plot_cases(
         results,
         RESULTS,
-        prefix="closed_loop",
-        reference_xy=world.reference_path(1.0).xy,
+        prefix=f"closed_loop_{args.scenario}",
+        reference_xy=world.reference_path(min(laps, 1.0)).xy,
         spike_threshold_m=summary["cases"]["open"].get("spike_threshold_m"),
     )
     summary["plots"] = [str(p) for p in plots]
     summary["total_s"] = time.time() - started
-    (RESULTS / "closed_loop.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
-    print(
-        f"wrote {RESULTS / 'closed_loop.json'} and {len(plots)} plots ({summary['total_s']:.0f} s)"
-    )
+    path = RESULTS / f"closed_loop_{args.scenario}.json"
+    path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
+    print(f"wrote {path} and {len(plots)} plots ({summary['total_s']:.0f} s)")
 
 
 if __name__ == "__main__":
