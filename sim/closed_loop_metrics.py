@@ -11,6 +11,8 @@ from monoloc.sim.closed_loop import LoopResult
 from monoloc.sim.closed_loop_record import localization_error_m
 
 SPIKE_FACTOR = 3.0
+# The filter's first second (initialisation from the first hypotheses) is not a spike.
+SETTLE_S = 1.0
 
 
 def episodes(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -29,7 +31,8 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float | None:
 def loop_metrics(result: LoopResult, spike_threshold_m: float | None = None) -> dict:
     """Figures of one drive. ``spike_threshold_m``: errors above it count as spikes (the
     study passes 3x the open-loop p95); one spike is one run of consecutive frames above
-    it. Lane departures are counted on the integration-rate true trace, once per
+    it, counted from ``SETTLE_S`` after the filter's first estimate (its initialisation
+    is no spike). Lane departures are counted on the integration-rate true trace, once per
     excursion beyond the lane's half width."""
     f = result.frames
     err = localization_error_m(result)
@@ -67,5 +70,7 @@ def loop_metrics(result: LoopResult, spike_threshold_m: float | None = None) -> 
     }
     if spike_threshold_m is not None:
         m["spike_threshold_m"] = float(spike_threshold_m)
-        m["spikes"] = len(episodes(has & (np.nan_to_num(err, nan=0.0) > spike_threshold_m)))
+        settled = f["t_s"] - f["t_s"][np.argmax(has)] >= SETTLE_S if has.any() else has
+        above = has & settled & (np.nan_to_num(err, nan=0.0) > spike_threshold_m)
+        m["spikes"] = len(episodes(above))
     return m

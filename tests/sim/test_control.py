@@ -139,3 +139,11 @@ def test_tracking_error_signs():
     assert left.heading_rad == pytest.approx(0.1, abs=1e-3)
     right = tracking_error(path, 5.0, -0.2, -0.1)
     assert right.lateral_m == pytest.approx(-0.2, abs=1e-6)
+
+
+def test_episodes_group_consecutive_frames():
+    from monoloc.sim.closed_loop_metrics import episodes
+
+    mask = np.array([0, 1, 1, 0, 0, 1, 0, 1], dtype=bool)
+    assert episodes(mask) == [(1, 3), (5, 6), (7, 8)]
+    assert episodes(np.zeros(4, dtype=bool)) == []
