@@ -76,7 +76,11 @@ def serving(out_dir: Path, server: str | None = None, key: str | None = None) ->
         return
     out_dir.mkdir(parents=True, exist_ok=True)
     port, admin = demo_io.free_port(), demo_io.new_admin_key()
-    proc = demo_io.start_server(out_dir / "server", port, admin, out_dir / "server.log")
+    # A fresh data folder per start: a folder kept from an earlier run holds that run's
+    # bootstrap key, and this start's key would be refused.
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    data_dir = out_dir / f"server-{stamp}"
+    proc = demo_io.start_server(data_dir, port, admin, out_dir / f"server-{stamp}.log")
     try:
         yield f"http://127.0.0.1:{port}", admin
     finally:
