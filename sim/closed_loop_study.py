@@ -37,6 +37,9 @@ CASES = ("open", "closed", "closed+offcenter")
 QUERY_LAP = Lap(room="main", variant=1, lighting_key=7)  # obstacles moved, other light
 MAP_LAP = Lap(room="main", variant=0, lighting_key=1)
 TRAIN_LAP = Lap(room="train", variant=0, lighting_key=3)
+# The upload route does not derive tags from the run kind (`monoloc map ingest` does):
+# the off-center tag is given explicitly.
+OFFCENTER = {"kind": "offcenter", "tags": "off-center"}
 
 
 @dataclass(frozen=True)
@@ -208,7 +211,7 @@ def add_offcenter(client, map_id, world, study: StudyConfig, out_dir: Path, log=
         seed=study.seed + 3,
     )  # fmt: skip
     run_dir, lap = record_lap(world, out_dir / "runs", "offcenter", config)
-    upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="offcenter")
+    upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", **OFFCENTER)
     lateral = np.abs(lap.trace["lateral_m"])
     log(f"  +{lap.n_frames} off-center frames (lateral up to {lateral.max():.3f} m)")
     return {"offcenter_frames": lap.n_frames, "offcenter_lateral_max_m": float(lateral.max())}
