@@ -108,12 +108,16 @@ def closed_loop(
     mode: str = typer.Option("closed", help="closed (steer on the estimate) | open (on the truth)"),
     laps: float = typer.Option(1.0, help="laps of the reference path to drive"),
     frames: int | None = typer.Option(None, help="at most this many camera frames"),
-    map_laps: float = typer.Option(1.0, help="centre-line mapping laps (when building a map)"),
+    map_laps: float | None = typer.Option(
+        None, help="centre-line mapping laps when building a map (default: indoor 1, urban --laps)"
+    ),
     offcenter_laps: float = typer.Option(
         0.0, help="oscillating off-center laps added to the map before driving (0: none)"
     ),
-    train_laps: float = typer.Option(
-        1.5, help="training laps for the calibration (0: the default measurement model)"
+    train_laps: float | None = typer.Option(
+        None,
+        help="training laps for the calibration, 0: the default measurement model "
+        "(default: indoor 1.5, urban 0.15 of the training route)",
     ),
     latency_from: Path | None = typer.Option(
         None, help="frames.csv of an earlier drive: draw answer delays from its latencies"
@@ -149,10 +153,19 @@ def closed_loop(
         raise InvalidInputError(f"--mode must be one of {MODES}, got {mode!r}")
     if map_name is not None and server is None:
         raise InvalidInputError("--map needs --server (a server that holds that map)")
+    if laps <= 0:
+        raise InvalidInputError("--laps must be positive")
     if frames is not None and frames < 1:
         raise InvalidInputError("--frames must be at least 1")
     recorded = read_latencies(latency_from) if latency_from is not None else None
     world = build_loop_world(WorldSpec(scenario, size, seed))
+    for n in (laps, map_laps, offcenter_laps or None, train_laps or None):
+        if n is not None:  # refused here, before a server is started (e.g. > 1 city route)
+            world.reference_path(n, "main")
+    if map_laps is None:
+        map_laps = 1.0 if scenario == "indoor" else laps
+    if train_laps is None:
+        train_laps = 1.5 if scenario == "indoor" else 0.15
     study = StudyConfig(
         laps=laps,
         map_laps=map_laps,

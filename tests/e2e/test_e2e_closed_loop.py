@@ -131,6 +131,7 @@ def test_disturbed_laps_are_ingested_as_off_center_entries(indoor_map):
         (["--map", "track"], "--map needs --server"),
         (["--scenario", "moon"], "scenario 'moon' is not available"),
         (["--frames", "0"], "--frames must be at least 1"),
+        (["--scenario", "urban", "--laps", "2"], "a city route is not a loop"),
     ],
 )
 def test_closed_loop_cli_refuses_bad_input_in_one_line(
