@@ -63,6 +63,8 @@ bench: install
 	  if [ -f bench/$$b.py ]; then echo "== bench/$$b.py"; $(PY) -P bench/$$b.py || exit 1; fi; \
 	done
 	$(PY) -P bench/accuracy.py --scenario indoor --size small
+	$(PY) -P bench/closed_loop.py --scenario indoor
+	$(PY) -P bench/closed_loop.py --scenario urban
 	$(PY) -P bench/report.py
 
 clean:

@@ -245,6 +245,29 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
     return out
 
 
+def closed_loop_section(scenario: str, data: dict | None) -> list[str]:
+    lines = ["", f"## Closed loop, {scenario} (bench/closed_loop.py --scenario {scenario})", ""]
+    if not data:
+        return [*lines, "not run"]
+    keys = (
+        ("loc_rmse_m", "RMSE m"),
+        ("loc_p95_m", "p95 m"),
+        ("loc_max_m", "max m"),
+        ("spikes", "spikes"),
+        ("lateral_rmse_m", "lateral RMSE m"),
+        ("lateral_max_m", "lateral max m"),
+        ("lane_departures", "lane departures"),
+        ("hypotheses_share", "frames with hypotheses"),
+        ("corr_tracking_vs_loc_error", "corr(tracking, loc error)"),
+    )
+    rows = [[name, *(m.get(k) for k, _ in keys)] for name, m in data["cases"].items()]
+    lines.append(table(["case", *(label for _, label in keys)], rows))
+    lines += ["", f"Goals: {json.dumps(data.get('goals', {}), default=float)}", ""]
+    for plot in data.get("plots", []):
+        lines.append(f"![{Path(plot).stem}](results/{Path(plot).name})")
+    return lines
+
+
 def main() -> None:
     lines = [
         "# monoloc benchmark report",
@@ -391,6 +414,8 @@ def main() -> None:
         lines += [f"{frames} frames per run, from `python bench/stereo.py`.", ""]
         lines += [*stereo_lines(stereo), ""]
     lines += crash_section(load("crash"))
+    for scenario in ("indoor", "urban"):
+        lines += closed_loop_section(scenario, load(f"closed_loop_{scenario}"))
     (HERE / "REPORT.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {HERE / 'REPORT.md'}")
 

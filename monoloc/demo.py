@@ -6,6 +6,8 @@
    the measurement model on the train run, upload the map run;
 4. drive the query run over the WebSocket with the client's particle filter; then the
    night run twice: before and after an operator adds night images (admin route);
+   then a short closed-loop drive: the sim's 1:10 car maps part of the indoor track and
+   steers on monoloc's estimate (``monoloc.sim.closed_loop_study``);
 5. print a table beside the paper's numbers; 6. write PNG plots and summary.json;
 7. print the operator's console URL (``/ui``) and, with ``--serve`` (the default when run
    in a terminal), keep the server running until Ctrl-C.
@@ -33,6 +35,7 @@ class DemoConfig:
     server: str | None = None
     key: str | None = None
     serve: bool = False  # keep the server up at the end until interrupted
+    closed_loop_frames: int = 100  # the closed-loop lap's frames (0: no closed-loop lap)
 
 
 def demo(
@@ -41,6 +44,9 @@ def demo(
     seed: int = typer.Option(3, help="seed of the sim city"),
     server: str | None = typer.Option(None, help="use this server instead of starting one"),
     key: str | None = typer.Option(None, envvar="MONOLOC_API_KEY", help="admin key for --server"),
+    closed_loop_frames: int = typer.Option(
+        100, help="frames of the short closed-loop drive on the indoor track (0: skip it)"
+    ),
     serve: bool | None = typer.Option(
         None,
         "--serve/--no-serve",
@@ -50,7 +56,15 @@ def demo(
     """Generate a sim city, map it, localize a car in it; print a table and write plots."""
     if serve is None:
         serve = sys.stdin.isatty() and sys.stdout.isatty()
-    config = DemoConfig(out_dir=out, frames=frames, seed=seed, server=server, key=key, serve=serve)
+    config = DemoConfig(
+        out_dir=out,
+        frames=frames,
+        seed=seed,
+        server=server,
+        key=key,
+        serve=serve,
+        closed_loop_frames=closed_loop_frames,
+    )
     run_demo(config)
 
 
@@ -91,7 +105,13 @@ def run_demo(config: DemoConfig) -> dict:
         with MonolocClient(url, key, timeout_s=120.0) as client:
             map_id = steps.build_map(client, dataset)
             results = steps.drive_all(client, map_id, dataset)
+            closed_loop = None
+            if config.closed_loop_frames > 0:
+                closed_loop = steps.closed_loop_lap(client)
             summary = steps.report(client, map_id, dataset, results, time.monotonic() - started)
+            if closed_loop is not None:
+                summary["closed_loop"] = closed_loop
+                summary["plots"] += closed_loop["plots"]
         console.print(f"operator's console: {url}/ui#/maps/{map_id} (API docs: {url}/docs)")
         if config.serve and proc is not None:
             _serve_until_interrupted(console, key)

@@ -208,6 +208,41 @@ class DemoSteps:
         )
         return results
 
+    # ---- 4b --------------------------------------------------------------------------
+    def closed_loop_lap(self, client) -> dict:
+        """A short closed-loop drive on the indoor track: a part-lap centre-line map
+        recorded by the sim's vehicle, then the 1:10 car steering on monoloc's estimate."""
+        from monoloc.sim.closed_loop_plots import plot_cases
+        from monoloc.sim.closed_loop_study import StudyConfig, run_study
+        from monoloc.sim.closed_loop_world import IndoorLoopWorld
+
+        started = time.monotonic()
+        self.console.print("[bold]4b[/] closed loop: the 1:10 car steers on monoloc's estimate")
+        world = IndoorLoopWorld("small", self.config.seed)
+        study = StudyConfig(
+            laps=1.0,
+            map_laps=0.7,
+            train_laps=0,
+            max_frames=self.config.closed_loop_frames,
+            cases=("closed",),
+        )
+        out = self.out / "closed_loop"
+        summary = run_study(client, world, study, out, log=lambda t: self.console.print(f"  {t}"))
+        results = summary.pop("_results")
+        plots = plot_cases(results, self.out, prefix="closed_loop")
+        m = summary["cases"]["closed"]
+        self.console.print(
+            f"    {m['frames']} frames: localization RMSE {100 * m['loc_rmse_m']:.1f} cm, "
+            f"lateral tracking error max {100 * m['lateral_max_m']:.1f} cm "
+            f"(lane half width {100 * m['lane_half_width_m']:.0f} cm), "
+            f"{m['lane_departures']} lane departures"
+        )
+        return {
+            "metrics": m,
+            "plots": [str(p) for p in plots],
+            "seconds": time.monotonic() - started,
+        }
+
     # ---- 5 and 6 -----------------------------------------------------------------------
     def report(self, client, map_id, dataset, results, total_s: float) -> dict:
         from monoloc.demo_report import make_plots, summary_table

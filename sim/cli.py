@@ -104,3 +104,118 @@ def preview(
 
     path = write_preview(dataset, out or dataset / "preview.png", per_run)
     typer.echo(f"wrote {path}")
+
+
+@app.command("closed-loop")
+def closed_loop(
+    out: Path = typer.Option(Path("out/closed_loop"), help="where runs, results and plots go"),
+    scenario: str = typer.Option("indoor", help="indoor (the 1:10 track)"),
+    size: str = typer.Option("small", help="small | medium | large"),
+    seed: int = typer.Option(0, help="seed of the world"),
+    mode: str = typer.Option("closed", help="closed (steer on the estimate) | open (on the truth)"),
+    laps: float = typer.Option(1.0, help="laps of the reference path to drive"),
+    frames: int | None = typer.Option(None, help="at most this many camera frames"),
+    map_laps: float | None = typer.Option(
+        None, help="centre-line mapping laps when building a map (default: indoor 1, urban --laps)"
+    ),
+    offcenter_laps: float = typer.Option(
+        0.0, help="oscillating off-center laps added to the map before driving (0: none)"
+    ),
+    train_laps: float | None = typer.Option(
+        None,
+        help="training laps for the calibration, 0: the default measurement model "
+        "(default: indoor 1.5, urban 0.15 of the training route)",
+    ),
+    latency_from: Path | None = typer.Option(
+        None, help="frames.csv of an earlier drive: draw answer delays from its latencies"
+    ),
+    server: str | None = typer.Option(None, help="use this server instead of starting one"),
+    key: str | None = typer.Option(None, envvar="MONOLOC_API_KEY", help="key for --server"),
+    map_name: str | None = typer.Option(
+        None, "--map", help="drive against this existing map (with --server) instead of mapping"
+    ),
+) -> None:
+    """One closed-loop (or open-loop) drive through the map server: map the track (or use
+    --map), drive, write the run (TUM layout), the estimate, frames.csv, summary.json and
+    a plot under OUT."""
+    import json
+
+    from monoloc.client.api import MonolocClient
+    from monoloc.core.errors import InvalidInputError
+    from monoloc.sim.closed_loop import MODES
+    from monoloc.sim.closed_loop_metrics import loop_metrics
+    from monoloc.sim.closed_loop_plots import plot_cases
+    from monoloc.sim.closed_loop_record import write_loop_outputs
+    from monoloc.sim.closed_loop_study import (
+        StudyConfig,
+        add_offcenter,
+        build_map,
+        drive_case,
+        read_latencies,
+        serving,
+    )
+    from monoloc.sim.closed_loop_world import WorldSpec, build_loop_world
+
+    if mode not in MODES:
+        raise InvalidInputError(f"--mode must be one of {MODES}, got {mode!r}")
+    if map_name is not None and server is None:
+        raise InvalidInputError("--map needs --server (a server that holds that map)")
+    if laps <= 0:
+        raise InvalidInputError("--laps must be positive")
+    if frames is not None and frames < 1:
+        raise InvalidInputError("--frames must be at least 1")
+    recorded = read_latencies(latency_from) if latency_from is not None else None
+    world = build_loop_world(WorldSpec(scenario, size, seed))
+    for n in (laps, map_laps, offcenter_laps or None, train_laps or None):
+        if n is not None:  # refused here, before a server is started (e.g. > 1 city route)
+            world.reference_path(n, "main")
+    if map_laps is None:
+        map_laps = 1.0 if scenario == "indoor" else laps
+    if train_laps is None:
+        train_laps = 1.5 if scenario == "indoor" else 0.15
+    study = StudyConfig(
+        laps=laps,
+        map_laps=map_laps,
+        offcenter_laps=offcenter_laps,
+        train_laps=train_laps,
+        max_frames=frames,
+        seed=seed,
+        cases=("open",),
+    )
+    with serving(out, server, key) as (url, api_key):
+        with MonolocClient(url, api_key, timeout_s=120.0) as client:
+            if map_name is not None:
+                map_id = client.find_map_id(map_name)
+            else:
+                typer.echo(f"mapping the {scenario} track on {url}")
+                map_id, _ = build_map(client, world, study, out, log=typer.echo)
+                if offcenter_laps > 0:
+                    add_offcenter(client, map_id, world, study, out, log=typer.echo)
+            typer.echo(f"driving {laps:g} lap(s), {mode} loop, against map {map_id}")
+            result = drive_case(
+                client, map_id, world, mode, study, recorded, record_dir=out / "drive" / "run"
+            )
+    metrics = loop_metrics(result)
+    summary = {"mode": mode, "scenario": scenario, "map_id": map_id, **metrics}
+    write_loop_outputs(result, out / "drive", summary)
+    plots = plot_cases(
+        {mode if mode == "open" else "closed": result},
+        out,
+        prefix="drive",
+        reference_xy=world.reference_path(laps).xy,
+    )
+    typer.echo(json.dumps({k: summary[k] for k in _SHOWN if k in summary}, default=float))
+    typer.echo(f"wrote {out / 'drive'} and {', '.join(str(p) for p in plots)}")
+
+
+_SHOWN = (
+    "frames",
+    "loc_rmse_m",
+    "loc_p95_m",
+    "loc_max_m",
+    "lateral_rmse_m",
+    "lateral_max_m",
+    "lane_departures",
+    "hypotheses_share",
+    "corr_tracking_vs_loc_error",
+)

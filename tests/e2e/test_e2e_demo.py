@@ -12,7 +12,9 @@ from monoloc.demo import DemoConfig, run_demo
 @pytest.fixture(scope="module")
 def demo_summary(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    return run_demo(DemoConfig(out_dir=out, frames=40, seed=5)), out
+    # The closed-loop lap is left out here: its steps have their own end-to-end test
+    # (test_e2e_closed_loop.py), and it would add ~40 s to this one.
+    return run_demo(DemoConfig(out_dir=out, frames=40, seed=5, closed_loop_frames=0)), out
 
 
 def test_demo_localizes_the_query_run(demo_summary):

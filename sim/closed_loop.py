@@ -1,0 +1,369 @@
+"""The closed loop: a vehicle steered on monoloc's own estimate.
+
+Simulated time advances in the vehicle's integration steps (``world.dt_s``); the
+controller acts at every step on a believed rear-axle pose. At each camera frame the
+world is rendered at the vehicle's true pose (with depth when the lap is recorded for
+mapping); with a localizer the frame goes to the map server through the client, and the
+client's particle filter (``monoloc.client.tracking.Tracker``) fuses the answer with the
+measured speed and yaw rate. The estimate of frame i (a pose at frame time t_i) reaches
+the controller at t_i + latency_i, latency_i being the measured round trip of that
+request (or a draw from a recorded distribution); meanwhile, and after, the controller
+dead-reckons from the last estimate it received with the measured signals, as on a car.
+While a request is out, the frames that fall due are not sent (prediction-only steps).
+
+Modes: ``open`` (the controller acts on the ground truth; localization, if any, only
+watches) and ``closed`` (the controller acts on the estimate; before the first estimate
+arrives, on the known start pose dead-reckoned with the measured signals).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from monoloc.client.api import LocalizeAnswer
+from monoloc.client.localizer import Localizer
+from monoloc.client.particle_filter import FilterConfig
+from monoloc.client.tracking import Tracker
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.sim.closed_loop_world import (
+    Lap,
+    SignalErrors,
+    planar_from_vehicle,
+    vehicle_from_planar,
+)
+from monoloc.sim.control import (
+    BicycleState,
+    TrackingController,
+    step_bicycle,
+    tracking_error,
+)
+
+MODES = ("open", "closed")
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """One drive: ``mode`` open|closed, ``laps`` of the reference path, at most
+    ``max_frames`` camera frames (None: the whole path); ``disturbance``: add the
+    world's sinusoidal steering disturbance (oscillating, off-center laps);
+    ``recorded_latency_ms``: draw each answer's delay from these values instead of
+    using the measured round trip; ``k``: entries the server retrieves (None: its
+    default); ``seed``: render noise, signal errors and the filter."""
+
+    mode: str = "closed"
+    laps: float = 1.0
+    max_frames: int | None = None
+    disturbance: bool = False
+    lap: Lap = field(default_factory=Lap)
+    recorded_latency_ms: tuple[float, ...] | None = None
+    k: int | None = None
+    seed: int = 0
+    first_frame_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise InvalidInputError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.laps <= 0:
+            raise InvalidInputError("laps must be positive")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise InvalidInputError("max_frames must be at least 1")
+        if self.recorded_latency_ms is not None and (
+            not self.recorded_latency_ms or min(self.recorded_latency_ms) < 0
+        ):
+            raise InvalidInputError("recorded latencies must be a non-empty list of values >= 0")
+
+
+@dataclass
+class FrameLog:
+    """Per camera frame (all (N,) unless said): time, true vehicle state and camera
+    pose, the estimate (camera planar pose, NaN before initialisation), the pose the
+    controller believed at that time (rear axle), the command, the true tracking errors,
+    the measured signals, the server's answer in numbers, and the round trip."""
+
+    t_s: list = field(default_factory=list)
+    truth_vehicle: list = field(default_factory=list)  # (x, y, yaw)
+    truth_cam: list = field(default_factory=list)  # planar (X, Y, psi)
+    T_world_from_cam: list = field(default_factory=list)  # (4, 4)
+    believed_vehicle: list = field(default_factory=list)
+    command: list = field(default_factory=list)  # (steer rad, accel m/s^2)
+    lateral_m: list = field(default_factory=list)
+    heading_rad: list = field(default_factory=list)
+    signals: list = field(default_factory=list)  # measured (speed, yaw rate)
+    sent: list = field(default_factory=list)
+    n_hypotheses: list = field(default_factory=list)
+    n_features: list = field(default_factory=list)
+    n_matched: list = field(default_factory=list)
+    n_inliers: list = field(default_factory=list)
+    latency_ms: list = field(default_factory=list)
+
+
+@dataclass
+class LoopResult:
+    """A finished drive: per-frame arrays (see FrameLog), the estimates (N, 3), the
+    integration-rate true trace (t, x, y, yaw, lateral error) and what it took."""
+
+    config: LoopConfig
+    frames: dict[str, np.ndarray]
+    estimates_world: np.ndarray
+    trace: dict[str, np.ndarray]
+    lane_half_width_m: float
+    wall_s: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames["t_s"])
+
+    @property
+    def known_share(self) -> np.ndarray:
+        """Share of the query's features that the map knows: inlier map points of the
+        best answer over the query's features (0 without an answer)."""
+        f = self.frames["n_features"].astype(np.float64)
+        return np.where(f > 0, self.frames["n_inliers"] / np.maximum(f, 1.0), 0.0)
+
+
+def answer_counts(answer: LocalizeAnswer) -> tuple[int, int, int]:
+    """(query features, matched map points, inlier map points) of an answer: the counts of
+    its best per-entry hypothesis (most inliers; a joint hypothesis is left out: it counts
+    the union over several entries, which may exceed the query's features), 0 without
+    one."""
+    raw = answer.raw or {}
+    n_features = int(raw.get("n_features") or 0)
+    hyps = [h for h in raw.get("hypotheses") or [] if not h.get("joint", False)]
+    if not hyps:
+        return n_features, 0, 0
+    best = max(hyps, key=lambda h: h.get("n_inliers", 0))
+    return n_features, int(best.get("n_matches", 0)), int(best.get("n_inliers", 0))
+
+
+class _Odometry:
+    """The vehicle's own dead reckoning with its measured signals (rear axle), kept at
+    every step so that an estimate of an earlier time can be moved to now."""
+
+    def __init__(self, start: BicycleState, dt_s: float) -> None:
+        self.dt_s = dt_s
+        self.pose = [(start.x_m, start.y_m, start.yaw_rad)]
+
+    def advance(self, speed: float, yaw_rate: float) -> None:
+        x, y, yaw = self.pose[-1]
+        dt = self.dt_s
+        mid = yaw + 0.5 * yaw_rate * dt
+        self.pose.append(
+            (x + speed * dt * math.cos(mid), y + speed * dt * math.sin(mid), yaw + yaw_rate * dt)
+        )
+
+    def at(self, t_s: float) -> tuple[float, float, float]:
+        """The pose at the step nearest ``t_s`` (steps are ``dt_s`` apart from 0)."""
+        return self.pose[int(np.clip(round(t_s / self.dt_s), 0, len(self.pose) - 1))]
+
+
+def _relative(a, b) -> tuple[float, float, float]:
+    """b expressed in a's frame (SE2)."""
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]
+
+
+def _compose(a, rel) -> tuple[float, float, float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return a[0] + c * rel[0] - s * rel[1], a[1] + s * rel[0] + c * rel[1], a[2] + rel[2]
+
+
+def _measured(state: BicycleState, world, run_errors, noise) -> tuple[float, float]:
+    """Speed and yaw rate as the car's encoder and gyro report them."""
+    speed_scale, speed_bias, yaw_bias = run_errors
+    e: SignalErrors = world.signal_errors
+    speed = state.speed_mps * speed_scale + speed_bias + e.speed_noise_mps * noise[0]
+    yaw_rate = state.yaw_rate_radps(world.bicycle) + yaw_bias + e.yaw_rate_noise_radps * noise[1]
+    return max(speed, 0.0), yaw_rate
+
+
+def T_world_from_vehicle_flat(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
+    T = np.eye(4)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[0, 3], T[1, 3] = x_m, y_m
+    return T
+
+
+FrameSink = Callable[[int, float, np.ndarray, "np.ndarray | None", np.ndarray], None]
+
+
+def run_loop(
+    world,
+    config: LoopConfig,
+    localizer: Localizer | None = None,
+    model: MeasurementModel | None = None,
+    filter_config: FilterConfig | None = None,
+    sink: FrameSink | None = None,
+    with_depth: bool = False,
+    encode: Callable[[np.ndarray], bytes] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> LoopResult:
+    """Drive ``config.laps`` of ``world``'s reference path (see the module docstring).
+    ``localizer`` (+ ``model``, ``filter_config``): localize every frame through it;
+    none: just drive (a mapping lap, open loop). ``sink(i, t_s, image, depth_m,
+    T_world_from_cam)``: called with every rendered frame (the recorder)."""
+    if config.mode == "closed" and localizer is None:
+        raise InvalidInputError("a closed-loop drive needs a localizer")
+    if localizer is not None and model is None:
+        raise InvalidInputError("localizing needs the map's measurement model")
+    encode = encode or encode_png
+    rng = np.random.default_rng([config.seed, 16])
+    path = world.reference_path(config.laps, config.lap.room)
+    controller = TrackingController(
+        path,
+        world.controller_config(config.disturbance, float(rng.uniform(0, 2 * math.pi))),
+        world.bicycle,
+    )
+    lighting = world.lighting(config.lap)
+    e: SignalErrors = world.signal_errors
+    run_errors = (
+        1.0 + e.speed_scale_error * rng.standard_normal(),
+        e.speed_bias_mps * rng.standard_normal(),
+        e.yaw_rate_bias_radps * rng.standard_normal(),
+    )
+    dt, period = world.dt_s, 1.0 / world.frame_rate_hz
+    # Frames are known in advance only by their count: allocate for the whole path.
+    n_alloc = int(path.length_m / world.reference_speed_mps / period * 1.5) + 16
+    if config.max_frames is not None:
+        n_alloc = min(n_alloc, config.max_frames)
+    tracker = None
+    if localizer is not None:
+        tracker = Tracker(
+            filter_config or FilterConfig(),
+            model,
+            np.random.default_rng([config.seed, 17]),
+            np.zeros(n_alloc),
+            np.zeros((n_alloc, 2)),
+        )
+    state = world.start_state(path)
+    odom = _Odometry(state, dt)
+    belief_anchor = (0.0, (state.x_m, state.y_m, state.yaw_rad))  # (t, pose at t)
+    pending: list[tuple[float, int, np.ndarray]] = []
+    busy_until = -math.inf
+    log = FrameLog()
+    trace: list[tuple[float, float, float, float, float]] = []
+    t, next_frame = 0.0, config.first_frame_s
+    i = 0
+    started = time.perf_counter()
+    signal = _measured(state, world, run_errors, rng.standard_normal(2))
+    truth_hint = 0
+    while True:
+        true_err = tracking_error(path, state.x_m, state.y_m, state.yaw_rad, truth_hint)
+        truth_hint = true_err.index
+        if controller.at_end or truth_hint >= len(path.s_m) - 2 or i >= n_alloc:
+            break
+        if t >= next_frame - 1e-9:
+            T_wc = T_world_from_vehicle_flat(state.x_m, state.y_m, state.yaw_rad) @ (
+                world.T_vehicle_from_cam
+            )
+            frame_rng = np.random.default_rng([config.seed, 3, i])
+            image, depth = world.render(config.lap, lighting, T_wc, frame_rng, with_depth)
+            log.t_s.append(t)
+            log.truth_vehicle.append((state.x_m, state.y_m, state.yaw_rad))
+            log.truth_cam.append(
+                planar_from_vehicle(state.x_m, state.y_m, state.yaw_rad, world.lever_arm_m)
+            )
+            log.T_world_from_cam.append(T_wc)
+            log.signals.append(signal)
+            log.lateral_m.append(true_err.lateral_m)
+            log.heading_rad.append(true_err.heading_rad)
+            if tracker is not None:
+                tracker.timestamps_s[i] = t
+                tracker.signals[i] = signal
+                latency_s, answer, sent = _localize(
+                    tracker, localizer, image, i, t, busy_until, config, encode, rng
+                )
+                if sent:
+                    busy_until = t + latency_s
+                estimate = tracker.step(i, answer.hypotheses)
+                if estimate is not None:
+                    pending.append((t + latency_s, i, estimate.pose_world.copy()))
+                counts = answer_counts(answer)
+                log.sent.append(sent)
+                log.n_hypotheses.append(len(answer.hypotheses))
+                log.latency_ms.append(1e3 * latency_s if sent else math.nan)
+            else:
+                counts = (0, 0, 0)
+                log.sent.append(False)
+                log.n_hypotheses.append(0)
+                log.latency_ms.append(math.nan)
+            log.n_features.append(counts[0])
+            log.n_matched.append(counts[1])
+            log.n_inliers.append(counts[2])
+            if sink is not None:
+                sink(i, t, image, depth, T_wc)
+            i += 1
+            next_frame += period
+            if progress is not None:
+                progress(i, n_alloc)
+        # Estimates whose answer has arrived become the controller's new anchor.
+        while pending and pending[0][0] <= t + 1e-12:
+            _, k, pose_cam = pending.pop(0)
+            belief_anchor = (log.t_s[k], vehicle_from_planar(pose_cam, world.lever_arm_m))
+        if config.mode == "open":
+            believed = (state.x_m, state.y_m, state.yaw_rad)
+        else:
+            t_anchor, anchor = belief_anchor
+            believed = _compose(anchor, _relative(odom.at(t_anchor), odom.pose[-1]))
+        command, _ = controller.command(t, *believed, signal[0], dt)
+        if len(log.believed_vehicle) < len(log.t_s):
+            log.believed_vehicle.append(believed)
+            log.command.append((command.steer_rad, command.accel_mps2))
+        trace.append((t, state.x_m, state.y_m, state.yaw_rad, true_err.lateral_m))
+        state = step_bicycle(state, command, world.bicycle, dt)
+        t += dt
+        signal = _measured(state, world, run_errors, rng.standard_normal(2))
+        odom.advance(signal[0], signal[1])
+    n = len(log.t_s)
+    if n == 0:
+        raise InvalidInputError("the drive ended before its first frame")
+    frames = {name: np.asarray(values) for name, values in vars(log).items()}
+    frames["believed_vehicle"] = frames["believed_vehicle"][:n]
+    estimates = (
+        tracker.estimates_world[:n].copy() if tracker is not None else np.full((n, 3), np.nan)
+    )
+    tr = np.asarray(trace)
+    return LoopResult(
+        config=config,
+        frames=frames,
+        estimates_world=estimates,
+        trace={
+            "t_s": tr[:, 0],
+            "x_m": tr[:, 1],
+            "y_m": tr[:, 2],
+            "yaw_rad": tr[:, 3],
+            "lateral_m": tr[:, 4],
+        },
+        lane_half_width_m=world.lane_half_width_m,
+        wall_s=time.perf_counter() - started,
+    )
+
+
+def _localize(tracker, localizer, image, i, t, busy_until, config, encode, rng):
+    """(delay s, answer, sent) of frame i: not sent while the previous request is out."""
+    if t < busy_until:
+        return 0.0, LocalizeAnswer(Hypotheses.empty(), None, {}, {"dropped": True}, True), False
+    payload = encode(image)
+    start = time.perf_counter()
+    answer = localizer.localize(payload, tracker.prior(i), config.k)
+    latency_s = time.perf_counter() - start
+    if config.recorded_latency_ms is not None:
+        latency_s = 1e-3 * float(rng.choice(np.asarray(config.recorded_latency_ms)))
+    return latency_s, answer, True
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise InvalidInputError("could not encode a frame as PNG")
+    return buf.tobytes()

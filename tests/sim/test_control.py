@@ -1,0 +1,149 @@
+"""The closed-loop vehicle: kinematic bicycle (limits, lag, arcs) and the PID tracking
+controller (converges from an offset, holds a curve, the disturbance oscillates)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from monoloc.core.errors import InvalidInputError
+from monoloc.sim.control import (
+    BicycleConfig,
+    BicycleState,
+    Command,
+    ControllerConfig,
+    Pid,
+    PidGains,
+    TrackingController,
+    step_bicycle,
+    tracking_error,
+)
+from monoloc.sim.path import resample
+
+CAR = BicycleConfig(
+    wheelbase_m=0.26,
+    max_steer_rad=0.45,
+    max_steer_rate_radps=4.0,
+    max_speed_mps=3.0,
+    max_accel_mps2=1.0,
+    max_decel_mps2=1.5,
+    steer_lag_s=0.05,
+    accel_lag_s=0.1,
+)
+
+
+def _drive(state, command, config, seconds, dt=0.005):
+    for _ in range(round(seconds / dt)):
+        state = step_bicycle(state, command, config, dt)
+    return state
+
+
+def test_constant_steering_drives_the_bicycle_circle():
+    steer = 0.3
+    config = BicycleConfig(wheelbase_m=0.26, steer_lag_s=0.0, max_steer_rate_radps=100.0)
+    start = BicycleState(0.0, 0.0, 0.0, 1.0, steer_rad=steer)
+    radius = 0.26 / math.tan(steer)
+    end = _drive(start, Command(steer, 0.0), config, seconds=math.pi * radius)  # half circle
+    assert end.yaw_rad == pytest.approx(math.pi, abs=2e-3)
+    assert end.x_m == pytest.approx(0.0, abs=2e-3)
+    assert end.y_m == pytest.approx(2 * radius, abs=2e-3)
+
+
+def test_steering_is_clipped_rate_limited_and_lagged():
+    start = BicycleState(0.0, 0.0, 0.0, 1.0)
+    after_10ms = _drive(start, Command(2.0, 0.0), CAR, seconds=0.01)
+    assert after_10ms.steer_rad == pytest.approx(4.0 * 0.01)  # rate limit
+    lag_only = BicycleConfig(wheelbase_m=0.26, max_steer_rate_radps=100.0, steer_lag_s=0.05)
+    one_tau = _drive(start, Command(0.2, 0.0), lag_only, seconds=0.05)
+    assert one_tau.steer_rad == pytest.approx(0.2 * (1 - math.exp(-1)), rel=1e-3)
+    settled = _drive(start, Command(2.0, 0.0), CAR, seconds=1.0)
+    assert settled.steer_rad == pytest.approx(CAR.max_steer_rad)  # clipped
+
+
+def test_speed_respects_acceleration_limits_and_never_reverses():
+    start = BicycleState(0.0, 0.0, 0.0, 1.0)
+    faster = _drive(start, Command(0.0, 50.0), CAR, seconds=1.0)
+    # Lagged, limited to 1 m/s^2: less than 1 m/s gained in 1 s, but most of it.
+    assert 1.7 < faster.speed_mps < 2.0
+    stopped = _drive(start, Command(0.0, -50.0), CAR, seconds=3.0)
+    assert stopped.speed_mps == 0.0
+    fast = _drive(BicycleState(0, 0, 0, 2.9), Command(0.0, 50.0), CAR, seconds=2.0)
+    assert fast.speed_mps == CAR.max_speed_mps
+
+
+def test_invalid_configs_are_refused():
+    with pytest.raises(InvalidInputError):
+        BicycleConfig(wheelbase_m=0.0)
+    with pytest.raises(InvalidInputError):
+        BicycleConfig(steer_lag_s=-0.1)
+
+
+def test_pid_terms_and_integral_limit():
+    pid = Pid(PidGains(kp=2.0, ki=1.0, kd=0.5, integral_limit=0.3))
+    assert pid(1.0, 0.1) == pytest.approx(-(2.0 + 0.1))  # no derivative on the first call
+    out = pid(1.5, 0.1)
+    assert out == pytest.approx(-(3.0 + 0.25 + 0.5 * 5.0))
+    for _ in range(100):
+        pid(1.0, 0.1)
+    assert pid.integral == pytest.approx(0.3)
+
+
+def _test_path():
+    """A 20 m straight, then a left half circle of 2 m radius."""
+    s = np.linspace(0.0, 20.0, 201)
+    straight = np.stack([s, np.zeros_like(s)], axis=1)
+    theta = np.linspace(0.0, np.pi, 300)
+    arc = np.stack([20 + 2 * np.sin(theta), 2 - 2 * np.cos(theta)], axis=1)
+    return resample(np.vstack([straight, arc[1:]]), 0.02)
+
+
+def _follow(controller, state, seconds, dt=0.005):
+    lateral = []
+    for k in range(round(seconds / dt)):
+        command, err = controller.command(
+            k * dt, state.x_m, state.y_m, state.yaw_rad, state.speed_mps, dt
+        )
+        state = step_bicycle(state, command, CAR, dt)
+        lateral.append(err.lateral_m)
+        if controller.at_end:
+            break
+    return state, np.array(lateral)
+
+
+def test_controller_converges_to_the_path_from_an_offset_and_holds_the_curve():
+    path = _test_path()
+    controller = TrackingController(path, ControllerConfig.for_vehicle(CAR, 1.0, 2.0), CAR)
+    state, lateral = _follow(controller, BicycleState(0.0, 0.3, 0.1, 0.6), seconds=40.0)
+    assert lateral[0] == pytest.approx(0.3, abs=1e-6)
+    assert np.all(np.abs(lateral[round(8 / 0.005) :]) < 0.03)  # after 8 s, in the curve too
+    assert abs(lateral[-1]) < 0.005
+    assert state.speed_mps == pytest.approx(1.0, abs=0.02)  # the reference speed
+
+
+def test_disturbance_makes_an_oscillating_off_center_lap():
+    path = _test_path()
+    config = ControllerConfig.for_vehicle(
+        CAR, 1.0, 2.0, disturbance_rad=0.25, disturbance_period_s=2.5
+    )
+    _, lateral = _follow(TrackingController(path, config, CAR), BicycleState(0, 0, 0, 1.0), 20.0)
+    steady = lateral[round(4 / 0.005) :]
+    assert 0.05 < np.max(np.abs(steady)) < 0.25  # off the line, inside a 0.7 m track
+    crossings = np.sum(np.diff(np.sign(steady)) != 0)
+    assert crossings >= 2 * (len(steady) * 0.005 / 2.5) - 2  # two per disturbance period
+
+
+def test_tracking_error_signs():
+    path = _test_path()
+    left = tracking_error(path, 5.0, 0.2, 0.1)
+    assert left.lateral_m == pytest.approx(0.2, abs=1e-6)
+    assert left.heading_rad == pytest.approx(0.1, abs=1e-3)
+    right = tracking_error(path, 5.0, -0.2, -0.1)
+    assert right.lateral_m == pytest.approx(-0.2, abs=1e-6)
+
+
+def test_episodes_group_consecutive_frames():
+    from monoloc.sim.closed_loop_metrics import episodes
+
+    mask = np.array([0, 1, 1, 0, 0, 1, 0, 1], dtype=bool)
+    assert episodes(mask) == [(1, 3), (5, 6), (7, 8)]
+    assert episodes(np.zeros(4, dtype=bool)) == []
