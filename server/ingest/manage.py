@@ -29,8 +29,6 @@ from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import MapRecord, RunRecord, VocabularyRecord
 
-KIND_TAGS = {"night": ("night",), "offcenter": ("off-center",)}
-
 
 @dataclass(frozen=True)
 class CameraOverrides:
@@ -184,7 +182,7 @@ def ingest_source(
             source_name=source.name,
             frames_total=len(source.frames),
         )
-    all_tags = tuple(dict.fromkeys((*tags, *KIND_TAGS.get(kind, ()))))
+    all_tags = runs_repo.tags_for_run(kind, tags)
     return ingest_run(
         session_factory,
         record.id,

@@ -18,6 +18,15 @@ from monoloc.server.storage.records import RunRecord
 KIND_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,31}$")
 
 
+# Runs of these kinds tag every entry they add (the CLI and the upload route alike).
+KIND_TAGS = {"night": ("night",), "offcenter": ("off-center",)}
+
+
+def tags_for_run(kind: str, tags: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """The tags a run's entries get: those asked for, then its kind's (no repeats)."""
+    return tuple(dict.fromkeys((*tags, *KIND_TAGS.get(kind, ()))))
+
+
 def check_kind(kind: str, what: str) -> str:
     if not isinstance(kind, str) or not KIND_RE.match(kind):
         raise InvalidInputError(f"invalid {what} kind {kind!r}: 1-32 of a-z, 0-9, '_', '-'")

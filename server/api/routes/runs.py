@@ -115,7 +115,12 @@ async def upload_run(
     sequence: RunSequence = None,
     frames: RunFrames = None,
     kind: Annotated[
-        str, Form(pattern=RUN_KIND_PATTERN, description="map, offcenter, night, ...")
+        str,
+        Form(
+            pattern=RUN_KIND_PATTERN,
+            description="map, offcenter, night, ... (a night run tags its entries night, an "
+            "offcenter run off-center)",
+        ),
     ] = "map",
     train_vocabulary: Annotated[
         bool,
@@ -143,9 +148,8 @@ async def upload_run(
     check_upload_parts(archive, files)
     runs_repo.check_kind(kind, "run")
     up = RunUpload(map_id, format, sequence, frames, upload_name(archive), depth_from)
-    ingest = _Ingest(
-        kind, normalise_tags(t for t in (tags or "").split(",") if t.strip()), train_vocabulary
-    )
+    asked = [t for t in (tags or "").split(",") if t.strip()]
+    ingest = _Ingest(kind, normalise_tags(runs_repo.tags_for_run(kind, asked)), train_vocabulary)
     job, run, unpacked = await anyio.to_thread.run_sync(_store, state, up, ingest, archive, files)
     state.jobs.submit(job.id)
     return UploadAccepted(

@@ -133,7 +133,7 @@ def test_file_set_upload_is_ingested(sim_dataset, tmp_path):
             f"/v1/maps/{map_id}/runs",
             headers=keys.header("write"),
             files=files,
-            data={"format": "kitti", "frames": "0:3", "tags": "day,Test"},
+            data={"format": "kitti", "frames": "0:3", "tags": "day,Test", "kind": "offcenter"},
         )
         assert r.status_code == 202, r.text
         assert r.json()["run"]["frames_total"] >= 3
@@ -143,4 +143,5 @@ def test_file_set_upload_is_ingested(sim_dataset, tmp_path):
             f"/v1/maps/{map_id}/entries?tag=test", headers=keys.header("write")
         ).json()
         assert entries["total"] == job["result"]["entries_added"] > 0
-        assert all(set(e["tags"]) == {"day", "test"} for e in entries["items"])
+        # an offcenter run tags its entries off-center, as `monoloc map ingest` does
+        assert all(set(e["tags"]) == {"day", "test", "off-center"} for e in entries["items"])
