@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -100,6 +101,9 @@ def run_demo(config: DemoConfig) -> dict:
         port, key = demo_io.free_port(), demo_io.new_admin_key()
         url = f"http://127.0.0.1:{port}"
         console.print(f"[bold]2[/] starting the map server on {url} (log: {out / 'server.log'})")
+        # The demo's own server starts empty each run: it builds its map anew, and a
+        # previous run's database would hold that run's admin key, not this one's.
+        shutil.rmtree(out / "server", ignore_errors=True)
         proc = demo_io.start_server(out / "server", port, key, out / "server.log")
     try:
         with MonolocClient(url, key, timeout_s=120.0) as client:

@@ -12,9 +12,28 @@ from monoloc.demo import DemoConfig, run_demo
 @pytest.fixture(scope="module")
 def demo_summary(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
+    _leave_a_previous_runs_server(out / "server")
     # The closed-loop lap is left out here: its steps have their own end-to-end test
     # (test_e2e_closed_loop.py), and it would add ~40 s to this one.
     return run_demo(DemoConfig(out_dir=out, frames=40, seed=5, closed_loop_frames=0)), out
+
+
+def _leave_a_previous_runs_server(data_dir):
+    """What an earlier `make demo` leaves in out/demo/server: a database whose admin key
+    is that run's (each run makes a new one). A second run must still work."""
+    from monoloc.demo_io import new_admin_key
+    from monoloc.server.api.bootstrap import bootstrap_admin_key
+    from monoloc.server.settings import Settings
+    from monoloc.server.storage.db import create_engine_for, make_session_factory
+    from monoloc.server.storage.migrate import upgrade_database
+
+    settings = Settings(data_dir=data_dir, bootstrap_admin_key=new_admin_key())
+    upgrade_database(settings.database_url)
+    engine = create_engine_for(settings)
+    try:
+        assert bootstrap_admin_key(make_session_factory(engine), settings)
+    finally:
+        engine.dispose()
 
 
 def test_demo_localizes_the_query_run(demo_summary):
