@@ -27,7 +27,10 @@ def summary_table(results: dict[str, DriveResult]) -> Table:
         def get(r: DriveResult) -> str:
             if r.metrics is None:
                 return "-"
-            return format(getattr(r.metrics, attr) * scale, fmt)
+            value = getattr(r.metrics, attr) * scale
+            if not np.isfinite(value):
+                return "no estimate"  # the filter never started: nothing to measure
+            return format(value, fmt)
 
         return get
 
