@@ -26,21 +26,13 @@ from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import invert_rigid
 from monoloc.server.formats.model import (
     MARKER_FILE,
+    PIXEL_SHIFT,
     ModelView,
     PosedImage,
     PosedImages,
+    pinhole_intrinsics,
     read_marker_up,
 )
-
-PIXEL_SHIFT = 0.5  # COLMAP pixel centre of (0, 0) is (0.5, 0.5); monoloc's is (0, 0)
-_PINHOLE_PARAMS = {  # model -> index of (fx, fy, cx, cy) in params (fy = fx if one focal)
-    "SIMPLE_PINHOLE": (0, 0, 1, 2),
-    "PINHOLE": (0, 1, 2, 3),
-    "SIMPLE_RADIAL": (0, 0, 1, 2),
-    "RADIAL": (0, 0, 1, 2),
-    "OPENCV": (0, 1, 2, 3),
-    "FULL_OPENCV": (0, 1, 2, 3),
-}
 
 
 def _import_pycolmap():
@@ -55,27 +47,12 @@ def _import_pycolmap():
 
 def intrinsics_of(camera, where: str) -> CameraIntrinsics:
     """A pycolmap camera as monoloc intrinsics (OpenCV pixel convention)."""
-    model = camera.model.name
-    params = np.asarray(camera.params, dtype=np.float64)
-    if model not in _PINHOLE_PARAMS:
-        raise InvalidInputError(
-            f"{where}: camera {camera.camera_id} is {model}; monoloc imports pinhole cameras "
-            "(undistort the model first, e.g. colmap image_undistorter)"
-        )
-    ifx, ify, icx, icy = _PINHOLE_PARAMS[model]
-    distortion = np.delete(params, sorted({ifx, ify, icx, icy}))
-    if np.any(distortion != 0):
-        raise InvalidInputError(
-            f"{where}: camera {camera.camera_id} ({model}) has distortion {distortion.tolist()}; "
-            "undistort the model first (colmap image_undistorter)"
-        )
-    return CameraIntrinsics(
-        float(params[ifx]),
-        float(params[ify]),
-        float(params[icx]) - PIXEL_SHIFT,
-        float(params[icy]) - PIXEL_SHIFT,
-        int(camera.width),
-        int(camera.height),
+    return pinhole_intrinsics(
+        camera.model.name,
+        camera.params,
+        camera.width,
+        camera.height,
+        f"{where}: camera {camera.camera_id}",
     )
 
 

@@ -45,23 +45,16 @@ from monoloc.core.geometry import (
 )
 from monoloc.server.formats.model import (
     MARKER_FILE,
+    PIXEL_SHIFT,
     ModelView,
     PosedImage,
     PosedImages,
+    pinhole_intrinsics,
     read_marker_up,
 )
 
-PIXEL_SHIFT = 0.5
 CAMERA_ID = "cam0"
 FEATURE_TYPE = "orb"
-_PINHOLE = {  # kapture camera type -> index of (fx, fy, cx, cy) after width, height
-    "SIMPLE_PINHOLE": (0, 0, 1, 2),
-    "PINHOLE": (0, 1, 2, 3),
-    "SIMPLE_RADIAL": (0, 0, 1, 2),
-    "RADIAL": (0, 0, 1, 2),
-    "OPENCV": (0, 1, 2, 3),
-    "FULL_OPENCV": (0, 1, 2, 3),
-}
 
 
 def _import_kapture():
@@ -111,20 +104,13 @@ class LidarFile:
 
 
 def _intrinsics(sensor, where: str) -> CameraIntrinsics:
-    name = sensor.camera_type.name
-    params = [float(v) for v in sensor.camera_params]
-    if name not in _PINHOLE:
-        raise InvalidInputError(
-            f"{where}: camera {sensor.name or ''} is {name}; monoloc imports pinhole cameras "
-            "(undistort first)"
-        )
-    width, height, rest = int(params[0]), int(params[1]), np.asarray(params[2:])
-    ifx, ify, icx, icy = _PINHOLE[name]
-    distortion = np.delete(rest, sorted({ifx, ify, icx, icy}))
-    if np.any(distortion != 0):
-        raise InvalidInputError(f"{where}: camera {name} has distortion {distortion.tolist()}")
-    return CameraIntrinsics(
-        rest[ifx], rest[ify], rest[icx] - PIXEL_SHIFT, rest[icy] - PIXEL_SHIFT, width, height
+    params = [float(v) for v in sensor.camera_params]  # width, height, then the model's
+    return pinhole_intrinsics(
+        sensor.camera_type.name,
+        params[2:],
+        int(params[0]),
+        int(params[1]),
+        f"{where}: camera {sensor.name or ''}",
     )
 
 

@@ -45,6 +45,48 @@ from monoloc.server.vision.features import OrbConfig
 UP_CHOICES = ("z", "-y", "y", "auto")
 POINT_MODES = ("orb", "model")
 MARKER_FILE = "monoloc.json"  # written beside an export: {"up": "z", ...}
+# COLMAP and kapture put a pixel's centre at (0.5, 0.5) from the image corner; monoloc
+# (OpenCV) at (0, 0): imports subtract this, exports add it.
+PIXEL_SHIFT = 0.5
+# Camera models (COLMAP's names, which kapture shares) -> index of (fx, fy, cx, cy) in
+# their parameters (fy = fx with one focal); the others are distortion coefficients.
+_PINHOLE_PARAMS = {
+    "SIMPLE_PINHOLE": (0, 0, 1, 2),
+    "PINHOLE": (0, 1, 2, 3),
+    "SIMPLE_RADIAL": (0, 0, 1, 2),
+    "RADIAL": (0, 0, 1, 2),
+    "OPENCV": (0, 1, 2, 3),
+    "FULL_OPENCV": (0, 1, 2, 3),
+}
+
+
+def pinhole_intrinsics(
+    model: str, params, width_px: int, height_px: int, where: str
+) -> CameraIntrinsics:
+    """Intrinsics (OpenCV pixel convention) of a camera given as a COLMAP/kapture model
+    name and its parameters; InvalidInputError for other models or any distortion (monoloc
+    imports pinhole cameras: undistort first, e.g. colmap image_undistorter)."""
+    if model not in _PINHOLE_PARAMS:
+        raise InvalidInputError(
+            f"{where}: the camera is {model}; monoloc imports pinhole cameras "
+            "(undistort first, e.g. colmap image_undistorter)"
+        )
+    values = np.asarray(params, dtype=np.float64)
+    ifx, ify, icx, icy = _PINHOLE_PARAMS[model]
+    distortion = np.delete(values, sorted({ifx, ify, icx, icy}))
+    if np.any(distortion != 0):
+        raise InvalidInputError(
+            f"{where}: the camera ({model}) has distortion {distortion.tolist()}; undistort "
+            "first (colmap image_undistorter)"
+        )
+    return CameraIntrinsics(
+        float(values[ifx]),
+        float(values[ify]),
+        float(values[icx]) - PIXEL_SHIFT,
+        float(values[icy]) - PIXEL_SHIFT,
+        int(width_px),
+        int(height_px),
+    )
 
 
 @dataclass(frozen=True)
