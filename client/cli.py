@@ -107,11 +107,10 @@ def drive(
 
 
 def _topics(items: list[str] | None) -> dict[str, str]:
-    """``["image=/cam/image_raw", ...]`` -> {"image": "/cam/image_raw", ...}."""
-    topics: dict[str, str] = {}
-    for item in items or []:
-        role, sep, name = item.partition("=")
-        if not sep or not role.strip() or not name.strip():
-            raise typer.BadParameter(f"--topic must look like ROLE=TOPIC, got {item!r}")
-        topics[role.strip()] = name.strip()
-    return topics
+    """The ``--topic ROLE=TOPIC`` values as a dict (a usage error otherwise)."""
+    from monoloc.core.formats.rosbag import parse_topic_options
+
+    try:
+        return parse_topic_options(items)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None

@@ -64,6 +64,18 @@ _RAW_ENCODINGS = {
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
+def parse_topic_options(items: list[str] | None) -> dict[str, str]:
+    """``["image=/cam/image_raw", ...]`` (the CLIs' ``--topic`` values) -> {"image":
+    "/cam/image_raw", ...}; ValueError for an item that is not ROLE=TOPIC."""
+    topics: dict[str, str] = {}
+    for item in items or []:
+        role, sep, name = item.partition("=")
+        if not sep or not role.strip() or not name.strip():
+            raise ValueError(f"--topic must look like ROLE=TOPIC, got {item!r}")
+        topics[role.strip()] = name.strip()
+    return topics
+
+
 def _any_reader():
     try:
         from rosbags.highlevel import AnyReader
