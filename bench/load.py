@@ -48,6 +48,7 @@ RESULTS = Path(__file__).parent / "results"
 WORK = ROOT / "out" / "bench_load"
 ADMIN_KEY = "mlk_" + "L" * 43  # local benchmark data only
 DEADLINE_MS = 1000
+RUNS = ("http", "http+writes", "ws", "ws+writes")
 GOALS = {
     "served_share_min": 0.90,
     "p99_over_capacity_p50_max": 3.0,
@@ -148,6 +149,49 @@ def ingest_map(url: str, dataset: Path) -> int:
     return map_id
 
 
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def process_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process, all its threads (from /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def machine_busy_s() -> float:
+    """CPU seconds the whole machine spent busy (all cores, every process), from /proc."""
+    values = [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    idle = values[3] + values[4]  # idle + iowait
+    return (sum(values[:8]) - idle) / CLOCK_TICKS
+
+
+class CpuMeter:
+    """Where the cores went during a phase: this process (the load generator), the
+    replicas, and everything else on the machine (other jobs), in cores (CPU s / wall s)."""
+
+    def __init__(self, pids: list[int]) -> None:
+        self.pids = pids
+
+    def _now(self) -> tuple[float, float, float, float]:
+        times = os.times()
+        client = times.user + times.system
+        return time.perf_counter(), client, sum(map(process_cpu_s, self.pids)), machine_busy_s()
+
+    def __enter__(self) -> CpuMeter:
+        self._start = self._now()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        end = self._now()
+        wall, client, server, machine = (b - a for a, b in zip(self._start, end, strict=True))
+        self.cores = {
+            "load_generator": client / wall,
+            "server": server / wall,
+            "other": max(0.0, machine - client - server) / wall,
+            "machine_cpus": os.cpu_count(),
+        }
+
+
 class MemorySampler:
     """Peak of the replicas' summed RSS, sampled every 0.25 s in a thread."""
 
@@ -177,47 +221,159 @@ def pct(values, q) -> float | None:
 # ---- load generators (asyncio) ----------------------------------------------------------
 
 
-async def _post_frame(client, url: str, map_id: int, png: bytes, deadline_ms: int | None):
-    """(status, seconds): 0 for a failure without an answer, -1 for a frame the vehicle
-    gave up before sending (its connections all busy past the deadline)."""
-    import httpx
+def multipart_body(png: bytes, boundary: str) -> bytes:
+    """The ``image`` form field as multipart/form-data, encoded once per frame."""
+    head = (
+        f"--{boundary}\r\n"
+        'Content-Disposition: form-data; name="image"; filename="f.png"\r\n'
+        "Content-Type: image/png\r\n\r\n"
+    ).encode()
+    return head + png + f"\r\n--{boundary}--\r\n".encode()
 
-    headers = {"X-API-Key": ADMIN_KEY}
-    if deadline_ms is not None:
-        headers["X-Request-Deadline-Ms"] = str(deadline_ms)
-    start = time.perf_counter()
-    try:
-        r = await client.post(
-            f"{url}/v1/maps/{map_id}/localize",
-            files={"image": ("f.png", png, "image/png")},
-            headers=headers,
-        )
-        status = r.status_code
-    except httpx.PoolTimeout:
-        status = -1
-    except Exception:  # noqa: BLE001 - a client timeout or reset counts as a failure
+
+class FrameRequests:
+    """The localize requests of the run, built once: h11 request heads and multipart
+    bodies per frame, so sending a frame costs a socket write, not an encoding."""
+
+    def __init__(self, map_id: int, frames: list[bytes], deadline_ms: int | None) -> None:
+        import h11
+
+        boundary = "monolocbench" + "0" * 20
+        self.bodies = [multipart_body(png, boundary) for png in frames]
+        headers = [
+            ("Host", "bench"),
+            ("X-API-Key", ADMIN_KEY),
+            ("Content-Type", f"multipart/form-data; boundary={boundary}"),
+        ]
+        if deadline_ms is not None:
+            headers.append(("X-Request-Deadline-Ms", str(deadline_ms)))
+        self.heads = [
+            h11.Request(
+                method="POST",
+                target=f"/v1/maps/{map_id}/localize",
+                headers=[*headers, ("Content-Length", str(len(body)))],
+            )
+            for body in self.bodies
+        ]
+
+    def __len__(self) -> int:
+        return len(self.bodies)
+
+
+class _Connection:
+    """One keep-alive HTTP/1.1 connection: asyncio streams, h11 for the framing."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        import h11
+
+        self.reader, self.writer = reader, writer
+        self.h11 = h11.Connection(h11.CLIENT)
+
+    async def exchange(self, head, body: bytes) -> int:
+        """Send one request, read its whole answer; the answer's status."""
+        import h11
+
+        conn = self.h11
+        self.writer.write(conn.send(head) + conn.send(h11.Data(data=body)))
+        self.writer.write(conn.send(h11.EndOfMessage()))
+        await self.writer.drain()
         status = 0
-    return status, time.perf_counter() - start
+        while True:
+            event = conn.next_event()
+            if event is h11.NEED_DATA:
+                data = await self.reader.read(65536)
+                if not data:
+                    raise ConnectionError("the server closed the connection")
+                conn.receive_data(data)
+            elif isinstance(event, h11.Response):
+                status = event.status_code
+            elif isinstance(event, h11.EndOfMessage):
+                break
+            elif isinstance(event, h11.ConnectionClosed):
+                raise ConnectionError("the server closed the connection")
+        if conn.our_state is h11.MUST_CLOSE or conn.their_state is h11.MUST_CLOSE:
+            self.close()
+        else:
+            conn.start_next_cycle()
+        return status
+
+    @property
+    def reusable(self) -> bool:
+        import h11
+
+        return self.h11.our_state is h11.IDLE and not self.writer.is_closing()
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+class VehicleLink:
+    """A vehicle's HTTP client: at most ``max_connections`` keep-alive connections to its
+    replica; a frame that finds them all busy for ``pool_timeout_s`` is given up, unsent
+    (status -1). Status 0: no answer (reset, timeout ``timeout_s``)."""
+
+    def __init__(
+        self, url: str, max_connections: int, pool_timeout_s: float, timeout_s: float = 10.0
+    ) -> None:
+        host, port = url.removeprefix("http://").rsplit(":", 1)
+        self.host, self.port = host, int(port)
+        self.pool_timeout_s, self.timeout_s = pool_timeout_s, timeout_s
+        self._free: list[_Connection] = []
+        self._slots = asyncio.Semaphore(max_connections)
+
+    async def post(self, requests: FrameRequests, i: int) -> tuple[int, float]:
+        """(status, seconds from the frame's send time to its answer)."""
+        start = time.perf_counter()
+        try:
+            async with asyncio.timeout(self.pool_timeout_s):
+                await self._slots.acquire()
+        except TimeoutError:
+            return -1, time.perf_counter() - start
+        conn = None
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                if self._free:
+                    conn = self._free.pop()
+                    try:
+                        status = await conn.exchange(requests.heads[i], requests.bodies[i])
+                    except ConnectionError:  # closed while idle (keep-alive timeout): retry
+                        conn.close()
+                        conn = None
+                if conn is None:
+                    conn = _Connection(*await asyncio.open_connection(self.host, self.port))
+                    status = await conn.exchange(requests.heads[i], requests.bodies[i])
+            if conn.reusable:
+                self._free.append(conn)
+        except Exception:  # noqa: BLE001 - a timeout or reset counts as a failure
+            status = 0
+            if conn is not None:
+                conn.close()
+        finally:
+            self._slots.release()
+        return status, time.perf_counter() - start
+
+    def close(self) -> None:
+        for conn in self._free:
+            conn.close()
+        self._free.clear()
 
 
 async def closed_loop(urls, map_id, frames, clients_per_replica, duration_s) -> dict:
-    import httpx
-
+    requests = FrameRequests(map_id, frames, None)
     latencies: list[float] = []
     statuses: list[int] = []
     stop_at = time.perf_counter() + duration_s
 
     async def client_loop(url: str, offset: int) -> None:
-        async with httpx.AsyncClient(timeout=30) as client:
-            i = offset
-            while time.perf_counter() < stop_at:
-                status, latency = await _post_frame(
-                    client, url, map_id, frames[i % len(frames)], None
-                )
-                statuses.append(status)
-                if status == 200:
-                    latencies.append(latency)
-                i += 1
+        link = VehicleLink(url, 1, 30.0, 30.0)
+        i = offset
+        while time.perf_counter() < stop_at:
+            status, latency = await link.post(requests, i % len(requests))
+            statuses.append(status)
+            if status == 200:
+                latencies.append(latency)
+            i += 1
+        link.close()
 
     start = time.perf_counter()
     await asyncio.gather(*(client_loop(u, k * 7) for u in urls for k in range(clients_per_replica)))
@@ -254,33 +410,29 @@ async def _writer(urls, map_id, entry_ids, stop_at, out: list) -> None:
 
 
 async def open_loop_http(urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries):
-    import httpx
-
+    requests = FrameRequests(map_id, frames, DEADLINE_MS)
     results: list[tuple[int, float]] = []
     write_results: list[tuple[int, float]] = []
     period = 1.0 / rate_hz
     t0 = time.perf_counter() + 0.2
     stop_at = t0 + duration_s
-    limits = httpx.Limits(max_connections=4, max_keepalive_connections=4)
 
     async def vehicle(v: int) -> None:
         # A vehicle keeps a few connections alive; a frame that finds them all busy past
         # its deadline is given up by the vehicle, unsent.
-        timeout = httpx.Timeout(10.0, pool=DEADLINE_MS / 1e3)
-        async with httpx.AsyncClient(timeout=timeout, limits=limits) as client:
-            url = urls[v % len(urls)]
-            tasks = []
-            k = 0
-            while True:
-                at = t0 + (v / vehicles) * period + k * period
-                if at >= stop_at:
-                    break
-                await asyncio.sleep(max(0.0, at - time.perf_counter()))
-                png = frames[(v * 13 + k) % len(frames)]
-                post = _post_frame(client, url, map_id, png, DEADLINE_MS)
-                tasks.append(asyncio.ensure_future(post))
-                k += 1
-            results.extend(await asyncio.gather(*tasks))
+        link = VehicleLink(urls[v % len(urls)], 4, DEADLINE_MS / 1e3)
+        tasks = []
+        k = 0
+        while True:
+            at = t0 + (v / vehicles) * period + k * period
+            if at >= stop_at:
+                break
+            await asyncio.sleep(max(0.0, at - time.perf_counter()))
+            post = link.post(requests, (v * 13 + k) % len(requests))
+            tasks.append(asyncio.ensure_future(post))
+            k += 1
+        results.extend(await asyncio.gather(*tasks))
+        link.close()
 
     jobs = [vehicle(v) for v in range(vehicles)]
     if writes:
@@ -384,6 +536,13 @@ def verdicts(run: dict, capacity: dict, idle_mb: float) -> dict:
     return out
 
 
+def cpu_text(cores: dict) -> str:
+    return (
+        f"cores: load generator {cores['load_generator']:.2f}, server {cores['server']:.2f}, "
+        f"other {cores['other']:.2f} (of {cores['machine_cpus']})"
+    )
+
+
 def measure(n_replicas, args, dataset, frames) -> dict:
     import httpx
 
@@ -405,11 +564,15 @@ def measure(n_replicas, args, dataset, frames) -> dict:
         asyncio.run(closed_loop(urls, map_id, frames, 2 * args.workers, 5.0))
         time.sleep(2.0)
         idle_mb = sum(rss_mb(p) for p in pids)
-        capacity = asyncio.run(closed_loop(urls, map_id, frames, 2 * args.workers, args.duration))
+        with CpuMeter(pids) as cpu:
+            capacity = asyncio.run(
+                closed_loop(urls, map_id, frames, 2 * args.workers, args.duration)
+            )
+        capacity["cpu_cores"] = cpu.cores
         print(
             f"[{n_replicas} replica(s)] capacity {capacity['served_per_s']:.1f} frames/s, "
             f"p50 {capacity['p50_ms']:.0f} ms, p99 {capacity['p99_ms']:.0f} ms, idle "
-            f"{idle_mb:.0f} MB",
+            f"{idle_mb:.0f} MB; {cpu_text(cpu.cores)}",
             flush=True,
         )
         offered = 2.0 * capacity["served_per_s"]
@@ -419,11 +582,14 @@ def measure(n_replicas, args, dataset, frames) -> dict:
         for transport, fn in (("http", open_loop_http), ("ws", open_loop_ws)):
             for writes in (False, True):
                 name = f"{transport}{'+writes' if writes else ''}"
-                with MemorySampler(pids) as memory:
+                if name not in args.runs:
+                    continue
+                with MemorySampler(pids) as memory, CpuMeter(pids) as cpu:
                     run = asyncio.run(
                         fn(urls, map_id, frames, vehicles, rate, args.duration, writes, entries)
                     )
                 run["peak_mb"] = memory.peak_mb
+                run["cpu_cores"] = cpu.cores
                 run["verdicts"] = verdicts(run, capacity, idle_mb)
                 runs[name] = run
                 v = run["verdicts"]
@@ -434,7 +600,8 @@ def measure(n_replicas, args, dataset, frames) -> dict:
                     f"({v['p99_over_capacity_p50']:.1f}x cap p50), shed {run['shed']}, 5xx "
                     f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
                     f"+{v['memory_growth_mb']:.0f} MB"
-                    + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else ""),
+                    + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else "")
+                    + f"; {cpu_text(cpu.cores)}",
                     flush=True,
                 )
                 time.sleep(2.0)
@@ -457,6 +624,13 @@ def main() -> None:
     parser.add_argument("--rate-hz", type=float, default=10.0, help="per vehicle")
     parser.add_argument("--workers", type=int, default=2, help="worker threads per replica")
     parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument(
+        "--runs",
+        nargs="+",
+        default=list(RUNS),
+        choices=RUNS,
+        help="open-loop runs at 2x capacity",
+    )
     parser.add_argument("--postgres-url", default="", help="SQLAlchemy URL; default SQLite")
     args = parser.parse_args()
     dataset = ensure_dataset(args.frames)
