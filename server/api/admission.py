@@ -8,10 +8,9 @@ map edits) and ``jobs`` (run uploads, job resumes). A lane admits at most
 spooled, no decode) and memory stays bounded by the lanes' sizes whatever the offered
 load. Each lane has its own worker threads (``workers``), which take the lane's queued
 computations themselves, in arrival order: writes never queue behind a flood of frames
-and frames never behind an upload, and a free worker starts the next frame at once
-(handing each computation over through the event loop left workers idle for
-milliseconds per frame while the loop, busy reading requests, waited for the GIL; at
-twice capacity that cost 10-15 % of the served rate, bench/load.py). Reads (GET),
+and frames never behind an upload, and a free worker starts the next frame at once,
+without a hand-over through the event loop (which, busy reading requests under
+overload, waits for the GIL the workers hold). Reads (GET),
 ``/healthz``, ``/readyz`` and ``/metrics`` take no lane: they always answer.
 
 An admitted request carries a deadline: ``X-Request-Deadline-Ms`` (milliseconds the
@@ -19,9 +18,11 @@ client is willing to wait, counted from the server's receipt of the request), el
 lane's default. A request still queued at its deadline is answered then (503
 ``deadline_exceeded``), and one whose client disconnects leaves the queue as soon as the
 close is seen (``client_disconnected``; a gone client never reads it): neither is
-computed, and each frees its place in the lane at once. The
-WebSocket stream sheds on its own (stale frames dropped) and takes CPU slots of the
-localize lane without a ticket.
+computed, and each frees its place in the lane at once. A WebSocket stream frame enters
+the localize lane when its turn in its stream comes (:meth:`Admission.admitted`), with
+the lane's default deadline counted from its arrival: a full lane drops it at once, as
+it sheds an HTTP frame, so frames over HTTP and over the stream share the same bounded
+queue (the stream also drops its own stale frames).
 
 Counts go to :class:`monoloc.server.api.metrics.Metrics`: ``monoloc_admission_shed_total``,
 ``monoloc_admission_expired_total``; queue depth and running work are gauges read at
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import contextvars
 import json
 import math
@@ -39,7 +41,7 @@ import re
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -304,7 +306,7 @@ class Ticket:
 
     lane: Lane
     deadline_s: float
-    receive: Receive
+    receive: Receive | None  # None: not an HTTP request (a stream frame), nothing to watch
 
     gone: bool = False
     future: concurrent.futures.Future | None = None  # its queued computation
@@ -352,7 +354,7 @@ class Admission:
         lane = ticket.lane
         error: Exception | None = None
         async with anyio.create_task_group() as watchers:
-            if not ticket.gone:
+            if not ticket.gone and ticket.receive is not None:
                 watchers.start_soon(ticket.watch_disconnect)
             try:
                 result = await lane.compute(fn, *args, deadline_s=ticket.deadline_s, ticket=ticket)
@@ -365,6 +367,24 @@ class Admission:
         if error is not None:
             raise error
         return result
+
+    @contextlib.contextmanager
+    def admitted(self, name: str, deadline_s: float) -> Iterator[bool]:
+        """Admit work that is not an HTTP request (a stream frame) into lane ``name``, as
+        the middleware admits a request: True inside (computations in the block run on
+        the lane, dropped at ``deadline_s``, monotonic), False when the lane is full
+        (counted as shed; do nothing)."""
+        lane = self.lanes[name]
+        if not lane.try_enter():
+            self.metrics.admission_shed.inc(lane.name)
+            yield False
+            return
+        token = _ticket.set(Ticket(lane, deadline_s, None))
+        try:
+            yield True
+        finally:
+            _ticket.reset(token)
+            lane.leave()
 
     def _expired(self, lane: Lane, reason: str) -> OverloadedError:
         self.metrics.admission_expired.inc(lane.name, reason)
