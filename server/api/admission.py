@@ -122,6 +122,7 @@ class _Job:
     future: concurrent.futures.Future
     deadline_s: float  # monotonic
     ticket: Ticket | None
+    context: contextvars.Context  # the submitter's, as anyio.to_thread would pass it
 
     def drop_reason(self) -> str | None:
         if time.monotonic() >= self.deadline_s:
@@ -197,7 +198,8 @@ class Lane:
         """Queue ``fn(*args)`` for the lane's workers (from any thread). The future fails
         with ``_DroppedError`` if the job's turn comes after ``deadline_s`` (monotonic) or
         after ``ticket``'s client left; cancelling it while queued drops the job."""
-        job = _Job(fn, args, concurrent.futures.Future(), deadline_s, ticket)
+        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+        job = _Job(fn, args, future, deadline_s, ticket, contextvars.copy_context())
         with self._lock:
             if self._stopping:
                 raise RuntimeError(f"the {self.name} lane is stopped")
@@ -234,7 +236,7 @@ class Lane:
         while (job := self._next_job()) is not None:
             start = time.perf_counter()
             try:
-                result = job.fn(*job.args)
+                result = job.context.run(job.fn, *job.args)
             except BaseException as exc:  # noqa: BLE001 - handed to the waiting request
                 job.future.set_exception(exc)
             else:

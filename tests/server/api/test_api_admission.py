@@ -5,6 +5,7 @@ deadline passed or whose client left is not computed, /metrics counts it all."""
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import socket
 import threading
 import time
@@ -92,6 +93,10 @@ def test_lane_workers_take_queued_jobs_themselves_and_drop_expired_ones():
         release.set()
         assert busy.result(5) is True and not lane.withdraw(busy, "disconnected")
         assert done == ["second"]
+        # the job runs in the submitter's context (contextvars), as anyio's threads did
+        request_id = contextvars.ContextVar("request_id", default=None)
+        request_id.set("frame-7")
+        assert lane.submit(request_id.get).result(5) == "frame-7"
     finally:
         lane.stop()
     assert lane.submit(done.append, "after a restart").result(5) is None
