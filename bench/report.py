@@ -161,6 +161,13 @@ def crash_section(data: dict | None) -> list[str]:
     return lines
 
 
+def _cores(phase: dict) -> str:
+    c = phase.get("cpu_cores")
+    if c is None:
+        return "-"
+    return f"{c['load_generator']:.2f} / {c['server']:.2f} / {c['other']:.2f}"
+
+
 def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
     """bench/load.py (capacity, then 2x open loop) and bench/footprint.py."""
     out = ["## Fleet load: capacity, then twice capacity offered (bench/load.py)", ""]
@@ -173,7 +180,11 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
             f"{g['p99_over_capacity_p50_max']:.0f}x the p50 at capacity, memory <= idle + "
             f"{g['memory_growth_mb_max']:.0f} MB, writes p99 <= {g['writes_p99_s_max']:.0f} s, "
             f"no 5xx but 503 (shed). {data['duration_s']:.0f} s per phase; the load generator "
-            "shares the 2 cores with the server.",
+            "shares the 2 cores with the server. *cores*: CPU used during the phase by the "
+            "load generator / the replicas / every other process on the machine (other "
+            "jobs), in cores; *per core*: frames served per core the replicas used, at 2x "
+            "over at capacity (near 100 %: the replicas waste no CPU under overload, and a "
+            "lower served share is CPU they did not get).",
             "",
         ]
         rows = []
@@ -191,6 +202,7 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
                     "",
                     "",
                     "",
+                    _cores(cap),
                     f"idle {r['idle_mb']:.0f} MB",
                 ]
             )
@@ -209,12 +221,19 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
                         run["shed"],
                         run["errors_5xx"] + run["failed_no_answer"],
                         run["writes_p99_s"],
+                        _cores(run)
+                        + (
+                            f"; per core {100 * v['served_per_core_vs_capacity']:.0f} %"
+                            if "served_per_core_vs_capacity" in v
+                            else ""
+                        ),
                         f"+{v['memory_growth_mb']:.0f} MB; "
                         + ("all met" if not met else "missed: " + ", ".join(met)),
                     ]
                 )
         header = ["replicas", "phase", "served/s", "of cap.", "p50 ms", "p99 ms"]
-        header += ["p99 / cap. p50", "shed", "5xx / lost", "writes p99 s", "memory, goals"]
+        header += ["p99 / cap. p50", "shed", "5xx / lost", "writes p99 s"]
+        header += ["cores gen / srv / other", "memory, goals"]
         out += [table(header, rows), ""]
     out += ["## What one entry costs (bench/footprint.py)", ""]
     if footprint is None:

@@ -6,17 +6,23 @@ map edits) and ``jobs`` (run uploads, job resumes). A lane admits at most
 ``workers + queue_depth`` requests at a time; one more is answered at once with 503 and
 ``Retry-After``, before its body is read, so it costs the server nothing (no upload
 spooled, no decode) and memory stays bounded by the lanes' sizes whatever the offered
-load. Each lane has its own CPU slots (``workers``): writes never queue behind a flood of
-frames and frames never behind an upload. Reads (GET), ``/healthz``, ``/readyz`` and
-``/metrics`` take no lane: they always answer.
+load. Each lane has its own worker threads (``workers``), which take the lane's queued
+computations themselves, in arrival order: writes never queue behind a flood of frames
+and frames never behind an upload, and a free worker starts the next frame at once,
+without a hand-over through the event loop (which, busy reading requests under
+overload, waits for the GIL the workers hold). Reads (GET),
+``/healthz``, ``/readyz`` and ``/metrics`` take no lane: they always answer.
 
 An admitted request carries a deadline: ``X-Request-Deadline-Ms`` (milliseconds the
 client is willing to wait, counted from the server's receipt of the request), else the
-lane's default. When its turn on the CPU comes, a request whose deadline has passed or
-whose client has disconnected is dropped without being computed (503
-``deadline_exceeded`` / ``client_disconnected``; a gone client never reads it). The
-WebSocket stream sheds on its own (stale frames dropped) and takes CPU slots of the
-localize lane without a ticket.
+lane's default. A request still queued at its deadline is answered then (503
+``deadline_exceeded``), and one whose client disconnects leaves the queue as soon as the
+close is seen (``client_disconnected``; a gone client never reads it): neither is
+computed, and each frees its place in the lane at once. A WebSocket stream frame enters
+the localize lane when its turn in its stream comes (:meth:`Admission.admitted`), with
+the lane's default deadline counted from its arrival: a full lane drops it at once, as
+it sheds an HTTP frame, so frames over HTTP and over the stream share the same bounded
+queue (the stream also drops its own stale frames).
 
 Counts go to :class:`monoloc.server.api.metrics.Metrics`: ``monoloc_admission_shed_total``,
 ``monoloc_admission_expired_total``; queue depth and running work are gauges read at
@@ -25,18 +31,21 @@ scrape time (:meth:`Admission.gauges`).
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
+import contextlib
 import contextvars
 import json
 import math
 import re
 import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections import deque
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import anyio
-import anyio.to_thread
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -97,16 +106,51 @@ def lane_of(method: str, path: str) -> str | None:
     return None
 
 
+class _DroppedError(Exception):
+    """Raised into a queued job's future when its turn came too late (``reason``:
+    ``deadline`` or ``disconnected``); it was not computed."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass(eq=False)
+class _Job:
+    fn: Callable[..., Any]
+    args: tuple
+    future: concurrent.futures.Future
+    deadline_s: float  # monotonic
+    ticket: Ticket | None
+    context: contextvars.Context  # the submitter's, as anyio.to_thread would pass it
+
+    def drop_reason(self) -> str | None:
+        if time.monotonic() >= self.deadline_s:
+            return "deadline"
+        if self.ticket is not None and self.ticket.gone:
+            return "disconnected"
+        return None
+
+
 class Lane:
-    """Bounded admission (``workers + queue_depth`` requests inside) and CPU slots."""
+    """Bounded admission (``workers + queue_depth`` requests inside) and the lane's own
+    worker threads, which take queued computations in arrival order.
+
+    The workers pull the next job themselves: a computation starts the moment a worker is
+    free, without a round trip through the event loop (which, busy reading requests and
+    holding the GIL, used to leave a worker idle for milliseconds between frames). A job
+    whose deadline passed or whose client left while it waited is dropped by the worker
+    when its turn comes, without being computed."""
 
     def __init__(self, name: str, config: LaneConfig) -> None:
         self.name = name
         self.config = config
         self.capacity = config.workers + config.queue_depth
-        self.cpu = anyio.CapacityLimiter(config.workers)
-        self._threads = anyio.CapacityLimiter(config.workers)
         self._lock = threading.Lock()
+        self._work_ready = threading.Condition(self._lock)
+        self._queue: deque[_Job] = deque()
+        self._threads: list[threading.Thread] = []
+        self._stopping = False
         self._inside = 0
         self._running = 0
         self._service_s = 0.05  # moving average of one computation, for Retry-After
@@ -132,43 +176,130 @@ class Lane:
         with self._lock:
             return self._running
 
+    @property
+    def waiting(self) -> int:
+        """Jobs queued for a worker (not yet started)."""
+        with self._lock:
+            return len(self._queue)
+
     def retry_after_s(self) -> int:
         """Whole seconds (HTTP's unit) for the queue ahead to drain, at least 1."""
         with self._lock:
             drain_s = self.capacity * self._service_s / max(1, self.config.workers)
         return int(min(60, max(1, math.ceil(drain_s))))
 
-    async def compute(
+    def submit(
         self,
         fn: Callable[..., T],
         *args: Any,
-        wait_s: float = math.inf,
-        check: Callable[[], Awaitable[None]] | None = None,
-    ) -> T:
-        """Run ``fn`` (blocking, in a thread) on one of the lane's CPU slots. Waits at most
-        ``wait_s`` for the slot (TimeoutError); ``check`` runs once the slot is held and
-        may raise to drop the work. The computation itself is never cut short."""
-        acquired = False
-        with anyio.move_on_after(wait_s):
-            await self.cpu.acquire()
-            acquired = True
-        if not acquired:
-            raise TimeoutError(f"no {self.name} slot within {wait_s:.3f} s")
-        try:
-            if check is not None:
-                await check()
-            with self._lock:
+        deadline_s: float = math.inf,
+        ticket: Ticket | None = None,
+    ) -> concurrent.futures.Future[T]:
+        """Queue ``fn(*args)`` for the lane's workers (from any thread). The future fails
+        with ``_DroppedError`` if the job's turn comes after ``deadline_s`` (monotonic) or
+        after ``ticket``'s client left; cancelling it while queued drops the job."""
+        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+        job = _Job(fn, args, future, deadline_s, ticket, contextvars.copy_context())
+        with self._lock:
+            if self._stopping:
+                raise RuntimeError(f"the {self.name} lane is stopped")
+            self._queue.append(job)
+            self._threads = [t for t in self._threads if t.is_alive()]
+            if len(self._threads) < self.config.workers:
+                thread = threading.Thread(
+                    target=self._work, name=f"monoloc-{self.name}", daemon=True
+                )
+                self._threads.append(thread)
+                thread.start()
+            self._work_ready.notify()
+        return job.future
+
+    def _next_job(self) -> _Job | None:
+        """The next job to compute (None: the lane stops); drops the ones not wanted."""
+        with self._lock:
+            while True:
+                while not self._queue and not self._stopping:
+                    self._work_ready.wait()
+                if not self._queue:
+                    return None
+                job = self._queue.popleft()
+                if not job.future.set_running_or_notify_cancel():
+                    continue  # cancelled while queued
+                reason = job.drop_reason()
+                if reason is not None:
+                    job.future.set_exception(_DroppedError(reason))
+                    continue
                 self._running += 1
+                return job
+
+    def _work(self) -> None:
+        while (job := self._next_job()) is not None:
             start = time.perf_counter()
             try:
-                return await anyio.to_thread.run_sync(fn, *args, limiter=self._threads)
+                result = job.context.run(job.fn, *job.args)
+            except BaseException as exc:  # noqa: BLE001 - handed to the waiting request
+                job.future.set_exception(exc)
+            else:
+                job.future.set_result(result)
             finally:
                 elapsed = time.perf_counter() - start
                 with self._lock:
                     self._running -= 1
                     self._service_s = 0.9 * self._service_s + 0.1 * elapsed
-        finally:
-            self.cpu.release()
+            del job  # drop the request's data before waiting for the next one
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Let the workers finish the queued jobs and end; the lane can start again."""
+        with self._lock:
+            self._stopping = True
+            self._work_ready.notify_all()
+            threads, self._threads = self._threads, []
+        for thread in threads:
+            thread.join(timeout_s)
+        with self._lock:
+            self._stopping = False
+
+    def withdraw(self, future: concurrent.futures.Future, reason: str) -> bool:
+        """Take a job out of the queue before its turn (its future fails with
+        ``_DroppedError(reason)``, its data is freed); False if it already started."""
+        with self._lock:
+            job = next((job for job in self._queue if job.future is future), None)
+            if job is None:
+                return False
+            self._queue.remove(job)
+        try:
+            future.set_exception(_DroppedError(reason))
+        except concurrent.futures.InvalidStateError:
+            pass  # its waiter cancelled it meanwhile
+        return True
+
+    async def compute(
+        self,
+        fn: Callable[..., T],
+        *args: Any,
+        deadline_s: float = math.inf,
+        ticket: Ticket | None = None,
+    ) -> T:
+        """``fn(*args)`` computed by one of the lane's workers. Raises ``_DroppedError``
+        if it was not computed: its deadline passed first (answered at the deadline, not
+        when the queue reaches it), or its client left. A computation once started is
+        never cut short; a cancelled caller withdraws its job or stops waiting for it."""
+        future = self.submit(fn, *args, deadline_s=deadline_s, ticket=ticket)
+        if ticket is not None:
+            ticket.future = future
+        waiting = asyncio.wrap_future(future)
+        try:
+            timeout_s = deadline_s - time.monotonic()
+            if math.isinf(timeout_s):
+                return await waiting
+            try:
+                return await asyncio.wait_for(asyncio.shield(waiting), max(0.0, timeout_s))
+            except TimeoutError:
+                self.withdraw(future, "deadline")
+                return await waiting  # dropped, or already running: its answer is on its way
+        except asyncio.CancelledError:
+            self.withdraw(future, "cancelled")
+            raise
 
 
 @dataclass
@@ -177,9 +308,10 @@ class Ticket:
 
     lane: Lane
     deadline_s: float
-    receive: Receive
+    receive: Receive | None  # None: not an HTTP request (a stream frame), nothing to watch
 
     gone: bool = False
+    future: concurrent.futures.Future | None = None  # its queued computation
 
     async def watch_disconnect(self) -> None:
         """Wait for the client to leave and remember it in ``gone``. Run it as a task once
@@ -190,6 +322,8 @@ class Ticket:
         message = await self.receive()
         if message.get("type") == "http.disconnect":
             self.gone = True
+            if self.future is not None:  # still queued: leave the lane now
+                self.lane.withdraw(self.future, "disconnected")
 
 
 _ticket: contextvars.ContextVar[Ticket | None] = contextvars.ContextVar(
@@ -215,35 +349,44 @@ class Admission:
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """Compute ``fn(*args)`` on the current request's lane, dropping the request
         first if its deadline passed or its client left while it waited. Outside a
-        ticket (the WebSocket stream, start-up work) the localize lane's slots are used."""
+        ticket (the WebSocket stream, start-up work) the localize lane's workers are used."""
         ticket = _ticket.get()
         if ticket is None:
             return await self.lanes["localize"].compute(fn, *args)
         lane = ticket.lane
-
-        async def still_wanted() -> None:
-            if time.monotonic() >= ticket.deadline_s:
-                raise self._expired(lane, "deadline")
-            await anyio.lowlevel.checkpoint()  # lets the watcher take a close just seen
-            if ticket.gone:
-                raise self._expired(lane, "disconnected")
-
         error: Exception | None = None
         async with anyio.create_task_group() as watchers:
-            if not ticket.gone:
+            if not ticket.gone and ticket.receive is not None:
                 watchers.start_soon(ticket.watch_disconnect)
             try:
-                wait_s = max(0.0, ticket.deadline_s - time.monotonic())
-                result = await lane.compute(fn, *args, wait_s=wait_s, check=still_wanted)
+                result = await lane.compute(fn, *args, deadline_s=ticket.deadline_s, ticket=ticket)
             except Exception as exc:  # raised outside the group, not as an ExceptionGroup
                 error = exc
             finally:
                 watchers.cancel_scope.cancel()
-        if isinstance(error, TimeoutError):
-            raise self._expired(lane, "deadline") from None
+        if isinstance(error, _DroppedError):
+            raise self._expired(lane, error.reason) from None
         if error is not None:
             raise error
         return result
+
+    @contextlib.contextmanager
+    def admitted(self, name: str, deadline_s: float) -> Iterator[bool]:
+        """Admit work that is not an HTTP request (a stream frame) into lane ``name``, as
+        the middleware admits a request: True inside (computations in the block run on
+        the lane, dropped at ``deadline_s``, monotonic), False when the lane is full
+        (counted as shed; do nothing)."""
+        lane = self.lanes[name]
+        if not lane.try_enter():
+            self.metrics.admission_shed.inc(lane.name)
+            yield False
+            return
+        token = _ticket.set(Ticket(lane, deadline_s, None))
+        try:
+            yield True
+        finally:
+            _ticket.reset(token)
+            lane.leave()
 
     def _expired(self, lane: Lane, reason: str) -> OverloadedError:
         self.metrics.admission_expired.inc(lane.name, reason)
@@ -256,6 +399,11 @@ class Admission:
             "it was not computed",
             lane.retry_after_s(),
         )
+
+    def stop(self) -> None:
+        """Stop the lanes' worker threads (at shutdown, once no request is in flight)."""
+        for lane in self.lanes.values():
+            lane.stop()
 
     def gauges(self) -> dict[str, dict[tuple[str, ...], float]]:
         """Per lane: requests waiting (admitted, not computing), computing, capacity."""

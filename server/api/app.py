@@ -148,6 +148,7 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
 
 
 def _stop(state: AppState) -> None:
+    state.admission.stop()
     state.registry.stop_sync()
     state.jobs.stop()
     try:

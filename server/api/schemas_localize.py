@@ -311,7 +311,9 @@ class StreamAnswer(LocalizeResponse):
 
 
 class StreamDropped(BaseModel):
-    """A frame dropped unprocessed: newer frames arrived while it waited."""
+    """A frame dropped unprocessed: newer frames arrived while it waited (``stale``), the
+    server's localize lane was full (``overloaded``) or its deadline passed first
+    (``deadline``)."""
 
     model_config = ConfigDict(
         json_schema_extra={"examples": [{"seq": 18, "t": 1.8, "dropped": True, "reason": "stale"}]}

@@ -13,7 +13,8 @@ Header fields are checked as the localize route's form (``LocalizeOptions``).
 
 Out: one JSON text message per frame, in the order the frames arrived (schemas in
 server/api/schemas_localize.py): ``StreamAnswer``, the localize answer plus ``seq`` and
-``t``; or ``StreamDropped``, ``{"seq", "t", "dropped": true, "reason": "stale"}``; or
+``t``; or ``StreamDropped``, ``{"seq", "t", "dropped": true, "reason": "stale"}`` (or
+``"overloaded"``, ``"deadline"``: see back-pressure below); or
 ``StreamError``, ``{"seq", "t", "error": {"code", "message"}}`` for a frame that could
 not be processed (without ``t`` if its header was rejected; a header without a readable
 ``seq`` gets ``"seq": null``).
@@ -23,7 +24,11 @@ answered ``payload_too_large`` without being parsed; the connection stays open.
 
 Back-pressure: at most ``stream_max_pending_frames`` frames wait for processing. When
 another arrives, the oldest waiting frame is dropped (its image freed at once) and
-answered as dropped when its turn comes, so answers keep arrival order. A client owed
+answered as dropped when its turn comes, so answers keep arrival order. A frame whose
+turn comes enters the localize lane of admission control (server/api/admission.py), as
+an HTTP frame does: a full lane drops it at once (``"reason": "overloaded"``), and one
+still waiting for a worker ``localize_deadline_ms`` after its arrival is dropped unrun
+(``"reason": "deadline"``). A client owed
 more than ``max_stream_backlog`` answers is closed with code 1008.
 """
 
@@ -41,6 +46,7 @@ import anyio
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
+from monoloc.server.api.admission import DeadlineExceededError
 from monoloc.server.api.console.live import VehicleFeed, vehicle_board
 from monoloc.server.api.deps import AppState, StateDep, StreamKey
 from monoloc.server.api.errors import error_code
@@ -163,8 +169,17 @@ class _Session:
             return StreamDropped(seq=item.seq, t=item.t)
         data, item.data = item.data, None
         self.waiting -= 1
+        settings = self.state.settings
+        deadline_s = item.received_s + settings.localize_deadline_ms / 1e3
         try:
-            result = await localize_bytes(self.state, self.map_id, data, item.options)
+            with self.state.admission.admitted("localize", deadline_s) as admitted:
+                if not admitted:  # the lane is full, as it is for HTTP frames: shed
+                    metrics.inc("dropped")
+                    return StreamDropped(seq=item.seq, t=item.t, reason="overloaded")
+                result = await localize_bytes(self.state, self.map_id, data, item.options)
+        except DeadlineExceededError:
+            metrics.inc("dropped")
+            return StreamDropped(seq=item.seq, t=item.t, reason="deadline")
         except MonolocError as exc:
             metrics.inc("error")
             error = ErrorDetail(code=error_code(exc), message=str(exc))

@@ -5,6 +5,7 @@ deadline passed or whose client left is not computed, /metrics counts it all."""
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import socket
 import threading
 import time
@@ -14,7 +15,7 @@ from contextlib import contextmanager
 import pytest
 from api_helpers import frame_png, free_port, make_settings, open_client
 
-from monoloc.server.api.admission import lane_of, parse_deadline_ms
+from monoloc.server.api.admission import Lane, LaneConfig, lane_of, parse_deadline_ms
 
 
 def _localize(client, map_copy, sim_dataset, headers=None):
@@ -34,6 +35,23 @@ def _metric(client, map_copy, name: str) -> float:
     return total
 
 
+@contextmanager
+def _occupied(lane) -> Iterator[None]:
+    """Every worker of ``lane`` busy with a job that waits for the block to end."""
+    release = threading.Event()
+    held = [lane.submit(release.wait) for _ in range(lane.config.workers)]
+    deadline = time.monotonic() + 10
+    while lane.running < lane.config.workers:
+        assert time.monotonic() < deadline, "the lane's workers did not start"
+        time.sleep(0.005)
+    try:
+        yield
+    finally:
+        release.set()
+        for future in held:
+            assert future.result(10) is True
+
+
 def test_routes_fall_into_their_lanes():
     assert lane_of("POST", "/v1/maps/3/localize") == "localize"
     assert lane_of("POST", "/v1/maps/3/entries") == "write"
@@ -47,6 +65,43 @@ def test_routes_fall_into_their_lanes():
     for bad in (b"0", b"-5", b"1.5", b"soon", b"99999999"):
         with pytest.raises(ValueError, match="X-Request-Deadline-Ms"):
             parse_deadline_ms(bad, 2000)
+
+
+def test_lane_workers_take_queued_jobs_themselves_and_drop_expired_ones():
+    # No event loop here at all: a worker that finishes a job takes the next one itself.
+    lane = Lane("localize", LaneConfig(workers=1, queue_depth=2, default_deadline_ms=1000))
+    try:
+        done: list[str] = []
+        release = threading.Event()
+        first = lane.submit(release.wait)
+        second = lane.submit(done.append, "second")
+        late = lane.submit(done.append, "late", deadline_s=time.monotonic() + 0.05)
+        time.sleep(0.1)  # the late job's deadline passes while the worker is busy
+        assert (lane.running, lane.waiting) == (1, 2)
+        release.set()
+        assert first.result(5) is True and second.result(5) is None
+        assert late.exception(5).reason == "deadline"  # dropped unrun
+        assert done == ["second"] and lane.waiting == 0
+        # a job withdrawn from the queue (its client left) is never run
+        release.clear()
+        busy = lane.submit(release.wait)
+        while lane.running < 1:
+            time.sleep(0.005)
+        withdrawn = lane.submit(done.append, "withdrawn")
+        assert lane.withdraw(withdrawn, "disconnected") and lane.waiting == 0
+        assert withdrawn.exception(5).reason == "disconnected"
+        release.set()
+        assert busy.result(5) is True and not lane.withdraw(busy, "disconnected")
+        assert done == ["second"]
+        # the job runs in the submitter's context (contextvars), as anyio's threads did
+        request_id = contextvars.ContextVar("request_id", default=None)
+        request_id.set("frame-7")
+        assert lane.submit(request_id.get).result(5) == "frame-7"
+    finally:
+        lane.stop()
+    assert lane.submit(done.append, "after a restart").result(5) is None
+    lane.stop()
+    assert done[-1] == "after a restart"
 
 
 def test_a_full_lane_sheds_at_once_while_writes_and_health_answer(map_copy, sim_dataset):
@@ -92,14 +147,11 @@ def test_a_request_whose_deadline_passes_in_the_queue_is_not_computed(map_copy, 
         lane = client.app.state.monoloc.admission.lanes["localize"]
         computed = "monoloc_localize_stage_duration_seconds_count"
         before = _metric(client, map_copy, computed)
-        holder = object()
-        client.portal.call(lane.cpu.acquire_on_behalf_of, holder)  # the one slot is busy
-        try:
+        with _occupied(lane):  # the one worker is busy
             start = time.perf_counter()
             r = _localize(client, map_copy, sim_dataset, {"X-Request-Deadline-Ms": "300"})
             waited_s = time.perf_counter() - start
-        finally:
-            client.portal.call(lane.cpu.release_on_behalf_of, holder)
+            assert lane.waiting == 0  # the expired job left the queue with its answer
         assert r.status_code == 503 and r.json()["error"]["code"] == "deadline_exceeded"
         assert "Retry-After" in r.headers
         assert 0.3 <= waited_s < 3.0
@@ -161,15 +213,17 @@ def test_a_client_that_left_is_not_computed_and_a_full_lane_reads_no_body(map_co
     with _uvicorn(app) as (port, loop):
         state = app.state.monoloc
         lane = state.admission.lanes["localize"]
-        holder = object()
-        asyncio.run_coroutine_threadsafe(lane.cpu.acquire_on_behalf_of(holder), loop).result()
+        release = threading.Event()
+        held = lane.submit(release.wait)
+        while lane.running < 1:  # the one worker is busy
+            time.sleep(0.005)
         request = _multipart_request(
             port, map_copy.map_id, map_copy.keys.localize, frame_png(sim_dataset, "01", 3)
         )
         with socket.create_connection(("127.0.0.1", port)) as gone:
             gone.sendall(request)
             deadline = time.monotonic() + 10
-            while lane.cpu.statistics().tasks_waiting < 1:  # parsed, waiting for the slot
+            while lane.waiting < 1:  # parsed, queued for the busy worker
                 assert time.monotonic() < deadline
                 time.sleep(0.01)
             # Fill the lane's last place; a request announcing 100 MB is then refused
@@ -187,10 +241,15 @@ def test_a_client_that_left_is_not_computed_and_a_full_lane_reads_no_body(map_co
             finally:
                 lane.leave()
             assert answer.startswith("HTTP/1.1 503") and "retry-after" in answer.lower()
-        # The first client has gone. Give the server's event loop a moment to receive the
-        # connection's close (uvicorn turns it into http.disconnect) before freeing the slot.
-        time.sleep(0.5)
-        loop.call_soon_threadsafe(lane.cpu.release_on_behalf_of, holder)
+        # The first client has gone: its request leaves the queue (and the lane) as soon
+        # as the server sees the close, while the worker is still busy.
+        deadline = time.monotonic() + 10
+        while lane.waiting or lane.inside:
+            assert time.monotonic() < deadline, "the gone client's request stayed queued"
+            time.sleep(0.01)
+        assert not held.done()
+        release.set()
+        assert held.result(10) is True
         deadline = time.monotonic() + 10
         while lane.inside:
             assert time.monotonic() < deadline

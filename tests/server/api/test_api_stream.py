@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import struct
+import threading
 import time
 
 import numpy as np
@@ -78,6 +79,48 @@ def test_flooding_drops_the_oldest_frames_and_says_so(sim_dataset, map_copy):
     assert len(dropped) >= n - 4, answers  # at most ~2 waiting + 1 in flight + 1 racing
     assert processed[-2:] == [n - 2, n - 1]  # the newest frames are never the stale ones
     assert dropped_metric == len(dropped)
+
+
+def test_stream_frames_share_the_localize_lane_and_its_deadline(sim_dataset, map_copy):
+    # one worker, no queue: one frame (HTTP or stream) inside the lane at a time
+    settings = make_settings(
+        map_copy.data_dir, worker_threads=1, localize_queue_depth=0, localize_deadline_ms=300
+    )
+    app = create_app(settings)
+    image = frame_png(sim_dataset, "01", 5)
+    with (
+        live_server(settings, app) as port,
+        _stream(port, map_copy.keys.localize, map_copy.map_id) as stream,
+    ):
+        state = app.state.monoloc
+        lane = state.admission.lanes["localize"]
+        assert lane.try_enter()  # an HTTP frame holds the lane's only place
+        try:
+            start = time.perf_counter()
+            stream.send(0, 0.0, image)
+            full = stream.receive()
+            assert time.perf_counter() - start < 0.25  # shed at once, not queued
+        finally:
+            lane.leave()
+        release = threading.Event()
+        busy = lane.submit(release.wait)  # the worker is busy past the frame's deadline
+        try:
+            start = time.perf_counter()
+            stream.send(1, 0.1, image)
+            late = stream.receive()
+            waited_s = time.perf_counter() - start
+        finally:
+            release.set()
+        assert busy.result(10) is True
+        stream.send(2, 0.2, image)
+        served = stream.receive()
+        shed = state.metrics.admission_shed.value("localize")
+        expired = state.metrics.admission_expired.value("localize", "deadline")
+    assert full == {"seq": 0, "t": 0.0, "dropped": True, "reason": "overloaded"}
+    assert late == {"seq": 1, "t": 0.1, "dropped": True, "reason": "deadline"}
+    assert 0.3 <= waited_s < 3.0
+    assert served["seq"] == 2 and served["hypotheses"] and "dropped" not in served
+    assert (shed, expired) == (1, 1)
 
 
 def test_stream_refuses_a_missing_key_and_a_missing_map(map_copy):
