@@ -25,7 +25,7 @@ chromium:
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium; }
 
 
-# The tests start a throwaway PostgreSQL (initdb/pg_ctl, tests/pg_cluster.py) and check the
+# The tests start a throwaway PostgreSQL (initdb/pg_ctl, monoloc/pg_cluster.py) and check the
 # nginx config of docker/ with `nginx -t`: install Debian's packages when missing.
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 system-deps:

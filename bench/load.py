@@ -123,24 +123,13 @@ def replicas(n: int, data_dir: Path, database_url: str | None, workers: int, pyt
                 proc.wait()
 
 
-def _pg_cluster():
-    """tests/pg_cluster.py, the throwaway PostgreSQL of the test suite (loaded by path:
-    bench and tests are scripts, not packages)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("pg_cluster", ROOT / "tests" / "pg_cluster.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["pg_cluster"] = module  # its dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
 @contextmanager
 def throwaway_postgres():
     """The admin URL of a throwaway PostgreSQL server (stopped and deleted afterwards), or
     None when no PostgreSQL server is installed."""
-    pg_cluster = _pg_cluster()
-    server = pg_cluster.start_throwaway_postgres(free_port())
+    from monoloc.pg_cluster import start_throwaway_postgres
+
+    server = start_throwaway_postgres(free_port())
     try:
         yield None if server is None else server.url
     finally:
@@ -155,7 +144,9 @@ def database(choice: str, admin_url: str | None):
     if choice == "sqlite":
         yield None, "sqlite"
     elif choice == "postgresql":
-        with _pg_cluster().fresh_database(admin_url) as url:
+        from monoloc.pg_cluster import fresh_database
+
+        with fresh_database(admin_url) as url:
             yield url, "postgresql (throwaway server, fsync off)"
     else:
         yield choice, "postgresql" if choice.startswith("postgresql") else choice.split(":")[0]
@@ -703,7 +694,7 @@ def main() -> None:
     parser.add_argument(
         "--database",
         default="auto",
-        help="sqlite, postgresql (a throwaway server from tests/pg_cluster.py), a "
+        help="sqlite, postgresql (a throwaway server from monoloc/pg_cluster.py), a "
         "SQLAlchemy URL, or auto: 1 replica on SQLite (the embedded default), 2+ replicas "
         "on a throwaway PostgreSQL when one is installed (else SQLite, said so)",
     )

@@ -1,7 +1,7 @@
-"""A throwaway PostgreSQL server for the tests: ``initdb`` + ``pg_ctl`` of the installed
-server into a temporary directory, listening on a Unix socket only, without fsync (its
-data dies with the test session). As root (CI containers) it runs as the ``postgres``
-system user, because ``initdb`` refuses root.
+"""A throwaway PostgreSQL server for the tests and the load bench: ``initdb`` +
+``pg_ctl`` of the installed server into a temporary directory, listening on a Unix
+socket only, without fsync (its data dies with the test session). As root (CI
+containers) it runs as the ``postgres`` system user, because ``initdb`` refuses root.
 
 ``make test`` installs the Debian ``postgresql`` package when no server is found.
 """
