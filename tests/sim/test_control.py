@@ -62,9 +62,15 @@ def test_steering_is_clipped_rate_limited_and_lagged():
 
 def test_speed_respects_acceleration_limits_and_never_reverses():
     start = BicycleState(0.0, 0.0, 0.0, 1.0)
-    faster = _drive(start, Command(0.0, 50.0), CAR, seconds=1.0)
-    # Lagged, limited to 1 m/s^2: less than 1 m/s gained in 1 s, but most of it.
-    assert 1.7 < faster.speed_mps < 2.0
+    dt_s, seconds = 0.005, 1.0
+    faster = _drive(start, Command(0.0, 50.0), CAR, seconds=seconds, dt=dt_s)
+    # 50 m/s^2 asked, clipped to 1 m/s^2, then lagged (tau 0.1 s): step k accelerates at
+    # 1 - r^k with r = exp(-dt / tau), so N steps gain dt (N - r (1 - r^N) / (1 - r)).
+    n, r = round(seconds / dt_s), math.exp(-dt_s / CAR.accel_lag_s)
+    gained = dt_s * (n - r * (1 - r**n) / (1 - r))
+    assert faster.speed_mps == pytest.approx(1.0 + gained, rel=1e-9)
+    # ... which is the continuous lag's 1 - tau (1 - e^(-T / tau)) = 0.9 m/s to 3 mm/s
+    assert gained == pytest.approx(1.0 - 0.1 * (1 - math.exp(-10.0)), abs=3e-3)
     stopped = _drive(start, Command(0.0, -50.0), CAR, seconds=3.0)
     assert stopped.speed_mps == 0.0
     fast = _drive(BicycleState(0, 0, 0, 2.9), Command(0.0, 50.0), CAR, seconds=2.0)
