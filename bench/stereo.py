@@ -55,6 +55,7 @@ def depth_quality(seq_lidar, seq_stereo, every: int = 5) -> dict:
     rendered depth, per source, on every ``every``-th frame of the map run."""
     from monoloc.server.entry_builder import BuildConfig, points_for
     from monoloc.server.vision.features import OrbConfig, extract_features
+    from monoloc.sim.depth_truth import rendered_depth_at
     from monoloc.sim.kitti_writer import read_depth
 
     stats = {s: {"share": [], "rel_all": [], "rel_smooth": []} for s in SOURCES}
@@ -70,7 +71,7 @@ def depth_quality(seq_lidar, seq_stereo, every: int = 5) -> dict:
             points, has = points_for(
                 features, loaded.source, seqs[source].intrinsics, BuildConfig(), loaded.image_gray
             )
-            truth, smooth = truth_at(features.keypoints_px, truth_image)
+            truth, smooth = rendered_depth_at(features.keypoints_px, truth_image)
             with np.errstate(invalid="ignore"):  # sky: the rendered depth is inf
                 rel = np.abs(points[:, 2] - truth) / truth
             stats[source]["share"].append(float(has.mean()))
@@ -89,20 +90,6 @@ def depth_quality(seq_lidar, seq_stereo, every: int = 5) -> dict:
             "smooth_keypoints": int(len(rel_smooth)),
         }
     return out
-
-
-def truth_at(keypoints_px: np.ndarray, depth_m: np.ndarray, radius: int = 3):
-    """Rendered depth (N,) at each keypoint's pixel and whether the surface is smooth
-    around it (no depth step over 10 % in a (2r+1)^2 window: not an edge, not leaves)."""
-    h, w = depth_m.shape
-    u = np.clip(np.rint(keypoints_px[:, 0]).astype(int), 0, w - 1)
-    v = np.clip(np.rint(keypoints_px[:, 1]).astype(int), 0, h - 1)
-    padded = np.pad(np.where(np.isfinite(depth_m), depth_m, 1e4), radius, mode="edge")
-    offsets = range(-radius, radius + 1)
-    window = np.stack(
-        [padded[v + radius + dy, u + radius + dx] for dy in offsets for dx in offsets], axis=1
-    )
-    return depth_m[v, u], window.max(axis=1) / window.min(axis=1) < 1.1
 
 
 def compare(root: Path, meta: dict, lever_arm_m: float | None = None) -> dict:

@@ -3,13 +3,9 @@ half-size frames, no recording errors) and a migrated SQLite database per test."
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
-from monoloc.server.settings import Settings
-from monoloc.server.storage.db import create_engine_for, make_session_factory
 
 
 @pytest.fixture(scope="session")
@@ -46,17 +42,3 @@ def query_run(sim_city):
     return read_kitti_sequence(sim_city, "01")
 
 
-@pytest.fixture
-def settings(tmp_path: Path, database_url) -> Settings:
-    extra = {"database_url": database_url} if database_url else {}
-    return Settings(data_dir=tmp_path / "data", **extra)
-
-
-@pytest.fixture
-def factory(settings: Settings) -> Iterator:
-    from monoloc.server.storage.migrate import upgrade_database
-
-    upgrade_database(settings.database_url)
-    engine = create_engine_for(settings)
-    yield make_session_factory(engine)
-    engine.dispose()

@@ -15,7 +15,6 @@ tests/server/test_localize_sim.py.
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,8 +23,6 @@ import pytest
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.geometry import invert_rigid
-from monoloc.server.settings import Settings
-from monoloc.server.storage.db import create_engine_for, make_session_factory
 
 CAMERA = CameraIntrinsics(359.428, 359.428, 303.3464, 92.35785, 620, 188)
 WALL_Z_M = 8.0  # the wall is the plane z = 8 m of KITTI's world (first camera frame)
@@ -149,22 +146,6 @@ def kitti_copy(kitti_root: KittiFixture, tmp_path: Path) -> KittiFixture:
     root = tmp_path / "kitti_copy"
     shutil.copytree(kitti_root.root, root)
     return KittiFixture(root, kitti_root.T_kitti_from_cam)
-
-
-@pytest.fixture
-def settings(tmp_path: Path, database_url) -> Settings:
-    extra = {"database_url": database_url} if database_url else {}
-    return Settings(data_dir=tmp_path / "data", **extra)
-
-
-@pytest.fixture
-def factory(settings: Settings) -> Iterator:
-    from monoloc.server.storage.migrate import upgrade_database
-
-    upgrade_database(settings.database_url)
-    engine = create_engine_for(settings)
-    yield make_session_factory(engine)
-    engine.dispose()
 
 
 def new_map(factory, camera: CameraIntrinsics = CAMERA, name: str = "m") -> int:

@@ -24,12 +24,6 @@ from monoloc.server.storage.records import NewEntry
 
 
 @pytest.fixture
-def settings(tmp_path, database_url) -> Settings:
-    extra = {"database_url": database_url} if database_url else {}
-    return Settings(data_dir=tmp_path / "data", **extra)
-
-
-@pytest.fixture
 def engine(settings: Settings) -> Iterator[Engine]:
     upgrade_database(settings.database_url)
     engine = create_engine_for(settings)

@@ -16,6 +16,7 @@ from monoloc.server.vision.stereo import (
     points_from_stereo,
     stereo_depth_at_keypoints,
 )
+from monoloc.sim.depth_truth import rendered_depth_at
 
 
 def _frames(root):
@@ -30,20 +31,6 @@ def _frames(root):
         yield left, right, read_depth(seq / "depth" / f"{i:06d}.png")
 
 
-def _truth_at(keypoints_px, depth_m, radius=3):
-    """True depth at each keypoint's pixel and whether the surface is smooth around it
-    (no depth step in a (2r+1)^2 window: not on an object's edge or in a tree's leaves)."""
-    h, w = depth_m.shape
-    u = np.clip(np.rint(keypoints_px[:, 0]).astype(int), 0, w - 1)
-    v = np.clip(np.rint(keypoints_px[:, 1]).astype(int), 0, h - 1)
-    padded = np.pad(np.where(np.isfinite(depth_m), depth_m, 1e4), radius, mode="edge")
-    offsets = range(-radius, radius + 1)
-    window = np.stack(
-        [padded[v + radius + dy, u + radius + dx] for dy in offsets for dx in offsets], axis=1
-    )
-    return depth_m[v, u], window.max(axis=1) / window.min(axis=1) < 1.1
-
-
 def test_sim_stereo_depth_matches_the_rendered_depth(stereo_dataset):
     seq = read_kitti_sequence(stereo_dataset, "00", depth_from="stereo")
     assert seq.stereo_baseline_m == pytest.approx(0.5371657, abs=1e-6)
@@ -51,7 +38,7 @@ def test_sim_stereo_depth_matches_the_rendered_depth(stereo_dataset):
     for left, right, depth in _frames(stereo_dataset):
         kp = extract_features(left, OrbConfig()).keypoints_px
         d = stereo_depth_at_keypoints(kp, left, right, seq.stereo_baseline_m, seq.intrinsics)
-        truth, smooth = _truth_at(kp, depth)
+        truth, smooth = rendered_depth_at(kp, depth)
         has = np.isfinite(d)
         shares.append(has.mean())
         rel = np.abs(d - truth) / truth
