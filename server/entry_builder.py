@@ -177,83 +177,19 @@ def build_entry(
     features = extract_features(image_gray, config.orb)
     if isinstance(source, ObservedPoints):
         keypoints_px, descriptors, points_cam = _observed(image_gray, source, config)
-        return _entry(
-            image_gray,
-            features,
-            features.keypoints_px,  # the image's ORB keypoints: none is kept
-            keypoints_px,
-            descriptors,
-            points_cam,
-            source_hash,
-            T_world_from_cam,
-            intrinsics,
-            vocabulary,
-            vocabulary_id,
-            config,
-            tags,
-            timestamp_s,
-        )
-    if isinstance(source, LidarSource | DepthSource | StereoSource):
-        points_cam, has = points_for(features, source, intrinsics, config, image_gray)
+        without_point_px = features.keypoints_px  # the image's ORB keypoints: none is kept
     else:
-        points_cam = np.asarray(source, dtype=np.float32)
-        if points_cam.shape != (len(features), 3):
-            raise InvalidInputError(
-                f"explicit 3D points must be ({len(features)}, 3), got {points_cam.shape}"
-            )
-        has = np.all(np.isfinite(points_cam), axis=1) & (points_cam[:, 2] > 0)
-    return _entry(
-        image_gray,
-        features,
-        features.keypoints_px[~has],
-        features.keypoints_px[has],
-        features.descriptors[has],
-        points_cam[has],
-        source_hash,
-        T_world_from_cam,
-        intrinsics,
-        vocabulary,
-        vocabulary_id,
-        config,
-        tags,
-        timestamp_s,
-    )
-
-
-def _observed(image_gray, source: ObservedPoints, config: BuildConfig):
-    """(keypoints (K, 2) float32, descriptors (K, 32), points_cam (K, 3)) of the observed
-    points that lie in front of the camera and inside ORB's border."""
-    keypoints_px = np.asarray(source.keypoints_px, dtype=np.float64).reshape(-1, 2)
-    points_cam = np.asarray(source.points_cam, dtype=np.float64).reshape(-1, 3)
-    if len(keypoints_px) != len(points_cam):
-        raise InvalidInputError(
-            f"{len(keypoints_px)} observed keypoints but {len(points_cam)} 3D points"
-        )
-    front = np.all(np.isfinite(points_cam), axis=1) & (points_cam[:, 2] > 0)
-    kept, descriptors = describe_keypoints(image_gray, keypoints_px[front], config.orb)
-    return (
-        keypoints_px[front][kept].astype(np.float32),
-        descriptors,
-        points_cam[front][kept],
-    )
-
-
-def _entry(
-    image_gray: np.ndarray,
-    features: Features,
-    without_point_px: np.ndarray,
-    keypoints_px: np.ndarray,
-    descriptors: np.ndarray,
-    points_cam: np.ndarray,
-    source_hash: str,
-    T_world_from_cam: np.ndarray,
-    intrinsics: CameraIntrinsics,
-    vocabulary: Vocabulary,
-    vocabulary_id: int | None,
-    config: BuildConfig,
-    tags: tuple[str, ...],
-    timestamp_s: float | None,
-) -> NewEntry:
+        if isinstance(source, LidarSource | DepthSource | StereoSource):
+            points_all, has = points_for(features, source, intrinsics, config, image_gray)
+        else:
+            points_all = np.asarray(source, dtype=np.float32)
+            if points_all.shape != (len(features), 3):
+                raise InvalidInputError(
+                    f"explicit 3D points must be ({len(features)}, 3), got {points_all.shape}"
+                )
+            has = np.all(np.isfinite(points_all), axis=1) & (points_all[:, 2] > 0)
+        keypoints_px, descriptors = features.keypoints_px[has], features.descriptors[has]
+        points_cam, without_point_px = points_all[has], features.keypoints_px[~has]
     n_points = len(keypoints_px)
     if n_points < config.min_points:
         raise TooFewPointsError(
@@ -275,4 +211,22 @@ def _entry(
         timestamp_s=timestamp_s,
         vocabulary_id=vocabulary_id,
         image=entry_image(image_gray, without_point_px, config),
+    )
+
+
+def _observed(image_gray, source: ObservedPoints, config: BuildConfig):
+    """(keypoints (K, 2) float32, descriptors (K, 32), points_cam (K, 3)) of the observed
+    points that lie in front of the camera and inside ORB's border."""
+    keypoints_px = np.asarray(source.keypoints_px, dtype=np.float64).reshape(-1, 2)
+    points_cam = np.asarray(source.points_cam, dtype=np.float64).reshape(-1, 3)
+    if len(keypoints_px) != len(points_cam):
+        raise InvalidInputError(
+            f"{len(keypoints_px)} observed keypoints but {len(points_cam)} 3D points"
+        )
+    front = np.all(np.isfinite(points_cam), axis=1) & (points_cam[:, 2] > 0)
+    kept, descriptors = describe_keypoints(image_gray, keypoints_px[front], config.orb)
+    return (
+        keypoints_px[front][kept].astype(np.float32),
+        descriptors,
+        points_cam[front][kept],
     )
