@@ -207,9 +207,26 @@ def test_driving_a_bag_writes_the_filters_track_as_geojson(
     ref = GeoReference.from_origin(GeoOrigin(**ORIGIN))
     got_world = ref.world_from_geodetic(coordinates[:, [1, 0, 2]])
     assert np.all(tum_z_m == 0.0)  # the TUM file's planar track; the GeoJSON adds a height
-    # the height: the camera's (1.5 m in the sim), from the hypotheses, within PnP's scatter
+    # the height follows its rule exactly: the median world z of the best hypotheses of
+    # the last 10 frames that had one (held through frames without)
+    best_z_m = np.full(len(points), np.nan)
+    for i, point in enumerate(points):
+        geopose = point["properties"]["best_hypothesis_geopose"]
+        if geopose is not None:
+            p = geopose["position"]
+            best_z_m[i] = ref.world_from_geodetic(np.array([[p["lat"], p["lon"], p["h"]]]))[0, 2]
+    seen = [z for z in best_z_m if np.isfinite(z)]
+    assert len(seen) >= len(points) - 3
+    expected_z_m = [
+        np.median([z for z in best_z_m[: i + 1] if np.isfinite(z)][-10:])
+        for i in range(len(points))
+    ]
+    np.testing.assert_allclose(z_m, expected_z_m, atol=1e-6)
+    # ... and is the camera's (1.5 m in the sim) within PnP's scatter: a single hypothesis
+    # (the first frame) may be off by ~0.1 m on the sim's recording errors, the median less
     truths = np.stack([ground_truth(sim_dataset, "01", i) for i in frames])
-    assert np.all(np.abs(z_m - truths[:, 2, 3]) < 0.1), (z_m, truths[:, 2, 3])
+    height_error_m = np.abs(z_m - truths[:, 2, 3])
+    assert np.median(height_error_m) < 0.03 and height_error_m.max() < 0.25, height_error_m
     # and the estimate follows the truth, dead-reckoned frames too
     errors_m = np.linalg.norm(got_world[:, :2] - truths[:, :2, 3], axis=1)
     assert np.all(errors_m < 0.5), errors_m
