@@ -1,7 +1,8 @@
 """The FastAPI application: ``create_app(settings)`` builds it; its lifespan does the work.
 
-Start-up (in order): data directories; Alembic upgrade of the database; the bootstrap
-admin key (if configured and no key exists); thread counts (OpenCV ``cv_threads``, FAISS
+Start-up (in order): data directories; Alembic upgrade of the database and the bootstrap
+admin key (if configured and no key exists), both under the database's start-up lock so
+replicas starting together take turns; thread counts (OpenCV ``cv_threads``, FAISS
 ``faiss_threads``, BLAS 1 thread: on 2 cores an oversubscribed OpenBLAS makes small
 mat-vecs many times slower); every map's index loaded (or rebuilt) by the registry and
 its replica sync started; the job runner (leases: it takes over jobs whose holder died).
@@ -109,13 +110,12 @@ def admission_for(settings: Settings, metrics: Metrics) -> Admission:
 
 def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppState:
     """Blocking start-up work (run in a thread by the lifespan)."""
-    from monoloc.server.api.bootstrap import bootstrap_admin_key, clean_incoming_uploads
+    from monoloc.server.api.bootstrap import clean_incoming_uploads, prepare_database
     from monoloc.server.index.warmup import warm_up as warm_up_index
     from monoloc.server.jobs.handlers import HANDLERS
     from monoloc.server.jobs.runner import JobRunner
     from monoloc.server.runtime import MapRegistry
-    from monoloc.server.storage.db import create_engine_for, make_session_factory
-    from monoloc.server.storage.migrate import upgrade_database
+    from monoloc.server.storage.db import make_session_factory
     from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
     # Compile or load the numba kernels now, not in the first request.
@@ -123,10 +123,8 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
     warm_up_index()
     Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
     clean_incoming_uploads(settings)
-    upgrade_database(settings.database_url)
-    engine = create_engine_for(settings)
+    engine = prepare_database(settings)
     sessions = make_session_factory(engine)
-    bootstrap_admin_key(sessions, settings)
     assert settings.index_dir is not None
     registry = MapRegistry(sessions, Path(settings.index_dir))
     n_maps = registry.load_all()

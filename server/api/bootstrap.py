@@ -14,7 +14,8 @@ import re
 import time
 from pathlib import Path
 
-from sqlalchemy import func, select
+from sqlalchemy import Engine, func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.errors import InvalidInputError
@@ -42,20 +43,40 @@ def bootstrap_admin_key(sessions: sessionmaker[Session], settings: Settings) -> 
             'URL-safe characters (generate one with: python -c "import secrets; '
             f"print('{KEY_PREFIX}' + secrets.token_urlsafe(32))\")"
         )
-    with session_scope(sessions) as session:
-        if session.scalar(select(func.count(ApiKey.id))):
-            return False
-        session.add(
-            ApiKey(
-                name="bootstrap",
-                prefix=plaintext[:PREFIX_CHARS],
-                key_hash=hash_api_key(plaintext),
-                scopes="admin",
-                created_at=utc_now(),
+    try:
+        with session_scope(sessions) as session:
+            if session.scalar(select(func.count(ApiKey.id))):
+                return False
+            session.add(
+                ApiKey(
+                    name="bootstrap",
+                    prefix=plaintext[:PREFIX_CHARS],
+                    key_hash=hash_api_key(plaintext),
+                    scopes="admin",
+                    created_at=utc_now(),
+                )
             )
-        )
+    except IntegrityError:
+        # Another process stored the same key between our count and our insert (the
+        # server start-up holds the database's start-up lock, so only a caller without
+        # it gets here): the key is there, which is all this function promises.
+        return False
     log.warning("stored the bootstrap admin key (prefix %s)", plaintext[:PREFIX_CHARS])
     return True
+
+
+def prepare_database(settings: Settings) -> Engine:
+    """Bring the schema up to date and store the bootstrap key, holding the database's
+    start-up lock: replicas starting together take turns, the first does the work and
+    the others find it done. Returns a new engine on the database."""
+    from monoloc.server.storage.db import create_engine_for, make_session_factory, startup_lock
+    from monoloc.server.storage.migrate import upgrade_database
+
+    with startup_lock(settings.database_url):
+        upgrade_database(settings.database_url, take_startup_lock=False)
+        engine = create_engine_for(settings)
+        bootstrap_admin_key(make_session_factory(engine), settings)
+    return engine
 
 
 def uploads_dir(settings: Settings) -> Path:

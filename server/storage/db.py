@@ -25,7 +25,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 from sqlalchemy.orm import Session, sessionmaker
 
-from monoloc.core.errors import InvalidInputError
+from monoloc.core.errors import InvalidInputError, MonolocError
 
 if TYPE_CHECKING:
     from monoloc.server.settings import Settings
@@ -124,3 +124,79 @@ def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
         raise
     finally:
         session.close()
+
+
+# Any fixed 64-bit number works; this one is "monoloc" in ASCII, so it is recognisable in
+# pg_locks and unlikely to collide with another application's advisory locks.
+STARTUP_LOCK_KEY = 0x6D6F6E6F6C6F63
+
+
+class StartupLockTimeout(MonolocError):
+    """Another process held the database's start-up lock for longer than allowed."""
+
+
+@contextmanager
+def startup_lock(url: str, *, timeout_s: float = 120.0) -> Iterator[None]:
+    """Serialise the start-up chores (schema upgrade, bootstrap key) of processes sharing
+    the database at ``url``: replicas started together would otherwise race to create the
+    same tables or insert the same key, and the loser would exit.
+
+    PostgreSQL: a session-level advisory lock on a connection of its own, released when
+    the block ends (or the process dies). SQLite file: an exclusive ``flock`` on
+    ``<file>.startup.lock`` beside the database. In-memory SQLite: nothing to share.
+    Raises StartupLockTimeout if the lock is not had within ``timeout_s``."""
+    import time
+
+    from sqlalchemy import pool, text
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "postgresql":
+        engine = create_engine_for_url(url, poolclass=pool.NullPool)
+        try:
+            with engine.connect() as connection:
+                deadline = time.monotonic() + timeout_s
+                while not connection.scalar(
+                    text("SELECT pg_try_advisory_lock(:key)"), {"key": STARTUP_LOCK_KEY}
+                ):
+                    connection.rollback()
+                    if time.monotonic() > deadline:
+                        raise StartupLockTimeout(
+                            f"another process held the start-up lock of {redact_url(url)} "
+                            f"for over {timeout_s:.0f} s"
+                        )
+                    time.sleep(0.05)
+                connection.commit()
+                try:
+                    yield
+                finally:
+                    connection.scalar(
+                        text("SELECT pg_advisory_unlock(:key)"), {"key": STARTUP_LOCK_KEY}
+                    )
+                    connection.commit()
+        finally:
+            engine.dispose()
+        return
+    db_file = _sqlite_file(url) if parsed.get_backend_name() == "sqlite" else None
+    if db_file is None:
+        yield
+        return
+    import fcntl
+
+    db_file.parent.mkdir(parents=True, exist_ok=True)
+    with open(db_file.with_name(db_file.name + ".startup.lock"), "a+b") as handle:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise StartupLockTimeout(
+                        f"another process held the start-up lock of {db_file} "
+                        f"for over {timeout_s:.0f} s"
+                    ) from None
+                time.sleep(0.05)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)

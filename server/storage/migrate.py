@@ -85,17 +85,24 @@ def current_revision(database_url: str) -> str | None:
         engine.dispose()
 
 
-def upgrade_database(database_url: str) -> None:
+def upgrade_database(database_url: str, *, take_startup_lock: bool = True) -> None:
     """Bring the database at ``database_url`` to the newest schema (alembic upgrade head).
 
-    Idempotent; creates the SQLite file (and its directory) when missing.
+    Idempotent; creates the SQLite file (and its directory) when missing. Processes
+    upgrading the same database take turns on its start-up lock (``storage.db.startup_lock``);
+    pass ``take_startup_lock=False`` when the caller already holds it.
     """
+    from contextlib import nullcontext
+
     from alembic import command
     from alembic.util import CommandError
     from sqlalchemy.exc import SQLAlchemyError
 
+    from monoloc.server.storage.db import startup_lock
+
     try:
-        command.upgrade(alembic_config(database_url), "head")
+        with startup_lock(database_url) if take_startup_lock else nullcontext():
+            command.upgrade(alembic_config(database_url), "head")
     except (CommandError, SQLAlchemyError, OSError) as exc:
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
         raise MigrationError(f"upgrading {redact_url(database_url)} failed: {first_line}") from exc
