@@ -131,7 +131,7 @@ def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
 STARTUP_LOCK_KEY = 0x6D6F6E6F6C6F63
 
 
-class StartupLockTimeout(MonolocError):
+class StartupLockTimeoutError(MonolocError):
     """Another process held the database's start-up lock for longer than allowed."""
 
 
@@ -144,7 +144,7 @@ def startup_lock(url: str, *, timeout_s: float = 120.0) -> Iterator[None]:
     PostgreSQL: a session-level advisory lock on a connection of its own, released when
     the block ends (or the process dies). SQLite file: an exclusive ``flock`` on
     ``<file>.startup.lock`` beside the database. In-memory SQLite: nothing to share.
-    Raises StartupLockTimeout if the lock is not had within ``timeout_s``."""
+    Raises StartupLockTimeoutError if the lock is not had within ``timeout_s``."""
     import time
 
     from sqlalchemy import pool, text
@@ -160,7 +160,7 @@ def startup_lock(url: str, *, timeout_s: float = 120.0) -> Iterator[None]:
                 ):
                     connection.rollback()
                     if time.monotonic() > deadline:
-                        raise StartupLockTimeout(
+                        raise StartupLockTimeoutError(
                             f"another process held the start-up lock of {redact_url(url)} "
                             f"for over {timeout_s:.0f} s"
                         )
@@ -191,7 +191,7 @@ def startup_lock(url: str, *, timeout_s: float = 120.0) -> Iterator[None]:
                 break
             except BlockingIOError:
                 if time.monotonic() > deadline:
-                    raise StartupLockTimeout(
+                    raise StartupLockTimeoutError(
                         f"another process held the start-up lock of {db_file} "
                         f"for over {timeout_s:.0f} s"
                     ) from None

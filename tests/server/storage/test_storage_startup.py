@@ -12,7 +12,7 @@ from sqlalchemy import event, func, select
 from monoloc.server.api.bootstrap import bootstrap_admin_key, prepare_database
 from monoloc.server.settings import Settings
 from monoloc.server.storage.db import (
-    StartupLockTimeout,
+    StartupLockTimeoutError,
     create_engine_for,
     make_session_factory,
     session_scope,
@@ -64,7 +64,7 @@ def test_a_lock_held_too_long_is_a_clear_error(any_database_url):
         thread = threading.Thread(target=impatient)
         thread.start()
         thread.join()
-    assert len(outcome) == 1 and isinstance(outcome[0], StartupLockTimeout)
+    assert len(outcome) == 1 and isinstance(outcome[0], StartupLockTimeoutError)
     assert "start-up lock" in str(outcome[0])
 
 
