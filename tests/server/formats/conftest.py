@@ -40,5 +40,3 @@ def query_run(sim_city):
     from monoloc.server.ingest.kitti import read_kitti_sequence
 
     return read_kitti_sequence(sim_city, "01")
-
-
