@@ -140,3 +140,21 @@ def test_nightmap_run_drives_the_map_lane_at_night():
     # Adding the kind did not change the seeds of the others.
     reference = {p.kind: p for p in plan_runs(city, CONFIG)}["map"]
     assert np.array_equal(plans["map"].frame_times_s, reference.frame_times_s)
+
+
+def test_trainnight_run_drives_the_train_route_at_night():
+    config = GenerateConfig(seed=0, runs=("train", "trainnight"))
+    city = build_city(config.city_config(), config.seed)
+    plans = {p.kind: p for p in plan_runs(city, config)}
+    assert plans["trainnight"].district == plans["train"].district == "train"
+    train_xy = true_camera_poses(plans["train"], config.rig)[:, :2, 3]
+    night_xy = true_camera_poses(plans["trainnight"], config.rig)[:, :2, 3]
+    nearest = np.linalg.norm(night_xy[:, None] - train_xy[None], axis=2).min(axis=1)
+    assert np.percentile(nearest, 95) < 1.0  # the training route, not the map's streets
+    assert plans["trainnight"].lighting.name == "night" and plans["train"].lighting.name == "day"
+    assert plans["trainnight"].car_variant != plans["train"].car_variant
+    # Appending the kind did not change the seeds of the others.
+    alone = GenerateConfig(seed=0, runs=("train",))
+    reference = plan_runs(city, alone)[0]
+    assert np.array_equal(plans["train"].frame_times_s, reference.frame_times_s)
+    assert np.array_equal(plans["train"].states.x_m, reference.states.x_m)
