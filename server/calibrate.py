@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Iterable, Sized
+from collections.abc import Callable, Iterable, Sequence, Sized
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -240,33 +240,60 @@ def calibrate(
     ``n_frames`` (default: ``len(frames)`` when it has one) sizes the progress total.
     Raises InvalidInputError when the run is too short or yields too few good hypotheses.
     """
-    if n_frames is None and isinstance(frames, Sized):
-        n_frames = len(frames)
-    n = n_frames or 0
-    ticker = _Ticker(progress, n + n - math.ceil(n / config.map_every))
-    entries, queries, seen, skipped = _split_run(
-        frames, intrinsics, vocabulary, config, ticker.tick
-    )
-    what = source_name or "the training run"
-    if len(entries) < config.k or not queries:
-        raise InvalidInputError(
-            f"calibration of {what} needs at least {config.k} map frames with 3D points and "
-            f"some query frames (at least {config.min_frames} frames); got {len(entries)} map "
-            f"frames ({skipped} without enough 3D points) and {len(queries)} query frames "
-            f"from {seen} frames"
-        )
-    ticker.total = seen + len(queries)
-    entry_pose = np.array([planar_from_T_world_from_cam(e.T_world_from_cam) for e in entries])
+    run = TrainingRun(frames, source_name, n_frames)
+    return calibrate_runs([run], intrinsics, vocabulary, config, rng, progress)
+
+
+@dataclass(frozen=True)
+class TrainingRun:
+    """One training run: its frames (read once, in order), a name for messages and the
+    provenance, and its length when known (sizes the progress total)."""
+
+    frames: Iterable[TrainingFrame]
+    name: str = ""
+    n_frames: int | None = None
+
+
+def calibrate_runs(
+    runs: Sequence[TrainingRun],
+    intrinsics: CameraIntrinsics,
+    vocabulary: Vocabulary,
+    config: CalibrationConfig,
+    rng: np.random.Generator,
+    progress: Callable[[int, int], None] | None = None,
+) -> CalibrationResult:
+    """Fit the measurement model on the pooled error samples of several training runs
+    (e.g. the same district by day and by night). Each run is split into its own
+    temporary map and queries (a run's queries meet only its own map: day queries are
+    not matched against night entries), then one fit covers every sample, so the
+    quality-aware model sees hypotheses from both good and poor images. ``progress`` as
+    in :func:`calibrate`, over all runs."""
+    if not runs:
+        raise InvalidInputError("calibration needs at least one training run")
+    totals = []
+    for run in runs:
+        n = run.n_frames
+        if n is None and isinstance(run.frames, Sized):
+            n = len(run.frames)
+        totals.append(n or 0)
+    planned = [n + n - math.ceil(n / config.map_every) for n in totals]
+    ticker = _Ticker(progress, sum(planned))
     samples = _Samples()
-    for query in queries:
-        _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
-        ticker.tick()
+    per_run = []
+    for run, plan in zip(runs, planned, strict=True):
+        counts = _run_samples(run, intrinsics, vocabulary, config, rng, ticker, samples)
+        # the run's true length is known now: correct the total for it
+        ticker.total += counts["frames"] + counts["query_frames"] - plan
+        per_run.append(counts)
+    names = [run.name for run in runs]
+    what = " + ".join(name or "the training run" for name in names)
     joint = np.array(samples.joint, dtype=bool)
     used = int((~joint).sum())
+    n_queries = sum(c["query_frames"] for c in per_run)
     if used < MIN_GOOD_HYPOTHESES:
         raise InvalidInputError(
             f"calibration of {what} found only {used} good hypotheses ({samples.n_hypotheses} "
-            f"accepted by PnP, {samples.n_gated} beyond the gates) from {len(queries)} query "
+            f"accepted by PnP, {samples.n_gated} beyond the gates) from {n_queries} query "
             f"frames; it needs {MIN_GOOD_HYPOTHESES}: the run is too short or its images do "
             "not match each other"
         )
@@ -284,13 +311,41 @@ def calibrate(
         errors, np.array(samples.n_inliers), np.array(samples.error_px), joint
     )
     model = dataclasses.replace(paper, quality=quality, covariance=config.covariance)
-    counts = {
+    counts = {key: sum(c[key] for c in per_run) for key in per_run[0] if key != "used"}
+    provenance = _provenance(" + ".join(names), counts, samples, config, vocabulary)
+    if len(runs) > 1:
+        provenance["runs"] = [{"source": n, **c} for n, c in zip(names, per_run, strict=True)]
+    return CalibrationResult(model, provenance)
+
+
+def _run_samples(run, intrinsics, vocabulary, config, rng, ticker, samples) -> dict:
+    """Both passes over one training run: its temporary map, its queries' samples added
+    to ``samples``; the run's frame counts."""
+    entries, queries, seen, skipped = _split_run(
+        run.frames, intrinsics, vocabulary, config, ticker.tick
+    )
+    what = run.name or "the training run"
+    if len(entries) < config.k or not queries:
+        raise InvalidInputError(
+            f"calibration of {what} needs at least {config.k} map frames with 3D points and "
+            f"some query frames (at least {config.min_frames} frames); got {len(entries)} map "
+            f"frames ({skipped} without enough 3D points) and {len(queries)} query frames "
+            f"from {seen} frames"
+        )
+    entry_pose = np.array([planar_from_T_world_from_cam(e.T_world_from_cam) for e in entries])
+    before = samples.n_queries_with_hypotheses
+    used_before = len(samples.joint) - int(np.sum(samples.joint))
+    for query in queries:
+        _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
+        ticker.tick()
+    return {
         "frames": seen,
         "map_frames": len(entries),
         "map_frames_skipped": skipped,
         "query_frames": len(queries),
+        "queries_with_hypotheses": samples.n_queries_with_hypotheses - before,
+        "used": len(samples.joint) - int(np.sum(samples.joint)) - used_before,
     }
-    return CalibrationResult(model, _provenance(source_name, counts, samples, config, vocabulary))
 
 
 class _Ticker:
@@ -309,7 +364,6 @@ def _provenance(source_name, counts, samples: _Samples, config, vocabulary) -> d
     return {
         "source": source_name,
         **counts,
-        "queries_with_hypotheses": samples.n_queries_with_hypotheses,
         "hypotheses": samples.n_hypotheses,
         "used": len(samples.truth) - int(np.sum(samples.joint)),
         "joint_hypotheses": samples.n_joint,

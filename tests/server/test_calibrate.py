@@ -20,7 +20,13 @@ import numpy as np
 import pytest
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.calibrate import CalibrationConfig, TrainingFrame, calibrate
+from monoloc.server.calibrate import (
+    CalibrationConfig,
+    TrainingFrame,
+    TrainingRun,
+    calibrate,
+    calibrate_runs,
+)
 
 N_FRAMES = 30
 OFFSET_X_M = 0.5
@@ -145,6 +151,40 @@ def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
     expected = (planted.model.Sigma1[0, 0] - floor) * (n - 1) / n + mu1[0] ** 2 + floor
     assert paper.Sigma1[0, 0] == pytest.approx(expected, rel=1e-6)
     assert np.allclose(paper.mu1, mu1)
+
+
+def test_runs_are_pooled_each_against_its_own_map(exact_run):
+    """Two training runs (e.g. day and night): each is split into its own map and
+    queries, and one fit covers the samples of both. The second run's query truths carry
+    a planted +0.5 m X offset, the first's none, so the pooled mu1 X is the offset times
+    the second run's share of the samples."""
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
+
+    runs = [
+        TrainingRun(_frames(exact_run), "day"),
+        TrainingRun(_frames(exact_run, offset_x_m=OFFSET_X_M), "shifted"),
+    ]
+    calls = []
+    result = calibrate_runs(
+        runs,
+        read_kitti_sequence(exact_run).intrinsics,
+        load_default_vocabulary(),
+        CalibrationConfig(k=3),
+        np.random.default_rng(0),
+        progress=lambda d, t: calls.append((d, t)),
+    )
+    prov = result.provenance
+    per_run = {r["source"]: r for r in prov["runs"]}
+    assert prov["source"] == "day + shifted" and prov["frames"] == 2 * N_FRAMES
+    assert per_run["day"]["frames"] == per_run["shifted"]["frames"] == N_FRAMES
+    assert per_run["day"]["used"] + per_run["shifted"]["used"] == prov["used"]
+    share = per_run["shifted"]["used"] / prov["used"]
+    assert 0.3 < share < 0.7
+    assert result.model.mu1[0] == pytest.approx(OFFSET_X_M * share, abs=0.03)
+    assert calls[-1][0] == calls[-1][1] == 2 * (N_FRAMES + N_FRAMES // 2)
+    with pytest.raises(InvalidInputError, match="at least one training run"):
+        calibrate_runs([], None, None, CalibrationConfig(), np.random.default_rng(0))
 
 
 def test_too_short_a_run_is_refused(noisy_run):
