@@ -85,6 +85,18 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
             f"{floor['position_rmse_m']:.3f} m, median {floor['position_median_m']:.3f} m, "
             f"heading RMSE {floor['heading_rmse_deg']:.2f} deg.",
         ]
+    for key, what in (("recording_floor", "query"), ("night_recording_floor", "night + night")):
+        rf = data.get(key)
+        if rf:
+            out += [
+                "",
+                f"Recording errors' floor ({what}): a pose exact relative to the map scores "
+                f"median {rf['floor']['median_m']:.3f} m, RMSE {rf['floor']['rmse_m']:.3f} m "
+                "against the written truth; judged against the map's own frame the filter has "
+                f"median {rf['filter_vs_map_frame']['median_m']:.3f} m, RMSE "
+                f"{rf['filter_vs_map_frame']['rmse_m']:.3f} m, best of k median "
+                f"{rf['best_of_k_vs_map_frame_median_m']:.3f} m.",
+            ]
     prov = data.get("calibration", {}).get("provenance")
     if prov:
         out += ["", f"Calibration: {json.dumps(prov)}"]

@@ -223,3 +223,33 @@ def time_to_recover(
         if ok[i : i + hold_frames].all():
             return float(timestamps_s[i] - timestamps_s[since])
     return math.inf
+
+
+def truth_in_map_frame(
+    query_true_world: np.ndarray,
+    map_true_world: np.ndarray,
+    map_written_world: np.ndarray,
+) -> np.ndarray:
+    """Where a localizer that is exact relative to the map puts each query frame (N, 3):
+    the query's true planar pose (N, 3) moved by the recorded pose error (written minus
+    true, heading wrapped) of the map frame nearest to it (true positions; map poses
+    (M, 3) each). A map whose ground truth is off by a slowly varying error carries its
+    entries' hypotheses with it; the distance from this pose to the query's written
+    truth is what the recording errors alone cost (the nearest entry stands for the few
+    a frame is localized against)."""
+    q = np.asarray(query_true_world, dtype=np.float64)
+    true_m = np.asarray(map_true_world, dtype=np.float64)
+    written_m = np.asarray(map_written_world, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != 3 or true_m.shape != written_m.shape or true_m.ndim != 2:
+        raise InvalidInputError(
+            f"need query poses (N, 3) and matching map poses (M, 3), got {q.shape}, "
+            f"{true_m.shape} and {written_m.shape}"
+        )
+    if not len(true_m):
+        raise InvalidInputError("need at least one map pose")
+    d = q[:, None, :2] - true_m[None, :, :2]
+    nearest = np.argmin(np.einsum("nmk,nmk->nm", d, d), axis=1)
+    error = written_m[nearest] - true_m[nearest]
+    out = q + error
+    out[:, 2] = wrap_angle(q[:, 2] + wrap_angle(error[:, 2]))
+    return out

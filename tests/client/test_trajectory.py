@@ -44,3 +44,23 @@ def test_metrics_values_and_misses():
     assert m.within_5m_10deg == pytest.approx(0.75)
     with pytest.raises(InvalidInputError):
         trajectory_metrics(est[:2], truth)
+
+
+def test_truth_in_map_frame_carries_the_nearest_map_error():
+    from monoloc.client.trajectory import truth_in_map_frame
+
+    # A straight map along X whose written poses drift: +2 cm in Y per 10 m, +0.1 deg.
+    x_m = np.arange(0.0, 50.0, 1.0)
+    map_true = np.stack([x_m, np.zeros_like(x_m), np.zeros_like(x_m)], axis=1)
+    map_written = map_true + np.stack(
+        [np.zeros_like(x_m), 0.002 * x_m, np.full_like(x_m, math.radians(0.1))], axis=1
+    )
+    query_true = np.array([[10.2, 0.8, 0.05], [30.4, -1.0, math.pi - 0.001]])
+    placed = truth_in_map_frame(query_true, map_true, map_written)
+    np.testing.assert_allclose(placed[:, 0], query_true[:, 0])
+    np.testing.assert_allclose(placed[:, 1], query_true[:, 1] + [0.02, 0.06])
+    # the heading error is added and wrapped (pi - 0.001 + 0.1 deg crosses pi)
+    np.testing.assert_allclose(placed[0, 2], 0.05 + math.radians(0.1))
+    assert placed[1, 2] == pytest.approx(-math.pi - 0.001 + math.radians(0.1))
+    with pytest.raises(InvalidInputError):
+        truth_in_map_frame(query_true, map_true, map_written[:-1])

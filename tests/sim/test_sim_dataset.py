@@ -129,3 +129,19 @@ def test_same_seed_gives_same_bytes(tmp_path, tiny_config):
     generate_dataset(GenerateConfig(**{**config.__dict__, "seed": 6}), tmp_path / "c")
     assert digest(tmp_path / "a") == digest(tmp_path / "b")
     assert digest(tmp_path / "a") != digest(tmp_path / "c")
+
+
+def test_true_poses_are_the_written_ones_without_recording_errors(exact_dataset, tiny_config):
+    from monoloc.core.geometry import planar_from_T_world_from_cam
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.sim.urban.truth import true_planar_poses
+
+    root, meta = exact_dataset
+    truth = true_planar_poses(tiny_config, np.array(meta["T_simworld_from_zupworld"]))
+    assert set(truth) == {"map", "query"}
+    for seq in meta["sequences"]:
+        written = read_kitti_sequence(root, seq["id"])
+        poses = np.array([planar_from_T_world_from_cam(f.T_world_from_cam) for f in written.frames])
+        assert truth[seq["run"]].shape == poses.shape
+        np.testing.assert_allclose(truth[seq["run"]][:, :2], poses[:, :2], atol=1e-6)
+        np.testing.assert_allclose(truth[seq["run"]][:, 2], poses[:, 2], atol=1e-8)
