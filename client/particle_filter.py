@@ -55,6 +55,14 @@ class FilterConfig:
     # frame by the measured speed and yaw rate. 4 frames at 10 Hz: 0.4 s of evidence
     # that moves like the car; the window (2 s) bounds the odometry drift (~0.2 m with
     # a 1 % speed scale error at 9 m/s).
+    # Initialisation: the first frame in which at least ``init_min_agreeing`` hypotheses
+    # agree within the re-seed tolerances starts the filter (around all of that frame's
+    # hypotheses, weighed by it); a frame with a lone hypothesis does not, unless the
+    # hypotheses of ``reseed_min_frames`` frames agree once moved by the measured motion
+    # (the re-seed rule). A lone PnP pose is sometimes off by metres (night frames, few
+    # inliers), and a filter started there takes several frames to leave it. 1: the
+    # first frame with any hypothesis starts the filter.
+    init_min_agreeing: int = 2
     reseed_min_frames: int = 4
     reseed_window_frames: int = 20
     reseed_position_tol_m: float = 1.0
@@ -179,11 +187,12 @@ class ParticleFilter:
         self.update(hypotheses)
 
     def predict(self, dt_s: float, speed_mps: float, yaw_rate_radps: float) -> None:
-        if self.particles is None:
-            return
-        self.particles = predict(
-            self.particles, speed_mps, yaw_rate_radps, dt_s, self.config.motion, self.rng
-        )
+        """Move the particles (and the remembered hypotheses, kept before initialisation
+        too) by one step of the measured speed and yaw rate."""
+        if self.particles is not None:
+            self.particles = predict(
+                self.particles, speed_mps, yaw_rate_radps, dt_s, self.config.motion, self.rng
+            )
         motion = self.config.motion
         if len(self._recent_world):
             self._recent_world = advance(
@@ -285,19 +294,41 @@ class ParticleFilter:
         previous frame, then update with this frame's hypotheses (none: prediction only);
         returns the estimate.
 
-        Uninitialised, there is nothing to predict: the first frame with hypotheses
-        initialises the filter around them (and is weighed by them), and until then the
-        result is None.
+        Uninitialised, only the remembered hypotheses move: the first frame whose
+        hypotheses may start the filter (``FilterConfig.init_min_agreeing``) initialises
+        it around them (and weighs it by them), and until then the result is None.
         """
         hypotheses = hypotheses if hypotheses is not None else Hypotheses.empty()
         if self.particles is None:
-            if len(hypotheses) == 0:
+            self.predict(dt_s, speed_mps, yaw_rate_radps)  # the remembered hypotheses only
+            if not self._start(hypotheses):
                 return None
-            self.initialise_from_hypotheses(hypotheses)
         else:
             self.predict(dt_s, speed_mps, yaw_rate_radps)
             self.update(hypotheses)
         return self.estimate(n_hypotheses=len(hypotheses))
+
+    def _start(self, hypotheses: Hypotheses) -> bool:
+        """Initialise on this frame if its hypotheses may start the filter (see
+        ``FilterConfig.init_min_agreeing``); otherwise remember them. Whether it started."""
+        centres = hypotheses.pose_world + self.model.mu1
+        if len(hypotheses) == 0:
+            self._remember(centres)
+            return False
+        agreeing = _agrees(centres, centres, self.config).sum(axis=1)
+        if agreeing.max() >= self.config.init_min_agreeing:
+            self.initialise_from_hypotheses(hypotheses)  # its update remembers the frame
+            return True
+        chosen = self.reseed_candidate(centres)
+        self._remember(centres)
+        if chosen is None:
+            return False
+        self.initialise(
+            centres[chosen], self.config.init_position_std_m, self.config.init_yaw_std_rad
+        )
+        log_lik, _ = log_likelihood_and_distance(self.particles, hypotheses, self.model)
+        self._weigh(log_lik)
+        return True
 
     @property
     def lost(self) -> bool:

@@ -89,7 +89,10 @@ class FakeClient:
         return None  # a map without a geographic reference
 
 
-CONFIG = DriveConfig(filter=FilterConfig(n_particles=300))
+# The fake server answers one hypothesis per frame; these tests are about the drive loop,
+# so the filter starts on the first frame with a hypothesis (init_min_agreeing=1).
+FILTER = FilterConfig(n_particles=300, init_min_agreeing=1)
+CONFIG = DriveConfig(filter=FILTER)
 
 
 def test_prior_follows_the_filter_and_misses_become_prediction_steps(tmp_path):
@@ -133,7 +136,7 @@ def test_an_answer_out_of_order_is_refused(tmp_path):
 def test_realtime_sends_at_the_recorded_times(tmp_path):
     run = _run(tmp_path, n=12, dt=0.04)
     stream = FakeStream(run.truth_world)
-    config = DriveConfig(filter=FilterConfig(n_particles=300), realtime=True)
+    config = DriveConfig(filter=FILTER, realtime=True)
     result = drive(FakeClient(stream), 1, run, MeasurementModel(), config)
     sent = np.array([s["at"] for s in stream.sent])
     offsets = (sent - sent[0]) - (run.timestamps_s - run.timestamps_s[0])

@@ -197,3 +197,45 @@ def test_first_estimate_ignores_a_lone_wrong_hypothesis():
     est = pf.step(0.1, 0.0, 0.0, hyps)
     # A plain weighted mean would sit ~7 m away (1/7 of the particles at 54 m).
     assert np.linalg.norm(est.pose_world[:2] - truth[:2]) < 0.3
+
+
+def _lone(pose):
+    pose = np.atleast_2d(pose)
+    return Hypotheses(pose, pose + [1.0, 0.0, 0.0], np.full(len(pose), 0.9))
+
+
+def test_a_lone_hypothesis_does_not_start_the_filter_agreeing_ones_do():
+    rng = np.random.default_rng(9)
+    truth = np.array([10.0, 5.0, 0.3])
+    pf = ParticleFilter(FilterConfig(n_particles=500), MeasurementModel(), rng)
+    # one hypothesis, 0.7 m off (a night frame's lone PnP pose): no start
+    assert pf.step(0.0, 0.0, 0.0, _lone(truth + [0.7, 0.0, 0.0])) is None
+    assert not pf.initialised
+    # two hypotheses that agree within the re-seed tolerances: start there
+    est = pf.step(0.0, 0.0, 0.0, _lone(truth + rng.normal(scale=[0.05, 0.05, 0.002], size=(2, 3))))
+    assert pf.initialised and np.linalg.norm(est.pose_world[:2] - truth[:2]) < 0.15
+    # the old rule (init_min_agreeing=1) starts on the lone one
+    eager_config = FilterConfig(n_particles=500, init_min_agreeing=1)
+    eager = ParticleFilter(eager_config, MeasurementModel(), rng)
+    assert eager.step(0.0, 0.0, 0.0, _lone(truth + [0.7, 0.0, 0.0])) is not None
+
+
+def test_lone_hypotheses_that_move_with_the_vehicle_start_the_filter():
+    """A server that answers one hypothesis per frame: the filter starts once those of
+    ``reseed_min_frames`` frames agree after being moved by the measured motion, and not
+    on lone hypotheses that jump about."""
+    rng = np.random.default_rng(10)
+    dt, speed, yaw_rate = 0.1, 8.0, 0.1
+    truth = _circle_truth(10, dt, speed, yaw_rate, [0.0, 0.0, 0.2])
+    config = FilterConfig(n_particles=500)
+    pf = ParticleFilter(config, MeasurementModel(), rng)
+    starts = []
+    for k in range(8):
+        est = pf.step(dt if k else 0.0, speed, yaw_rate, _lone(truth[k] + [0.0, 0.05, 0.0]))
+        starts.append(est is not None)
+    assert starts.index(True) == config.reseed_min_frames - 1
+    assert np.linalg.norm(est.pose_world[:2] - truth[7, :2]) < 0.3
+    jumpy = ParticleFilter(config, MeasurementModel(), rng)
+    for k in range(8):
+        wrong = truth[k] + [rng.uniform(-20, 20), rng.uniform(-20, 20), 0.0]
+        assert jumpy.step(dt if k else 0.0, speed, yaw_rate, _lone(wrong)) is None

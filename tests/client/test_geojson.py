@@ -11,12 +11,11 @@ import httpx
 import numpy as np
 import pymap3d
 import pytest
-from test_client_drive import FakeClient, FakeStream, _run
+from test_client_drive import FILTER, FakeClient, FakeStream, _run
 
 from monoloc.client.api import MonolocClient, ServerError
 from monoloc.client.drive import DriveConfig, drive, write_geojson
 from monoloc.client.geojson import track_heights_m
-from monoloc.client.particle_filter import FilterConfig
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geo import GeoOrigin, GeoReference
 from monoloc.core.geometry import R_from_quaternion_xyzw
@@ -56,7 +55,7 @@ def test_the_track_is_the_filters_estimate_dead_reckoned_frames_included(tmp_pat
     run = _run(tmp_path, n=20)
     stream = GeoStream(run.truth_world, dropped={5, 6}, errors={9})
     client = GeoClient(stream, GeoReference.from_origin(ORIGIN))
-    config = DriveConfig(filter=FilterConfig(n_particles=300))
+    config = DriveConfig(filter=FILTER)
     result = drive(client, 1, run, MeasurementModel(), config)
     assert client.asked == 1  # once per drive, not per frame
     path = write_geojson(result, tmp_path / "out" / "drive")
@@ -93,7 +92,7 @@ def test_the_track_is_the_filters_estimate_dead_reckoned_frames_included(tmp_pat
 
 def test_no_reference_or_no_estimate_writes_no_geojson(tmp_path):
     run = _run(tmp_path, n=6)
-    config = DriveConfig(filter=FilterConfig(n_particles=300))
+    config = DriveConfig(filter=FILTER)
     plain = drive(GeoClient(GeoStream(run.truth_world), None), 1, run, MeasurementModel(), config)
     assert np.all(np.isfinite(plain.estimates_world))
     assert write_geojson(plain, tmp_path / "plain") is None
