@@ -86,19 +86,22 @@ def ensure_dataset(
     return json.loads((root / "dataset.json").read_text())
 
 
-def calibrate_on(train, vocabulary):
+def calibrate_on(train, vocabulary, trainnight=None, covariance: str = "paper"):
     """The measurement model fitted on a training run (KittiSequence / TumRun), each frame
-    read once, exactly as the server's calibration job does."""
-    from monoloc.server.calibrate import CalibrationConfig, calibrate
+    read once, exactly as the server's calibration job does; with ``trainnight``, on the
+    pooled samples of both runs (each against its own temporary map). ``covariance``
+    selects the model the result uses ("paper" or "quality"; both are fitted)."""
+    from monoloc.server.calibrate import CalibrationConfig, TrainingRun, calibrate_runs
     from monoloc.server.jobs.calibration import training_frames
 
-    return calibrate(
-        training_frames(train),
+    named = [("train", train)] + ([("trainnight", trainnight)] if trainnight else [])
+    runs = [TrainingRun(training_frames(seq), name, seq.n_frames) for name, seq in named]
+    return calibrate_runs(
+        runs,
         train.intrinsics,
         vocabulary,
-        CalibrationConfig(),
+        CalibrationConfig(covariance=covariance),
         np.random.default_rng(0),
-        source_name="train",
     )
 
 
@@ -148,11 +151,13 @@ def main() -> None:
     if args.scenario == "indoor":
         return main_indoor(args)
     root = args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
-    runs = ("map", "query", "train", "night", "nightmap")
+    runs = ("map", "query", "train", "night", "nightmap", "trainnight")
     meta = ensure_dataset(root, args.size, args.frames, args.seed, runs)
+    night_train = night_training_run(root, meta, args)
+    true_world = true_poses(meta, args)
     out = {"scenario": "urban", "size": args.size, "seed": args.seed}
     out["frames_per_run"] = args.frames
-    out.update(urban_city(root, meta, night=True))
+    out.update(urban_city(root, meta, night=True, night_train=night_train, true_world=true_world))
     if not args.no_floor:
         exact_root = root.with_name(root.name + "_exact")
         exact_meta = ensure_dataset(
@@ -173,9 +178,96 @@ def main() -> None:
     (RESULTS / "accuracy_urban.json").write_text(json.dumps(out, indent=2) + "\n")
 
 
-def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> dict:
+def night_training_run(root: Path, meta: dict, args) -> tuple[Path, str]:
+    """(dataset root, sequence id) of the `trainnight` run: in the dataset itself, or, for
+    a dataset generated before the run existed, in a sibling dataset of that run alone
+    (the same route through the training district; the cached dataset is left as it is)."""
+    seq = sequence_of(meta, "trainnight")
+    if seq is not None:
+        return root, seq
+    extra = root.with_name(root.name + "_trainnight")
+    extra_meta = ensure_dataset(extra, args.size, args.frames, args.seed, ("trainnight",))
+    return extra, sequence_of(extra_meta, "trainnight")
+
+
+def true_poses(meta: dict, args) -> dict[str, np.ndarray]:
+    """The sim's true planar camera poses (N, 3) per run of the dataset, in its z-up world."""
+    from monoloc.sim.generate import GenerateConfig
+    from monoloc.sim.urban.truth import true_planar_poses
+
+    runs = tuple(seq["run"] for seq in meta["sequences"])
+    config = GenerateConfig(
+        scenario="urban", size=args.size, seed=args.seed, runs=runs, max_frames=args.frames
+    )
+    return true_planar_poses(config, np.array(meta["T_simworld_from_zupworld"]))
+
+
+def written_poses(root: Path, seq_id: str) -> np.ndarray:
+    from monoloc.core.geometry import planar_from_T_world_from_cam
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+
+    seq = read_kitti_sequence(root, seq_id)
+    return np.array([planar_from_T_world_from_cam(f.T_world_from_cam) for f in seq.frames])
+
+
+def recording_floor(result, variant: str, placed_world: np.ndarray) -> dict:
+    """What the recording errors alone cost, and the filter judged without them.
+
+    ``placed_world`` (N, 3): where a localizer exact relative to the map puts each frame
+    (``truth_in_map_frame``). floor: its error against the written truth (what the
+    figures are judged by); the filter and the best of k against ``placed_world``: their
+    own error, without the map's and the query's recording errors."""
+    from monoloc.client.trajectory import best_of_k_errors
+
+    truth = result.truth_world
+    floor = np.linalg.norm(placed_world[:, :2] - truth[:, :2], axis=1)
+    est = result.estimates[variant]
+    own = np.linalg.norm(est[:, :2] - placed_world[:, :2], axis=1)
+    best_k = best_of_k_errors(result.hypotheses_world, placed_world)
+    ok = np.isfinite(best_k) & np.isfinite(own)
+
+    def stats(e):
+        e = e[np.isfinite(e)]
+        return {"median_m": float(np.median(e)), "rmse_m": float(np.sqrt(np.mean(e**2)))}
+
+    return {
+        "floor": stats(floor),
+        "filter_vs_map_frame": stats(own),
+        "best_of_k_vs_map_frame_median_m": float(np.median(best_k[ok])),
+        "filter_vs_map_frame_median_on_frames_with_hypotheses_m": float(np.median(own[ok])),
+    }
+
+
+def print_floor(name: str, f: dict) -> None:
+    ratio = f["filter_vs_map_frame_median_on_frames_with_hypotheses_m"] / max(
+        f["best_of_k_vs_map_frame_median_m"], 1e-9
+    )
+    print(
+        f"{name}: a pose exact relative to the map scores median {f['floor']['median_m']:.3f} m"
+        f" / RMSE {f['floor']['rmse_m']:.3f} m against the written truth (the recording "
+        f"errors' floor); against the map's own frame the filter has median "
+        f"{f['filter_vs_map_frame']['median_m']:.3f} m / RMSE "
+        f"{f['filter_vs_map_frame']['rmse_m']:.3f} m, best of k median "
+        f"{f['best_of_k_vs_map_frame_median_m']:.3f} m (filter / best of k {ratio:.2f})"
+    )
+
+
+def urban_city(
+    root: Path,
+    meta: dict,
+    night: bool,
+    variants=URBAN_VARIANTS,
+    night_train: tuple[Path, str] | None = None,
+    true_world: dict[str, np.ndarray] | None = None,
+) -> dict:
     """Calibrate on `train`, map the `map` run, evaluate the `query` run with each variant
-    (and the night runs); print the tables; the figures as a dict."""
+    (and the night runs); print the tables; the figures as a dict.
+
+    With ``night_train`` (root, sequence of the `trainnight` run), the model is the
+    quality-aware one calibrated on `train` + `trainnight` together, and the paper's
+    model calibrated on `train` alone (the earlier default) runs beside it in the same
+    run, on the query and on the night query with night entries. With ``true_world``
+    (the sim's true poses per run), the recording errors' floor (:func:`recording_floor`)."""
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.evaluation import (
         EvalConfig,
@@ -191,9 +283,20 @@ def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> 
     train_id = sequence_of(meta, "train")
     lever = fitted_lever_arm_m(read_kitti_run(root, train_id), rig_lever_arm_m(root))
     t0 = time.time()
-    calib = calibrate_on(read_kitti_sequence(root, train_id), vocab)
+    train = read_kitti_sequence(root, train_id)
+    paper_calib = calibrate_on(train, vocab)
+    print(f"calibrated on {paper_calib.provenance['used']} hypotheses in {time.time() - t0:.0f} s")
+    calib, compare = paper_calib, None
+    if night_train is not None:
+        t0 = time.time()
+        trainnight = read_kitti_sequence(*night_train)
+        calib = calibrate_on(train, vocab, trainnight, covariance="quality")
+        compare = ("paper model, day training", paper_calib.model)
+        print(
+            f"calibrated on train + trainnight: {calib.provenance['used']} hypotheses in "
+            f"{time.time() - t0:.0f} s; quality-aware model selected"
+        )
     model = calib.model
-    print(f"calibrated on {calib.provenance['used']} hypotheses in {time.time() - t0:.0f} s")
     memory = MemoryMap.empty(vocab)
     t0 = time.time()
     memory.add_run(read_kitti_sequence(root, sequence_of(meta, "map")))
@@ -203,6 +306,11 @@ def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> 
     signals = read_kitti_run(root, query_id).signals
     result = evaluate_run(memory, query, signals, model, lever_arm_m=lever, variants=variants)
     rows = [(v, metrics_row(m)) for v, m in result.metrics.items()]
+    if compare is not None:
+        other = evaluate_run(
+            memory, query, signals, compare[1], lever_arm_m=lever, variants=("full",)
+        )
+        rows.append((f"full, {compare[0]}", metrics_row(other.metrics["full"])))
     out = {
         "calibration": {"model": model.to_dict(), "provenance": calib.provenance},
         "query": dict(rows),
@@ -215,6 +323,13 @@ def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> 
     }
     if "kidnapped" in result.estimates:
         out["kidnapped_recover_s"] = recovery_s(result, "kidnapped")
+    map_id = sequence_of(meta, "map")
+    if true_world is not None:
+        from monoloc.client.trajectory import truth_in_map_frame
+
+        map_true, map_written = true_world["map"], written_poses(root, map_id)
+        placed = truth_in_map_frame(true_world["query"], map_true, map_written)
+        out["recording_floor"] = recording_floor(result, "full", placed)
     night_rows = []
     night_id, nightmap_id = sequence_of(meta, "night"), sequence_of(meta, "nightmap")
     if night and night_id:
@@ -228,11 +343,30 @@ def urban_city(root: Path, meta: dict, night: bool, variants=URBAN_VARIANTS) -> 
                 memory, night_seq, nsig, model, lever_arm_m=lever, variants=("full",)
             )
             night_rows.append(("night, + night entries", metrics_row(after.metrics["full"])))
+            if compare is not None:
+                other = evaluate_run(
+                    memory, night_seq, nsig, compare[1], lever_arm_m=lever, variants=("full",)
+                )
+                night_rows.append(
+                    (f"night, + night entries, {compare[0]}", metrics_row(other.metrics["full"]))
+                )
             out["night_entries_added"] = added
             out["night_bias"] = bias_report(after, ["full"])
+            if true_world is not None:
+                placed = truth_in_map_frame(
+                    true_world["night"],
+                    np.concatenate([map_true, true_world["nightmap"]]),
+                    np.concatenate([map_written, written_poses(root, nightmap_id)]),
+                )
+                out["night_recording_floor"] = recording_floor(after, "full", placed)
     out["night"] = dict(night_rows)
     print_table(rows + night_rows)
     print_bias(out["bias"])
+    if "recording_floor" in out:
+        print()
+        print_floor("query", out["recording_floor"])
+    if "night_recording_floor" in out:
+        print_floor("night, + night entries", out["night_recording_floor"])
     if "kidnapped_recover_s" in out:
         print(
             f"kidnapped start ({EvalConfig().kidnap_offset_m:g} m to the side): back within 0.25 m "
@@ -368,6 +502,15 @@ def print_goals(out: dict) -> None:
             f"{fl['position_median_m']:.3f} m, heading RMSE {fl['heading_rmse_deg']:.2f} deg, "
             f"{100 * fl['within_0_25m_2deg']:.1f} % within 0.25 m / 2 deg"
         )
+    if "recording_floor" in out:
+        rf = out["recording_floor"]
+        print(
+            f"recording errors' floor (a pose exact relative to the map, judged against the "
+            f"written truth): median {rf['floor']['median_m']:.3f} m, RMSE "
+            f"{rf['floor']['rmse_m']:.3f} m; the filter against the map's own frame: median "
+            f"{rf['filter_vs_map_frame']['median_m']:.3f} m, RMSE "
+            f"{rf['filter_vs_map_frame']['rmse_m']:.3f} m"
+        )
     out["goals_met"] = {
         name: (value <= goal if op == "<=" else value >= goal) for name, value, op, goal in rows
     }
@@ -403,6 +546,15 @@ def main_indoor(args) -> None:
     variants = ("full", "full_euler", "no_prior", "top1", "topk_mean", "best_pnp")
     base = evaluate_run(memory, query, signals, calib.model, lever_arm_m=lever, variants=variants)
     rows = [(v, metrics_row(m)) for v, m in base.metrics.items()]
+    quality = evaluate_run(
+        memory,
+        query,
+        signals,
+        calib.model.with_covariance("quality"),
+        lever_arm_m=lever,
+        variants=("full",),
+    )
+    rows.append(("full, quality-aware model", metrics_row(quality.metrics["full"])))
     memory.add_run(read_tum_run(root / "offcenter"), tags=("off-center",))
     aug = evaluate_run(memory, query, signals, calib.model, lever_arm_m=lever, variants=("full",))
     rows.append(("full, map + off-center lap", metrics_row(aug.metrics["full"])))
