@@ -164,7 +164,13 @@ def main() -> None:
             exact_root, args.size, args.frames, args.seed, runs[:3], exact=True
         )
         print("\nerror floor: the same pipeline on the same city with the recording errors off")
-        floor = urban_city(exact_root, exact_meta, night=False, variants=("full", "best_pnp"))
+        floor = urban_city(
+            exact_root,
+            exact_meta,
+            night=False,
+            variants=("full", "best_pnp"),
+            night_train=night_training_run(exact_root, exact_meta, args, exact=True),
+        )
         out["floor"] = floor
     if not args.no_stereo:
         import stereo
@@ -178,15 +184,18 @@ def main() -> None:
     (RESULTS / "accuracy_urban.json").write_text(json.dumps(out, indent=2) + "\n")
 
 
-def night_training_run(root: Path, meta: dict, args) -> tuple[Path, str]:
+def night_training_run(root: Path, meta: dict, args, exact: bool = False) -> tuple[Path, str]:
     """(dataset root, sequence id) of the `trainnight` run: in the dataset itself, or, for
-    a dataset generated before the run existed, in a sibling dataset of that run alone
-    (the same route through the training district; the cached dataset is left as it is)."""
+    a dataset generated without it (cached before the run existed, or the error floor's),
+    in a sibling dataset of that run alone (the same route through the training district;
+    the cached dataset is left as it is)."""
     seq = sequence_of(meta, "trainnight")
     if seq is not None:
         return root, seq
     extra = root.with_name(root.name + "_trainnight")
-    extra_meta = ensure_dataset(extra, args.size, args.frames, args.seed, ("trainnight",))
+    extra_meta = ensure_dataset(
+        extra, args.size, args.frames, args.seed, ("trainnight",), exact=exact
+    )
     return extra, sequence_of(extra_meta, "trainnight")
 
 
