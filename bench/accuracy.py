@@ -367,6 +367,8 @@ def urban_city(
                     np.concatenate([map_true, true_world["nightmap"]]),
                     np.concatenate([map_written, written_poses(root, nightmap_id)]),
                 )
+                # two maps (day and night entries) with independent recording errors:
+                # the nearest entry of either stands for the map, a rougher placement
                 out["night_recording_floor"] = recording_floor(after, "full", placed)
     out["night"] = dict(night_rows)
     print_table(rows + night_rows)
@@ -375,7 +377,10 @@ def urban_city(
         print()
         print_floor("query", out["recording_floor"])
     if "night_recording_floor" in out:
-        print_floor("night, + night entries", out["night_recording_floor"])
+        print_floor(
+            "night, + night entries (day and night entries: approximate)",
+            out["night_recording_floor"],
+        )
     if "kidnapped_recover_s" in out:
         print(
             f"kidnapped start ({EvalConfig().kidnap_offset_m:g} m to the side): back within 0.25 m "

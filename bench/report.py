@@ -85,7 +85,11 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
             f"{floor['position_rmse_m']:.3f} m, median {floor['position_median_m']:.3f} m, "
             f"heading RMSE {floor['heading_rmse_deg']:.2f} deg.",
         ]
-    for key, what in (("recording_floor", "query"), ("night_recording_floor", "night + night")):
+    floors = (
+        ("recording_floor", "query"),
+        ("night_recording_floor", "night + night entries; approximate: two maps"),
+    )
+    for key, what in floors:
         rf = data.get(key)
         if rf:
             out += [
