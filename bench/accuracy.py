@@ -276,9 +276,9 @@ def urban_city(
     The model is the paper's, calibrated on `train`. With ``night_train`` (root, sequence
     of the `trainnight` run), the quality-aware model calibrated on `train` + `trainnight`
     together runs beside it in the same run, on the query and on the night query with
-    night entries. (It was the selected model for one held-out run; on the development
-    cities it made night better on 41 and 42 but the day far worse on 42, and on the
-    held-out city night worse: not a default that never makes night or day worse.)
+    night entries. (It was the selected model for the held-out run; it made night better
+    on development cities 41 and 42 but worse on the held-out city: not a default that
+    never makes night worse.)
     With ``true_world``
     (the sim's true poses per run), the recording errors' floor (:func:`recording_floor`)."""
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
