@@ -35,7 +35,8 @@ from typing import Literal
 import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
-from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam, wrap_angle
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
@@ -125,6 +126,7 @@ class LocalizeConfig:
     guided_pnp: bool = True
     guess_from_prior: bool = True
     joint: JointConfig | None = field(default_factory=JointConfig)
+    fallback_until_confirmed: int | None = 2
 
     @property
     def preset(self) -> Preset:
@@ -138,6 +140,7 @@ class LocalizeConfig:
             guided=self.guided_pnp and preset.guided,
             guess_from_prior=self.guess_from_prior and self.guided_pnp and preset.guided,
             joint=self.joint if preset.joint else None,
+            fallback_until_confirmed=self.fallback_until_confirmed,
         )
 
 
@@ -145,11 +148,28 @@ class LocalizeConfig:
 class PnpStrategy:
     """guided: guided PnP (else every entry its own RANSAC, the paper); guess_from_prior:
     a retrieval prior with a heading seeds the guesses; joint: joint-pose settings, None
-    for no joint hypothesis."""
+    for no joint hypothesis.
+
+    fallback_until_confirmed: in guided PnP, an entry the poses found so far do not
+    explain gets its own RANSAC only until this many accepted entries agree on one pose
+    (within the joint gates, ``JointConfig``'s defaults without a joint pose); after that
+    it is rejected without one. None: always its own RANSAC. Why: once independent
+    entries confirm a pose, an entry that pose does not explain sees another place (or
+    too little of this one), and its own RANSAC could only add a hypothesis that
+    contradicts the consensus; on bench/localize.py it ran for about four entries per
+    query and accepted none of them, for about a third of the PnP time. Before
+    confirmation (e.g. the first entry's RANSAC found a wrong pose) the fallback keeps
+    its role.
+    """
 
     guided: bool = True
     guess_from_prior: bool = True
     joint: JointConfig | None = field(default_factory=JointConfig)
+    fallback_until_confirmed: int | None = 2
+
+    def __post_init__(self) -> None:
+        if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
+            raise InvalidInputError(f"PnpStrategy.fallback_until_confirmed must be >= 1: {self}")
 
 
 @dataclass(frozen=True)
@@ -337,25 +357,51 @@ def _solve_entries(
     prior: RetrievalPrior | None,
 ) -> list[RelativePose]:
     """One RelativePose per reference, in the references' order. Guided: by decreasing
-    number of matches, each entry seeded by the poses (T_world_from_query) found so far."""
+    number of matches, each entry seeded by the poses (T_world_from_query) found so far,
+    its own RANSAC as a fallback only until the pose is confirmed (``PnpStrategy``)."""
     solved: list[RelativePose | None] = [None] * len(refs)
     order = sorted(range(len(refs)), key=lambda j: -len(matches[j]))
     found_world: list[np.ndarray] = []
     if strategy.guess_from_prior and prior is not None and prior.yaw_rad is not None and refs:
         found_world.append(_prior_guess(prior, refs[order[0]].T_world_from_cam))
+    votes = _Confirmation(strategy)
     for j in order:
         ref, pairs = refs[j], matches[j]
         pixels, points = keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
         if strategy.guided and found_world:
-            T_ref_from_world = invert_rigid(ref.T_world_from_cam)
-            guesses = [T_ref_from_world @ T for T in found_world]
-            rel = estimate_relative_pose_guided(pixels, points, guesses, intrinsics, config, rng)
+            # every found pose brought into this entry's frame: T_ref_from_world @ T
+            guesses = invert_rigid(ref.T_world_from_cam) @ np.stack(found_world)
+            rel = estimate_relative_pose_guided(
+                pixels, points, guesses, intrinsics, config, rng, fallback=not votes.confirmed
+            )
         else:
             rel = estimate_relative_pose(pixels, points, intrinsics, config, rng)
         solved[j] = rel
         if rel.accepted and strategy.guided:
-            found_world.append(ref.T_world_from_cam @ rel.T_ref_from_query)
+            T_world_from_query = ref.T_world_from_cam @ rel.T_ref_from_query
+            found_world.append(T_world_from_query)
+            votes.add(T_world_from_query)
     return [rel for rel in solved if rel is not None]
+
+
+class _Confirmation:
+    """Whether ``strategy.fallback_until_confirmed`` accepted poses agree on one pose."""
+
+    def __init__(self, strategy: PnpStrategy) -> None:
+        self.needed = strategy.fallback_until_confirmed
+        self.gates = strategy.joint or JointConfig()
+        self.poses_world: list[np.ndarray] = []
+        self.confirmed = False
+
+    def add(self, T_world_from_query: np.ndarray) -> None:
+        if self.needed is None or self.confirmed:
+            return
+        self.poses_world.append(planar_from_T_world_from_cam(T_world_from_query))
+        poses = np.array(self.poses_world)
+        agree = (np.hypot(*(poses[:, :2] - poses[-1, :2]).T) <= self.gates.position_gate_m) & (
+            np.abs(wrap_angle(poses[:, 2] - poses[-1, 2])) <= self.gates.yaw_gate_rad
+        )
+        self.confirmed = int(agree.sum()) >= self.needed
 
 
 def _prior_guess(prior: RetrievalPrior, T_world_from_ref: np.ndarray) -> np.ndarray:

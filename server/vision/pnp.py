@@ -370,42 +370,59 @@ def guided_min_inliers(n_points: int, config: PnpConfig) -> int:
     return max(config.min_inliers, math.ceil(config.guided_min_inlier_ratio * n_points))
 
 
+def _queries_from_refs(guesses_T_ref_from_query) -> tuple[np.ndarray, np.ndarray]:
+    """(G, 3, 3) R_query_from_ref and (G, 3) t_query_from_ref of G guesses (4, 4)
+    T_ref_from_query (a list or a (G, 4, 4) array), C-contiguous float64."""
+    T = np.asarray(guesses_T_ref_from_query, dtype=np.float64).reshape(-1, 4, 4)
+    R = np.ascontiguousarray(T[:, :3, :3].transpose(0, 2, 1))
+    t = -np.einsum("gij,gj->gi", R, T[:, :3, 3])
+    return R, t
+
+
 def estimate_relative_pose_guided(
     points_query_px: np.ndarray,
     points_ref_cam: np.ndarray,
-    guesses_T_ref_from_query: list[np.ndarray],
+    guesses_T_ref_from_query: list[np.ndarray] | np.ndarray,
     intrinsics: CameraIntrinsics,
     config: PnpConfig,
     rng: np.random.Generator,
+    fallback: bool = True,
 ) -> RelativePose:
     """PnP seeded by poses found elsewhere (guided PnP), falling back to RANSAC.
 
     Each guess (4, 4) T_ref_from_query (e.g. another entry's hypothesis brought into this
-    entry's frame) is scored on this entry's own M correspondences; the inliers of the
-    guess with the most are refit as RANSAC's inliers are (SQPnP, re-selection, LM), so
-    the pose is the entry's own optimum, not the guess nudged. The result is kept when it has at
-    least :func:`guided_min_inliers` inliers and passes the usual checks (``method`` is then
+    entry's frame; a list, or a (G, 4, 4) array) is scored on this entry's own M
+    correspondences; the inliers of the guess with the most (the first of equals) are
+    refit as RANSAC's inliers are (SQPnP, re-selection, LM), so the pose is the entry's
+    own optimum, not the guess nudged. The result is kept when it has at least
+    :func:`guided_min_inliers` inliers and passes the usual checks (``method`` is then
     "guided"); otherwise, or without guesses, the entry gets its own
-    :func:`estimate_relative_pose`. Either way the pose comes from this entry's own
+    :func:`estimate_relative_pose`, unless ``fallback`` is False: then it is rejected
+    (``method`` "guided"). Either way the pose comes from this entry's own
     correspondences only.
     """
+    from monoloc.server.vision._pnp_kernel import count_inliers
+
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
     needed = guided_min_inliers(n_points, config)
     K = intrinsics.K
-    best: tuple[int, np.ndarray, np.ndarray] | None = None
-    for guess in guesses_T_ref_from_query if n_points >= needed else []:
-        T_query_from_ref = invert_rigid(np.asarray(guess, dtype=np.float64))
-        R, t = T_query_from_ref[:3, :3].copy(), T_query_from_ref[:3, 3].copy()
-        mask, _ = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
-        count = int(mask.sum())
-        if best is None or count > best[0]:
-            best = (count, R, t)
-    if best is not None and best[0] >= _MIN_POINTS_FOR_SOLVER:
+    best_count = -1
+    n_guesses = len(guesses_T_ref_from_query)
+    if n_guesses and n_points >= needed:
+        R_all, t_all = _queries_from_refs(guesses_T_ref_from_query)
+        counts = np.empty(n_guesses, dtype=np.int64)
+        count_inliers(
+            points, pixels, R_all, t_all, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            config.reprojection_error_px, counts,
+        )  # fmt: skip
+        g = int(np.argmax(counts))
+        best_count = int(counts[g])
+    if best_count >= _MIN_POINTS_FOR_SOLVER:
         # The guess only chooses the consensus set, as RANSAC's best sample does: the pose
         # is then this entry's own (SQPnP on that set, re-selection, LM), so it does not
         # stay anchored to the guess along directions this entry constrains poorly.
-        mask, _ = _inliers(points, pixels, best[1], best[2], K, config.reprojection_error_px)
+        mask, _ = _inliers(points, pixels, R_all[g], t_all[g], K, config.reprojection_error_px)
         try:
             R, t, mask, errors_px = _refit(points, pixels, mask, K, config)
         except cv2.error:
@@ -416,4 +433,13 @@ def estimate_relative_pose_guided(
             judged = _judged(invert_rigid(T_query_from_ref), mask, errors_px, intrinsics, config)
             if judged.accepted:
                 return dataclasses.replace(judged, method="guided")
+    if not fallback:
+        return dataclasses.replace(
+            _rejected(
+                n_points,
+                f"the poses found so far keep {max(best_count, 0)} of {n_points} matches "
+                f"(< {needed}); no own RANSAC once the pose is confirmed",
+            ),
+            method="guided",
+        )
     return estimate_relative_pose(pixels, points, intrinsics, config, rng)
