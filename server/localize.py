@@ -152,8 +152,9 @@ class PnpStrategy:
 
     fallback_until_confirmed: in guided PnP, an entry the poses found so far do not
     explain gets its own RANSAC only until this many accepted entries agree on one pose
-    (within the joint gates, ``JointConfig``'s defaults without a joint pose); after that
-    it is rejected without one. None: always its own RANSAC. Why: once independent
+    (within the joint gates, ``JointConfig``'s defaults without a joint pose; a retrieval
+    prior with a heading, the filter's prediction, counts as one); after that it is
+    rejected without one. None: always its own RANSAC. Why: once independent
     entries confirm a pose, an entry that pose does not explain sees another place (or
     too little of this one), and its own RANSAC could only add a hypothesis that
     contradicts the consensus; on bench/localize.py it ran for about four entries per
@@ -362,9 +363,12 @@ def _solve_entries(
     solved: list[RelativePose | None] = [None] * len(refs)
     order = sorted(range(len(refs)), key=lambda j: -len(matches[j]))
     found_world: list[np.ndarray] = []
+    votes = _Confirmation(strategy)
     if strategy.guess_from_prior and prior is not None and prior.yaw_rad is not None and refs:
         found_world.append(_prior_guess(prior, refs[order[0]].T_world_from_cam))
-    votes = _Confirmation(strategy)
+        # The filter's prediction is one vote: made without this frame, it confirms the
+        # pose once an entry's own correspondences agree with it.
+        votes.add(found_world[-1])
     for j in order:
         ref, pairs = refs[j], matches[j]
         pixels, points = keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
