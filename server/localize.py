@@ -314,6 +314,7 @@ def pose_hypotheses(
     ``keypoints_px`` (N, 2) and its points), guided or not, plus the joint hypothesis
     (appended last). Returns the hypotheses in the references' order and (entry id,
     reason) of the rejected references."""
+    keypoints_px = np.asarray(keypoints_px, dtype=np.float64)  # once, not per entry
     solved = _solve_entries(keypoints_px, refs, matches, intrinsics, config, rng, strategy, prior)
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
@@ -362,19 +363,22 @@ def _solve_entries(
     its own RANSAC as a fallback only until the pose is confirmed (``PnpStrategy``)."""
     solved: list[RelativePose | None] = [None] * len(refs)
     order = sorted(range(len(refs)), key=lambda j: -len(matches[j]))
-    found_world: list[np.ndarray] = []
+    # The poses found so far (T_world_from_query), the prior's guess first if any.
+    found_world = np.empty((len(refs) + 1, 4, 4))
+    n_found = 0
     votes = _Confirmation(strategy)
     if strategy.guess_from_prior and prior is not None and prior.yaw_rad is not None and refs:
-        found_world.append(_prior_guess(prior, refs[order[0]].T_world_from_cam))
+        found_world[0] = _prior_guess(prior, refs[order[0]].T_world_from_cam)
+        n_found = 1
         # The filter's prediction is one vote: made without this frame, it confirms the
         # pose once an entry's own correspondences agree with it.
-        votes.add(found_world[-1])
+        votes.add(found_world[0])
     for j in order:
         ref, pairs = refs[j], matches[j]
         pixels, points = keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
-        if strategy.guided and found_world:
+        if strategy.guided and n_found:
             # every found pose brought into this entry's frame: T_ref_from_world @ T
-            guesses = invert_rigid(ref.T_world_from_cam) @ np.stack(found_world)
+            guesses = invert_rigid(ref.T_world_from_cam) @ found_world[:n_found]
             rel = estimate_relative_pose_guided(
                 pixels, points, guesses, intrinsics, config, rng, fallback=not votes.confirmed
             )
@@ -382,9 +386,9 @@ def _solve_entries(
             rel = estimate_relative_pose(pixels, points, intrinsics, config, rng)
         solved[j] = rel
         if rel.accepted and strategy.guided:
-            T_world_from_query = ref.T_world_from_cam @ rel.T_ref_from_query
-            found_world.append(T_world_from_query)
-            votes.add(T_world_from_query)
+            found_world[n_found] = ref.T_world_from_cam @ rel.T_ref_from_query
+            votes.add(found_world[n_found])
+            n_found += 1
     return [rel for rel in solved if rel is not None]
 
 

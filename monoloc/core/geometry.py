@@ -62,18 +62,20 @@ def check_rigid(T: np.ndarray, name: str = "transform", tol: float = 1e-4) -> np
 
 def invert_rigid(T_a_from_b: np.ndarray) -> np.ndarray:
     """Invert a (4, 4) rigid transform: returns T_b_from_a."""
-    R = T_a_from_b[:3, :3]
-    t = T_a_from_b[:3, 3]
-    T_b_from_a = np.eye(4)
-    T_b_from_a[:3, :3] = R.T
-    T_b_from_a[:3, 3] = -R.T @ t
+    R_t = T_a_from_b[:3, :3].T
+    T_b_from_a = np.empty((4, 4))
+    T_b_from_a[:3, :3] = R_t
+    T_b_from_a[:3, 3] = -R_t @ T_a_from_b[:3, 3]
+    T_b_from_a[3] = (0.0, 0.0, 0.0, 1.0)
     return T_b_from_a
 
 
 def rotation_angle_rad(R: np.ndarray) -> float:
     """Angle of a (3, 3) rotation matrix, in [0, pi]."""
-    cos_angle = (np.trace(R) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos_angle, -1.0, 1.0)))
+    cos_angle = (float(R[0, 0]) + float(R[1, 1]) + float(R[2, 2]) - 1.0) / 2.0
+    if math.isnan(cos_angle):
+        return cos_angle
+    return math.acos(min(1.0, max(-1.0, cos_angle)))
 
 
 def planar_from_T_world_from_cam(T_world_from_cam: np.ndarray) -> np.ndarray:

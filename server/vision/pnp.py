@@ -177,7 +177,7 @@ def _refit(
     from monoloc.server.vision._pnp_kernel import refine_lm
 
     ok, rvec, tvec = cv2.solvePnP(points[mask], pixels[mask], K, None, flags=cv2.SOLVEPNP_SQPNP)
-    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None, None, mask, np.full(len(mask), np.inf)
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
     mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
@@ -185,7 +185,7 @@ def _refit(
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
         )
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        if not (np.isfinite(R).all() and np.isfinite(t).all()):
             return None, None, mask, errors_px
         mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
     return R, t, mask, errors_px
@@ -256,7 +256,7 @@ def _checked_correspondences(
         )
     if len(pixels) != len(points):
         raise InvalidInputError(f"{len(pixels)} query pixels but {len(points)} reference points")
-    if not (np.all(np.isfinite(pixels)) and np.all(np.isfinite(points))):
+    if not (np.isfinite(pixels).all() and np.isfinite(points).all()):
         raise InvalidInputError("query pixels or reference points contain NaN or infinite values")
     return pixels, points
 
@@ -296,6 +296,7 @@ def _judged(
     errors_px: np.ndarray,
     intrinsics: CameraIntrinsics,
     config: PnpConfig,
+    method: str = "ransac",
 ) -> RelativePose:
     """Accept the pose, or reject it for too few inliers or too large a rotation."""
     n_points = len(mask)
@@ -331,6 +332,7 @@ def _judged(
         reprojection_error_px=mean_error,
         accepted=True,
         reject_reason=None,
+        method=method,
     )
 
 
@@ -364,7 +366,7 @@ def refine_from_pose(
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
         )
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        if not (np.isfinite(R).all() and np.isfinite(t).all()):
             return None, None, mask, errors_px
         mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
         if candidates is not None:
@@ -437,9 +439,10 @@ def estimate_relative_pose_guided(
         if R is not None and mask.sum() >= needed:
             T_query_from_ref = np.eye(4)
             T_query_from_ref[:3, :3], T_query_from_ref[:3, 3] = R, t
-            judged = _judged(invert_rigid(T_query_from_ref), mask, errors_px, intrinsics, config)
+            T_ref_from_query = invert_rigid(T_query_from_ref)
+            judged = _judged(T_ref_from_query, mask, errors_px, intrinsics, config, "guided")
             if judged.accepted:
-                return dataclasses.replace(judged, method="guided")
+                return judged
     if not fallback:
         return dataclasses.replace(
             _rejected(
