@@ -358,9 +358,15 @@ def _solve_entries(
     strategy: PnpStrategy,
     prior: RetrievalPrior | None,
 ) -> list[RelativePose]:
-    """One RelativePose per reference, in the references' order. Guided: by decreasing
-    number of matches, each entry seeded by the poses (T_world_from_query) found so far,
-    its own RANSAC as a fallback only until the pose is confirmed (``PnpStrategy``)."""
+    """One RelativePose per reference, in the references' order.
+
+    Guided: by decreasing number of matches, each entry seeded by the poses
+    (T_world_from_query) found so far (the first, with nothing found yet, gets its own
+    RANSAC). An entry those poses do not explain waits; if, once every entry has been
+    tried, the pose is still not confirmed (``PnpStrategy.fallback_until_confirmed``),
+    the waiting entries are tried again in the same order with the poses found by then,
+    each falling back to its own RANSAC while the pose is still unconfirmed.
+    """
     solved: list[RelativePose | None] = [None] * len(refs)
     order = sorted(range(len(refs)), key=lambda j: -len(matches[j]))
     # The poses found so far (T_world_from_query), the prior's guess first if any.
@@ -373,22 +379,35 @@ def _solve_entries(
         # The filter's prediction is one vote: made without this frame, it confirms the
         # pose once an entry's own correspondences agree with it.
         votes.add(found_world[0])
-    for j in order:
+    always = strategy.fallback_until_confirmed is None
+
+    def solve(j: int, fallback: bool) -> RelativePose:
+        nonlocal n_found
         ref, pairs = refs[j], matches[j]
         pixels, points = keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
         if strategy.guided and n_found:
             # every found pose brought into this entry's frame: T_ref_from_world @ T
             guesses = invert_rigid(ref.T_world_from_cam) @ found_world[:n_found]
             rel = estimate_relative_pose_guided(
-                pixels, points, guesses, intrinsics, config, rng, fallback=not votes.confirmed
+                pixels, points, guesses, intrinsics, config, rng, fallback=fallback
             )
         else:
             rel = estimate_relative_pose(pixels, points, intrinsics, config, rng)
-        solved[j] = rel
         if rel.accepted and strategy.guided:
             found_world[n_found] = ref.T_world_from_cam @ rel.T_ref_from_query
             votes.add(found_world[n_found])
             n_found += 1
+        solved[j] = rel
+        return rel
+
+    waiting = []
+    for j in order:
+        rel = solve(j, fallback=always)
+        if not rel.accepted and rel.method == "guided":  # not explained, no RANSAC yet
+            waiting.append(j)
+    if not votes.confirmed:
+        for j in waiting:  # with the poses found by then; own RANSAC while unconfirmed
+            solve(j, fallback=not votes.confirmed)
     return [rel for rel in solved if rel is not None]
 
 

@@ -23,7 +23,6 @@ OpenCV's solvePnPRefineLM optimum, faster: bench/vision.py times both).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -128,6 +127,7 @@ def _rejected(
     T_ref_from_query: np.ndarray | None = None,
     inlier_mask: np.ndarray | None = None,
     error_px: float = float("nan"),
+    method: str = "ransac",
 ) -> RelativePose:
     mask = np.zeros(n_points, dtype=bool) if inlier_mask is None else inlier_mask
     return RelativePose(
@@ -137,6 +137,7 @@ def _rejected(
         reprojection_error_px=error_px,
         accepted=False,
         reject_reason=reason,
+        method=method,
     )
 
 
@@ -384,7 +385,7 @@ def _queries_from_refs(guesses_T_ref_from_query) -> tuple[np.ndarray, np.ndarray
     T_ref_from_query (a list or a (G, 4, 4) array), C-contiguous float64."""
     T = np.asarray(guesses_T_ref_from_query, dtype=np.float64).reshape(-1, 4, 4)
     R = np.ascontiguousarray(T[:, :3, :3].transpose(0, 2, 1))
-    t = -np.einsum("gij,gj->gi", R, T[:, :3, 3])
+    t = np.ascontiguousarray(-(R @ T[:, :3, 3:])[:, :, 0])
     return R, t
 
 
@@ -444,12 +445,10 @@ def estimate_relative_pose_guided(
             if judged.accepted:
                 return judged
     if not fallback:
-        return dataclasses.replace(
-            _rejected(
-                n_points,
-                f"the poses found so far keep {max(best_count, 0)} of {n_points} matches "
-                f"(< {needed}); no own RANSAC once the pose is confirmed",
-            ),
+        return _rejected(
+            n_points,
+            f"the poses found so far keep {max(best_count, 0)} of {n_points} matches "
+            f"(< {needed}); no own RANSAC once the pose is confirmed",
             method="guided",
         )
     return estimate_relative_pose(pixels, points, intrinsics, config, rng)
