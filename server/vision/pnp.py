@@ -178,7 +178,7 @@ def _refit(
     from monoloc.server.vision._pnp_kernel import refine_lm
 
     ok, rvec, tvec = cv2.solvePnP(points[mask], pixels[mask], K, None, flags=cv2.SOLVEPNP_SQPNP)
-    if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
+    if not ok or not _finite(rvec, tvec):
         return None, None, mask, np.full(len(mask), np.inf)
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
     mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
@@ -186,7 +186,7 @@ def _refit(
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
         )
-        if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        if not _finite(R, t):
             return None, None, mask, errors_px
         mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
     return R, t, mask, errors_px
@@ -257,9 +257,19 @@ def _checked_correspondences(
         )
     if len(pixels) != len(points):
         raise InvalidInputError(f"{len(pixels)} query pixels but {len(points)} reference points")
-    if not (np.isfinite(pixels).all() and np.isfinite(points).all()):
+    # A finite sum is the cheap proof (it runs per entry and query); only a NaN, an
+    # infinity or an overflow to one takes the element-wise test.
+    if not math.isfinite(float(pixels.sum()) + float(points.sum())) and not (
+        np.isfinite(pixels).all() and np.isfinite(points).all()
+    ):
         raise InvalidInputError("query pixels or reference points contain NaN or infinite values")
     return pixels, points
+
+
+def _finite(*arrays: np.ndarray) -> bool:
+    """Whether a few small arrays (a pose) hold only finite numbers (NaN and infinities
+    propagate through the sum; a pose whose sum overflows is no pose either)."""
+    return math.isfinite(sum(float(a.sum()) for a in arrays))
 
 
 def _ransac_inliers(
@@ -367,7 +377,7 @@ def refine_from_pose(
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
         )
-        if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        if not _finite(R, t):
             return None, None, mask, errors_px
         mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
         if candidates is not None:
