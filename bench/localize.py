@@ -51,7 +51,7 @@ import numpy as np  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 DEFAULT_DATA = Path(__file__).parent.parent / "out" / "bench_sim"
-PASSES = 3
+PASSES = 5
 K = 10
 TARGET_P50_MS = 20.0
 GOAL_X_FEATURES = 2.0
