@@ -18,9 +18,13 @@ that the paper's pipeline solves every entry with its own RANSAC and adds no joi
 PnP (``monoloc``, issue 17): guided. The entries are visited by decreasing number of
 matches; the first gets a full RANSAC (none when the retrieval prior carries a heading:
 the prior's pose, at the entry's height and tilt, is the first guess), every other entry
-is scored against the poses found so far and refined on its own inliers, with its own
-RANSAC only when that leaves too few inliers (``pnp.estimate_relative_pose_guided``).
-Every per-entry hypothesis comes from that entry's own correspondences. Then a joint
+is scored against the poses found so far and refined on its own inliers
+(``pnp.estimate_relative_pose_guided``). An entry those poses do not explain gets its own
+RANSAC only while the pose is unconfirmed: once two entries (or the prior and one entry)
+agree, it is rejected without one (``PnpStrategy.fallback_until_confirmed``); the
+unexplained entries wait until every entry has been tried, so a confirmation from any of
+them spares the others' RANSAC. Every per-entry hypothesis comes from that entry's own
+correspondences. Then a joint
 hypothesis (``vision.joint``): the union of the consistent entries' inliers in the world
 frame, refined together; it is appended to the hypotheses, marked ``joint``.
 """
