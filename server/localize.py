@@ -18,9 +18,13 @@ that the paper's pipeline solves every entry with its own RANSAC and adds no joi
 PnP (``monoloc``, issue 17): guided. The entries are visited by decreasing number of
 matches; the first gets a full RANSAC (none when the retrieval prior carries a heading:
 the prior's pose, at the entry's height and tilt, is the first guess), every other entry
-is scored against the poses found so far and refined on its own inliers, with its own
-RANSAC only when that leaves too few inliers (``pnp.estimate_relative_pose_guided``).
-Every per-entry hypothesis comes from that entry's own correspondences. Then a joint
+is scored against the poses found so far and refined on its own inliers
+(``pnp.estimate_relative_pose_guided``). An entry those poses do not explain gets its own
+RANSAC only while the pose is unconfirmed: once two entries (or the prior and one entry)
+agree, it is rejected without one (``PnpStrategy.fallback_until_confirmed``); the
+unexplained entries wait until every entry has been tried, so a confirmation from any of
+them spares the others' RANSAC. Every per-entry hypothesis comes from that entry's own
+correspondences. Then a joint
 hypothesis (``vision.joint``): the union of the consistent entries' inliers in the world
 frame, refined together; it is appended to the hypotheses, marked ``joint``.
 """
@@ -35,7 +39,8 @@ from typing import Literal
 import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
-from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam, wrap_angle
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
@@ -125,6 +130,7 @@ class LocalizeConfig:
     guided_pnp: bool = True
     guess_from_prior: bool = True
     joint: JointConfig | None = field(default_factory=JointConfig)
+    fallback_until_confirmed: int | None = 2
 
     @property
     def preset(self) -> Preset:
@@ -138,6 +144,7 @@ class LocalizeConfig:
             guided=self.guided_pnp and preset.guided,
             guess_from_prior=self.guess_from_prior and self.guided_pnp and preset.guided,
             joint=self.joint if preset.joint else None,
+            fallback_until_confirmed=self.fallback_until_confirmed,
         )
 
 
@@ -145,11 +152,29 @@ class LocalizeConfig:
 class PnpStrategy:
     """guided: guided PnP (else every entry its own RANSAC, the paper); guess_from_prior:
     a retrieval prior with a heading seeds the guesses; joint: joint-pose settings, None
-    for no joint hypothesis."""
+    for no joint hypothesis.
+
+    fallback_until_confirmed: in guided PnP, an entry the poses found so far do not
+    explain gets its own RANSAC only until this many accepted entries agree on one pose
+    (within the joint gates, ``JointConfig``'s defaults without a joint pose; a retrieval
+    prior with a heading, the filter's prediction, counts as one); after that it is
+    rejected without one. None: always its own RANSAC. Why: once independent
+    entries confirm a pose, an entry that pose does not explain sees another place (or
+    too little of this one), and its own RANSAC could only add a hypothesis that
+    contradicts the consensus; on bench/localize.py it ran for about four entries per
+    query and accepted none of them, for about a third of the PnP time. Before
+    confirmation (e.g. the first entry's RANSAC found a wrong pose) the fallback keeps
+    its role.
+    """
 
     guided: bool = True
     guess_from_prior: bool = True
     joint: JointConfig | None = field(default_factory=JointConfig)
+    fallback_until_confirmed: int | None = 2
+
+    def __post_init__(self) -> None:
+        if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
+            raise InvalidInputError(f"PnpStrategy.fallback_until_confirmed must be >= 1: {self}")
 
 
 @dataclass(frozen=True)
@@ -293,6 +318,7 @@ def pose_hypotheses(
     ``keypoints_px`` (N, 2) and its points), guided or not, plus the joint hypothesis
     (appended last). Returns the hypotheses in the references' order and (entry id,
     reason) of the rejected references."""
+    keypoints_px = np.asarray(keypoints_px, dtype=np.float64)  # once, not per entry
     solved = _solve_entries(keypoints_px, refs, matches, intrinsics, config, rng, strategy, prior)
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
@@ -336,26 +362,77 @@ def _solve_entries(
     strategy: PnpStrategy,
     prior: RetrievalPrior | None,
 ) -> list[RelativePose]:
-    """One RelativePose per reference, in the references' order. Guided: by decreasing
-    number of matches, each entry seeded by the poses (T_world_from_query) found so far."""
+    """One RelativePose per reference, in the references' order.
+
+    Guided: by decreasing number of matches, each entry seeded by the poses
+    (T_world_from_query) found so far (the first, with nothing found yet, gets its own
+    RANSAC). An entry those poses do not explain waits; if, once every entry has been
+    tried, the pose is still not confirmed (``PnpStrategy.fallback_until_confirmed``),
+    the waiting entries are tried again in the same order with the poses found by then,
+    each falling back to its own RANSAC while the pose is still unconfirmed.
+    """
     solved: list[RelativePose | None] = [None] * len(refs)
     order = sorted(range(len(refs)), key=lambda j: -len(matches[j]))
-    found_world: list[np.ndarray] = []
+    # The poses found so far (T_world_from_query), the prior's guess first if any.
+    found_world = np.empty((len(refs) + 1, 4, 4))
+    n_found = 0
+    votes = _Confirmation(strategy)
     if strategy.guess_from_prior and prior is not None and prior.yaw_rad is not None and refs:
-        found_world.append(_prior_guess(prior, refs[order[0]].T_world_from_cam))
-    for j in order:
+        found_world[0] = _prior_guess(prior, refs[order[0]].T_world_from_cam)
+        n_found = 1
+        # The filter's prediction is one vote: made without this frame, it confirms the
+        # pose once an entry's own correspondences agree with it.
+        votes.add(found_world[0])
+    always = strategy.fallback_until_confirmed is None
+
+    def solve(j: int, fallback: bool) -> RelativePose:
+        nonlocal n_found
         ref, pairs = refs[j], matches[j]
         pixels, points = keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
-        if strategy.guided and found_world:
-            T_ref_from_world = invert_rigid(ref.T_world_from_cam)
-            guesses = [T_ref_from_world @ T for T in found_world]
-            rel = estimate_relative_pose_guided(pixels, points, guesses, intrinsics, config, rng)
+        if strategy.guided and n_found:
+            # every found pose brought into this entry's frame: T_ref_from_world @ T
+            guesses = invert_rigid(ref.T_world_from_cam) @ found_world[:n_found]
+            rel = estimate_relative_pose_guided(
+                pixels, points, guesses, intrinsics, config, rng, fallback=fallback
+            )
         else:
             rel = estimate_relative_pose(pixels, points, intrinsics, config, rng)
-        solved[j] = rel
         if rel.accepted and strategy.guided:
-            found_world.append(ref.T_world_from_cam @ rel.T_ref_from_query)
+            found_world[n_found] = ref.T_world_from_cam @ rel.T_ref_from_query
+            votes.add(found_world[n_found])
+            n_found += 1
+        solved[j] = rel
+        return rel
+
+    waiting = []
+    for j in order:
+        rel = solve(j, fallback=always)
+        if not rel.accepted and rel.method == "guided":  # not explained, no RANSAC yet
+            waiting.append(j)
+    if not votes.confirmed:
+        for j in waiting:  # with the poses found by then; own RANSAC while unconfirmed
+            solve(j, fallback=not votes.confirmed)
     return [rel for rel in solved if rel is not None]
+
+
+class _Confirmation:
+    """Whether ``strategy.fallback_until_confirmed`` accepted poses agree on one pose."""
+
+    def __init__(self, strategy: PnpStrategy) -> None:
+        self.needed = strategy.fallback_until_confirmed
+        self.gates = strategy.joint or JointConfig()
+        self.poses_world: list[np.ndarray] = []
+        self.confirmed = False
+
+    def add(self, T_world_from_query: np.ndarray) -> None:
+        if self.needed is None or self.confirmed:
+            return
+        self.poses_world.append(planar_from_T_world_from_cam(T_world_from_query))
+        poses = np.array(self.poses_world)
+        agree = (np.hypot(*(poses[:, :2] - poses[-1, :2]).T) <= self.gates.position_gate_m) & (
+            np.abs(wrap_angle(poses[:, 2] - poses[-1, 2])) <= self.gates.yaw_gate_rad
+        )
+        self.confirmed = int(agree.sum()) >= self.needed
 
 
 def _prior_guess(prior: RetrievalPrior, T_world_from_ref: np.ndarray) -> np.ndarray:

@@ -9,6 +9,8 @@ points to world points.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
@@ -30,36 +32,50 @@ def wrap_angle(angle_rad: np.ndarray | float) -> np.ndarray | float:
 
 
 def check_rigid(T: np.ndarray, name: str = "transform", tol: float = 1e-4) -> np.ndarray:
-    """Return ``T`` as a float64 (4, 4) array, raising if it is not a finite rigid transform."""
+    """Return ``T`` as a float64 (4, 4) array, raising if it is not a finite rigid transform.
+
+    Rigid: R R^T within ``tol`` of I (+ 1e-5 on the diagonal: np.allclose's relative
+    term), the bottom row within ``tol`` of [0, 0, 0, 1] (the same), det R within ``tol``
+    of 1. On plain floats: np.allclose and np.linalg.det cost ten times the test itself
+    on a 3 x 3, and it runs for every pose hypothesis.
+    """
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise InvalidInputError(f"{name} must be 4x4, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
+    rows = T.tolist()
+    if not all(math.isfinite(v) for row in rows for v in row):
         raise InvalidInputError(f"{name} contains NaN or infinite values")
-    R = T[:3, :3]
-    if (
-        not np.allclose(R @ R.T, np.eye(3), atol=tol)
-        or abs(np.linalg.det(R) - 1.0) > tol
-        or not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tol)
-    ):
+    R = [row[:3] for row in rows[:3]]
+    orthonormal = all(
+        abs(sum(R[i][k] * R[j][k] for k in range(3)) - (i == j)) <= tol + 1e-5 * (i == j)
+        for i in range(3)
+        for j in range(i, 3)
+    )
+    (a, b, c), (d, e, f), (g, h, i) = R
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    expected = (0.0, 0.0, 0.0, 1.0)
+    bottom = all(abs(v - w) <= tol + 1e-5 * w for v, w in zip(rows[3], expected, strict=True))
+    if not orthonormal or abs(det - 1.0) > tol or not bottom:
         raise InvalidInputError(f"{name} is not a rigid transform (rotation not orthonormal)")
     return T
 
 
 def invert_rigid(T_a_from_b: np.ndarray) -> np.ndarray:
     """Invert a (4, 4) rigid transform: returns T_b_from_a."""
-    R = T_a_from_b[:3, :3]
-    t = T_a_from_b[:3, 3]
-    T_b_from_a = np.eye(4)
-    T_b_from_a[:3, :3] = R.T
-    T_b_from_a[:3, 3] = -R.T @ t
+    R_t = T_a_from_b[:3, :3].T
+    T_b_from_a = np.empty((4, 4))
+    T_b_from_a[:3, :3] = R_t
+    T_b_from_a[:3, 3] = -R_t @ T_a_from_b[:3, 3]
+    T_b_from_a[3] = (0.0, 0.0, 0.0, 1.0)
     return T_b_from_a
 
 
 def rotation_angle_rad(R: np.ndarray) -> float:
     """Angle of a (3, 3) rotation matrix, in [0, pi]."""
-    cos_angle = (np.trace(R) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos_angle, -1.0, 1.0)))
+    cos_angle = (float(R[0, 0]) + float(R[1, 1]) + float(R[2, 2]) - 1.0) / 2.0
+    if math.isnan(cos_angle):
+        return cos_angle
+    return math.acos(min(1.0, max(-1.0, cos_angle)))
 
 
 def planar_from_T_world_from_cam(T_world_from_cam: np.ndarray) -> np.ndarray:
@@ -68,6 +84,10 @@ def planar_from_T_world_from_cam(T_world_from_cam: np.ndarray) -> np.ndarray:
     Accepts (4, 4) or (N, 4, 4); returns (3,) or (N, 3) float64.
     """
     T = np.asarray(T_world_from_cam, dtype=np.float64)
+    if T.shape == (4, 4):  # one pose (per hypothesis, per query): plain floats are faster
+        (_, _, ax, x), (_, _, ay, y) = T[:2].tolist()
+        psi = math.atan2(ay, ax)
+        return np.array([x, y, math.pi - (math.pi - psi) % (2.0 * math.pi)])
     axis_world = T[..., :3, 2]
     psi = np.arctan2(axis_world[..., 1], axis_world[..., 0])
     return np.stack([T[..., 0, 3], T[..., 1, 3], wrap_angle(psi)], axis=-1)

@@ -31,6 +31,7 @@ from monoloc.server.api.guard import document_body_limits
 from monoloc.server.api.limits import BodySizeLimitMiddleware
 from monoloc.server.api.metrics import Metrics, RequestMetricsMiddleware
 from monoloc.server.settings import Settings, get_settings
+from monoloc.server.threads import limit_threads
 
 log = logging.getLogger(__name__)
 
@@ -75,17 +76,6 @@ TAGS = [
     {"name": "keys", "description": "API keys (admin)."},
     {"name": "health", "description": "Liveness, readiness, Prometheus metrics."},
 ]
-
-
-def _limit_threads(settings: Settings):
-    """Set OpenCV/FAISS/BLAS thread counts; returns the threadpoolctl limiter to undo."""
-    import cv2
-    import faiss
-    from threadpoolctl import threadpool_limits
-
-    cv2.setNumThreads(settings.cv_threads)
-    faiss.omp_set_num_threads(settings.faiss_threads)
-    return threadpool_limits(limits=1)
 
 
 def admission_for(settings: Settings, metrics: Metrics) -> Admission:
@@ -178,7 +168,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         from monoloc.server.api.redact import install_log_redaction
 
         install_log_redaction()
-        limiter = _limit_threads(settings)
+        limiter = limit_threads(settings)
         state = await anyio.to_thread.run_sync(_start, settings, metrics, admission)
         state.ready = True
         app.state.monoloc = state

@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
@@ -151,13 +152,27 @@ def print_localization(
     as_json: bool,
     console: Console | None = None,
     warm_up_s: float | None = None,
+    map_load_s: float | None = None,
+    warm_timings_ms: Sequence[dict[str, float]] = (),
 ) -> None:
-    """The hypotheses table and stage timings; ``warm_up_s``: what loading the compiled
-    kernels cost this process before the query (so the stage timings are the warm ones)."""
+    """The hypotheses table and stage timings. ``warm_up_s``: what loading the compiled
+    kernels cost this process before the query; ``map_load_s``: reading the map's index
+    and entries before it (neither is in the stage timings); ``warm_timings_ms``: the
+    stage timings of repeats of the same query, shown as warm p50 beside the first's."""
+    warm = {
+        stage: float(np.median([t[stage] for t in warm_timings_ms]))
+        for stage in (result.timings_ms if warm_timings_ms else ())
+    }
     if as_json:
         answer = localization_dict(record, result, version)
+        answer["timings_are"] = "cold: the first query of this process"
         if warm_up_s is not None:
             answer["kernel_warm_up_ms"] = round(warm_up_s * 1e3, 1)
+        if map_load_s is not None:
+            answer["map_load_ms"] = round(map_load_s * 1e3, 1)
+        if warm:
+            answer["warm_timings_ms_p50"] = warm
+            answer["warm_repeats"] = len(warm_timings_ms)
         print(json.dumps(answer, indent=2))
         return
     console = console or Console()
@@ -192,14 +207,27 @@ def print_localization(
             f"{h.reprojection_error_px:.2f}",
         )
     console.print(table)
-    timings = "  ".join(f"{k} {v:.1f} ms" for k, v in result.timings_ms.items())
-    console.print(f"{result.n_features} features; {timings}")
+    console.print(f"{result.n_features} features")
+    timings = Table(
+        "stage",
+        "first query (ms, cold)",
+        *([f"warm p50 of {len(warm_timings_ms)} repeats (ms)"] if warm else []),
+        title="stage timings",
+    )
+    for stage, ms in result.timings_ms.items():
+        timings.add_row(stage, f"{ms:.2f}", *([f"{warm[stage]:.2f}"] if warm else []))
+    console.print(timings)
+    notes = ["first query: the first in this process (caches and allocations cold)"]
     if warm_up_s is not None:
-        console.print(
-            f"stage timings are warm: this process loaded its compiled kernels in "
-            f"{warm_up_s * 1e3:.0f} ms before the query (once per process; `monoloc serve` "
-            "does it at start). The map's index and entries were read cold."
+        notes.append(
+            f"no compilation in it: the compiled kernels were loaded before it "
+            f"({warm_up_s * 1e3:.0f} ms, once per process; `monoloc serve` does it at start)"
         )
+    if map_load_s is not None:
+        notes.append(f"the map's index and entries were read before it ({map_load_s * 1e3:.0f} ms)")
+    if not warm:
+        notes.append("--repeat N adds the warm figures of N repeats")
+    console.print("; ".join(notes) + ".")
     if result.rejected:
         console.print(
             f"rejected: {len(result.rejected)} "

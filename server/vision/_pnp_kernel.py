@@ -31,6 +31,28 @@ def reprojection_errors(points_ref, pixels, R, t, fx, fy, cx, cy, errors_px, dep
         errors_px[k] = np.sqrt(du * du + dv * dv)
 
 
+@njit(cache=True, nogil=True)
+def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, counts):
+    """Fill counts (G,) with the number of points within ``threshold_px`` of their pixel
+    and in front of the camera under each of G poses R (G, 3, 3), t (G, 3): the test of
+    ``reprojection_errors``, same arithmetic, without storing the errors."""
+    for g in range(R.shape[0]):
+        n = 0
+        for k in range(points_ref.shape[0]):
+            X, Y, Z = points_ref[k, 0], points_ref[k, 1], points_ref[k, 2]
+            x = R[g, 0, 0] * X + R[g, 0, 1] * Y + R[g, 0, 2] * Z + t[g, 0]
+            y = R[g, 1, 0] * X + R[g, 1, 1] * Y + R[g, 1, 2] * Z + t[g, 1]
+            z = R[g, 2, 0] * X + R[g, 2, 1] * Y + R[g, 2, 2] * Z + t[g, 2]
+            if not z > 0.0:
+                continue
+            z = max(z, 1e-9)
+            du = fx * x / z + cx - pixels[k, 0]
+            dv = fy * y / z + cy - pixels[k, 1]
+            if np.sqrt(du * du + dv * dv) <= threshold_px:
+                n += 1
+        counts[g] = n
+
+
 @njit(inline="always")
 def _normal_equations(points_ref, pixels, mask, R, t, fx, fy, cx, cy, H, g):
     """Gauss-Newton normal equations H (6, 6), g (6,) for a left perturbation

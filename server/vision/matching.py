@@ -119,7 +119,9 @@ def _match_words(
         scratch.out_r,
         scratch.out_d,
     )
-    return np.stack([scratch.out_q[:k], scratch.out_r[:k]], axis=1)
+    pairs = np.empty((k, 2), dtype=np.int32)
+    pairs[:, 0], pairs[:, 1] = scratch.out_q[:k], scratch.out_r[:k]
+    return pairs
 
 
 def match_descriptors(

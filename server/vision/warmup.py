@@ -10,11 +10,16 @@ import numpy as np
 
 from monoloc.core.camera import KITTI_CAM0
 from monoloc.server.vision.matching import match_descriptors
-from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.server.vision.pnp import (
+    PnpConfig,
+    estimate_relative_pose,
+    estimate_relative_pose_guided,
+)
 
 
 def warm_up() -> None:
-    """Run the matching kernel and PnP (inlier scoring + LM) once on a small exact scene."""
+    """Run the matching kernel and PnP (RANSAC's inlier scoring + LM, guided PnP's guess
+    scoring) once on a small exact scene."""
     rng = np.random.default_rng(0)
     descriptors = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
     match_descriptors(descriptors, descriptors)
@@ -24,3 +29,4 @@ def warm_up() -> None:
     )
     pixels = points_cam[:, :2] / points_cam[:, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
     estimate_relative_pose(pixels, points_cam, camera, PnpConfig(), rng)
+    estimate_relative_pose_guided(pixels, points_cam, [np.eye(4)], camera, PnpConfig(), rng)

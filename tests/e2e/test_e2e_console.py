@@ -338,8 +338,12 @@ def test_jobs_page_watches_an_ingestion_reach_100(offline, server, city):
     seen = set()
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        seen.add((row.get_attribute("data-state"), row.get_attribute("data-progress")))
-        if row.get_attribute("data-state") == "done":
+        # one read of both attributes per look: reading the state a second time for the
+        # exit test could see a refresh the recorded pair did not (it once broke on
+        # "done" having recorded only ("running", "0"))
+        state, progress = row.evaluate("r => [r.dataset.state, r.dataset.progress]")
+        seen.add((state, progress))
+        if state == "done":
             break
         time.sleep(0.1)
     assert ("done", "100") in seen, seen

@@ -93,6 +93,8 @@ def test_map_commands(app, kitti_root, tmp_path):
     result = json.loads(out[out.index("{") :])
     assert len(result["retrieved"]) == 3 and set(result["timings_ms"]) >= {"total", "pnp"}
     assert result["kernel_warm_up_ms"] > 0  # the kernels load before the timed query
+    assert result["timings_are"].startswith("cold") and result["map_load_ms"] > 0
+    assert "warm_timings_ms_p50" not in result
     best = max(result["hypotheses"], key=lambda h: h["n_inliers"])
     truth = kitti_to_zup(kitti_root.T_kitti_from_cam[4])
     assert np.linalg.norm(np.array(best["T_world_from_cam"])[:3, 3] - truth[:3, 3]) < 0.05
@@ -104,10 +106,14 @@ def test_map_commands(app, kitti_root, tmp_path):
         str(seq_dir / "image_0" / "000004.png"),
         "--prior",
         "0,0,0.5",
+        "--repeat",
+        "2",
         env=env,
     )
     assert "hypotheses from" in table and "total" in table
-    assert "stage timings are warm" in " ".join(table.split())
+    flat = " ".join(table.split())
+    assert "first query (ms, cold)" in flat and "warm p50 of 2 repeats (ms)" in flat
+    assert "no compilation in it" in flat
 
     out = _ok(
         app,

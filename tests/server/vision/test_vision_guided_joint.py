@@ -14,6 +14,7 @@ from monoloc.core.geometry import (
     rotation_angle_rad,
     wrap_angle,
 )
+from monoloc.core.prior import RetrievalPrior
 from monoloc.server.localize import PnpStrategy, ReferenceEntry, pose_hypotheses
 from monoloc.server.vision.joint import (
     EntryInliers,
@@ -207,3 +208,129 @@ def test_joint_pose_needs_two_entries():
     pairs = matches[0]
     one = EntryInliers(refs[0].T_world_from_cam, keypoints[pairs[:, 0]], refs[0].points_cam)
     assert estimate_joint_pose([one], T_world_from_query, CAM, PnpConfig(), JointConfig()) is None
+
+
+def _with_mislabelled_entry(seed, subset):
+    """A scene plus one more entry whose correspondences are right but whose map pose is
+    5 m off (an aliased or mislabelled reference): its own RANSAC gives a pose 5 m away,
+    which the other entries' poses do not explain."""
+    T_world_from_query, refs, matches, keypoints = _scene(seed, n_refs=4, outlier_fraction=0.2)
+    rng = np.random.default_rng(seed + 100)
+    points_world, pixels = _street(rng, T_world_from_query)
+    T_world_from_ref = T_world_from_query.copy()
+    observed, points_ref = _entry(rng, points_world, pixels, T_world_from_ref, 0.5, 0.1, subset)
+    T_labelled = T_world_from_ref.copy()
+    T_labelled[:3, 3] += [5.0, 0.0, 0.0]
+    refs.append(ReferenceEntry(len(refs), T_labelled, np.zeros((len(points_ref), 32)), points_ref))
+    offset = len(keypoints)
+    matches.append(
+        np.stack([np.arange(offset, offset + len(observed)), np.arange(len(observed))], 1)
+    )
+    return (
+        T_world_from_query,
+        refs,
+        matches,
+        np.concatenate([keypoints, observed]).astype(np.float32),
+    )
+
+
+def _solve(refs, matches, keypoints, strategy, prior=None):
+    e_vlad = {r.entry_id: 0.8 for r in refs}
+    return pose_hypotheses(
+        keypoints,
+        refs,
+        matches,
+        e_vlad,
+        CAM,
+        PnpConfig(),
+        np.random.default_rng(0),
+        strategy,
+        prior,
+    )
+
+
+def test_no_fallback_ransac_once_two_entries_confirm_the_pose():
+    # The mislabelled entry has the fewest matches: the others confirm the pose first.
+    T_world_from_query, refs, matches, keypoints = _with_mislabelled_entry(7, subset=0.15)
+    assert len(matches[-1]) == min(len(m) for m in matches)
+    always, _ = _solve(
+        refs, matches, keypoints, PnpStrategy(joint=None, fallback_until_confirmed=None)
+    )
+    odd = [h for h in always if h.entry_id == refs[-1].entry_id]
+    assert len(odd) == 1 and odd[0].method == "ransac"
+    assert (
+        np.hypot(*(odd[0].pose_world[:2] - planar_from_T_world_from_cam(T_world_from_query)[:2]))
+        > 4.0
+    )
+    confirmed, rejected = _solve(refs, matches, keypoints, PnpStrategy(joint=None))
+    assert [h.entry_id for h in confirmed] == [h.entry_id for h in always if h is not odd[0]]
+    assert [e for e, _ in rejected] == [refs[-1].entry_id]
+    assert "no own RANSAC" in rejected[0][1]
+
+
+def test_fallback_ransac_still_runs_before_the_pose_is_confirmed():
+    # The mislabelled entry has the most matches: its RANSAC pose (5 m off) guides the
+    # others, which it does not explain; they fall back to their own RANSAC, agree with
+    # each other, and every entry keeps its own hypothesis.
+    T_world_from_query, refs, matches, keypoints = _with_mislabelled_entry(8, subset=1.0)
+    assert len(matches[-1]) == max(len(m) for m in matches)
+    hyps, rejected = _solve(refs, matches, keypoints, PnpStrategy(joint=None))
+    assert not rejected and len(hyps) == len(refs)
+    truth = planar_from_T_world_from_cam(T_world_from_query)
+    good = [h for h in hyps if h.entry_id != refs[-1].entry_id]
+    assert {h.method for h in good} == {"ransac", "guided"}
+    assert all(np.hypot(*(h.pose_world[:2] - truth[:2])) < 0.05 for h in good)
+
+
+def test_a_prior_with_a_heading_is_one_confirming_vote():
+    # The filter's prediction (10 cm, 0.3 deg off) guides the first entry; that entry
+    # agreeing with it confirms the pose, so the mislabelled entry gets no RANSAC even
+    # with fallback_until_confirmed=2 and one entry solved so far.
+    T_world_from_query, refs, matches, keypoints = _with_mislabelled_entry(7, subset=0.15)
+    truth = planar_from_T_world_from_cam(T_world_from_query)
+    prior = RetrievalPrior(
+        truth[0] + 0.1, truth[1], 10.0, float(truth[2] + math.radians(0.3)), math.radians(20)
+    )
+    hyps, rejected = _solve(
+        refs[:1] + refs[-1:], matches[:1] + matches[-1:], keypoints, PnpStrategy(joint=None), prior
+    )
+    assert [h.method for h in hyps] == ["guided"]
+    assert [e for e, _ in rejected] == [refs[-1].entry_id] and "no own RANSAC" in rejected[0][1]
+    hyps, rejected = _solve(
+        refs[:1] + refs[-1:],
+        matches[:1] + matches[-1:],
+        keypoints,
+        PnpStrategy(joint=None, fallback_until_confirmed=None),
+        prior,
+    )
+    assert not rejected and sorted(h.method for h in hyps) == ["guided", "ransac"]
+
+
+def test_count_inliers_agrees_with_the_reprojection_errors():
+    from monoloc.server.vision._pnp_kernel import count_inliers, reprojection_errors
+
+    rng = np.random.default_rng(4)
+    T_world_from_query, refs, matches, keypoints = _scene(4, n_refs=1)
+    pairs = matches[0]
+    pixels = keypoints[pairs[:, 0]].astype(np.float64)
+    points = refs[0].points_cam[pairs[:, 1]]
+    T_query_from_ref = invert_rigid(T_world_from_query) @ refs[0].T_world_from_cam
+    poses = [T_query_from_ref]
+    for _ in range(5):  # perturbed poses, some with points behind the camera
+        T = T_query_from_ref.copy()
+        T[:3, 3] += rng.normal(0.0, [0.3, 0.3, 10.0])
+        poses.append(T)
+    R = np.ascontiguousarray(np.array([T[:3, :3] for T in poses]))
+    t = np.ascontiguousarray(np.array([T[:3, 3] for T in poses]))
+    counts = np.empty(len(poses), dtype=np.int64)
+    K = CAM.K
+    count_inliers(points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], 3.0, counts)
+    expected = []
+    for g in range(len(poses)):
+        errors, depth = np.empty(len(points)), np.empty(len(points))
+        reprojection_errors(
+            points, pixels, R[g], t[g], K[0, 0], K[1, 1], K[0, 2], K[1, 2], errors, depth
+        )
+        expected.append(int(((errors <= 3.0) & (depth > 0)).sum()))
+    assert counts.tolist() == expected
+    assert expected[0] > 0.6 * len(points) and min(expected) < expected[0]
