@@ -41,15 +41,43 @@ def _check_descriptors(descriptors: np.ndarray, what: str = "descriptors") -> np
 
 # Bound on the float32 error of a squared-distance score ||c||^2 - 2 x.c for byte-valued
 # x (|x.c| <= 32 * 255 * 255 ~ 2.1e6, float32 ulp there 0.25; a float32 dot product of 32
-# terms stays below ~10). Rows whose best two scores are closer than this are re-decided
-# in float64, so the float32 fast path never changes an assignment.
+# terms stays below ~10). Rows whose best two scores are closer
+# than this are re-decided in float64, so the float32 fast path never changes an assignment.
 _TIE_MARGIN = 16.0
+
 _CHUNK_ROWS = 1024
 
-# Why cv2.gemm and np.bincount rather than ``@``: these products are tiny (1000 x 32 x 64)
-# and numpy's OpenBLAS splits them over its thread pool; on a loaded 2-core machine the
-# hand-off costs many times the product itself, with a long tail. OpenCV's gemm and
-# np.bincount run in the calling thread and stay flat under load (bench/vision.py).
+# Why cv2.gemm rather than ``@``: these products are tiny (1000 x 32 x 64) and numpy's
+# OpenBLAS splits them over its thread pool; on a loaded 2-core machine the hand-off costs
+# many times the product itself, with a long tail. OpenCV's gemm runs in the calling
+# thread and stays flat under load (bench/vision.py). The decisions and sums around it
+# are compiled (``_vlad_kernel``): in numpy their temporaries cost several times the
+# product.
+
+
+def _centre_terms(centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(32, K) float32 -2 c^T, (K,) float32 ||c||^2 and (K, 32) float64 c of (K, 32) centres."""
+    centres64 = centres.astype(np.float64)
+    centre_sq = np.einsum("kd,kd->k", centres64, centres64).astype(np.float32)
+    minus_two_centres_t = np.ascontiguousarray(-2.0 * centres.T, dtype=np.float32)
+    return minus_two_centres_t, centre_sq, centres64
+
+
+def _assign(descriptors: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Words (N,) int64 of C-contiguous (N, 32) uint8 descriptors, and the (K, 32) float64
+    centres the residual sums need."""
+    import cv2
+
+    from monoloc.server.vision._vlad_kernel import nearest_words
+
+    minus_two_centres_t, centre_sq, centres64 = _centre_terms(centres)
+    words = np.empty(len(descriptors), dtype=np.int64)
+    for lo in range(0, len(descriptors), _CHUNK_ROWS):  # chunks keep the scores in cache
+        chunk = descriptors[lo : lo + _CHUNK_ROWS]
+        products = cv2.gemm(chunk.astype(np.float32), minus_two_centres_t, 1.0, None, 0.0)
+        chunk_words = words[lo : lo + len(chunk)]
+        nearest_words(chunk, products, centre_sq, centres64, _TIE_MARGIN, chunk_words)
+    return words, centres64
 
 
 def assign_words(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -> np.ndarray:
@@ -58,37 +86,9 @@ def assign_words(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -
     Scores are computed in float32; any row whose two best scores lie within the float32
     error bound is recomputed exactly in float64. Exact ties go to the lowest word index.
     """
-    import cv2
-
     centres = _centres(vocabulary)
-    descriptors = _check_descriptors(descriptors)
-    centres64 = centres.astype(np.float64)
-    centre_sq = np.einsum("kd,kd->k", centres64, centres64).astype(np.float32)
-    minus_two_centres_t = np.ascontiguousarray(-2.0 * centres.T, dtype=np.float32)
-    words = np.zeros(len(descriptors), dtype=np.int64)
-    for lo in range(0, len(descriptors), _CHUNK_ROWS):  # chunks keep the scores in cache
-        points = descriptors[lo : lo + _CHUNK_ROWS].astype(np.float32)
-        scores = cv2.gemm(points, minus_two_centres_t, 1.0, None, 0.0)
-        scores += centre_sq
-        chunk_words = np.argmin(scores, axis=1)
-        best = scores[np.arange(len(chunk_words)), chunk_words]
-        unsure = np.count_nonzero(scores <= (best + _TIE_MARGIN)[:, None], axis=1) > 1
-        if np.any(unsure):
-            diff = points[unsure].astype(np.float64)[:, None, :] - centres64[None]
-            chunk_words[unsure] = np.argmin(np.einsum("nkd,nkd->nk", diff, diff), axis=1)
-        words[lo : lo + _CHUNK_ROWS] = chunk_words
-    return words
-
-
-def _residual_sums(descriptors: np.ndarray, words: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """(K, 32) float64 sums of (x_n - c_{a_n}) per word for (N, 32) uint8 descriptors."""
-    n_words = len(centres)
-    cells = (words[:, None] * DESCRIPTOR_BYTES + np.arange(DESCRIPTOR_BYTES)).ravel()
-    sums = np.bincount(
-        cells, weights=descriptors.ravel().astype(np.float64), minlength=n_words * DESCRIPTOR_BYTES
-    ).reshape(n_words, DESCRIPTOR_BYTES)
-    counts = np.bincount(words, minlength=n_words).astype(np.float64)
-    return sums - counts[:, None] * centres.astype(np.float64)
+    descriptors = np.ascontiguousarray(_check_descriptors(descriptors))
+    return _assign(descriptors, centres)[0]
 
 
 def _normalise(sums: np.ndarray) -> np.ndarray:
@@ -112,15 +112,13 @@ def compute_vlad_batch(
     sets = [_check_descriptors(d, f"descriptor set {i}") for i, d in enumerate(descriptor_sets)]
     if not sets:
         return np.zeros((0, len(centres) * DESCRIPTOR_BYTES), dtype=np.float32)
-    all_descriptors = np.concatenate(sets) if len(sets) > 1 else sets[0]
-    words = assign_words(all_descriptors, centres)
-    bounds = np.cumsum([0] + [len(d) for d in sets])
-    sums = np.stack(
-        [
-            _residual_sums(all_descriptors[lo:hi], words[lo:hi], centres)
-            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
-        ]
-    )
+    from monoloc.server.vision._vlad_kernel import residual_sums
+
+    all_descriptors = np.ascontiguousarray(np.concatenate(sets) if len(sets) > 1 else sets[0])
+    words, centres64 = _assign(all_descriptors, centres)
+    bounds = np.cumsum([0] + [len(d) for d in sets], dtype=np.int64)
+    sums = np.empty((len(sets), len(centres), DESCRIPTOR_BYTES))
+    residual_sums(all_descriptors, words, bounds, centres64, sums)
     return _normalise(sums)
 
 
