@@ -124,7 +124,7 @@ def estimate_joint_pose(
         pnp,
         config.rounds,
     )
-    if R is None or mask.sum() < pnp.min_inliers:
+    if R is None or np.count_nonzero(mask) < pnp.min_inliers:
         return None
     members = tuple(int(j) for j in np.unique(owner_all[mask]))
     if len(members) < config.min_entries:
@@ -137,6 +137,6 @@ def estimate_joint_pose(
         T_world_from_cam=T_world_from_cam,
         members=members,
         n_correspondences=len(points_local),
-        n_inliers=int(mask.sum()),
+        n_inliers=int(np.count_nonzero(mask)),
         reprojection_error_px=float(errors_px[mask].mean()),
     )

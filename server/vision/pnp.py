@@ -132,7 +132,7 @@ def _rejected(
     mask = np.zeros(n_points, dtype=bool) if inlier_mask is None else inlier_mask
     return RelativePose(
         T_ref_from_query=np.full((4, 4), np.nan) if T_ref_from_query is None else T_ref_from_query,
-        n_inliers=int(mask.sum()),
+        n_inliers=int(np.count_nonzero(mask)),
         inlier_mask=mask,
         reprojection_error_px=error_px,
         accepted=False,
@@ -182,7 +182,7 @@ def _refit(
         return None, None, mask, np.full(len(mask), np.inf)
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
     mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
-    if config.refine and mask.sum() >= _MIN_POINTS_FOR_SOLVER:
+    if config.refine and np.count_nonzero(mask) >= _MIN_POINTS_FOR_SOLVER:
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
         )
@@ -311,7 +311,7 @@ def _judged(
 ) -> RelativePose:
     """Accept the pose, or reject it for too few inliers or too large a rotation."""
     n_points = len(mask)
-    n_inliers = int(mask.sum())
+    n_inliers = int(np.count_nonzero(mask))
     mean_error = float(errors_px[mask].mean()) if n_inliers else float("nan")
     if n_inliers < config.min_inliers:
         return _rejected(
@@ -372,7 +372,7 @@ def refine_from_pose(
     if candidates is not None:
         mask &= candidates
     for _ in range(rounds):
-        if mask.sum() < _MIN_POINTS_FOR_SOLVER:
+        if np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
             return None, None, mask, errors_px
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
@@ -447,7 +447,7 @@ def estimate_relative_pose_guided(
             R, t, mask, errors_px = _refit(points, pixels, mask, K, config)
         except cv2.error:
             R = None
-        if R is not None and mask.sum() >= needed:
+        if R is not None and np.count_nonzero(mask) >= needed:
             T_query_from_ref = np.eye(4)
             T_query_from_ref[:3, :3], T_query_from_ref[:3, 3] = R, t
             T_ref_from_query = invert_rigid(T_query_from_ref)
