@@ -151,14 +151,14 @@ def _inliers(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Inlier mask (within ``threshold_px`` and in front of the camera) and reprojection
     errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
-    from monoloc.server.vision._pnp_kernel import reprojection_errors
+    from monoloc.server.vision._pnp_kernel import inlier_errors
 
     errors_px = np.empty(len(points))
-    depth_m = np.empty(len(points))
-    reprojection_errors(
-        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], errors_px, depth_m
+    mask = np.empty(len(points), dtype=bool)
+    inlier_errors(
+        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], threshold_px, errors_px, mask
     )
-    return (errors_px <= threshold_px) & (depth_m > 0.0), errors_px
+    return mask, errors_px
 
 
 def _refit(
@@ -269,7 +269,7 @@ def _checked_correspondences(
 def _finite(*arrays: np.ndarray) -> bool:
     """Whether a few small arrays (a pose) hold only finite numbers (NaN and infinities
     propagate through the sum; a pose whose sum overflows is no pose either)."""
-    return math.isfinite(sum(float(a.sum()) for a in arrays))
+    return math.isfinite(sum(sum(a.ravel().tolist()) for a in arrays))
 
 
 def _ransac_inliers(
