@@ -132,10 +132,11 @@ def estimate_joint_pose(
     T_cam_from_local[:3, :3], T_cam_from_local[:3, 3] = R, t
     T_world_from_cam = invert_rigid(T_cam_from_local)
     T_world_from_cam[:3, 3] += origin_world
+    n_inliers = int(np.count_nonzero(mask))
     return JointPose(
         T_world_from_cam=T_world_from_cam,
         members=members,
         n_correspondences=len(points_local),
-        n_inliers=int(np.count_nonzero(mask)),
-        reprojection_error_px=float(errors_px[mask].mean()),
+        n_inliers=n_inliers,
+        reprojection_error_px=float(errors_px[mask].sum()) / n_inliers,
     )

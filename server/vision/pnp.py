@@ -312,7 +312,8 @@ def _judged(
     """Accept the pose, or reject it for too few inliers or too large a rotation."""
     n_points = len(mask)
     n_inliers = int(np.count_nonzero(mask))
-    mean_error = float(errors_px[mask].mean()) if n_inliers else float("nan")
+    # sum / n is np.mean's own arithmetic, without its Python-level wrapper
+    mean_error = float(errors_px[mask].sum()) / n_inliers if n_inliers else float("nan")
     if n_inliers < config.min_inliers:
         return _rejected(
             n_points,
@@ -436,7 +437,7 @@ def estimate_relative_pose_guided(
             points, pixels, R_all, t_all, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
             config.reprojection_error_px, counts,
         )  # fmt: skip
-        g = int(np.argmax(counts))
+        g = int(counts.argmax())
         best_count = int(counts[g])
     if best_count >= max(_MIN_POINTS_FOR_SOLVER, config.guided_refit_min_fraction * needed):
         # The guess only chooses the consensus set, as RANSAC's best sample does: the pose
