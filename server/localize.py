@@ -45,7 +45,6 @@ from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.features import OrbConfig, extract_features
-from monoloc.server.vision.hypothesis import compose_hypothesis
 from monoloc.server.vision.joint import (
     EntryInliers,
     JointConfig,
@@ -327,7 +326,12 @@ def pose_hypotheses(
         if not rel.accepted:
             rejected.append((ref.entry_id, rel.reject_reason or "rejected"))
             continue
-        T_world_from_query = compose_hypothesis(ref.T_world_from_cam, rel.T_ref_from_query)
+        # compose_hypothesis without its rigidity checks: entry poses are checked when
+        # stored (storage.entry_checks) and an accepted pose is finite and rigid by
+        # construction; the checks cost more than the rest of this loop.
+        T_world_from_query = np.asarray(ref.T_world_from_cam, dtype=np.float64) @ (
+            rel.T_ref_from_query
+        )
         hypotheses.append(
             PoseHypothesis(
                 entry_id=ref.entry_id,

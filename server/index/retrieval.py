@@ -217,9 +217,8 @@ class RetrievalIndex:
         _, found = self._faiss.search(code, min(size, self._size + self._tombstones))
         # Tombstoned (removed) ids are no longer in the row map; a re-added id may appear
         # twice in an HNSW graph: keep each live row once.
-        rows = dict.fromkeys(
-            self._row_of_id[int(i)] for i in found[0] if i >= 0 and int(i) in self._row_of_id
-        )
+        row_of_id = self._row_of_id
+        rows = dict.fromkeys(row_of_id[i] for i in found[0].tolist() if i >= 0 and i in row_of_id)
         return np.fromiter(rows, dtype=np.int64, count=len(rows))
 
     def _prior_rows(self, code: np.ndarray, sketch, k: int, prior: RetrievalPrior) -> np.ndarray:

@@ -8,7 +8,8 @@ reduced once more to the second-nearest distance and the nearest index, and fold
 the per-reference minimum and second minimum over queries that the cross check needs.
 
 The popcount is written as the classic SWAR sequence, which LLVM recognises as ctpop;
-with the reference descriptors transposed to (4, M) words the inner loop vectorises
+with the reference descriptors transposed to (4, M) words (the kernel writes them into a
+scratch buffer first, no numpy call per reference) the inner loop vectorises
 (AVX2 nibble-table popcount on the dev box), ~0.8 ns per descriptor pair on one core.
 """
 
@@ -25,25 +26,30 @@ _FAR = np.int32(1 << 20)
 @njit(cache=True, boundscheck=False, nogil=True)
 def match_rows(
     query_words,
-    ref_words_t,
+    ref_words,
     max_bits,
     ratio,
     cross_check,
+    ref_words_t,
     row,
     col_min1,
     col_min2,
-    out_q,
-    out_r,
+    out_pairs,
     out_d,
 ):
     """Apply the match rule of monoloc.server.vision.matching to one query/reference pair.
 
-    query_words (N, 4) uint64, ref_words_t (4, M) uint64 (descriptors as 64-bit words, the
-    reference transposed); row, col_min1, col_min2 int32 scratch of >= M; out_q, out_r,
-    out_d int32 of >= N receive the matches (and scratch distances). Returns the number
-    of matches K (rows [:K]), sorted by query index.
+    query_words (N, 4) and ref_words (M, 4) uint64 (descriptors as 64-bit words);
+    ref_words_t (4, >= M) uint64 scratch receives the reference transposed (the layout
+    the distance loop vectorises on); row, col_min1, col_min2 int32 scratch of >= M;
+    out_pairs (>= N, 2) and out_d (>= N) int32 receive the matches [query, reference]
+    (and scratch distances). Returns the number of matches K (rows [:K]), sorted by
+    query index.
     """
-    n, m = query_words.shape[0], ref_words_t.shape[1]
+    n, m = query_words.shape[0], ref_words.shape[0]
+    for j in range(m):
+        for w in range(4):
+            ref_words_t[w, j] = ref_words[j, w]
     bound = np.int32(max_bits)
     for j in range(m):
         col_min1[j] = _FAR
@@ -81,8 +87,8 @@ def match_rows(
         # a tie makes the second-nearest distance d1, which fails d1 < ratio * d1
         if first != last or not (d1 < ratio * d2):
             continue
-        out_q[k] = i
-        out_r[k] = first
+        out_pairs[k, 0] = i
+        out_pairs[k, 1] = first
         out_d[k] = d1
         k += 1
     if not cross_check:
@@ -91,9 +97,9 @@ def match_rows(
     for t in range(k):
         # query i is reference j's unique nearest query: j's minimum over all queries is
         # i's distance and j's second minimum is larger
-        j, d = out_r[t], out_d[t]
+        j, d = out_pairs[t, 1], out_d[t]
         if col_min1[j] == d and col_min2[j] > d:
-            out_q[kept] = out_q[t]
-            out_r[kept] = j
+            out_pairs[kept, 0] = out_pairs[t, 0]
+            out_pairs[kept, 1] = j
             kept += 1
     return kept

@@ -16,26 +16,28 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def reprojection_errors(points_ref, pixels, R, t, fx, fy, cx, cy, errors_px, depth_m):
-    """Fill errors_px (M,) with the reprojection error of each point and depth_m (M,) with
-    its depth in the query camera (errors use a 1e-9 m floor on depth)."""
+def inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, errors_px, inliers):
+    """Fill errors_px (M,) with the reprojection error of each point (a 1e-9 m floor on
+    depth) and inliers (M,) bool with whether it is within ``threshold_px`` and in front
+    of the camera: one pass, no depth array and no element-wise passes after it."""
     for k in range(points_ref.shape[0]):
         X, Y, Z = points_ref[k, 0], points_ref[k, 1], points_ref[k, 2]
         x = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]
         y = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + t[1]
         z = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
-        depth_m[k] = z
+        in_front = z > 0.0
         z = max(z, 1e-9)
         du = fx * x / z + cx - pixels[k, 0]
         dv = fy * y / z + cy - pixels[k, 1]
         errors_px[k] = np.sqrt(du * du + dv * dv)
+        inliers[k] = in_front and errors_px[k] <= threshold_px
 
 
 @njit(cache=True, nogil=True)
 def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, counts):
     """Fill counts (G,) with the number of points within ``threshold_px`` of their pixel
     and in front of the camera under each of G poses R (G, 3, 3), t (G, 3): the test of
-    ``reprojection_errors``, same arithmetic, without storing the errors."""
+    ``inlier_errors``, same arithmetic, without storing the errors."""
     for g in range(R.shape[0]):
         n = 0
         for k in range(points_ref.shape[0]):

@@ -103,15 +103,14 @@ def estimate_joint_pose(
         return None
     init = np.asarray(T_world_from_cam_init, dtype=np.float64)
     origin_world = init[:3, 3].copy()
-    points, pixels, owner = [], [], []
-    for j, e in enumerate(entries):
+    points, pixels = [], []
+    for e in entries:
         T = np.asarray(e.T_world_from_ref, dtype=np.float64)
         p_ref = np.asarray(e.points_ref, dtype=np.float64).reshape(-1, 3)
         points.append(p_ref @ T[:3, :3].T + (T[:3, 3] - origin_world))
         pixels.append(np.asarray(e.pixels_px, dtype=np.float64).reshape(-1, 2))
-        owner.append(np.full(len(p_ref), j))
     points_local, pixels_all = np.concatenate(points), np.concatenate(pixels)
-    owner_all = np.concatenate(owner)
+    bounds = np.cumsum([0] + [len(p) for p in points]).tolist()
     T_local_from_cam = init.copy()
     T_local_from_cam[:3, 3] -= origin_world
     T_cam_from_local = invert_rigid(T_local_from_cam)
@@ -124,19 +123,20 @@ def estimate_joint_pose(
         pnp,
         config.rounds,
     )
-    if R is None or mask.sum() < pnp.min_inliers:
+    if R is None or np.count_nonzero(mask) < pnp.min_inliers:
         return None
-    members = tuple(int(j) for j in np.unique(owner_all[mask]))
+    members = tuple(j for j in range(len(points)) if mask[bounds[j] : bounds[j + 1]].any())
     if len(members) < config.min_entries:
         return None
     T_cam_from_local = np.eye(4)
     T_cam_from_local[:3, :3], T_cam_from_local[:3, 3] = R, t
     T_world_from_cam = invert_rigid(T_cam_from_local)
     T_world_from_cam[:3, 3] += origin_world
+    n_inliers = int(np.count_nonzero(mask))
     return JointPose(
         T_world_from_cam=T_world_from_cam,
         members=members,
         n_correspondences=len(points_local),
-        n_inliers=int(mask.sum()),
-        reprojection_error_px=float(errors_px[mask].mean()),
+        n_inliers=n_inliers,
+        reprojection_error_px=float(errors_px[mask].sum()) / n_inliers,
     )

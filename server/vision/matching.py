@@ -90,38 +90,35 @@ class _Scratch:
     """Buffers the kernel writes into, sized for N query and M reference descriptors."""
 
     def __init__(self, n: int, m: int) -> None:
+        self.ref_words_t = np.empty((4, m), dtype=np.uint64)
         self.row = np.empty(m, dtype=np.int32)
         self.col_min1 = np.empty(m, dtype=np.int32)
         self.col_min2 = np.empty(m, dtype=np.int32)
-        self.out_q = np.empty(n, dtype=np.int32)
-        self.out_r = np.empty(n, dtype=np.int32)
+        self.pairs = np.empty((n, 2), dtype=np.int32)
         self.out_d = np.empty(n, dtype=np.int32)
 
 
 def _match_words(
-    query_words: np.ndarray, ref_desc: np.ndarray, config: MatchConfig, scratch: _Scratch
+    match_rows, query_words: np.ndarray, ref_desc: np.ndarray, config: MatchConfig, scratch
 ) -> np.ndarray:
-    from monoloc.server.vision._hamming_kernel import match_rows
-
+    """(K, 2) int32 matches of (N, 4) uint64 query words against (M, 32) uint8 reference
+    descriptors, by the compiled kernel ``match_rows`` (imported once by the caller)."""
     if len(query_words) == 0 or len(ref_desc) == 0:
         return _NO_MATCHES.copy()
-    ref_words_t = np.ascontiguousarray(ref_desc.view(np.uint64).T)
     k = match_rows(
         query_words,
-        ref_words_t,
+        ref_desc.view(np.uint64),
         int(config.max_hamming_bits),
         float(config.ratio),
         bool(config.cross_check),
+        scratch.ref_words_t,
         scratch.row,
         scratch.col_min1,
         scratch.col_min2,
-        scratch.out_q,
-        scratch.out_r,
+        scratch.pairs,
         scratch.out_d,
     )
-    pairs = np.empty((k, 2), dtype=np.int32)
-    pairs[:, 0], pairs[:, 1] = scratch.out_q[:k], scratch.out_r[:k]
-    return pairs
+    return scratch.pairs[:k].copy()
 
 
 def match_descriptors(
@@ -132,9 +129,11 @@ def match_descriptors(
     Returns (K, 2) int32 rows [query_idx, ref_idx], sorted by query index. Memory: O(N + M)
     (the distance matrix is never stored).
     """
+    from monoloc.server.vision._hamming_kernel import match_rows
+
     query_desc, ref_desc = _check(query_desc, "query"), _check(ref_desc, "reference")
     scratch = _Scratch(len(query_desc), len(ref_desc))
-    return _match_words(query_desc.view(np.uint64), ref_desc, config, scratch)
+    return _match_words(match_rows, query_desc.view(np.uint64), ref_desc, config, scratch)
 
 
 def match_against_references(
@@ -146,12 +145,16 @@ def match_against_references(
     references would compare the second-nearest across images, which is wrong), so each
     reference gets its own pass; the scratch buffers are shared by all of them.
     """
+    from monoloc.server.vision._hamming_kernel import match_rows
+
     query_desc = _check(query_desc, "query")
     ref_arrays = [_check(r, f"reference {i}") for i, r in enumerate(refs)]
     largest = max((len(r) for r in ref_arrays), default=0)
     scratch = _Scratch(len(query_desc), largest)
     query_words = query_desc.view(np.uint64)
-    return [_match_words(query_words, ref_desc, config, scratch) for ref_desc in ref_arrays]
+    return [
+        _match_words(match_rows, query_words, ref_desc, config, scratch) for ref_desc in ref_arrays
+    ]
 
 
 def match_against_references_bruteforce(

@@ -132,7 +132,7 @@ def _rejected(
     mask = np.zeros(n_points, dtype=bool) if inlier_mask is None else inlier_mask
     return RelativePose(
         T_ref_from_query=np.full((4, 4), np.nan) if T_ref_from_query is None else T_ref_from_query,
-        n_inliers=int(mask.sum()),
+        n_inliers=int(np.count_nonzero(mask)),
         inlier_mask=mask,
         reprojection_error_px=error_px,
         accepted=False,
@@ -151,14 +151,14 @@ def _inliers(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Inlier mask (within ``threshold_px`` and in front of the camera) and reprojection
     errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
-    from monoloc.server.vision._pnp_kernel import reprojection_errors
+    from monoloc.server.vision._pnp_kernel import inlier_errors
 
     errors_px = np.empty(len(points))
-    depth_m = np.empty(len(points))
-    reprojection_errors(
-        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], errors_px, depth_m
+    mask = np.empty(len(points), dtype=bool)
+    inlier_errors(
+        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], threshold_px, errors_px, mask
     )
-    return (errors_px <= threshold_px) & (depth_m > 0.0), errors_px
+    return mask, errors_px
 
 
 def _refit(
@@ -182,7 +182,7 @@ def _refit(
         return None, None, mask, np.full(len(mask), np.inf)
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
     mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
-    if config.refine and mask.sum() >= _MIN_POINTS_FOR_SOLVER:
+    if config.refine and np.count_nonzero(mask) >= _MIN_POINTS_FOR_SOLVER:
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
         )
@@ -269,7 +269,7 @@ def _checked_correspondences(
 def _finite(*arrays: np.ndarray) -> bool:
     """Whether a few small arrays (a pose) hold only finite numbers (NaN and infinities
     propagate through the sum; a pose whose sum overflows is no pose either)."""
-    return math.isfinite(sum(float(a.sum()) for a in arrays))
+    return math.isfinite(sum(sum(a.ravel().tolist()) for a in arrays))
 
 
 def _ransac_inliers(
@@ -311,8 +311,9 @@ def _judged(
 ) -> RelativePose:
     """Accept the pose, or reject it for too few inliers or too large a rotation."""
     n_points = len(mask)
-    n_inliers = int(mask.sum())
-    mean_error = float(errors_px[mask].mean()) if n_inliers else float("nan")
+    n_inliers = int(np.count_nonzero(mask))
+    # sum / n is np.mean's own arithmetic, without its Python-level wrapper
+    mean_error = float(errors_px[mask].sum()) / n_inliers if n_inliers else float("nan")
     if n_inliers < config.min_inliers:
         return _rejected(
             n_points,
@@ -372,7 +373,7 @@ def refine_from_pose(
     if candidates is not None:
         mask &= candidates
     for _ in range(rounds):
-        if mask.sum() < _MIN_POINTS_FOR_SOLVER:
+        if np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
             return None, None, mask, errors_px
         R, t, _ = refine_lm(
             points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
@@ -436,7 +437,7 @@ def estimate_relative_pose_guided(
             points, pixels, R_all, t_all, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
             config.reprojection_error_px, counts,
         )  # fmt: skip
-        g = int(np.argmax(counts))
+        g = int(counts.argmax())
         best_count = int(counts[g])
     if best_count >= max(_MIN_POINTS_FOR_SOLVER, config.guided_refit_min_fraction * needed):
         # The guess only chooses the consensus set, as RANSAC's best sample does: the pose
@@ -447,7 +448,7 @@ def estimate_relative_pose_guided(
             R, t, mask, errors_px = _refit(points, pixels, mask, K, config)
         except cv2.error:
             R = None
-        if R is not None and mask.sum() >= needed:
+        if R is not None and np.count_nonzero(mask) >= needed:
             T_query_from_ref = np.eye(4)
             T_query_from_ref[:3, :3], T_query_from_ref[:3, 3] = R, t
             T_ref_from_query = invert_rigid(T_query_from_ref)

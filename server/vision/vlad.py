@@ -1,4 +1,4 @@
-"""VLAD image descriptors (METHOD.md section 4), vectorised.
+"""VLAD image descriptors (METHOD.md section 4): a float32 GEMM, then compiled passes.
 
 For an image with ORB descriptors x_n (bytes as a 32-d vector) and centres c_k:
 1. a_n = argmin_k ||x_n - c_k||_2            (nearest centre, L2 in byte space)
@@ -24,7 +24,7 @@ from monoloc.server.vision.vocabulary import Vocabulary
 def _centres(vocabulary: Vocabulary | np.ndarray) -> np.ndarray:
     if isinstance(vocabulary, Vocabulary):
         return vocabulary.centres
-    centres = np.asarray(vocabulary, dtype=np.float32)
+    centres = np.ascontiguousarray(vocabulary, dtype=np.float32)
     if centres.ndim != 2 or centres.shape[1] != DESCRIPTOR_BYTES or len(centres) == 0:
         raise InvalidInputError(f"vocabulary centres must be (K, 32), got {centres.shape}")
     return centres
@@ -41,15 +41,33 @@ def _check_descriptors(descriptors: np.ndarray, what: str = "descriptors") -> np
 
 # Bound on the float32 error of a squared-distance score ||c||^2 - 2 x.c for byte-valued
 # x (|x.c| <= 32 * 255 * 255 ~ 2.1e6, float32 ulp there 0.25; a float32 dot product of 32
-# terms stays below ~10). Rows whose best two scores are closer than this are re-decided
-# in float64, so the float32 fast path never changes an assignment.
+# terms stays below ~10, whatever its summation order). Rows whose best two scores are
+# closer than this are re-decided in float64, so the float32 fast path never changes an
+# assignment.
 _TIE_MARGIN = 16.0
+
 _CHUNK_ROWS = 1024
 
-# Why cv2.gemm and np.bincount rather than ``@``: these products are tiny (1000 x 32 x 64)
-# and numpy's OpenBLAS splits them over its thread pool; on a loaded 2-core machine the
-# hand-off costs many times the product itself, with a long tail. OpenCV's gemm and
-# np.bincount run in the calling thread and stay flat under load (bench/vision.py).
+# Why cv2.gemm rather than ``@``: these products are tiny (1000 x 32 x 64) and numpy's
+# OpenBLAS splits them over its thread pool; on a loaded 2-core machine the hand-off costs
+# many times the product itself, with a long tail. OpenCV's gemm runs in the calling
+# thread and stays flat under load (bench/vision.py). Everything around it is compiled
+# (``_vlad_kernel``): in numpy its small operations cost several times the product.
+
+
+def _assign(descriptors: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Words (N,) int64 of C-contiguous (N, 32) uint8 descriptors; centres (K, 32) float32."""
+    import cv2
+
+    from monoloc.server.vision._vlad_kernel import nearest_words
+
+    words = np.empty(len(descriptors), dtype=np.int64)
+    for lo in range(0, len(descriptors), _CHUNK_ROWS):  # chunks keep the scores in cache
+        chunk = descriptors[lo : lo + _CHUNK_ROWS]
+        # -2 x.c: scaling by -2 is exact, so this is the score's product term as is
+        products = cv2.gemm(chunk.astype(np.float32), centres, -2.0, None, 0.0, flags=cv2.GEMM_2_T)
+        nearest_words(chunk, products, centres, _TIE_MARGIN, words[lo : lo + len(chunk)])
+    return words
 
 
 def assign_words(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -> np.ndarray:
@@ -58,46 +76,8 @@ def assign_words(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -
     Scores are computed in float32; any row whose two best scores lie within the float32
     error bound is recomputed exactly in float64. Exact ties go to the lowest word index.
     """
-    import cv2
-
     centres = _centres(vocabulary)
-    descriptors = _check_descriptors(descriptors)
-    centres64 = centres.astype(np.float64)
-    centre_sq = np.einsum("kd,kd->k", centres64, centres64).astype(np.float32)
-    minus_two_centres_t = np.ascontiguousarray(-2.0 * centres.T, dtype=np.float32)
-    words = np.zeros(len(descriptors), dtype=np.int64)
-    for lo in range(0, len(descriptors), _CHUNK_ROWS):  # chunks keep the scores in cache
-        points = descriptors[lo : lo + _CHUNK_ROWS].astype(np.float32)
-        scores = cv2.gemm(points, minus_two_centres_t, 1.0, None, 0.0)
-        scores += centre_sq
-        chunk_words = np.argmin(scores, axis=1)
-        best = scores[np.arange(len(chunk_words)), chunk_words]
-        unsure = np.count_nonzero(scores <= (best + _TIE_MARGIN)[:, None], axis=1) > 1
-        if np.any(unsure):
-            diff = points[unsure].astype(np.float64)[:, None, :] - centres64[None]
-            chunk_words[unsure] = np.argmin(np.einsum("nkd,nkd->nk", diff, diff), axis=1)
-        words[lo : lo + _CHUNK_ROWS] = chunk_words
-    return words
-
-
-def _residual_sums(descriptors: np.ndarray, words: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """(K, 32) float64 sums of (x_n - c_{a_n}) per word for (N, 32) uint8 descriptors."""
-    n_words = len(centres)
-    cells = (words[:, None] * DESCRIPTOR_BYTES + np.arange(DESCRIPTOR_BYTES)).ravel()
-    sums = np.bincount(
-        cells, weights=descriptors.ravel().astype(np.float64), minlength=n_words * DESCRIPTOR_BYTES
-    ).reshape(n_words, DESCRIPTOR_BYTES)
-    counts = np.bincount(words, minlength=n_words).astype(np.float64)
-    return sums - counts[:, None] * centres.astype(np.float64)
-
-
-def _normalise(sums: np.ndarray) -> np.ndarray:
-    """Intra- then global L2 normalisation of (B, K, 32) residual sums -> (B, K*32) float32."""
-    row_norms = np.sqrt(np.einsum("bkd,bkd->bk", sums, sums))
-    sums = sums / np.where(row_norms > 0.0, row_norms, 1.0)[..., None]
-    flat = sums.reshape(sums.shape[0], -1)
-    norms = np.sqrt(np.einsum("bi,bi->b", flat, flat))
-    return (flat / np.where(norms > 0.0, norms, 1.0)[:, None]).astype(np.float32)
+    return _assign(np.ascontiguousarray(_check_descriptors(descriptors)), centres)
 
 
 def compute_vlad_batch(
@@ -112,16 +92,14 @@ def compute_vlad_batch(
     sets = [_check_descriptors(d, f"descriptor set {i}") for i, d in enumerate(descriptor_sets)]
     if not sets:
         return np.zeros((0, len(centres) * DESCRIPTOR_BYTES), dtype=np.float32)
-    all_descriptors = np.concatenate(sets) if len(sets) > 1 else sets[0]
-    words = assign_words(all_descriptors, centres)
-    bounds = np.cumsum([0] + [len(d) for d in sets])
-    sums = np.stack(
-        [
-            _residual_sums(all_descriptors[lo:hi], words[lo:hi], centres)
-            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
-        ]
-    )
-    return _normalise(sums)
+    from monoloc.server.vision._vlad_kernel import vlads_from_words
+
+    all_descriptors = np.ascontiguousarray(np.concatenate(sets) if len(sets) > 1 else sets[0])
+    words = _assign(all_descriptors, centres)
+    bounds = np.cumsum([0] + [len(d) for d in sets], dtype=np.int64)
+    vlads = np.empty((len(sets), len(centres) * DESCRIPTOR_BYTES), dtype=np.float32)
+    vlads_from_words(all_descriptors, words, bounds, centres, vlads)
+    return vlads
 
 
 def compute_vlad(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -> np.ndarray:

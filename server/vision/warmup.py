@@ -15,13 +15,15 @@ from monoloc.server.vision.pnp import (
     estimate_relative_pose,
     estimate_relative_pose_guided,
 )
+from monoloc.server.vision.vlad import compute_vlad
 
 
 def warm_up() -> None:
-    """Run the matching kernel and PnP (RANSAC's inlier scoring + LM, guided PnP's guess
-    scoring) once on a small exact scene."""
+    """Run the VLAD kernels, the matching kernel and PnP (RANSAC's inlier scoring + LM,
+    guided PnP's guess scoring) once on a small exact scene."""
     rng = np.random.default_rng(0)
     descriptors = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
+    compute_vlad(descriptors, descriptors[:2].astype(np.float32))
     match_descriptors(descriptors, descriptors)
     camera = KITTI_CAM0
     points_cam = np.stack(

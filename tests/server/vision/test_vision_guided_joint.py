@@ -306,8 +306,8 @@ def test_a_prior_with_a_heading_is_one_confirming_vote():
     assert not rejected and sorted(h.method for h in hyps) == ["guided", "ransac"]
 
 
-def test_count_inliers_agrees_with_the_reprojection_errors():
-    from monoloc.server.vision._pnp_kernel import count_inliers, reprojection_errors
+def test_count_inliers_agrees_with_the_inlier_errors():
+    from monoloc.server.vision._pnp_kernel import count_inliers, inlier_errors
 
     rng = np.random.default_rng(4)
     T_world_from_query, refs, matches, keypoints = _scene(4, n_refs=1)
@@ -327,10 +327,10 @@ def test_count_inliers_agrees_with_the_reprojection_errors():
     count_inliers(points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], 3.0, counts)
     expected = []
     for g in range(len(poses)):
-        errors, depth = np.empty(len(points)), np.empty(len(points))
-        reprojection_errors(
-            points, pixels, R[g], t[g], K[0, 0], K[1, 1], K[0, 2], K[1, 2], errors, depth
+        errors, inliers = np.empty(len(points)), np.empty(len(points), dtype=bool)
+        inlier_errors(
+            points, pixels, R[g], t[g], K[0, 0], K[1, 1], K[0, 2], K[1, 2], 3.0, errors, inliers
         )
-        expected.append(int(((errors <= 3.0) & (depth > 0)).sum()))
+        expected.append(int(inliers.sum()))
     assert counts.tolist() == expected
     assert expected[0] > 0.6 * len(points) and min(expected) < expected[0]

@@ -160,7 +160,7 @@ def test_degenerate_and_malformed_inputs():
 
 
 def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
-    from monoloc.server.vision._pnp_kernel import refine_lm, reprojection_errors
+    from monoloc.server.vision._pnp_kernel import inlier_errors, refine_lm
 
     rng = np.random.default_rng(7)
     pixels, points, T_ref_from_query, outliers = _scene(rng, n=400, outlier_fraction=0.0)
@@ -171,11 +171,15 @@ def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
     mask = np.ones(len(points), dtype=bool)
     K = CAM.K
     args = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-    errors_px, depth_m = np.empty(len(points)), np.empty(len(points))
-    reprojection_errors(points, pixels, R0, t0, *args, errors_px, depth_m)
+    errors_px, inliers = np.empty(len(points)), np.empty(len(points), dtype=bool)
     projected, _ = cv2.projectPoints(points, cv2.Rodrigues(R0)[0], t0, K, None)
-    assert np.allclose(errors_px, np.linalg.norm(projected[:, 0] - pixels, axis=1), atol=1e-6)
-    assert np.allclose(depth_m, (points @ R0.T + t0)[:, 2])
+    expected_px = np.linalg.norm(projected[:, 0] - pixels, axis=1)
+    threshold_px = float(np.median(expected_px))  # half the points inside
+    inlier_errors(points, pixels, R0, t0, *args, threshold_px, errors_px, inliers)
+    assert np.allclose(errors_px, expected_px, atol=1e-6)
+    in_front = (points @ R0.T + t0)[:, 2] > 0
+    assert np.array_equal(inliers, (errors_px <= threshold_px) & in_front)
+    assert 0 < inliers.sum() < len(points)
 
     R, t, cost = refine_lm(points, pixels, mask, R0, t0, *args, 20)
     rvec_cv, tvec_cv = cv2.solvePnPRefineLM(
@@ -191,7 +195,7 @@ def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
     assert np.allclose(t, tvec_cv.ravel(), atol=1e-5)
     # 0.5 px noise: the optimum sits near the truth, and far below the starting cost.
     assert np.linalg.norm(t - T_query_from_ref[:3, 3]) < 0.05
-    reprojection_errors(points, pixels, R, t, *args, errors_px, depth_m)
+    inlier_errors(points, pixels, R, t, *args, threshold_px, errors_px, inliers)
     assert cost == pytest.approx(float(np.sum(errors_px**2)), rel=1e-9)
     assert np.sqrt(cost / len(points)) < 1.0
     # Masked-out points do not pull the fit: corrupt them and the result stays.

@@ -86,6 +86,23 @@ def test_hand_computed_two_word_case():
     assert np.allclose(compute_vlad(descriptors, centres), expected, atol=1e-7)
 
 
+def test_near_ties_are_decided_in_float64_and_exact_ties_go_to_the_lowest_word():
+    # Scores of these centres are ~1.3e6 in float32 (ulp 0.125): the 0.002 by which word 2
+    # is nearer than word 1 is below float32's resolution, so only the exact re-decision
+    # can find it.
+    base = np.full(32, 200.0)
+    centres = np.stack([np.zeros(32), base, base, np.full(32, 100.0)]).astype(np.float32)
+    centres[1, 0], centres[2, 0] = 199.0, 200.999
+    descriptors = np.full((3, 32), 200, dtype=np.uint8)
+    distances = ((descriptors[:1] - centres.astype(np.float64)) ** 2).sum(axis=1)
+    assert distances[2] < distances[1] < distances[2] + 0.01
+    assert assign_words(descriptors, centres).tolist() == [2, 2, 2]
+    assert np.allclose(compute_vlad(descriptors, centres), _naive_vlad(descriptors, centres))
+    # Words 1 and 2 exactly as far (1.0) from the descriptor: the lower index wins.
+    centres[2, 0] = 201.0
+    assert assign_words(descriptors, centres).tolist() == [1, 1, 1]
+
+
 def test_zero_residuals_and_no_descriptors_give_the_zero_vector():
     centres = np.stack([np.zeros(32), np.full(32, 100.0)])
     on_centre = np.full((3, 32), 100, dtype=np.uint8)
