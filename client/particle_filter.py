@@ -242,7 +242,9 @@ class ParticleFilter:
         """Indices of this frame's (bias-corrected) hypotheses (H, 3) to re-seed around,
         or None: the hypothesis agreed with by the most recent frames (moved here by the
         measured motion), with its neighbours in this frame, if at least
-        ``reseed_min_frames`` frames (this one included) agree."""
+        ``reseed_min_frames`` frames (this one included) agree and none of them lies
+        within the re-seed tolerances of the filter's own estimate (a re-seed must
+        relocate)."""
         cfg = self.config
         if not len(centres_world):
             return None
@@ -258,7 +260,22 @@ class ParticleFilter:
         best = int(np.lexsort((-near.sum(axis=1), -support))[0])
         if support[best] < cfg.reseed_min_frames:
             return None
-        return np.flatnonzero(near[best])
+        chosen = np.flatnonzero(near[best])
+        if (
+            self.particles is not None
+            and _agrees(centres_world[chosen], self._mode()[None], cfg).any()
+        ):
+            # Within the tolerances of where the filter already is: re-seeding there would
+            # relocate nothing, and the past frames "agree" with it only because they agree
+            # with the filter. It is an outlier of a tight Sigma1 (a lone night hypothesis
+            # 0.5-0.8 m off), to be weighed like any other frame, not a place to jump to.
+            return None
+        return chosen
+
+    def _mode(self) -> np.ndarray:
+        """The reported pose (3,): the particles' main mode."""
+        weights = normalise_log_weights(self.log_weights)
+        return mode_estimate(self.particles, weights, self.config.mode_radius_m)
 
     def _reseed(self, hypotheses: Hypotheses, chosen: np.ndarray) -> None:
         """Particles around the chosen hypotheses, weighed by the whole frame."""
@@ -340,7 +357,7 @@ class ParticleFilter:
         weights = normalise_log_weights(self.log_weights)
         _, cov = weighted_estimate(self.particles, weights)
         return FilterEstimate(
-            pose_world=mode_estimate(self.particles, weights, self.config.mode_radius_m),
+            pose_world=self._mode(),
             covariance=cov,
             effective_sample_size=effective_sample_size(weights),
             n_hypotheses=n_hypotheses,
