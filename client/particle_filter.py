@@ -54,7 +54,8 @@ class FilterConfig:
     # ``reseed_window_frames`` agree with it within the tolerances once moved to this
     # frame by the measured speed and yaw rate. 4 frames at 10 Hz: 0.4 s of evidence
     # that moves like the car; the window (2 s) bounds the odometry drift (~0.2 m with
-    # a 1 % speed scale error at 9 m/s).
+    # a 1 % speed scale error at 9 m/s). A candidate within the tolerances of the filter's
+    # own estimate never re-seeds (it would relocate nothing; see ``reseed_candidate``).
     # Initialisation: the first frame in which at least ``init_min_agreeing`` hypotheses
     # agree within the re-seed tolerances starts the filter (around all of that frame's
     # hypotheses, weighed by it); a frame with a lone hypothesis does not, unless the
