@@ -55,7 +55,8 @@ class FilterConfig:
     # frame by the measured speed and yaw rate. 4 frames at 10 Hz: 0.4 s of evidence
     # that moves like the car; the window (2 s) bounds the odometry drift (~0.2 m with
     # a 1 % speed scale error at 9 m/s). A candidate within the tolerances of the filter's
-    # own estimate never re-seeds (it would relocate nothing; see ``reseed_candidate``).
+    # own estimate re-seeds only after ``reseed_min_frames`` unlikely frames in a row
+    # (see ``reseed_candidate``).
     # Initialisation: the first frame in which at least ``init_min_agreeing`` hypotheses
     # agree within the re-seed tolerances starts the filter (around all of that frame's
     # hypotheses, weighed by it); a frame with a lone hypothesis does not, unless the
@@ -243,9 +244,10 @@ class ParticleFilter:
         """Indices of this frame's (bias-corrected) hypotheses (H, 3) to re-seed around,
         or None: the hypothesis agreed with by the most recent frames (moved here by the
         measured motion), with its neighbours in this frame, if at least
-        ``reseed_min_frames`` frames (this one included) agree and none of them lies
-        within the re-seed tolerances of the filter's own estimate (a re-seed must
-        relocate)."""
+        ``reseed_min_frames`` frames (this one included) agree. Near the filter's own
+        estimate (within the re-seed tolerances) only after ``reseed_min_frames``
+        unlikely frames in a row: before that the agreeing frames may be ones that agreed
+        with the filter, and the candidate is an outlier, not a place to move to."""
         cfg = self.config
         if not len(centres_world):
             return None
@@ -264,12 +266,15 @@ class ParticleFilter:
         chosen = np.flatnonzero(near[best])
         if (
             self.particles is not None
+            and self._unlikely_frames < cfg.reseed_min_frames
             and _agrees(centres_world[chosen], self._mode()[None], cfg).any()
         ):
-            # Within the tolerances of where the filter already is: re-seeding there would
-            # relocate nothing, and the past frames "agree" with it only because they agree
-            # with the filter. It is an outlier of a tight Sigma1 (a lone night hypothesis
-            # 0.5-0.8 m off), to be weighed like any other frame, not a place to jump to.
+            # Within the tolerances of where the filter already is, the past frames may
+            # "agree" with the candidate only because they agreed with the filter: a lone
+            # outlier of a tight Sigma1 (a night hypothesis 0.5-0.8 m off) after likely
+            # frames is weighed like any other frame, not jumped to. A filter locked a
+            # little off still re-seeds once ``reseed_min_frames`` frames in a row have
+            # contradicted it.
             return None
         return chosen
 

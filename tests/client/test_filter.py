@@ -258,3 +258,22 @@ def test_a_lone_outlier_near_the_filter_does_not_reseed_it():
     est = pf.step(dt, speed, yaw_rate, _lone(truth[11] + 0.7 * left))
     assert pf.n_reseeds == 0
     assert np.linalg.norm(est.pose_world[:2] - truth[11, :2]) < 0.2
+
+
+def test_a_filter_locked_a_little_off_still_reseeds_on_consistent_hypotheses():
+    """The other side of the rule above: a confident filter 0.8 m to the side of where
+    every frame's hypotheses agree is re-seeded after ``reseed_min_frames`` unlikely frames
+    in a row, instead of crawling back by roughening (30+ frames)."""
+    rng = np.random.default_rng(12)
+    dt, speed = 0.1, 8.0
+    truth = _circle_truth(8, dt, speed, 0.0, [0.0, 0.0, 0.2])
+    model = MeasurementModel(Sigma1=np.diag([0.08**2, 0.08**2, math.radians(0.11) ** 2]))
+    config = FilterConfig(n_particles=500)
+    pf = ParticleFilter(config, model, rng)
+    left = np.array([-math.sin(truth[0, 2]), math.cos(truth[0, 2]), 0.0])
+    pf.initialise(truth[0] + 0.8 * left, 0.02, math.radians(0.05))
+    for k in range(8):
+        near = truth[k] + rng.normal(scale=[0.03, 0.03, 0.0005], size=(4, 3))
+        est = pf.step(dt if k else 0.0, speed, 0.0, _lone(near))
+    assert pf.n_reseeds == 1
+    assert np.linalg.norm(est.pose_world[:2] - truth[7, :2]) < 0.1
