@@ -95,3 +95,49 @@ def test_vocabulary_change_without_the_images_uses_stored_descriptors(
         )[0]
     new = Vocabulary.from_centres(np.asarray(record.centres))
     np.testing.assert_allclose(entry.vlad, compute_vlad(entry.descriptors, new), atol=1e-6)
+
+
+def _png_declaring(width_px: int, height_px: int, bit_depth: int, colour_type: int) -> bytes:
+    """A valid PNG of ``width_px`` x ``height_px`` whose pixels are all zero: zlib packs the
+    zero rows of even a 5000 x 5000 16-bit RGBA image (200 MB decoded) into ~200 KB."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
+
+    channels = {0: 1, 2: 3, 4: 2, 6: 4}[colour_type]
+    row = b"\x00" * (1 + width_px * channels * bit_depth // 8)  # filter byte + pixels
+    packer = zlib.compressobj(9)
+    idat = b"".join(packer.compress(row) for _ in range(height_px)) + packer.flush()
+    ihdr = struct.pack(">IIBBBBB", width_px, height_px, bit_depth, colour_type, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def test_an_entry_of_the_wrong_declared_size_is_refused_before_decoding(
+    kitti_root, factory, make_map, monkeypatch
+):
+    """Issue 15.4: a 5000 x 5000 16-bit RGBA PNG of ~200 KB decoded to ~474 MB before its
+    size was checked. The declared size is refused first: the decoder is never called."""
+    import monoloc.server.ingest.single as single
+
+    decoded = []
+    real_decode = single.decode_gray
+    monkeypatch.setattr(
+        single, "decode_gray", lambda *a, **k: decoded.append(1) or real_decode(*a, **k)
+    )
+    seq = read_kitti_sequence(kitti_root.root)
+    map_id = make_map()
+    frame = seq.frames[2]
+    loaded = seq.load(frame)
+    bomb = _png_declaring(5000, 5000, 16, 6)
+    assert len(bomb) < 1_000_000
+    with pytest.raises(InvalidInputError, match="image is 5000x5000 pixels; the camera is"):
+        add_single_image(factory, map_id, bomb, frame.T_world_from_cam, loaded.source)
+    assert decoded == []
+    # The spy does see the decode of an image of the right size.
+    add_single_image(
+        factory, map_id, frame.image_path.read_bytes(), frame.T_world_from_cam, loaded.source
+    )
+    assert decoded == [1]
