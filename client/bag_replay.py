@@ -176,4 +176,14 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
     reader_fn = _BagImages(
         root, image, {k: i.bag_time_ns for k, i in zip(keys, images, strict=True)}
     )
-    return ReplayRun(f"rosbag:{root.name}", keys, times, signals, truth, notes, None, reader_fn)
+    return ReplayRun(
+        f"rosbag:{root.name}",
+        keys,
+        times,
+        signals,
+        truth,
+        notes,
+        None,
+        reader_fn,
+        images[0].frame_id or None,
+    )

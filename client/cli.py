@@ -35,6 +35,12 @@ def drive(
         help="ROS bag: ROLE=TOPIC (roles image, odometry, truth), repeatable; image and "
         "odometry are found by type when the bag has one of each",
     ),
+    bag_out: Path | None = typer.Option(
+        None,
+        help="also write the track as a new ROS 2 bag folder (nav_msgs/Odometry on "
+        "/monoloc/odometry; needs the formats extra)",
+    ),
+    bag_storage: str = typer.Option("sqlite3", help="storage of --bag-out: sqlite3 or mcap"),
 ) -> None:
     """Stream a run's frames, run the filter, write TUM + KITTI trajectories, print metrics."""
     from rich.console import Console
@@ -42,7 +48,7 @@ def drive(
 
     from monoloc.client.api import MonolocClient
     from monoloc.client.bag_replay import is_bag, read_bag_run
-    from monoloc.client.drive import DriveConfig, write_geojson, write_outputs
+    from monoloc.client.drive import DriveConfig, write_bag, write_geojson, write_outputs
     from monoloc.client.drive import drive as run_drive
     from monoloc.client.motion import MotionConfig, fit_lever_arm_m
     from monoloc.client.particle_filter import FilterConfig
@@ -51,6 +57,8 @@ def drive(
     from monoloc.core.errors import InvalidInputError
 
     console = Console(stderr=True)
+    if bag_out is not None:  # refused before the drive, not after it
+        _check_bag_out(bag_out, bag_storage)
     if is_bag(run_dir):
         run = read_bag_run(run_dir, _topics(topic)).select(parse_frames(frames))
     else:
@@ -98,12 +106,30 @@ def drive(
         console.print(f"[yellow]note:[/] {note}")
     tum, kitti = write_outputs(result, out)
     geojson = write_geojson(result, out)
+    bag_path = write_bag(result, bag_out, bag_storage) if bag_out is not None else None
     Console().print(metrics_table(result))
-    console.print(f"trajectories: {tum}, {kitti}" + (f", {geojson}" if geojson else ""))
+    written = [tum, kitti, *(p for p in (geojson, bag_path) if p is not None)]
+    console.print("trajectories: " + ", ".join(str(p) for p in written))
     if result.geo_reference is None:
         console.print(f"no GeoJSON track: map {map_ref} has no geographic reference")
     elif geojson is None:
         console.print("no GeoJSON track: the filter gave no estimate")
+
+
+def _check_bag_out(path: Path, storage: str) -> None:
+    """A usage error unless ``path`` is free, ``storage`` known and rosbags installed."""
+    if storage not in ("sqlite3", "mcap"):
+        raise typer.BadParameter(f"sqlite3 or mcap, got {storage!r}", param_hint="--bag-storage")
+    if path.exists():
+        raise typer.BadParameter(
+            f"{path} already exists (a bag is written to a new folder)", param_hint="--bag-out"
+        )
+    try:
+        import rosbags.rosbag2  # noqa: F401
+    except ModuleNotFoundError:
+        raise typer.BadParameter(
+            "writing a bag needs rosbags: pip install 'monoloc[formats]'", param_hint="--bag-out"
+        ) from None
 
 
 def _topics(items: list[str] | None) -> dict[str, str]:

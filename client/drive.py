@@ -266,6 +266,38 @@ def write_geojson(result: DriveResult, out_prefix: Path) -> Path | None:
     return write_track_geojson(out_prefix.with_name(out_prefix.name + ".geojson"), collection)
 
 
+def write_bag(result: DriveResult, path: Path, storage: str = "sqlite3") -> Path | None:
+    """A new ROS 2 bag folder ``path`` with the filter's track as ``nav_msgs/Odometry`` on
+    /monoloc/odometry (monoloc.core.formats.rosbag.write_pose_bag): one message per frame
+    with an estimate, stamped with the frame's time, the camera's pose in the map's world
+    (``map``) at the GeoJSON track's height (held median of the best hypotheses' heights);
+    the child frame is the replayed bag's camera frame. None when the filter gave no
+    estimate. Needs ``rosbags`` (the formats extra)."""
+    from monoloc.client.geojson import track_heights_m
+    from monoloc.core.formats.rosbag import write_pose_bag
+    from monoloc.core.geometry import T_world_from_cam_planar
+
+    ok = np.all(np.isfinite(result.estimates_world), axis=1)
+    if not ok.any():
+        return None
+    n = len(result.estimates_world)
+    best = result.best_height_m if result.best_height_m is not None else np.full(n, np.nan)
+    heights = track_heights_m(best)
+    poses = np.stack(
+        [
+            T_world_from_cam_planar(*result.estimates_world[i], height_m=heights[i])
+            for i in np.flatnonzero(ok)
+        ]
+    )
+    return write_pose_bag(
+        path,
+        result.run.timestamps_s[ok],
+        poses,
+        camera_frame=result.run.camera_frame or "camera_optical_frame",
+        storage=storage,
+    )
+
+
 def write_outputs(result: DriveResult, out_prefix: Path) -> tuple[Path, Path]:
     """Trajectory files of the frames that have an estimate."""
     ok = np.all(np.isfinite(result.estimates_world), axis=1)

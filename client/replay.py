@@ -49,6 +49,8 @@ class ReplayRun:
     # How to read an image's encoded bytes from its entry of ``image_paths``: the file's
     # bytes by default; a ROS bag's images are messages (monoloc.client.bag_replay).
     read_image: Callable[[Path], bytes] | None = field(default=None, repr=False)
+    # The camera's frame id when the recording names it (a ROS bag's image frame_id).
+    camera_frame: str | None = None
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -75,6 +77,7 @@ class ReplayRun:
             notes,
             self.lever_arm_m,
             self.read_image,
+            self.camera_frame,
         )
 
 

@@ -201,3 +201,39 @@ def test_malformed_files_are_refused_naming_file_and_line(
 def test_a_handle_without_a_name_is_called_stream():
     with pytest.raises(InputFileError, match=r"^<stream>:1: pose has 1 values"):
         kitti.read_poses(io.StringIO("1\n"))
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_pose_bag_round_trip(tmp_path, storage):
+    """write_pose_bag's Odometry messages read back (rosbags' reader, monoloc's Odometry
+    reading) as the same stamps, frames and poses; bad input writes nothing."""
+    from monoloc.core.formats import rosbag as bag
+
+    T = _random_poses(7, seed=3)
+    times_s = 1_700_000_000.0 + np.cumsum(np.full(7, 0.1))
+    path = bag.write_pose_bag(
+        tmp_path / "track", times_s, T, camera_frame="cam0_optical", storage=storage
+    )
+    with bag.open_bag(path) as reader:
+        assert bag.topic_types(reader) == {bag.ESTIMATE_TOPIC: bag.ODOMETRY}
+        track = bag.read_odometry(reader, bag.ESTIMATE_TOPIC)
+    assert (track.world, track.body) == ("map", "cam0_optical")
+    np.testing.assert_allclose(track.pose_rows[:, 0], times_s, rtol=0, atol=1e-6)
+    back = np.stack([bag.T_from_pose_row(row) for row in track.pose_rows])
+    np.testing.assert_allclose(back, T, atol=1e-9)
+    assert np.all(track.signal_rows[:, 1:] == 0.0)  # no twist is estimated
+
+    with pytest.raises(InputFileError, match="already exists"):
+        bag.write_pose_bag(path, times_s, T)
+    bad = [
+        (times_s[:3], T, "must be \\(3, 4, 4\\)"),
+        (times_s[::-1], T, "increasing"),
+        (times_s, T * np.nan, "finite"),
+        (times_s[:0], T[:0], "no poses"),
+    ]
+    for times, poses, message in bad:
+        with pytest.raises(InvalidInputError, match=message):
+            bag.write_pose_bag(tmp_path / "bad", times, poses)
+        assert not (tmp_path / "bad").exists()
+    with pytest.raises(InvalidInputError, match="sqlite3 or mcap"):
+        bag.write_pose_bag(tmp_path / "bad", times_s, T, storage="db3")

@@ -374,3 +374,90 @@ def signals_at(signal_rows: np.ndarray, times_s: np.ndarray) -> np.ndarray:
     return np.column_stack(
         [np.interp(times_s, t, signal_rows[:, 1]), np.interp(times_s, t, signal_rows[:, 2])]
     )
+
+
+ESTIMATE_TOPIC = "/monoloc/odometry"
+
+
+def _writer_parts():
+    try:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and exc.name.split(".")[0] == "rosbags":
+            raise MonolocError(MISSING_ROSBAGS.replace("reading", "writing")) from exc
+        raise
+    return Writer, StoragePlugin, get_typestore(Stores.ROS2_HUMBLE)
+
+
+def write_pose_bag(
+    path: Path,
+    times_s: np.ndarray,
+    T_world_from_cam: np.ndarray,
+    *,
+    topic: str = ESTIMATE_TOPIC,
+    world_frame: str = "map",
+    camera_frame: str = "camera_optical_frame",
+    storage: str = "sqlite3",
+) -> Path:
+    """A new rosbag2 folder ``path`` holding one ``nav_msgs/msg/Odometry`` per pose on
+    ``topic``: ``header.stamp`` = ``times_s`` (the frames' sensor times), ``header.frame_id``
+    = ``world_frame``, ``child_frame_id`` = ``camera_frame`` (the pose is
+    ``T_<world_frame>_from_<camera_frame>``, the camera's optical frame as in the bags monoloc
+    reads); twist and covariances are zero (not estimated). ``times_s`` (N,), increasing;
+    ``T_world_from_cam`` (N, 4, 4). ``storage`` is "sqlite3" or "mcap". Refuses an
+    existing ``path`` (a bag is never overwritten)."""
+    path = Path(path)
+    times_s = np.asarray(times_s, dtype=np.float64).reshape(-1)
+    T_world_from_cam = np.asarray(T_world_from_cam, dtype=np.float64)
+    if T_world_from_cam.shape != (len(times_s), 4, 4):
+        raise InvalidInputError(
+            f"poses must be ({len(times_s)}, 4, 4) for {len(times_s)} times, "
+            f"got {T_world_from_cam.shape}"
+        )
+    if not len(times_s):
+        raise InvalidInputError("no poses to write")
+    if not np.all(np.isfinite(times_s)) or np.any(np.diff(times_s) <= 0) or times_s[0] < 0:
+        raise InvalidInputError("pose times must be finite, >= 0 and increasing")
+    if not np.all(np.isfinite(T_world_from_cam)):
+        raise InvalidInputError("poses must be finite")
+    if storage not in ("sqlite3", "mcap"):
+        raise InvalidInputError(f"bag storage is sqlite3 or mcap, got {storage!r}")
+    if path.exists():
+        raise InputFileError(path, "already exists; a bag is written to a new folder")
+    Writer, StoragePlugin, store = _writer_parts()
+    from monoloc.core.geometry import quaternion_xyzw_from_R
+
+    types = store.types
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    zeros = np.zeros(36)
+    with Writer(path, version=8, storage_plugin=plugin) as writer:
+        connection = writer.add_connection(topic, ODOMETRY, typestore=store)
+        for t_s, T in zip(times_s, T_world_from_cam, strict=True):
+            ns = round(float(t_s) * 1e9)
+            q = quaternion_xyzw_from_R(T[:3, :3])
+            msg = types[ODOMETRY](
+                header=types["std_msgs/msg/Header"](
+                    stamp=types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                    frame_id=world_frame,
+                ),
+                child_frame_id=camera_frame,
+                pose=types["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=types["geometry_msgs/msg/Pose"](
+                        position=types["geometry_msgs/msg/Point"](*(float(v) for v in T[:3, 3])),
+                        orientation=types["geometry_msgs/msg/Quaternion"](
+                            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+                        ),
+                    ),
+                    covariance=zeros,
+                ),
+                twist=types["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=types["geometry_msgs/msg/Twist"](
+                        linear=types["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+                        angular=types["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+                    ),
+                    covariance=zeros,
+                ),
+            )
+            writer.write(connection, ns, store.serialize_cdr(msg, ODOMETRY))
+    return path

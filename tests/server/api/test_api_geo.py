@@ -179,8 +179,19 @@ def test_driving_a_bag_writes_the_filters_track_as_geojson(
         )
         assert r.status_code == 200, r.text
         out = tmp_path / "geo" / "drive"
-        err = _drive_cli(url, map_copy, bag, out, monkeypatch, capsys)
+        track_bag = tmp_path / "geo" / "track_bag"
+        err = _drive_cli(url, map_copy, bag, out, monkeypatch, capsys, "--bag-out", str(track_bag))
         assert not [line for line in err if "no GeoJSON" in line]
+        assert "track_bag" in "".join(err)  # named among the outputs (rich may wrap the line)
+        # an existing --bag-out is refused before the drive starts (usage error, exit 2)
+        again = tmp_path / "again" / "drive"
+        try:
+            _drive_cli(url, map_copy, bag, again, monkeypatch, capsys, "--bag-out", str(track_bag))
+        except SystemExit as exc:
+            assert exc.code == 2
+        else:
+            raise AssertionError("an existing --bag-out was accepted")
+        assert not again.with_name("drive.tum.txt").exists()
 
     estimates = tum.read_trajectory(out.with_name("drive.tum.txt"))
     collection = json.loads(out.with_name("drive.geojson").read_text())
@@ -258,3 +269,19 @@ def test_driving_a_bag_writes_the_filters_track_as_geojson(
         )[0]
         assert np.linalg.norm(world[:2] - truths[frames.index(i), :2, 3]) < 0.5
     assert [p["source"] for p in by_frame.values()].count("initialisation") == 1
+
+    # the same track as a ROS 2 bag: one Odometry per TUM row, at the frame's stamp, the
+    # camera's pose in `map` at the GeoJSON's height, child frame the bag's camera frame
+    from monoloc.core.formats import rosbag as bag_format
+
+    with bag_format.open_bag(track_bag) as reader:
+        assert bag_format.topic_types(reader) == {"/monoloc/odometry": bag_format.ODOMETRY}
+        track = bag_format.read_odometry(reader, "/monoloc/odometry")
+    assert (track.world, track.body) == ("map", "camera_optical")
+    rows = track.pose_rows
+    np.testing.assert_allclose(rows[:, 0], estimates.timestamps_s, atol=1e-6)
+    np.testing.assert_allclose(rows[:, 1:3], estimates.position_world_m[:, :2], atol=1e-9)
+    np.testing.assert_allclose(rows[:, 3], z_m, atol=1e-9)
+    for row, T in zip(rows, estimates.T_world_from_cam, strict=True):
+        R_world_from_cam = bag_format.T_from_pose_row(row)[:3, :3]
+        np.testing.assert_allclose(R_world_from_cam, T[:3, :3], atol=1e-6)  # TUM: 9 digits
