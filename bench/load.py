@@ -83,7 +83,14 @@ def rss_mb(pid: int) -> float:
 
 
 @contextmanager
-def replicas(n: int, data_dir: Path, database_url: str | None, workers: int, python: str):
+def replicas(
+    n: int,
+    data_dir: Path,
+    database_url: str | None,
+    workers: int,
+    python: str,
+    serve_args: tuple[str, ...] = (),
+):
     """``n`` `monoloc serve` processes on one database; yields (urls, pids)."""
     from monoloc.client.api import wait_until_ready
 
@@ -107,7 +114,7 @@ def replicas(n: int, data_dir: Path, database_url: str | None, workers: int, pyt
             if database_url:
                 env["MONOLOC_DATABASE_URL"] = database_url
             cmd = [python, "-m", "monoloc.cli", "serve", "--port", str(port)]
-            cmd += ["--data-dir", str(data_dir), "--log-level", "warning"]
+            cmd += ["--data-dir", str(data_dir), "--log-level", "warning", *serve_args]
             procs.append(subprocess.Popen(cmd, env=env, cwd=ROOT))
             urls.append(f"http://127.0.0.1:{port}")
             wait_ready(procs[-1], urls[-1])
@@ -603,7 +610,11 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
     shutil.rmtree(data_dir, ignore_errors=True)
     data_dir.mkdir(parents=True)
     print(f"[{n_replicas} replica(s)] on {db_name}", flush=True)
-    with replicas(n_replicas, data_dir, db, args.workers, args.server_python) as (urls, pids):
+    serve_args = ("--http", args.http, "--loop", args.loop)
+    with replicas(n_replicas, data_dir, db, args.workers, args.server_python, serve_args) as (
+        urls,
+        pids,
+    ):
         map_id = ingest_map(urls[0], dataset)
         entries = [
             e["id"]
@@ -677,6 +688,12 @@ def main() -> None:
     parser.add_argument("--replicas", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--rate-hz", type=float, default=10.0, help="per vehicle")
     parser.add_argument("--workers", type=int, default=2, help="worker threads per replica")
+    parser.add_argument(
+        "--http", default="auto", choices=["auto", "httptools", "h11"], help="replicas' parser"
+    )
+    parser.add_argument(
+        "--loop", default="auto", choices=["auto", "uvloop", "asyncio"], help="replicas' loop"
+    )
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument(
         "--runs",
@@ -698,6 +715,9 @@ def main() -> None:
         "SQLAlchemy URL, or auto: 1 replica on SQLite (the embedded default), 2+ replicas "
         "on a throwaway PostgreSQL when one is installed (else SQLite, said so)",
     )
+    parser.add_argument(
+        "--out", type=Path, default=RESULTS / "load.json", help="where the results go"
+    )
     args = parser.parse_args()
     dataset = ensure_dataset(args.frames)
     frames = sorted((dataset / "sequences" / "01" / "image_0").glob("*.png"))
@@ -714,16 +734,17 @@ def main() -> None:
                     print("no PostgreSQL server installed: replicas share SQLite", flush=True)
             with database(choice, pg) as (url, name):
                 results.append(measure(n, args, dataset, frames, url, name))
-    RESULTS.mkdir(exist_ok=True)
     out = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
         "duration_s": args.duration,
         "deadline_ms": DEADLINE_MS,
+        "server": {"http": args.http, "loop": args.loop},
         "goals": GOALS,
         "results": results,
     }
-    (RESULTS / "load.json").write_text(json.dumps(out, indent=2))
-    print(f"wrote {RESULTS / 'load.json'}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=2))
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ a fresh data directory before the first ``monoloc serve``.
 
 from __future__ import annotations
 
+import enum
 from pathlib import Path
 from typing import Annotated
 
@@ -84,6 +85,22 @@ def keys_revoke(key_id: int, data_dir: DataDirOption = None) -> None:
     typer.echo(f"revoked key {record.id} '{record.name}' ({record.prefix}...)")
 
 
+class HttpProtocol(enum.StrEnum):
+    """uvicorn's HTTP/1.1 implementations."""
+
+    auto = "auto"
+    httptools = "httptools"
+    h11 = "h11"
+
+
+class EventLoop(enum.StrEnum):
+    """uvicorn's event loops."""
+
+    auto = "auto"
+    uvloop = "uvloop"
+    asyncio = "asyncio"
+
+
 def serve(
     host: Annotated[str | None, typer.Option(help="Bind address (MONOLOC_HOST).")] = None,
     port: Annotated[int | None, typer.Option(help="Port (MONOLOC_PORT).")] = None,
@@ -97,6 +114,17 @@ def serve(
             "current from the database's change log (use PostgreSQL for more than a few).",
         ),
     ] = 1,
+    http: Annotated[
+        HttpProtocol,
+        typer.Option(
+            help="HTTP/1.1 parser: httptools (C, the server extra's default) or h11 (pure "
+            "Python, several times the CPU per request); auto picks httptools when installed.",
+        ),
+    ] = HttpProtocol.auto,
+    loop: Annotated[
+        EventLoop,
+        typer.Option(help="Event loop: uvloop (the server extra's default) or asyncio."),
+    ] = EventLoop.auto,
 ) -> None:
     """Run the map server: ``workers`` replica processes sharing the database."""
     import os
@@ -119,6 +147,8 @@ def serve(
             port=settings.port,
             log_level=log_level,
             workers=1,
+            http=http.value,
+            loop=loop.value,
         )
         return
     # Worker processes build their app from the environment: pass the resolved settings.
@@ -132,4 +162,6 @@ def serve(
         port=settings.port,
         log_level=log_level,
         workers=workers,
+        http=http.value,
+        loop=loop.value,
     )
