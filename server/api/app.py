@@ -41,7 +41,9 @@ Visual localization against a map of geo-tagged reference images.
 **Authentication.** Every route but `/healthz`, `/readyz` and these docs needs an API
 key: header `X-API-Key: mlk_...` (or `Authorization: Bearer mlk_...`; the WebSocket
 stream also takes `?key=`). Scopes: `localize` (vehicles), `map:write` (uploads,
-entries, calibration), `admin` (maps, keys, `/metrics`; implies every scope). No key:
+entries, calibration), `admin` (maps, keys, `/metrics`; implies every scope). Reading
+what a map looks like (maps, calibration, geo reference, poses, coverage, live vehicles,
+`GET /v1/keys/me`) takes a valid key of any scope. No key:
 401; wrong scope: 403. `/metrics` is open only with `MONOLOC_METRICS_PUBLIC=true`.
 Create keys with `monoloc keys create --scope ... --name ...` (same data directory), or
 start the server with `MONOLOC_BOOTSTRAP_ADMIN_KEY` while no key exists yet.

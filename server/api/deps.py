@@ -35,7 +35,7 @@ from monoloc.server.runtime import MapRegistry
 from monoloc.server.settings import Settings
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.keys import verify_api_key
-from monoloc.server.storage.records import ApiKeyRecord
+from monoloc.server.storage.records import READ_ACCESS, ApiKeyRecord
 
 T = TypeVar("T")
 
@@ -168,6 +168,8 @@ def require_scope(scope: str, *, websocket: bool = False) -> Callable[..., ApiKe
 
 
 LocalizeKey = Annotated[ApiKeyRecord, Depends(require_scope("localize"))]
+# Any valid key: vehicles and mapping teams both see the maps (the console's read pages).
+ReadKey = Annotated[ApiKeyRecord, Depends(require_scope(READ_ACCESS))]
 MapWriteKey = Annotated[ApiKeyRecord, Depends(require_scope("map:write"))]
 AdminKey = Annotated[ApiKeyRecord, Depends(require_scope("admin"))]
 StreamKey = Annotated[ApiKeyRecord, Depends(require_scope("localize", websocket=True))]

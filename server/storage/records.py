@@ -14,6 +14,9 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 
+# Reading what a map looks like needs a valid key of any scope (see ApiKeyRecord.has_scope).
+READ_ACCESS = "read"
+
 
 @dataclass(frozen=True)
 class VocabularyRecord:
@@ -212,5 +215,9 @@ class ApiKeyRecord:
         return self.revoked_at is not None
 
     def has_scope(self, scope: str) -> bool:
-        """True if the key grants ``scope`` (directly or through ``admin``)."""
+        """True if the key grants ``scope`` (directly or through ``admin``). ``read`` (what
+        the map looks like: maps, their calibration, geo reference, poses, coverage, live
+        vehicles) is no scope of its own: every valid key has it."""
+        if scope == READ_ACCESS:
+            return bool(self.scopes)
         return scope in self.scopes or "admin" in self.scopes

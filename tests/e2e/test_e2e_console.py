@@ -160,7 +160,7 @@ def test_docs_list_every_route_with_the_network_off(offline, server):
     ("which", "scope", "visible", "hidden"),
     [
         ("localize", "localize", ["Maps"], ["Jobs"]),
-        ("write", "map:write", ["Jobs"], ["Maps"]),
+        ("write", "map:write", ["Maps", "Jobs"], []),
         ("admin", "admin", ["Maps", "Jobs"], []),
     ],
 )
@@ -172,14 +172,15 @@ def test_sign_in_with_each_scope(offline, server, which, scope, visible, hidden)
         assert page.locator("#nav a", has_text=name).is_visible()
     for name in hidden:
         assert not page.locator("#nav a", has_text=name).is_visible()
-    if which == "write":  # lands on the jobs page; the maps list needs the localize scope
-        page.locator("#jobs").wait_for()
-        page.goto(f"{server['url']}/ui#/maps")
-        page.locator("#no-maps").wait_for()
-    else:
-        row = page.locator(f"#maps tr[data-map-id='{server['map_id']}']")
-        n_entries = _api(server, "GET", f"/v1/maps/{server['map_id']}")["n_entries"]
-        assert row.locator(".n-entries").inner_text() == str(n_entries)
+    # every key sees the maps (a vehicle key and a mapping team's map:write key alike)
+    row = page.locator(f"#maps tr[data-map-id='{server['map_id']}']")
+    n_entries = _api(server, "GET", f"/v1/maps/{server['map_id']}")["n_entries"]
+    assert row.locator(".n-entries").inner_text() == str(n_entries)
+    # ... and the map's page; map:write and admin also get its editing links
+    page.goto(f"{server['url']}/ui#/maps/{server['map_id']}")
+    page.locator("h1", has_text="Map ").wait_for()
+    page.locator("#map-plot .main-svg").first.wait_for()
+    assert page.locator("#add-link").count() == (0 if which == "localize" else 1)
     if which == "localize":  # an editing page says why it is closed
         page.goto(f"{server['url']}/ui#/jobs")
         assert "map:write" in page.locator("#page-error").inner_text()
@@ -322,6 +323,8 @@ def test_jobs_page_watches_an_ingestion_reach_100(offline, server, city):
 
     page = offline.page
     offline.sign_in(server["keys"].write)
+    page.locator("#maps").wait_for()  # every key lands on the maps
+    page.goto(f"{server['url']}/ui#/jobs")
     page.locator("#jobs").wait_for()
     camera = camera_json(KITTI_CAM0)
     made = _api(server, "POST", "/v1/maps", json={"name": "night", "camera": camera})
@@ -359,6 +362,8 @@ def test_jobs_page_cancels_a_queued_job_and_resumes_it(offline, server, city):
 
     page = offline.page
     offline.sign_in(server["keys"].write)
+    page.locator("#maps").wait_for()  # every key lands on the maps
+    page.goto(f"{server['url']}/ui#/jobs")
     page.locator("#jobs").wait_for()
     archive = tar_sequence(city["root"], city["night"])
     jobs = []

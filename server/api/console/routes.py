@@ -22,7 +22,7 @@ from monoloc.core.errors import NotFoundError
 from monoloc.server.api.console.coverage import CoverageConfig, route_gaps, route_length_m
 from monoloc.server.api.console.live import vehicle_board
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
-from monoloc.server.api.deps import LocalizeKey, MapWriteKey, SessionDep
+from monoloc.server.api.deps import MapWriteKey, ReadKey, SessionDep
 from monoloc.server.api.params import DB_ID_MAX, EntryId, MapId
 from monoloc.server.api.schemas import TAG_PATTERN
 from monoloc.server.storage import entries as entries_repo
@@ -174,7 +174,7 @@ def _all_entries(session, map_id: int, tag: str | None = None, run_id: int | Non
 def map_poses(
     map_id: MapId,
     session: SessionDep,
-    _key: LocalizeKey,
+    _key: ReadKey,
     tag: TagFilter = None,
     run_id: RunFilter = None,
 ) -> MapPoses:
@@ -198,7 +198,7 @@ def map_poses(
 def coverage(
     map_id: MapId,
     session: SessionDep,
-    _key: LocalizeKey,
+    _key: ReadKey,
     radius_m: Annotated[
         float, Query(gt=0, le=1000, allow_inf_nan=False, description="Gap radius (m).")
     ] = CoverageConfig.radius_m,
@@ -309,7 +309,7 @@ def entry_image(map_id: MapId, entry_id: EntryId, session: SessionDep, _key: Map
     "30 s and the client reconnects.",
 )
 def vehicles(
-    map_id: MapId, request: Request, session: SessionDep, _key: LocalizeKey
+    map_id: MapId, request: Request, session: SessionDep, _key: ReadKey
 ) -> VehicleSnapshot:
     maps_repo.get_map(session, map_id)
     return VehicleSnapshot(**vehicle_board(request.app).snapshot(map_id))
@@ -334,7 +334,7 @@ def vehicles(
     summary="The same as server-sent events, one snapshot per change",
 )
 def vehicle_events(
-    map_id: MapId, request: Request, session: SessionDep, _key: LocalizeKey
+    map_id: MapId, request: Request, session: SessionDep, _key: ReadKey
 ) -> StreamingResponse:
     """``text/event-stream``: a ``data:`` snapshot at once and after every change
     (checked every 0.25 s); the stream ends after 30 s and the client reconnects."""

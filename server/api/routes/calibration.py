@@ -22,7 +22,7 @@ from monoloc.core.measurement import MeasurementModel
 from monoloc.server.api import convert
 from monoloc.server.api.archives import Unpacked
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
-from monoloc.server.api.deps import AppState, LocalizeKey, MapWriteKey, SessionDep, StateDep
+from monoloc.server.api.deps import AppState, MapWriteKey, ReadKey, SessionDep, StateDep
 from monoloc.server.api.guard import GuardedRoute, body_limit
 from monoloc.server.api.params import MapId
 from monoloc.server.api.schemas import CalibrationPublic, CalibrationUpdate, JobPublic
@@ -108,7 +108,7 @@ def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get the calibration",
 )
-def get_calibration(map_id: MapId, session: SessionDep, _key: LocalizeKey) -> CalibrationPublic:
+def get_calibration(map_id: MapId, session: SessionDep, _key: ReadKey) -> CalibrationPublic:
     """mu1, Sigma1, mu2, Sigma2 (and the outlier floor) with their provenance."""
     return _public(maps_repo.get_map(session, map_id).calibration)
 

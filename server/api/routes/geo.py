@@ -12,7 +12,7 @@ from fastapi import APIRouter, Response, status
 
 from monoloc.core.errors import NotFoundError
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses, geo_reference_public
-from monoloc.server.api.deps import LocalizeKey, MapWriteKey, RegistryDep, SessionDep
+from monoloc.server.api.deps import MapWriteKey, ReadKey, RegistryDep, SessionDep
 from monoloc.server.api.guard import GuardedRoute
 from monoloc.server.api.params import MapId
 from monoloc.server.api.schemas import GeoReferencePublic, GeoReferenceUpdate
@@ -34,7 +34,7 @@ def _refresh(registry, map_id: int) -> None:
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get the map's geographic reference",
 )
-def get_geo_reference(map_id: MapId, session: SessionDep, _key: LocalizeKey) -> GeoReferencePublic:
+def get_geo_reference(map_id: MapId, session: SessionDep, _key: ReadKey) -> GeoReferencePublic:
     """404 when the map does not exist or is not geo-referenced."""
     public = geo_reference_public(maps_repo.get_map(session, map_id).geo_reference)
     if public is None:

@@ -1,11 +1,12 @@
-"""API keys (admin): create (the key is in this answer only), list, revoke."""
+"""API keys (admin): create (the key is in this answer only), list, revoke; and any key's
+own record (``GET /v1/keys/me``: what the console shows and offers)."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, status
 
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
-from monoloc.server.api.deps import AdminKey, SessionDep
+from monoloc.server.api.deps import AdminKey, ReadKey, SessionDep
 from monoloc.server.api.guard import GuardedRoute
 from monoloc.server.api.params import KeyId
 from monoloc.server.api.schemas_admin import KeyCreate, KeyCreated, KeyList, KeyPublic
@@ -26,6 +27,14 @@ def create_key(body: KeyCreate, session: SessionDep, _key: AdminKey) -> KeyCreat
     record, plaintext = keys_repo.create_api_key(session, body.name, body.scopes)
     session.commit()
     return KeyCreated(**KeyPublic.model_validate(record).model_dump(), key=plaintext)
+
+
+@router.get(
+    "/me", response_model=KeyPublic, responses=AUTH_ERRORS, summary="The presented key's record"
+)
+def my_key(key: ReadKey) -> KeyPublic:
+    """Name, prefix and scopes of the key this request presents (any valid key)."""
+    return KeyPublic.model_validate(key)
 
 
 @router.get("", response_model=KeyList, responses=AUTH_ERRORS, summary="List API keys")

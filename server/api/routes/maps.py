@@ -9,7 +9,7 @@ from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import ConflictError
 from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
-from monoloc.server.api.deps import AdminKey, LocalizeKey, RegistryDep, SessionDep, StateDep
+from monoloc.server.api.deps import AdminKey, ReadKey, RegistryDep, SessionDep, StateDep
 from monoloc.server.api.guard import GuardedRoute
 from monoloc.server.api.params import MapId
 from monoloc.server.api.schemas import JobPublic, MapCreate, MapDetail, MapList, VocabularyJobCreate
@@ -71,7 +71,7 @@ def create_map(
 
 
 @router.get("", response_model=MapList, responses=AUTH_ERRORS, summary="List maps")
-def list_maps(session: SessionDep, _key: LocalizeKey) -> MapList:
+def list_maps(session: SessionDep, _key: ReadKey) -> MapList:
     vocabularies: dict[int, object] = {}
     items = []
     for record in maps_repo.list_maps(session):
@@ -89,9 +89,7 @@ def list_maps(session: SessionDep, _key: LocalizeKey) -> MapList:
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get a map",
 )
-def get_map(
-    map_id: MapId, session: SessionDep, registry: RegistryDep, _key: LocalizeKey
-) -> MapDetail:
+def get_map(map_id: MapId, session: SessionDep, registry: RegistryDep, _key: ReadKey) -> MapDetail:
     """Counts (entries, runs, tags), version, vocabulary, calibration status, index state."""
     return _detail(session, registry, map_id)
 

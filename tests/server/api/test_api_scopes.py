@@ -14,7 +14,13 @@ from starlette.testclient import WebSocketDenialResponse
 EXEMPT = {"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"}
 # the console's page and the docs' assets (no data; the page's API calls send the key)
 EXEMPT |= {"/docs/assets", "/ui", "/ui/assets", "/ui/vendor/plotly.min.js"}
-WRONG_KEYS = {"localize": ["write"], "map:write": ["localize"], "admin": ["localize", "write"]}
+# "read" (what a map looks like) is granted to a valid key of any scope: no wrong key
+WRONG_KEYS = {
+    "localize": ["write"],
+    "map:write": ["localize"],
+    "admin": ["localize", "write"],
+    "read": [],
+}
 
 
 def _required_scope(path: str, dependant) -> str:
@@ -81,8 +87,8 @@ def test_every_route_checks_its_scope(fresh):
             assert _status(client, method, path, headers) == 401, (method, path, headers)
         for wrong in WRONG_KEYS[scope]:
             assert _status(client, method, path, keys.header(wrong)) == 403, (method, path, wrong)
-        right = "admin" if scope == "admin" else {"localize": "localize"}.get(scope, "write")
-        for key in {right, "admin"}:
+        right = {"admin": {"admin"}, "localize": {"localize"}, "read": {"localize", "write"}}
+        for key in right.get(scope, {"write"}) | {"admin"}:
             status = _status(client, method, path, keys.header(key))
             assert status not in (401, 403), (method, path, key, status)
         checked += 1
@@ -138,3 +144,20 @@ def test_bootstrap_key_is_used_only_on_an_empty_key_table(tmp_path):
     with pytest.raises(Exception, match="MONOLOC_BOOTSTRAP_ADMIN_KEY"):
         with open_client(make_settings(tmp_path / "bad", bootstrap_admin_key="short")):
             pass
+
+
+def test_every_key_reads_the_maps_and_its_own_record(fresh):
+    """Vehicles and mapping teams both see what a map looks like; GET /v1/keys/me tells a
+    key (the console) its own scopes."""
+    client, keys = fresh
+    for which, scopes in (("localize", ["localize"]), ("write", ["map:write"])):
+        headers = keys.header(which)
+        assert client.get("/v1/maps", headers=headers).status_code == 200
+        me = client.get("/v1/keys/me", headers=headers).json()
+        assert me["scopes"] == scopes and me["prefix"] == getattr(keys, which)[:12]
+        assert "key" not in me
+    assert client.get("/v1/keys/me", headers=keys.header("admin")).json()["scopes"] == ["admin"]
+    # reading is not writing: a vehicle key still may not edit, nor a write key localize
+    assert client.post("/v1/maps/1/runs", headers=keys.header("localize")).status_code == 403
+    answer = client.post("/v1/maps/1/localize", headers=keys.header("write"))
+    assert answer.status_code == 403

@@ -46,28 +46,21 @@ function deg(rad) { return rad === null || rad === undefined ? "-" : (rad * 180 
 
 // ---- sign-in and what the key may do ------------------------------------------------
 
-async function probe(path) {
-  try { await api(path); return true; } catch (e) {
-    if (e.status === 403) return false;
-    throw e;
-  }
-}
-
+// Every valid key reads the maps (and live vehicles); map:write also edits, admin all.
 async function capabilities() {
-  const [read, write, admin] = await Promise.all(
-    [probe("/v1/maps"), probe("/v1/jobs?limit=1"), probe("/v1/keys?include_revoked=false")]);
-  return { read, write, admin };
+  const me = await api("/v1/keys/me");
+  const admin = me.scopes.includes("admin");
+  return { read: true, write: admin || me.scopes.includes("map:write"), admin, scopes: me.scopes };
 }
 
 function scopeLabel(caps) {
   if (caps.admin) return "admin";
-  return [caps.read && "localize", caps.write && "map:write"].filter(Boolean).join(" + ");
+  return ["localize", "map:write"].filter((s) => caps.scopes.includes(s)).join(" + ");
 }
 
 async function signIn(key) {
   state.key = key;
   const caps = await capabilities();
-  if (!caps.read && !caps.write) throw new ApiError(403, "this key has no scope the console uses");
   state.caps = caps;
   sessionStorage.setItem(KEY_STORE, key);
   $("#who").textContent = `key ${key.slice(0, 8)}… · ${scopeLabel(caps)}`;
@@ -96,7 +89,7 @@ function signInPage(message) {
     error.textContent = "";
     try {
       await signIn(input.value.trim());
-      const target = state.caps.read ? "#/maps" : "#/jobs";
+      const target = "#/maps";
       if (location.hash === target) await route(); else location.hash = target;
     } catch (e) {
       state.key = null;
@@ -114,12 +107,6 @@ function signInPage(message) {
 // ---- maps -----------------------------------------------------------------------------
 
 async function mapsPage() {
-  if (!state.caps.read) {
-    show(h("h1", {}, "Maps"), h("p", { class: "muted", id: "no-maps" },
-      "This key has the map:write scope only: listing maps needs the localize scope. " +
-      "See the jobs page, or open a map by its id: #/maps/ID."));
-    return;
-  }
   const maps = (await api("/v1/maps")).items;
   const rows = maps.map((m) => h("tr", { "data-map-id": m.id },
     h("td", {}, h("a", { href: `#/maps/${m.id}` }, m.name)), h("td", {}, m.id),
@@ -193,7 +180,7 @@ function plotLayout(extra = {}) {
 const PLOT_CONFIG = { scrollZoom: true, responsive: true, displaylogo: false };
 
 async function mapPage(mapId) {
-  const detail = state.caps.read ? await api(`/v1/maps/${mapId}`) : null;
+  const detail = await api(`/v1/maps/${mapId}`);
   const poses = await api(`/v1/maps/${mapId}/poses`);
   const tags = [...new Set(poses.tags.map(category))].sort();
   const runs = [...new Set(poses.run_ids.filter((r) => r !== null))].sort((a, b) => a - b);
@@ -206,10 +193,10 @@ async function mapPage(mapId) {
   const info = h("p", { id: "plot-info", class: "muted" });
   const links = [h("a", { href: `#/maps/${mapId}/live` }, "live vehicles")];
   if (state.caps.write) links.push(" · ", h("a", { id: "add-link", href: `#/maps/${mapId}/add` }, "add images"));
-  show(h("h1", {}, detail ? `Map ${detail.name}` : `Map ${mapId}`),
-    detail ? h("p", { class: "muted" }, `${detail.n_entries} entries · ${detail.n_runs} runs · ` +
+  show(h("h1", {}, `Map ${detail.name}`),
+    h("p", { class: "muted" }, `${detail.n_entries} entries · ${detail.n_runs} runs · ` +
       `version ${detail.version} · vocabulary ${detail.vocabulary.hash.slice(0, 10)} · ` +
-      (detail.calibrated ? "calibrated" : "measurement model: defaults")) : "",
+      (detail.calibrated ? "calibrated" : "measurement model: defaults")),
     h("p", {}, links),
     h("div", { class: "toolbar" }, h("label", {}, "tag", tagSel), h("label", {}, "run", runSel),
       h("label", {}, "gap radius (m)", radius)),
@@ -553,7 +540,7 @@ async function route() {
     if (!match) continue;
     if (needs && !state.caps[needs]) {
       show(h("p", { class: "error", id: "page-error" },
-        `this key may not open this page (it needs the ${needs === "write" ? "map:write" : "localize"} scope)`));
+        `this key may not open this page (it needs the ${needs === "admin" ? "admin" : "map:write"} scope)`));
       return;
     }
     try { await page(...match.slice(1).map(Number)); } catch (e) { fail(e); }
