@@ -177,6 +177,43 @@ def crash_section(data: dict | None) -> list[str]:
     return lines
 
 
+def hostile_section(data: dict | None) -> list[str]:
+    """Decoding cost of a compression bomb (bench/hostile.py)."""
+    lines = ["", "## A compression bomb against the decoder (bench/hostile.py)", ""]
+    if not data:
+        return lines + ["not run"]
+    rows = [[name, f"{ms:.1f}", data["outcome"][name]] for name, ms in data["cpu_ms"].items()]
+    lines.append(table(["image, path", "CPU ms", "outcome"], rows))
+    lines += [
+        "",
+        f"The bomb: {data['bomb_bytes'] / 1e6:.1f} MB declaring the camera's size, inflating "
+        f"to {data['inflate_mb']} MB; the real frame {data['real_bytes'] / 1e3:.0f} kB.",
+    ]
+    return lines
+
+
+def http_overhead_section(data: dict | None) -> list[str]:
+    """Server CPU per request by HTTP implementation (bench/http_overhead.py)."""
+    lines = ["", "## The HTTP layer's cost per request (bench/http_overhead.py)", ""]
+    if not data:
+        return lines + ["not run"]
+    configs = list(data["results"])
+    cases = list(data["results"][configs[0]])
+    rows = []
+    for case in cases:
+        base = data["results"][configs[0]][case]["server_cpu_us_per_request_median"]
+        for name in configs:
+            us = data["results"][name][case]["server_cpu_us_per_request_median"]
+            rows.append([case, name, f"{us:.0f}", f"{us / base:.2f}x"])
+    lines.append(table(["request", "server", "server CPU us / request", "vs baseline"], rows))
+    lines += [
+        "",
+        f"Median of {data['repeat']} alternating runs of {data['requests']} requests each; "
+        "the baseline (first row of each request) is uvicorn's pure-Python fallback.",
+    ]
+    return lines
+
+
 def _cores(phase: dict) -> str:
     c = phase.get("cpu_cores")
     if c is None:
@@ -487,6 +524,8 @@ def main() -> None:
         lines += [f"{frames} frames per run, from `python bench/stereo.py`.", ""]
         lines += [*stereo_lines(stereo), ""]
     lines += crash_section(load("crash"))
+    lines += hostile_section(load("hostile"))
+    lines += http_overhead_section(load("http_overhead"))
     for scenario in ("indoor", "urban"):
         lines += closed_loop_section(scenario, load(f"closed_loop_{scenario}"))
     (HERE / "REPORT.md").write_text("\n".join(lines) + "\n")
