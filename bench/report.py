@@ -214,6 +214,42 @@ def http_overhead_section(data: dict | None) -> list[str]:
     return lines
 
 
+def formats_section(formats: dict | None, geopose: dict | None) -> list[str]:
+    """Maps from COLMAP models vs LiDAR (bench/formats.py) and the GeoPose cost
+    (bench/geopose.py)."""
+    lines = ["", "## Maps from other formats (bench/formats.py, bench/geopose.py)", ""]
+    if formats:
+        d = formats["dataset"]
+        rows = [
+            [
+                name,
+                m["entries"],
+                f"{m['points_per_entry']:.0f}",
+                f"{100 * m['with_hypothesis']:.0f} %",
+                f"{m['position_rmse_m']:.3f}" if m.get("position_rmse_m") is not None else "-",
+                f"{m['position_median_m']:.3f}" if m.get("position_median_m") is not None else "-",
+            ]
+            for name, m in formats["maps"].items()
+        ]
+        header = ["map", "entries", "3D points / entry", "frames with a hypothesis"]
+        lines.append(table(header + ["RMSE m", "median m"], rows))
+        lines += [
+            "",
+            f"Sim city {d['size']}, seed {d['seed']}, {d['frames']} frames; the LiDAR-built map "
+            "is the baseline, same query run.",
+        ]
+    else:
+        lines.append("formats: not run")
+    if geopose:
+        lines += [
+            "",
+            f"GeoPose answers: a localize answer of {geopose['hypotheses']} hypotheses costs "
+            f"{geopose['answer_with_geopose_us_p50']:.0f} us with GeoPoses vs "
+            f"{geopose['answer_plain_us_p50']:.0f} us without (p50, same run).",
+        ]
+    return lines
+
+
 def _cores(phase: dict) -> str:
     c = phase.get("cpu_cores")
     if c is None:
@@ -525,6 +561,7 @@ def main() -> None:
         lines += [*stereo_lines(stereo), ""]
     lines += crash_section(load("crash"))
     lines += hostile_section(load("hostile"))
+    lines += formats_section(load("formats"), load("geopose"))
     lines += http_overhead_section(load("http_overhead"))
     for scenario in ("indoor", "urban"):
         lines += closed_loop_section(scenario, load(f"closed_loop_{scenario}"))
