@@ -7,9 +7,12 @@ controller on the ground truth: the baseline, measured in this run), closed loop
 centre-line map, and closed loop after adding oscillating off-center laps. Prints the
 table and the goals; writes bench/results/closed_loop_<scenario>.json and
 bench/results/closed_loop_<scenario>_{trajectories,errors,loc_vs_tracking}.png.
-The city route is no loop: there, "laps" is the share of the route driven.
+The city route is no loop: there, "laps" is the share of the route driven, and each case
+drives that share ``--passes`` times from its start (fresh filter each pass; the figures
+pool the passes).
 
-Usage: python bench/closed_loop.py [--scenario indoor|urban] [--laps N] [--size small]
+Usage: python bench/closed_loop.py [--scenario indoor|urban] [--laps N] [--passes N]
+    [--size small]
 """
 
 from __future__ import annotations
@@ -99,6 +102,9 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--scenario", default="indoor", choices=("indoor", "urban"))
     parser.add_argument("--laps", type=float, default=None, help="indoor 3, urban 0.25")
+    parser.add_argument(
+        "--passes", type=int, default=None, help="drives per case: indoor 1, urban 3"
+    )
     parser.add_argument("--size", default="small")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None)
@@ -114,11 +120,18 @@ def main() -> None:
     world = build_loop_world(WorldSpec(args.scenario, args.size, args.seed))
     if args.scenario == "indoor":
         laps = args.laps or 3.0
-        study = StudyConfig(laps=laps, offcenter_laps=2.0, seed=args.seed)
+        passes = args.passes or 1
+        study = StudyConfig(laps=laps, offcenter_laps=2.0, seed=args.seed, passes=passes)
     else:  # a share of the route: map, off-center and query drives cover the same stretch
         laps = args.laps or 0.25
+        passes = args.passes or 3
         study = StudyConfig(
-            laps=laps, map_laps=laps, offcenter_laps=laps, train_laps=0.15, seed=args.seed
+            laps=laps,
+            map_laps=laps,
+            offcenter_laps=laps,
+            train_laps=0.15,
+            seed=args.seed,
+            passes=passes,
         )
 
     def log(text: str) -> None:
@@ -128,7 +141,10 @@ def main() -> None:
         with MonolocClient(url, key, timeout_s=120.0) as client:
             summary = run_study(client, world, study, out, log=log)
     results = summary.pop("_results")
-    print(f"{args.scenario} ({args.size}, seed {args.seed}), {laps:g} laps per case:")
+    print(
+        f"{args.scenario} ({args.size}, seed {args.seed}), {laps:g} laps x {passes} pass(es) "
+        "per case:"
+    )
     print_table(summary["cases"])
     summary["goals"] = goals(summary)
     RESULTS.mkdir(exist_ok=True)

@@ -347,6 +347,39 @@ def run_loop(
     )
 
 
+def concat_passes(results: list[LoopResult]) -> LoopResult:
+    """Several drives over the same stretch (a route that is no loop, driven again from its
+    start) as one result: frames, estimates and trace one after the other, each pass's
+    times shifted to follow the previous pass (one frame period apart), and
+    ``frames["pass_index"]`` saying which pass a frame belongs to (the metrics let each
+    pass's filter settle). One result is returned as it is, with its pass index."""
+    if not results:
+        raise InvalidInputError("no drive to concatenate")
+    frames: dict[str, list[np.ndarray]] = {name: [] for name in results[0].frames}
+    frames["pass_index"] = []
+    trace: dict[str, list[np.ndarray]] = {name: [] for name in results[0].trace}
+    offset_s = 0.0
+    for index, result in enumerate(results):
+        for name, values in result.frames.items():
+            frames[name].append(values + offset_s if name == "t_s" else values)
+        frames["pass_index"].append(np.full(result.n_frames, index, dtype=np.int64))
+        for name, values in result.trace.items():
+            trace[name].append(values + offset_s if name == "t_s" else values)
+        t = result.frames["t_s"]
+        period_s = float(np.median(np.diff(t))) if len(t) > 1 else 0.1
+        offset_s += float(max(t[-1], result.trace["t_s"][-1])) + period_s
+    first = results[0]
+    return LoopResult(
+        config=first.config,
+        frames={name: np.concatenate(parts) for name, parts in frames.items()},
+        estimates_world=np.concatenate([r.estimates_world for r in results]),
+        trace={name: np.concatenate(parts) for name, parts in trace.items()},
+        lane_half_width_m=first.lane_half_width_m,
+        wall_s=float(sum(r.wall_s for r in results)),
+        notes=[note for r in results for note in r.notes],
+    )
+
+
 def _localize(tracker, localizer, image, i, t, busy_until, config, encode, rng):
     """(delay s, answer, sent) of frame i: not sent while the previous request is out."""
     if t < busy_until:

@@ -22,6 +22,19 @@ def episodes(mask: np.ndarray) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
+def _settled(t_s: np.ndarray, has: np.ndarray, pass_index: np.ndarray | None) -> np.ndarray:
+    """(N,) bool: at least SETTLE_S after the first estimate of the frame's pass (one
+    pass when ``pass_index`` is None)."""
+    passes = np.zeros(len(t_s), dtype=np.int64) if pass_index is None else pass_index
+    settled = np.zeros(len(t_s), dtype=bool)
+    for p in np.unique(passes):
+        rows = np.flatnonzero(passes == p)
+        estimated = rows[has[rows]]
+        if len(estimated):
+            settled[rows] = t_s[rows] - t_s[estimated[0]] >= SETTLE_S
+    return settled
+
+
 def _pearson(a: np.ndarray, b: np.ndarray) -> float | None:
     if len(a) < 3 or np.std(a) == 0 or np.std(b) == 0:
         return None
@@ -70,7 +83,7 @@ def loop_metrics(result: LoopResult, spike_threshold_m: float | None = None) -> 
     }
     if spike_threshold_m is not None:
         m["spike_threshold_m"] = float(spike_threshold_m)
-        settled = f["t_s"] - f["t_s"][np.argmax(has)] >= SETTLE_S if has.any() else has
+        settled = _settled(f["t_s"], has, f.get("pass_index"))
         above = has & settled & (np.nan_to_num(err, nan=0.0) > spike_threshold_m)
         m["spikes"] = len(episodes(above))
     return m

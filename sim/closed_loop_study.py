@@ -47,7 +47,9 @@ class StudyConfig:
     """laps: laps per driven case; map_laps / offcenter_laps / train_laps: laps recorded
     for the map, the augmentation and the calibration (0 train laps: the default
     measurement model); max_frames: cap per drive (short demo laps);
-    recorded_latency: draw answer delays from the open-loop case's measured ones."""
+    recorded_latency: draw answer delays from the open-loop case's measured ones;
+    passes: drives per case over the same ``laps`` (a route that is no loop is driven
+    again from its start, with a fresh filter; the case's figures pool the passes)."""
 
     laps: float = 2.0
     map_laps: float = 1.0
@@ -57,6 +59,7 @@ class StudyConfig:
     seed: int = 0
     recorded_latency: bool = False
     cases: tuple[str, ...] = CASES
+    passes: int = 1
 
     def __post_init__(self) -> None:
         bad = [c for c in self.cases if c not in CASES]
@@ -64,6 +67,8 @@ class StudyConfig:
             raise InvalidInputError(f"cases must be among {CASES}, got {self.cases}")
         if "closed+offcenter" in self.cases and self.offcenter_laps <= 0:
             raise InvalidInputError("the closed+offcenter case needs offcenter_laps > 0")
+        if self.passes < 1:
+            raise InvalidInputError(f"passes must be at least 1, got {self.passes}")
 
 
 @contextmanager
@@ -148,34 +153,45 @@ def drive_case(
     progress: Callable[[int, int], None] | None = None,
     record_dir: Path | None = None,
 ) -> LoopResult:
-    """One localized drive of the query lap over HTTP (``mode`` open|closed); with
-    ``record_dir``, its frames are also written there as a TUM run."""
+    """The localized drives of the query lap over HTTP (``mode`` open|closed), one per
+    ``study.passes`` (concatenated, see ``concat_passes``); with ``record_dir``, each
+    pass's frames are also written as a run (``record_dir``, then ``<record_dir>_pass2``,
+    ...)."""
     from monoloc.client.localizer import HttpLocalizer
+    from monoloc.sim.closed_loop import concat_passes
 
     model, _ = client.measurement_model(map_id)
-    config = LoopConfig(
-        mode=mode,
-        laps=study.laps,
-        max_frames=study.max_frames,
-        lap=QUERY_LAP,
-        recorded_latency_ms=recorded_latency_ms,
-        seed=study.seed + 100,
-    )
-    recorder = None
-    if record_dir is not None:
-        recorder = make_recorder(world, record_dir, f"monoloc sim closed-loop {mode} drive")
-    result = run_loop(
-        world,
-        config,
-        localizer=HttpLocalizer(client, map_id),
-        model=model,
-        filter_config=filter_config_for(world),
-        sink=recorder,
-        progress=progress,
-    )
-    if recorder is not None:
-        recorder.finish(result)
-    return result
+    results = []
+    for index in range(study.passes):
+        config = LoopConfig(
+            mode=mode,
+            laps=study.laps,
+            max_frames=study.max_frames,
+            lap=QUERY_LAP,
+            recorded_latency_ms=recorded_latency_ms,
+            seed=study.seed + 100 + 1000 * index,
+        )
+        recorder = None
+        if record_dir is not None:
+            run_dir = (
+                record_dir
+                if index == 0
+                else record_dir.with_name(f"{record_dir.name}_pass{index + 1}")
+            )
+            recorder = make_recorder(world, run_dir, f"monoloc sim closed-loop {mode} drive")
+        result = run_loop(
+            world,
+            config,
+            localizer=HttpLocalizer(client, map_id),
+            model=model,
+            filter_config=filter_config_for(world),
+            sink=recorder,
+            progress=progress,
+        )
+        if recorder is not None:
+            recorder.finish(result)
+        results.append(result)
+    return results[0] if len(results) == 1 else concat_passes(results)
 
 
 def build_map(

@@ -153,3 +153,32 @@ def test_episodes_group_consecutive_frames():
     mask = np.array([0, 1, 1, 0, 0, 1, 0, 1], dtype=bool)
     assert episodes(mask) == [(1, 3), (5, 6), (7, 8)]
     assert episodes(np.zeros(4, dtype=bool)) == []
+
+
+def test_passes_over_a_stretch_pool_into_one_result_and_each_pass_settles():
+    """A route that is no loop is driven again from its start: the passes' frames follow
+    each other in time, and each pass's filter start is no spike while a later excursion
+    is one."""
+    from monoloc.sim.closed_loop import LoopConfig, concat_passes, run_loop
+    from monoloc.sim.closed_loop_metrics import SETTLE_S, loop_metrics
+    from monoloc.sim.closed_loop_world import IndoorLoopWorld
+
+    world = IndoorLoopWorld("small", seed=0)
+    drives = [run_loop(world, LoopConfig(mode="open", max_frames=40, seed=s)) for s in (1, 2)]
+    for drive in drives:  # an estimate 1 cm off, 2 m off on the first frame (the start)
+        drive.estimates_world = drive.frames["truth_cam"].copy()
+        drive.estimates_world[:, 0] += 0.01
+        drive.estimates_world[0, 0] += 2.0
+    first_settled = np.flatnonzero(drives[1].frames["t_s"] - drives[1].frames["t_s"][0] >= SETTLE_S)
+    drives[1].estimates_world[first_settled[0] + 2, 1] += 1.0  # one excursion, settled
+    both = concat_passes(drives)
+    n = [d.n_frames for d in drives]
+    assert both.n_frames == sum(n) and len(both.estimates_world) == sum(n)
+    assert np.all(np.diff(both.frames["t_s"]) > 0) and np.all(np.diff(both.trace["t_s"]) > 0)
+    assert both.frames["pass_index"].tolist() == [0] * n[0] + [1] * n[1]
+    np.testing.assert_array_equal(both.frames["lateral_m"][n[0] :], drives[1].frames["lateral_m"])
+    m = loop_metrics(both, spike_threshold_m=0.5)
+    assert m["spikes"] == 1 and m["frames"] == sum(n)
+    assert concat_passes(drives[:1]).frames["pass_index"].tolist() == [0] * n[0]
+    with pytest.raises(InvalidInputError):
+        concat_passes([])
