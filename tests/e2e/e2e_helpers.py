@@ -140,3 +140,23 @@ def copy_database(src_data_dir: Path, dst_data_dir: Path) -> None:
     finally:
         dst.close()
         src.close()
+
+
+@contextmanager
+def mapped_loop_server(world, root: Path, map_frames: int, name: str, timeout_s: float = 60.0):
+    """A closed-loop world's mapping drive (``map_frames`` centre-line frames recorded by
+    the sim's vehicle under ``root/map``) uploaded to a live server's new map ``name``;
+    yields (client, map_id, run_dir, lap)."""
+    from monoloc.client.api import MonolocClient
+    from monoloc.sim.closed_loop import LoopConfig
+    from monoloc.sim.closed_loop_study import MAP_LAP, create_map, record_lap, upload
+
+    run_dir, lap = record_lap(
+        world, root, "map", LoopConfig(mode="open", max_frames=map_frames, lap=MAP_LAP, seed=1)
+    )
+    with live_server(make_settings(root / "data")) as (url, _app):
+        with MonolocClient(url, ADMIN_KEY, timeout_s=timeout_s) as client:
+            map_id = create_map(client, world, name)
+            job = upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="map")
+            assert job["state"] == "done"
+            yield client, map_id, run_dir, lap

@@ -9,9 +9,8 @@ import json
 
 import numpy as np
 import pytest
-from e2e_helpers import ADMIN_KEY, live_server, make_settings
+from e2e_helpers import mapped_loop_server
 
-from monoloc.client.api import MonolocClient
 from monoloc.sim.closed_loop import LoopConfig
 from monoloc.sim.closed_loop_metrics import loop_metrics
 from monoloc.sim.closed_loop_record import write_loop_outputs
@@ -19,7 +18,6 @@ from monoloc.sim.closed_loop_study import (
     MAP_LAP,
     OFFCENTER,
     StudyConfig,
-    create_map,
     drive_case,
     record_lap,
     upload,
@@ -34,15 +32,8 @@ def indoor_map(tmp_path_factory):
     """A live server with one map: 45 centre-line frames of the small indoor track."""
     root = tmp_path_factory.mktemp("closed_loop")
     world = IndoorLoopWorld("small", seed=0)
-    run_dir, lap = record_lap(
-        world, root, "map", LoopConfig(mode="open", max_frames=45, lap=MAP_LAP, seed=1)
-    )
-    with live_server(make_settings(root / "data")) as (url, _app):
-        with MonolocClient(url, ADMIN_KEY, timeout_s=60.0) as client:
-            map_id = create_map(client, world, "track")
-            job = upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="map")
-            assert job["state"] == "done"
-            yield client, map_id, world, root, lap
+    with mapped_loop_server(world, root, 45, "track") as (client, map_id, _run_dir, lap):
+        yield client, map_id, world, root, lap
 
 
 def test_mapping_lap_is_a_tum_run_the_server_ingests(indoor_map):

@@ -6,19 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from e2e_helpers import ADMIN_KEY, live_server, make_settings
+from e2e_helpers import mapped_loop_server
 
-from monoloc.client.api import MonolocClient
 from monoloc.core.formats import kitti as kitti_format
-from monoloc.sim.closed_loop import LoopConfig
 from monoloc.sim.closed_loop_metrics import loop_metrics
 from monoloc.sim.closed_loop_study import (
-    MAP_LAP,
     StudyConfig,
-    create_map,
     drive_case,
-    record_lap,
-    upload,
 )
 from monoloc.sim.closed_loop_world import UrbanLoopWorld
 
@@ -29,15 +23,8 @@ MAP_FRAMES, DRIVE_FRAMES = 50, 30
 def city_map(tmp_path_factory):
     root = tmp_path_factory.mktemp("closed_loop_city")
     world = UrbanLoopWorld("small", seed=0)
-    run_dir, lap = record_lap(
-        world, root, "map", LoopConfig(mode="open", max_frames=MAP_FRAMES, lap=MAP_LAP, seed=1)
-    )
-    with live_server(make_settings(root / "data")) as (url, _app):
-        with MonolocClient(url, ADMIN_KEY, timeout_s=120.0) as client:
-            map_id = create_map(client, world, "city")
-            job = upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="map")
-            assert job["state"] == "done"
-            yield client, map_id, world, run_dir, lap
+    with mapped_loop_server(world, root, MAP_FRAMES, "city", 120.0) as (client, map_id, run, lap):
+        yield client, map_id, world, run, lap
 
 
 def test_the_city_mapping_drive_is_a_kitti_run_with_lidar(city_map):
