@@ -55,7 +55,7 @@ demo: install
 
 # Benchmarks: slow test suites, then every bench script (each prints its figures beside a
 # baseline and writes bench/results/*.json), then bench/REPORT.md from those results.
-BENCHES := vision filter sim ingest localize retrieval speed accuracy crash load footprint geopose hostile http_overhead formats joint
+BENCHES := vision filter sim ingest localize pnp_calibration retrieval speed accuracy crash load footprint geopose hostile http_overhead formats joint
 
 bench: install
 	$(PY) -m pytest -q -m slow

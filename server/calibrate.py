@@ -133,7 +133,12 @@ class _Query:
 
 
 @dataclass
-class _Samples:
+class CalibrationSamples:
+    """Every hypothesis within the gates, one list item each (joint ones included, marked
+    ``joint``): the query's true pose and its own index among the queries, the hypothesis
+    and its entry's planar poses (X, Y, psi) and the entry's index in its run's temporary
+    map, VLAD distance, inliers, reprojection error; plus the counts of the gated."""
+
     truth: list = field(default_factory=list)
     hypothesis: list = field(default_factory=list)
     e_vlad: list = field(default_factory=list)
@@ -141,11 +146,14 @@ class _Samples:
     n_inliers: list = field(default_factory=list)
     error_px: list = field(default_factory=list)
     joint: list = field(default_factory=list)
+    query_index: list = field(default_factory=list)
+    entry_index: list = field(default_factory=list)
     n_hypotheses: int = 0
     n_joint: int = 0
     n_joint_gated: int = 0
     n_gated: int = 0
     n_queries_with_hypotheses: int = 0
+    n_queries: int = 0
 
 
 def _split_run(frames, intrinsics, vocabulary, config, tick):
@@ -220,7 +228,10 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         samples.n_inliers.append(h.n_inliers)
         samples.error_px.append(h.reprojection_error_px)
         samples.joint.append(h.joint)
+        samples.query_index.append(samples.n_queries)
+        samples.entry_index.append(-1 if h.joint else int(h.entry_id))
     samples.n_queries_with_hypotheses += int(bool(hypotheses))
+    samples.n_queries += 1
 
 
 def calibrate(
@@ -268,23 +279,7 @@ def calibrate_runs(
     not matched against night entries), then one fit covers every sample, so the
     quality-aware model sees hypotheses from both good and poor images. ``progress`` as
     in :func:`calibrate`, over all runs."""
-    if not runs:
-        raise InvalidInputError("calibration needs at least one training run")
-    totals = []
-    for run in runs:
-        n = run.n_frames
-        if n is None and isinstance(run.frames, Sized):
-            n = len(run.frames)
-        totals.append(n or 0)
-    planned = [n + n - math.ceil(n / config.map_every) for n in totals]
-    ticker = _Ticker(progress, sum(planned))
-    samples = _Samples()
-    per_run = []
-    for run, plan in zip(runs, planned, strict=True):
-        counts = _run_samples(run, intrinsics, vocabulary, config, rng, ticker, samples)
-        # the run's true length is known now: correct the total for it
-        ticker.total += counts["frames"] + counts["query_frames"] - plan
-        per_run.append(counts)
+    samples, per_run = collect_samples(runs, intrinsics, vocabulary, config, rng, progress)
     names = [run.name for run in runs]
     what = " + ".join(name or "the training run" for name in names)
     joint = np.array(samples.joint, dtype=bool)
@@ -316,6 +311,38 @@ def calibrate_runs(
     if len(runs) > 1:
         provenance["runs"] = [{"source": n, **c} for n, c in zip(names, per_run, strict=True)]
     return CalibrationResult(model, provenance)
+
+
+def collect_samples(
+    runs: Sequence[TrainingRun],
+    intrinsics: CameraIntrinsics,
+    vocabulary: Vocabulary,
+    config: CalibrationConfig,
+    rng: np.random.Generator,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[CalibrationSamples, list[dict]]:
+    """The error samples calibration fits, and each run's frame counts: each run split
+    into its own temporary map and queries, every query's k closest entries matched and
+    solved with ``config.strategy``. Also for comparing PnP strategies on the same run
+    (bench/pnp_calibration.py)."""
+    if not runs:
+        raise InvalidInputError("calibration needs at least one training run")
+    totals = []
+    for run in runs:
+        n = run.n_frames
+        if n is None and isinstance(run.frames, Sized):
+            n = len(run.frames)
+        totals.append(n or 0)
+    planned = [n + n - math.ceil(n / config.map_every) for n in totals]
+    ticker = _Ticker(progress, sum(planned))
+    samples = CalibrationSamples()
+    per_run = []
+    for run, plan in zip(runs, planned, strict=True):
+        counts = _run_samples(run, intrinsics, vocabulary, config, rng, ticker, samples)
+        # the run's true length is known now: correct the total for it
+        ticker.total += counts["frames"] + counts["query_frames"] - plan
+        per_run.append(counts)
+    return samples, per_run
 
 
 def _run_samples(run, intrinsics, vocabulary, config, rng, ticker, samples) -> dict:
@@ -360,7 +387,7 @@ class _Ticker:
             self.progress(self.done, max(self.total, self.done))
 
 
-def _provenance(source_name, counts, samples: _Samples, config, vocabulary) -> dict:
+def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabulary) -> dict:
     return {
         "source": source_name,
         **counts,
