@@ -6,15 +6,18 @@ whose hypotheses all lie far from every particle is "unlikely"; the filter re-se
 around such a frame's hypotheses only when they agree with the hypotheses of several
 recent frames once those are carried forward by the vehicle's own measured motion (a
 re-seed candidate must be consistent with the dead-reckoned motion), never on a few
-frames that contradict it. ``frames_since_support`` (frames since the hypotheses last
-agreed with the particles) tells the vehicle's loop to widen the retrieval prior and
-then to search the whole map. All randomness comes from the injected
+frames that contradict it, and only when more frames agree with it than agreed with the
+filter's own track among the recent frames with hypotheses (``track_support``: support
+from before a silence counts, so a place found elsewhere after it must outweigh it).
+``frames_since_support`` (frames since the hypotheses last agreed with the particles)
+tells the vehicle's loop to widen the retrieval prior and then to search the whole map. All randomness comes from the injected
 ``np.random.Generator``.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,6 +69,17 @@ class FilterConfig:
     # first frame with any hypothesis starts the filter.
     init_min_agreeing: int = 2
     reseed_min_frames: int = 4
+    # A re-seed must also outweigh the filter's own track: its candidate needs more
+    # agreeing frames than the track has likely frames among the last
+    # ``reseed_window_frames`` frames that had hypotheses (the frames that contradict it
+    # included), counting only likely frames of the last ``track_memory_frames`` frames.
+    # A track that was supported until hypotheses stopped coming keeps that support
+    # through the silence: what retrieval finds elsewhere afterwards (an aliased street
+    # that moves like the car) has to agree with the car's motion for more frames than
+    # the track had, instead of four. The memory bounds how long: 10 s of dead reckoning
+    # (~0.9 m at 9 m/s with a 1 % speed scale error). A filter started or re-seeded
+    # without support (a kidnapped start) has none to outweigh.
+    track_memory_frames: int = 100
     reseed_window_frames: int = 20
     reseed_position_tol_m: float = 1.0
     reseed_yaw_tol_rad: float = math.radians(3.0)
@@ -163,6 +177,9 @@ class ParticleFilter:
         self._recent_world = np.zeros((0, 3))
         self._recent_frame = np.zeros(0, dtype=np.int64)
         self._frame = 0
+        # The last ``reseed_window_frames`` frames with hypotheses since the filter was
+        # (re-)seeded, as (frame, likely): the track's support (see ``track_support``).
+        self._track_log: deque[tuple[int, bool]] = deque(maxlen=config.reseed_window_frames)
 
     @property
     def initialised(self) -> bool:
@@ -177,6 +194,7 @@ class ParticleFilter:
         self.log_weights = np.zeros(self.config.n_particles)
         self._unlikely_frames = 0
         self.frames_since_support = 0
+        self._track_log.clear()
 
     def initialise_from_hypotheses(self, hypotheses: Hypotheses) -> None:
         """Start around the (bias-corrected) hypotheses of one frame."""
@@ -220,6 +238,7 @@ class ParticleFilter:
         if closest > self.config.lost_mahalanobis_sq:
             self._unlikely_frames += 1
             self.frames_since_support += 1
+            self._track_log.append((self._frame, False))
             chosen = self.reseed_candidate(centres)
             self._remember(centres)
             if chosen is not None:
@@ -228,8 +247,16 @@ class ParticleFilter:
         else:
             self._unlikely_frames = 0
             self.frames_since_support = 0
+            self._track_log.append((self._frame, True))
             self._remember(centres)
         self._weigh(log_lik)
+
+    @property
+    def track_support(self) -> int:
+        """Likely frames among the last ``reseed_window_frames`` frames with hypotheses
+        since the last (re-)seed, within ``track_memory_frames`` of this frame."""
+        oldest = self._frame - self.config.track_memory_frames
+        return sum(1 for frame, likely in self._track_log if likely and frame > oldest)
 
     def _remember(self, centres_world: np.ndarray) -> None:
         """Keep this frame's hypotheses (H, 3) and forget those that left the window."""
@@ -263,6 +290,9 @@ class ParticleFilter:
         best = int(np.lexsort((-near.sum(axis=1), -support))[0])
         if support[best] < cfg.reseed_min_frames:
             return None
+        if self.particles is not None and support[best] <= self.track_support:
+            # the track has had more frames agree with it than the candidate has
+            return None
         chosen = np.flatnonzero(near[best])
         if (
             self.particles is not None
@@ -288,6 +318,10 @@ class ParticleFilter:
         centres = hypotheses.pose_world[chosen] + self.model.mu1
         self.initialise(centres, self.config.init_position_std_m, self.config.init_yaw_std_rad)
         self.n_reseeds += 1
+        # the frames that agreed with the candidate are the new track's support
+        agree = _agrees(centres, self._recent_world, self.config).any(axis=0)
+        frames = sorted({int(f) for f in self._recent_frame[agree]})
+        self._track_log.extend((frame, True) for frame in frames)
         log_lik, _ = log_likelihood_and_distance(self.particles, hypotheses, self.model)
         self._weigh(log_lik)
 
