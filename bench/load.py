@@ -13,6 +13,10 @@ are spread over the replicas as a load balancer would. The map is a sim city's m
    vehicle sends on its own clock whatever happened to its earlier frames, deadline
    ``X-Request-Deadline-Ms`` = 1000), over HTTP and over the WebSocket stream, without
    and with concurrent map writes (one re-tag per second, alternately on each replica).
+   Over HTTP twice: vehicles that send every frame whatever the server answered
+   (``http``), and vehicles that, like monoloc's client library, do not send the frames
+   taken inside the ``Retry-After`` of a shed frame (``http-honours``; those count as
+   *held*, offered but not sent).
 
 Printed beside capacity, with the issue's goals: served rate at 2x >= 90 % of capacity;
 p99 of served frames <= 3 x their p50 at capacity; server memory (summed RSS of the
@@ -35,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import json
 import math
 import os
@@ -59,7 +64,8 @@ RESULTS = Path(__file__).parent / "results"
 WORK = ROOT / "out" / "bench_load"
 ADMIN_KEY = "mlk_" + "L" * 43  # local benchmark data only
 DEADLINE_MS = 1000
-RUNS = ("http", "http+writes", "ws", "ws+writes")
+RUNS = ("http", "http+writes", "http-honours", "http-honours+writes", "ws", "ws+writes")
+HELD = -2  # a frame a vehicle did not send: inside the Retry-After of a shed frame
 GOALS = {
     "served_share_min": 0.90,
     "p99_over_capacity_p50_max": 3.0,
@@ -315,6 +321,7 @@ class _Connection:
 
         self.reader, self.writer = reader, writer
         self.h11 = h11.Connection(h11.CLIENT)
+        self.retry_after_s = 0.0  # the last answer's Retry-After (seconds), 0 if none
 
     async def exchange(self, head, body: bytes) -> int:
         """Send one request, read its whole answer; the answer's status."""
@@ -325,6 +332,7 @@ class _Connection:
         self.writer.write(conn.send(h11.EndOfMessage()))
         await self.writer.drain()
         status = 0
+        self.retry_after_s = 0.0
         while True:
             event = conn.next_event()
             if event is h11.NEED_DATA:
@@ -334,6 +342,9 @@ class _Connection:
                 conn.receive_data(data)
             elif isinstance(event, h11.Response):
                 status = event.status_code
+                for name, value in event.headers:
+                    if name == b"retry-after" and value.isdigit():
+                        self.retry_after_s = float(value)
             elif isinstance(event, h11.EndOfMessage):
                 break
             elif isinstance(event, h11.ConnectionClosed):
@@ -360,17 +371,28 @@ class VehicleLink:
     (status -1). Status 0: no answer (reset, timeout ``timeout_s``)."""
 
     def __init__(
-        self, url: str, max_connections: int, pool_timeout_s: float, timeout_s: float = 10.0
+        self,
+        url: str,
+        max_connections: int,
+        pool_timeout_s: float,
+        timeout_s: float = 10.0,
+        honour_retry_after: bool = False,
     ) -> None:
         host, port = url.removeprefix("http://").rsplit(":", 1)
         self.host, self.port = host, int(port)
         self.pool_timeout_s, self.timeout_s = pool_timeout_s, timeout_s
+        # As monoloc's client library (client.localizer.HttpLocalizer): after a shed frame
+        # (503), the frames taken inside its Retry-After are not sent (status HELD).
+        self.honour_retry_after = honour_retry_after
+        self._hold_until = -math.inf
         self._free: list[_Connection] = []
         self._slots = asyncio.Semaphore(max_connections)
 
     async def post(self, requests: FrameRequests, i: int) -> tuple[int, float]:
         """(status, seconds from the frame's send time to its answer)."""
         start = time.perf_counter()
+        if self.honour_retry_after and start < self._hold_until:
+            return HELD, 0.0
         try:
             async with asyncio.timeout(self.pool_timeout_s):
                 await self._slots.acquire()
@@ -389,6 +411,8 @@ class VehicleLink:
                 if conn is None:
                     conn = _Connection(*await asyncio.open_connection(self.host, self.port))
                     status = await conn.exchange(requests.heads[i], requests.bodies[i])
+            if status == 503 and self.honour_retry_after:
+                self._hold_until = max(self._hold_until, start + conn.retry_after_s)
             if conn.reusable:
                 self._free.append(conn)
         except Exception:  # noqa: BLE001 - a timeout or reset counts as a failure
@@ -456,7 +480,9 @@ async def _writer(urls, map_id, entry_ids, stop_at, out: list) -> None:
             await asyncio.sleep(max(0.0, 1.0 - (time.perf_counter() - start)))
 
 
-async def open_loop_http(urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries):
+async def open_loop_http(
+    urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries, honour=False
+):
     requests = FrameRequests(map_id, frames, DEADLINE_MS)
     results: list[tuple[int, float]] = []
     write_results: list[tuple[int, float]] = []
@@ -467,7 +493,7 @@ async def open_loop_http(urls, map_id, frames, vehicles, rate_hz, duration_s, wr
     async def vehicle(v: int) -> None:
         # A vehicle keeps a few connections alive; a frame that finds them all busy past
         # its deadline is given up by the vehicle, unsent.
-        link = VehicleLink(urls[v % len(urls)], 4, DEADLINE_MS / 1e3)
+        link = VehicleLink(urls[v % len(urls)], 4, DEADLINE_MS / 1e3, honour_retry_after=honour)
         tasks = []
         k = 0
         while True:
@@ -562,6 +588,7 @@ def summarise(results, write_results, duration_s) -> dict:
         "errors_5xx": sum(1 for s in statuses if s >= 500 and s != 503),
         "failed_no_answer": statuses.count(0),
         "given_up_by_vehicle": statuses.count(-1),
+        "held_by_vehicle": statuses.count(HELD),
         "writes": len(write_results),
         "writes_failed": sum(1 for s, _ in write_results if s != 200),
         "writes_p99_s": pct(write_lat, 99),
@@ -643,7 +670,9 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
         vehicles = max(1, math.ceil(offered / args.rate_hz))
         rate = offered / vehicles
         runs = {}
-        for transport, fn in (("http", open_loop_http), ("ws", open_loop_ws)):
+        honouring = functools.partial(open_loop_http, honour=True)
+        transports = (("http", open_loop_http), ("http-honours", honouring), ("ws", open_loop_ws))
+        for transport, fn in transports:
             for writes in (False, True):
                 name = f"{transport}{'+writes' if writes else ''}"
                 if name not in args.runs:
@@ -662,7 +691,8 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
                     f"{run['served_per_s']:.1f}/s ({100 * v['served_share']:.0f} % of capacity; "
                     f"per server core {100 * v['served_per_core_vs_capacity']:.0f} %), "
                     f"p99 {run['served_p99_ms'] or float('nan'):.0f} ms "
-                    f"({v['p99_over_capacity_p50']:.1f}x cap p50), shed {run['shed']}, 5xx "
+                    f"({v['p99_over_capacity_p50']:.1f}x cap p50), shed {run['shed']}, held "
+                    f"{run['held_by_vehicle']}, 5xx "
                     f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
                     f"+{v['memory_growth_mb']:.0f} MB"
                     + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else "")

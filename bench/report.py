@@ -259,6 +259,10 @@ def _cores(phase: dict) -> str:
     return f"{c['load_generator']:.2f} / {c['server']:.2f} / {c['other']:.2f}"
 
 
+def _held(run: dict) -> str:
+    return f" ({run['held_by_vehicle']} held)" if run.get("held_by_vehicle") else ""
+
+
 def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
     """bench/load.py (capacity, then 2x open loop) and bench/footprint.py."""
     out = ["## Fleet load: capacity, then twice capacity offered (bench/load.py)", ""]
@@ -275,7 +279,9 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
             "load generator / the replicas / every other process on the machine (other "
             "jobs), in cores; *per core*: frames served per core the replicas used, at 2x "
             "over at capacity (near 100 %: the replicas waste no CPU under overload, and a "
-            "lower served share is CPU they did not get).",
+            "lower served share is CPU they did not get). *http-honours*: the vehicles "
+            "do what monoloc's client library does after a shed frame, not sending the frames "
+            "taken inside its Retry-After (*held*); *http*: they send every frame regardless.",
             "",
         ]
         rows = []
@@ -309,7 +315,7 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
                         run["served_p50_ms"],
                         run["served_p99_ms"],
                         f"{v['p99_over_capacity_p50']:.1f}x",
-                        run["shed"],
+                        f"{run['shed']}" + _held(run),
                         run["errors_5xx"] + run["failed_no_answer"],
                         run["writes_p99_s"],
                         _cores(run)
