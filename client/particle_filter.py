@@ -10,8 +10,10 @@ frames that contradict it, and only when more frames agree with it than agreed w
 filter's own track among the recent frames with hypotheses (``track_support``: support
 from before a silence counts, so a place found elsewhere after it must outweigh it).
 ``frames_since_support`` (frames since the hypotheses last agreed with the particles)
-tells the vehicle's loop to widen the retrieval prior and then to search the whole map. All randomness comes from the injected
-``np.random.Generator``.
+tells the vehicle's loop to widen the retrieval prior and then to search the whole map.
+A candidate whose heading contradicts the filter's (``FilterConfig.reseed_turn_rad``)
+must also outweigh every likely frame of the last ``track_memory_frames``. All
+randomness comes from the injected ``np.random.Generator``.
 """
 
 from __future__ import annotations
@@ -80,6 +82,14 @@ class FilterConfig:
     # (~0.9 m at 9 m/s with a 1 % speed scale error). A filter started or re-seeded
     # without support (a kidnapped start) has none to outweigh.
     track_memory_frames: int = 100
+    # A candidate whose heading differs from the filter's by more than this contradicts
+    # the gyro, not just the position: its frames do not displace the track's support
+    # (every likely frame of the last ``track_memory_frames`` counts, up to
+    # ``reseed_window_frames``). A street that looks like the car's but runs another way
+    # (recurring facades found by the whole-map search after a silence) then cannot take
+    # a filter that was well supported in the last 10 s, however many frames it fills;
+    # one heading the car's way (the same street further on) can, as above.
+    reseed_turn_rad: float = math.radians(20.0)
     reseed_window_frames: int = 20
     reseed_position_tol_m: float = 1.0
     reseed_yaw_tol_rad: float = math.radians(3.0)
@@ -180,6 +190,8 @@ class ParticleFilter:
         # The last ``reseed_window_frames`` frames with hypotheses since the filter was
         # (re-)seeded, as (frame, likely): the track's support (see ``track_support``).
         self._track_log: deque[tuple[int, bool]] = deque(maxlen=config.reseed_window_frames)
+        # Every likely frame of the last ``track_memory_frames`` since the last (re-)seed.
+        self._likely_frames: deque[int] = deque(maxlen=max(1, config.track_memory_frames))
 
     @property
     def initialised(self) -> bool:
@@ -195,6 +207,7 @@ class ParticleFilter:
         self._unlikely_frames = 0
         self.frames_since_support = 0
         self._track_log.clear()
+        self._likely_frames.clear()
 
     def initialise_from_hypotheses(self, hypotheses: Hypotheses) -> None:
         """Start around the (bias-corrected) hypotheses of one frame."""
@@ -248,6 +261,7 @@ class ParticleFilter:
             self._unlikely_frames = 0
             self.frames_since_support = 0
             self._track_log.append((self._frame, True))
+            self._likely_frames.append(self._frame)
             self._remember(centres)
         self._weigh(log_lik)
 
@@ -257,6 +271,15 @@ class ParticleFilter:
         since the last (re-)seed, within ``track_memory_frames`` of this frame."""
         oldest = self._frame - self.config.track_memory_frames
         return sum(1 for frame, likely in self._track_log if likely and frame > oldest)
+
+    @property
+    def held_support(self) -> int:
+        """Likely frames of the last ``track_memory_frames`` since the last (re-)seed, up
+        to ``reseed_window_frames``: the support a candidate that contradicts the
+        filter's heading must outweigh."""
+        oldest = self._frame - self.config.track_memory_frames
+        held = sum(1 for frame in self._likely_frames if frame > oldest)
+        return min(held, self.config.reseed_window_frames)
 
     def _remember(self, centres_world: np.ndarray) -> None:
         """Keep this frame's hypotheses (H, 3) and forget those that left the window."""
@@ -290,9 +313,13 @@ class ParticleFilter:
         best = int(np.lexsort((-near.sum(axis=1), -support))[0])
         if support[best] < cfg.reseed_min_frames:
             return None
-        if self.particles is not None and support[best] <= self.track_support:
+        if self.particles is not None:
             # the track has had more frames agree with it than the candidate has
-            return None
+            if support[best] <= self.track_support:
+                return None
+            turn = abs(float(wrap_angle(centres_world[best, 2] - self._mode()[2])))
+            if turn > cfg.reseed_turn_rad and support[best] <= self.held_support:
+                return None
         chosen = np.flatnonzero(near[best])
         if (
             self.particles is not None
@@ -322,6 +349,7 @@ class ParticleFilter:
         agree = _agrees(centres, self._recent_world, self.config).any(axis=0)
         frames = sorted({int(f) for f in self._recent_frame[agree]})
         self._track_log.extend((frame, True) for frame in frames)
+        self._likely_frames.extend(frames)
         log_lik, _ = log_likelihood_and_distance(self.particles, hypotheses, self.model)
         self._weigh(log_lik)
 

@@ -135,23 +135,45 @@ def test_injected_wrong_hypotheses_that_outlast_the_track_are_followed_and_left_
     assert error[-40:].max() < 0.3
 
 
-def test_after_a_silence_an_aliased_street_elsewhere_does_not_take_the_filter():
-    # Found by the city's closed-loop study (a half-route run): hypotheses stopped for
-    # about 3 s on the right street; the whole-map search then found a street 115 m away,
-    # turned by 90 degrees, whose hypotheses moved like the car, and four of them were
-    # enough to re-seed there. The track's support before the silence now outweighs them.
-    n = 120
-    _, _, truth = _route(n)
+def _turned_street(truth: np.ndarray) -> np.ndarray:
+    """The route turned by 90 degrees and moved 115 m away: a street whose facades look
+    like the car's and whose hypotheses move like the car, on another heading."""
     turn = np.array([[0.0, -1.0], [1.0, 0.0]])
     elsewhere = truth.copy()
     elsewhere[:, :2] = truth[:, :2] @ turn.T + [80.0, 83.0]
     elsewhere[:, 2] += math.pi / 2
+    return elsewhere
+
+
+def test_after_a_silence_an_aliased_street_elsewhere_does_not_take_the_filter():
+    # Found by the city's closed-loop study (a half-route run): hypotheses stopped for
+    # about 3 s on the right street; the whole-map search then found a street 115 m away,
+    # turned by 90 degrees, whose hypotheses moved like the car, and a few frames of them
+    # re-seeded the filter there. Here 4 s of it, every frame, after 3 s of silence.
+    n = 140
+    _, _, truth = _route(n)
+    elsewhere = _turned_street(truth)
     silent = {i: np.zeros((0, 3)) for i in range(25, 55)}
-    injected = silent | {i: elsewhere[i] for i in range(55, 65)}
+    injected = silent | {i: np.repeat(elsewhere[i][None], 3, axis=0) for i in range(55, 95)}
     tracker, error, _ = _drive(n, RepetitiveMap(truth, injected=injected))
     assert np.hypot(*(elsewhere[55, :2] - truth[55, :2])) > 100.0
     assert tracker.filter.n_reseeds == 0
     assert error[5:].max() < 0.5
+
+
+def test_a_lock_on_a_street_turned_the_other_way_ends_once_its_support_has_aged():
+    # The other side of the rule above: a filter started on the turned street, supported
+    # there for 3 s, leaves it once the right street's frames outweigh what is left of
+    # that support in the last 10 s (FilterConfig.track_memory_frames)
+    n = 200
+    _, _, truth = _route(n)
+    elsewhere = _turned_street(truth)
+    injected = {i: np.repeat(elsewhere[i][None], 2, axis=0) for i in range(0, 30)}
+    tracker, error, times = _drive(n, RepetitiveMap(truth, injected=injected), elsewhere[0])
+    assert error[5:30].min() > 100.0
+    recover_s = time_to_recover(error, times, since=30, tolerance_m=0.3)
+    assert recover_s < 10.0, recover_s
+    assert error[-50:].max() < 0.3
 
 
 def test_a_few_frames_that_contradict_the_motion_do_not_reseed():
