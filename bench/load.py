@@ -342,9 +342,11 @@ class _Connection:
                 conn.receive_data(data)
             elif isinstance(event, h11.Response):
                 status = event.status_code
-                for name, value in event.headers:
-                    if name == b"retry-after" and value.isdigit():
-                        self.retry_after_s = float(value)
+                hints = dict(event.headers)
+                if hints.get(b"retry-after-ms", b"").isdigit():
+                    self.retry_after_s = int(hints[b"retry-after-ms"]) / 1000.0
+                elif hints.get(b"retry-after", b"").isdigit():
+                    self.retry_after_s = float(hints[b"retry-after"])
             elif isinstance(event, h11.EndOfMessage):
                 break
             elif isinstance(event, h11.ConnectionClosed):
@@ -382,7 +384,8 @@ class VehicleLink:
         self.host, self.port = host, int(port)
         self.pool_timeout_s, self.timeout_s = pool_timeout_s, timeout_s
         # As monoloc's client library (client.localizer.HttpLocalizer): after a shed frame
-        # (503), the frames taken inside its Retry-After are not sent (status HELD).
+        # (503), the frames taken inside its Retry-After-Ms (else Retry-After) are not
+        # sent (status HELD).
         self.honour_retry_after = honour_retry_after
         self._hold_until = -math.inf
         self._free: list[_Connection] = []

@@ -171,14 +171,19 @@ def _error_message(response: httpx.Response) -> str:
 
 
 def _retry_after_s(response: httpx.Response | None) -> float | None:
-    """Seconds from a numeric ``Retry-After`` header, if any."""
+    """Seconds to wait: the server's ``Retry-After-Ms`` (milliseconds; monoloc sends it
+    beside the whole seconds of ``Retry-After``) when valid, else a numeric
+    ``Retry-After``; None if neither."""
     if response is None:
         return None
-    try:
-        value = float(response.headers.get("retry-after", ""))
-    except ValueError:
-        return None
-    return value if value >= 0 else None
+    for name, scale in (("retry-after-ms", 1e-3), ("retry-after", 1.0)):
+        try:
+            value = float(response.headers.get(name, ""))
+        except ValueError:
+            continue
+        if value >= 0 and math.isfinite(value):
+            return value * scale
+    return None
 
 
 class MonolocClient:

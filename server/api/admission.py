@@ -4,7 +4,8 @@ Every costly HTTP request belongs to one *lane* (:func:`lane_of`): ``localize``
 (``POST .../localize``), ``write`` (entry adds, deletes, re-tags, calibration and other
 map edits) and ``jobs`` (run uploads, job resumes). A lane admits at most
 ``workers + queue_depth`` requests at a time; one more is answered at once with 503 and
-``Retry-After``, before its body is read, so it costs the server nothing (no upload
+``Retry-After`` (whole seconds, HTTP's unit; ``Retry-After-Ms`` gives the same wait to
+the millisecond), before its body is read, so it costs the server nothing (no upload
 spooled, no decode) and memory stays bounded by the lanes' sizes whatever the offered
 load. Each lane has its own worker threads (``workers``), which take the lane's queued
 computations themselves, in arrival order: writes never queue behind a flood of frames
@@ -67,9 +68,18 @@ class OverloadedError(MonolocError):
     http_status = 503
     code = "overloaded"
 
-    def __init__(self, message: str, retry_after_s: int) -> None:
+    def __init__(self, message: str, retry_after_s: int, retry_after_ms: int | None = None) -> None:
         super().__init__(message)
         self.retry_after_s = retry_after_s
+        # The same wait to the millisecond (``Retry-After-Ms``): HTTP's Retry-After counts
+        # whole seconds, ten frames of a 10 Hz camera, while a lane drains in a fraction
+        # of one.
+        self.retry_after_ms = retry_after_s * 1000 if retry_after_ms is None else retry_after_ms
+
+    @property
+    def headers(self) -> dict[str, str]:
+        """The answer's Retry-After headers."""
+        return {"Retry-After": str(self.retry_after_s), "Retry-After-Ms": str(self.retry_after_ms)}
 
 
 class DeadlineExceededError(OverloadedError):
@@ -182,11 +192,16 @@ class Lane:
         with self._lock:
             return len(self._queue)
 
-    def retry_after_s(self) -> int:
-        """Whole seconds (HTTP's unit) for the queue ahead to drain, at least 1."""
+    def retry_after_ms(self) -> int:
+        """Milliseconds for the lane ahead to drain (every admitted request computed by the
+        lane's workers at the recent service time), 1 ms to 60 s."""
         with self._lock:
             drain_s = self.capacity * self._service_s / max(1, self.config.workers)
-        return int(min(60, max(1, math.ceil(drain_s))))
+        return int(min(60_000, max(1, math.ceil(drain_s * 1000.0))))
+
+    def retry_after_s(self) -> int:
+        """The drain time in whole seconds (HTTP's unit), at least 1."""
+        return int(min(60, max(1, math.ceil(self.retry_after_ms() / 1000.0))))
 
     def submit(
         self,
@@ -344,6 +359,7 @@ class Admission:
             f"the server is at capacity for {lane.name} requests "
             f"({lane.capacity} admitted); retry after the Retry-After seconds",
             lane.retry_after_s(),
+            lane.retry_after_ms(),
         )
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
@@ -398,6 +414,7 @@ class Admission:
             f"the request's deadline passed while it waited for a {lane.name} slot; "
             "it was not computed",
             lane.retry_after_s(),
+            lane.retry_after_ms(),
         )
 
     def stop(self) -> None:
@@ -472,7 +489,8 @@ class AdmissionMiddleware:
         if not lane.try_enter():
             exc = self.admission.shed(lane)
             body = {"error": {"code": "overloaded", "message": str(exc)}}
-            await _send_json(send, 503, body, [(b"retry-after", str(exc.retry_after_s).encode())])
+            headers = [(k.lower().encode(), v.encode()) for k, v in exc.headers.items()]
+            await _send_json(send, 503, body, headers)
             return
         token = _ticket.set(Ticket(lane, time.monotonic() + budget_ms / 1e3, receive))
         try:
@@ -485,7 +503,7 @@ class AdmissionMiddleware:
 async def _overloaded(_request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, OverloadedError)
     body = {"error": {"code": exc.code, "message": str(exc)}}
-    return JSONResponse(body, status_code=503, headers={"Retry-After": str(exc.retry_after_s)})
+    return JSONResponse(body, status_code=503, headers=exc.headers)
 
 
 def install_admission(app: FastAPI, admission: Admission) -> None:

@@ -63,6 +63,29 @@ def test_a_shed_frame_is_dropped_once_and_the_retry_after_window_is_honoured():
     assert (counts.sent, counts.answered, counts.shed, counts.held) == (2, 1, 1, 19)
 
 
+def test_the_millisecond_retry_after_is_honoured_before_the_whole_seconds():
+    seen: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        if len(seen) == 1:
+            body = {"error": {"code": "overloaded", "message": "at capacity"}}
+            headers = {"Retry-After": "1", "Retry-After-Ms": "250"}
+            return httpx.Response(503, json=body, headers=headers)
+        return httpx.Response(200, json={"hypotheses": [HYP], "map_version": 4})
+
+    clock = FakeClock()
+    with MonolocClient("http://fake", "mlk_t", transport=httpx.MockTransport(handler)) as client:
+        localizer = HttpLocalizer(client, 7, clock=clock)
+        assert localizer.localize(b"png").raw["reason"] == "shed"
+        clock.now_s = 100.2  # inside the 250 ms
+        assert localizer.localize(b"png").raw["reason"] == "held"
+        clock.now_s = 100.3  # past them, though inside the whole second
+        answer = localizer.localize(b"png")
+    assert not answer.dropped and len(seen) == 2
+    assert (localizer.counts.shed, localizer.counts.held) == (1, 1)
+
+
 def test_other_errors_still_raise():
     seen: list[httpx.Request] = []
     client = MonolocClient("http://fake", "mlk_t", retries=0, transport=scripted([422], seen))

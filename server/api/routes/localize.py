@@ -24,7 +24,10 @@ router = APIRouter(prefix="/v1/maps/{map_id}", tags=["localize"], route_class=Gu
     responses={
         **AUTH_ERRORS,
         **error_responses(404, 413, 415, 422),
-        503: {"description": "Overloaded, deadline passed or stale replica; see Retry-After."},
+        503: {
+            "description": "Overloaded, deadline passed or stale replica; see Retry-After "
+            "(whole seconds) and Retry-After-Ms (the same wait in milliseconds)."
+        },
     },
     summary="Localize one frame",
 )

@@ -104,6 +104,19 @@ def test_lane_workers_take_queued_jobs_themselves_and_drop_expired_ones():
     assert done[-1] == "after a restart"
 
 
+def test_retry_after_is_the_lanes_drain_time_to_the_millisecond():
+    # 2 workers, 2 waiting: a full lane drains in 4 service times over 2 workers
+    lane = Lane("localize", LaneConfig(workers=2, queue_depth=2, default_deadline_ms=1000))
+    try:
+        fresh_ms = lane.retry_after_ms()
+        assert 0 < fresh_ms < 1000 and lane.retry_after_s() == 1  # HTTP's whole seconds
+        for _ in range(3):  # computations of 0.3 s raise the service time it is based on
+            lane.submit(time.sleep, 0.3).result(5)
+        assert lane.retry_after_ms() > fresh_ms + 100
+    finally:
+        lane.stop()
+
+
 def test_a_full_lane_sheds_at_once_while_writes_and_health_answer(map_copy, sim_dataset):
     settings = make_settings(map_copy.data_dir, worker_threads=1, localize_queue_depth=1)
     with open_client(settings) as client:
@@ -118,6 +131,9 @@ def test_a_full_lane_sheds_at_once_while_writes_and_health_answer(map_copy, sim_
             assert shed.status_code == 503, shed.text
             assert shed.json()["error"]["code"] == "overloaded"
             assert int(shed.headers["Retry-After"]) >= 1
+            # the same wait to the millisecond, within the whole seconds it rounds up to
+            wait_ms = int(shed.headers["Retry-After-Ms"])
+            assert 1 <= wait_ms <= 1000 * int(shed.headers["Retry-After"])
             assert elapsed_s < 1.0
             # writes have their own lane; health never queues
             write = map_copy.keys.header("write")
