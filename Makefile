@@ -40,8 +40,12 @@ system-deps:
 	fi
 
 
+# Two pytest workers (pytest-xdist), one test file each at a time so that a module's
+# expensive fixture (a generated city, a built map) is made once: on 2 cores about
+# 9 minutes instead of 13. `make test TEST_WORKERS=0` runs the suite in one process.
+TEST_WORKERS ?= 2
 test: install lint chromium system-deps
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # The storage and ingestion suites against PostgreSQL: a fresh database per test on the
 # server of MONOLOC_TEST_POSTGRES_URL (its user must be allowed to create databases).
