@@ -281,7 +281,11 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
             "over at capacity (near 100 %: the replicas waste no CPU under overload, and a "
             "lower served share is CPU they did not get). *http-honours*: the vehicles "
             "do what monoloc's client library does after a shed frame, not sending the frames "
-            "taken inside its Retry-After (*held*); *http*: they send every frame regardless.",
+            "taken inside its Retry-After (*held*); *http*: they send every frame regardless. "
+            "*of cap.*: served at 2x over the mean of the capacity phases measured right "
+            "before and right after the phase (the machine's speed drifts; the capacity row "
+            "lists every capacity phase of the run), and in brackets over the first capacity, "
+            "which set the offered load.",
             "",
         ]
         rows = []
@@ -300,7 +304,14 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
                     "",
                     "",
                     _cores(cap),
-                    f"idle {r['idle_mb']:.0f} MB",
+                    f"idle {r['idle_mb']:.0f} MB"
+                    + (
+                        "; capacity phases "
+                        + ", ".join(f"{c:.1f}" for c in r["capacity_phases_per_s"])
+                        + " /s"
+                        if "capacity_phases_per_s" in r
+                        else ""
+                    ),
                 ]
             )
             for name, run in r["runs"].items():
@@ -311,7 +322,12 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
                         "",
                         f"2x: {r['vehicles']} x {r['rate_hz']:.1f} Hz, {name}",
                         run["served_per_s"],
-                        f"{100 * v['served_share']:.0f} %",
+                        f"{100 * v['served_share']:.0f} %"
+                        + (
+                            f" ({100 * v['served_share_of_first_capacity']:.0f} %)"
+                            if "served_share_of_first_capacity" in v
+                            else ""
+                        ),
                         run["served_p50_ms"],
                         run["served_p99_ms"],
                         f"{v['p99_over_capacity_p50']:.1f}x",
