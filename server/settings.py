@@ -158,6 +158,19 @@ class Settings(BaseSettings):
         description="Default deadline of a localize request (X-Request-Deadline-Ms "
         "overrides): not computed once it passed.",
     )
+    body_stall_timeout_s: float = Field(
+        default=30.0,
+        gt=0,
+        description="An admitted request whose body stops arriving for this long (or is "
+        "not complete at its deadline) is answered 408 and its connection closed, freeing "
+        "its lane's place (nginx's client_body_timeout, the same idea, defaults to 60 s).",
+    )
+    shutdown_grace_s: float = Field(
+        default=8.0,
+        gt=0,
+        description="On SIGTERM, how long requests in flight may finish before they are "
+        "cancelled (below Docker's 10-s stop timeout; jobs are leases and resume).",
+    )
     write_threads: int = Field(
         default=1, ge=1, description="Map writes (entry builds, edits) computed at a time."
     )

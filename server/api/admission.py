@@ -19,7 +19,14 @@ client is willing to wait, counted from the server's receipt of the request), el
 lane's default. A request still queued at its deadline is answered then (503
 ``deadline_exceeded``), and one whose client disconnects leaves the queue as soon as the
 close is seen (``client_disconnected``; a gone client never reads it): neither is
-computed, and each frees its place in the lane at once. A WebSocket stream frame enters
+computed, and each frees its place in the lane at once. The body of an admitted request
+must arrive in time too: a client that sends nothing for ``body_stall_s`` while its body is
+due (a vehicle whose link dropped mid-upload, a slow-loris), or whose body is not complete
+at its deadline (not for the jobs lane: a run archive may take longer to send than any
+deadline), is answered 408 ``request_timeout`` and the connection closed
+(``monoloc_admission_expired_total{reason="body_timeout"}``): without it, as many stalled
+uploads as a lane has places would hold the lane shut for as long as their TCP
+connections live. A WebSocket stream frame enters
 the localize lane when its turn in its stream comes (:meth:`Admission.admitted`), with
 the lane's default deadline counted from its arrival: a full lane drops it at once, as
 it sheds an HTTP frame, so frames over HTTP and over the stream share the same bounded
@@ -49,7 +56,8 @@ from typing import Any, TypeVar
 import anyio
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.exceptions import HTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from monoloc.core.errors import MonolocError
 
@@ -101,6 +109,9 @@ class LaneConfig:
     workers: int
     queue_depth: int
     default_deadline_ms: int
+    # whether the body must be complete by the deadline (False: only the stall timeout
+    # bounds the upload, e.g. a run archive that takes longer than any deadline to send)
+    body_by_deadline: bool = True
 
 
 def lane_of(method: str, path: str) -> str | None:
@@ -114,6 +125,49 @@ def lane_of(method: str, path: str) -> str | None:
     if path.startswith("/v1/"):
         return "write"
     return None
+
+
+class BodyTimeoutError(HTTPException):
+    """Raised from ``receive`` when an admitted request's body stops arriving. An
+    HTTPException so that FastAPI's body parsing lets it through unchanged."""
+
+    def __init__(self, message: str) -> None:
+        # the rest of the body may still come: the connection cannot carry another request
+        super().__init__(408, message, headers={"Connection": "close"})
+
+
+def _timed_receive(
+    receive: Receive, deadline_s: float, stall_s: float, on_timeout: Callable[[], None]
+) -> Receive:
+    """``receive`` that fails with :class:`BodyTimeoutError` (after ``on_timeout()``) when
+    a body message does not come within ``stall_s`` or by ``deadline_s`` (monotonic). Once
+    the body is complete, later calls (waiting for ``http.disconnect``) pass untimed."""
+    complete = False
+
+    async def timed() -> Message:
+        nonlocal complete
+        if complete:
+            return await receive()
+        left_s = deadline_s - time.monotonic()
+        wait_s = min(stall_s, left_s)
+        try:
+            with anyio.fail_after(max(0.0, wait_s)):
+                message = await receive()
+        except TimeoutError:
+            on_timeout()
+            why = (
+                f"nothing of it arrived for {stall_s:g} s"
+                if stall_s <= left_s
+                else "it was not complete at the request's deadline"
+            )
+            raise BodyTimeoutError(
+                f"the request body did not arrive in time ({why}); send it again"
+            ) from None
+        if message["type"] != "http.request" or not message.get("more_body", False):
+            complete = True
+        return message
+
+    return timed
 
 
 class _DroppedError(Exception):
@@ -349,9 +403,10 @@ _ticket: contextvars.ContextVar[Ticket | None] = contextvars.ContextVar(
 class Admission:
     """The lanes of one app, and the counters of what they turned away."""
 
-    def __init__(self, configs: dict[str, LaneConfig], metrics) -> None:
+    def __init__(self, configs: dict[str, LaneConfig], metrics, body_stall_s: float = 30.0) -> None:
         self.lanes = {name: Lane(name, configs[name]) for name in LANES}
         self.metrics = metrics
+        self.body_stall_s = body_stall_s
 
     def shed(self, lane: Lane) -> OverloadedError:
         self.metrics.admission_shed.inc(lane.name)
@@ -492,9 +547,17 @@ class AdmissionMiddleware:
             headers = [(k.lower().encode(), v.encode()) for k, v in exc.headers.items()]
             await _send_json(send, 503, body, headers)
             return
-        token = _ticket.set(Ticket(lane, time.monotonic() + budget_ms / 1e3, receive))
+        deadline_s = time.monotonic() + budget_ms / 1e3
+        token = _ticket.set(Ticket(lane, deadline_s, receive))
+        expired = self.admission.metrics.admission_expired
+        timed = _timed_receive(
+            receive,
+            deadline_s if lane.config.body_by_deadline else math.inf,
+            self.admission.body_stall_s,
+            lambda: expired.inc(lane.name, "body_timeout"),
+        )
         try:
-            await self.app(scope, receive, send)
+            await self.app(scope, timed, send)
         finally:
             _ticket.reset(token)
             lane.leave()

@@ -93,10 +93,11 @@ def admission_for(settings: Settings, metrics: Metrics) -> Admission:
                 settings.write_threads, settings.write_queue_depth, settings.write_deadline_ms
             ),
             # Uploads spool to disk and hand work to the job runner; the deadline only
-            # bounds the wait for a slot.
-            "jobs": LaneConfig(1, settings.job_queue_depth, 3_600_000),
+            # bounds the wait for a slot, the stall timeout the upload.
+            "jobs": LaneConfig(1, settings.job_queue_depth, 3_600_000, body_by_deadline=False),
         },
         metrics,
+        body_stall_s=settings.body_stall_timeout_s,
     )
 
 

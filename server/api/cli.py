@@ -149,6 +149,7 @@ def serve(
             workers=1,
             http=http.value,
             loop=loop.value,
+            timeout_graceful_shutdown=settings.shutdown_grace_s,
         )
         return
     # Worker processes build their app from the environment: pass the resolved settings.
@@ -164,4 +165,5 @@ def serve(
         workers=workers,
         http=http.value,
         loop=loop.value,
+        timeout_graceful_shutdown=settings.shutdown_grace_s,
     )

@@ -40,6 +40,11 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
         401: ("unauthorized", "missing API key: send it in the X-API-Key header"),
         403: ("forbidden", "this API key lacks the 'admin' scope this route needs"),
         404: ("not_found", "map 7 does not exist"),
+        408: (
+            "request_timeout",
+            "the request body did not arrive in time (nothing of it arrived for 30 s); "
+            "send it again",
+        ),
         409: ("conflict", "a map named 'kitti-00' already exists"),
         413: ("payload_too_large", "request body exceeds the limit of 536870912 bytes"),
         415: ("unsupported_media_type", "image is not a PNG or JPEG image"),

@@ -105,7 +105,7 @@ class GuardedRoute(APIRoute):
             raise ValueError(f"unknown body kind {self.body_kind!r} of route {path}")
         self.key_scope = required_scope(self.dependant)
         if self.body_field is not None:  # malformed and oversized bodies are answered too
-            documented = error_responses(400, 413)
+            documented = error_responses(400, 408, 413)
             for status, response in documented.items():
                 self.responses.setdefault(status, response)
 

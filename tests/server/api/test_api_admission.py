@@ -276,3 +276,116 @@ def test_a_client_that_left_is_not_computed_and_a_full_lane_reads_no_body(map_co
         assert state.metrics.admission_expired.value("localize", "disconnected") == 1
         rendered = list(state.metrics.localize_stages.render())
         assert not any(line.startswith("monoloc_localize_stage") for line in rendered[2:])
+
+
+def _answer(sock: socket.socket, timeout_s: float) -> tuple[str, float, bool]:
+    """(the server's whole answer, seconds until it came, whether the server then closed)."""
+    sock.settimeout(timeout_s)
+    start = time.monotonic()
+    data = sock.recv(65536)
+    waited_s = time.monotonic() - start
+    while b"\r\n\r\n" not in data and data:
+        data += sock.recv(65536)
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = next(
+        (
+            int(line.split(b":")[1])
+            for line in head.lower().split(b"\r\n")
+            if line.startswith(b"content-length:")
+        ),
+        0,
+    )
+    while len(body) < length:
+        more = sock.recv(65536)
+        if not more:
+            break
+        body += more
+    data = head + b"\r\n\r\n" + body
+    try:
+        closed = sock.recv(65536) == b""
+    except (TimeoutError, ConnectionResetError):
+        closed = False
+    return data.decode("latin-1"), waited_s, closed
+
+
+def test_a_stalled_upload_is_answered_408_at_its_deadline_and_frees_the_lane(map_copy, sim_dataset):
+    from monoloc.server.api.app import create_app
+
+    settings = make_settings(map_copy.data_dir, worker_threads=1, localize_queue_depth=0)
+    app = create_app(settings)
+    with _uvicorn(app) as (port, _loop):
+        state = app.state.monoloc
+        lane = state.admission.lanes["localize"]
+        png = frame_png(sim_dataset, "01", 3)
+        request = _multipart_request(port, map_copy.map_id, map_copy.keys.localize, png)
+        head, body = request.split(b"\r\n\r\n", 1)
+        head = head.replace(b"\r\nX-API-Key", b"\r\nX-Request-Deadline-Ms: 600\r\nX-API-Key")
+        with socket.create_connection(("127.0.0.1", port)) as stalled:
+            # a vehicle whose link drops mid-upload: half its frame, then nothing
+            stalled.sendall(head + b"\r\n\r\n" + body[: len(body) // 2])
+            deadline = time.monotonic() + 5
+            while lane.inside < 1:
+                assert time.monotonic() < deadline, "the stalled request was not admitted"
+                time.sleep(0.01)
+            with socket.create_connection(("127.0.0.1", port)) as other:
+                other.sendall(request)
+                shed, _, _ = _answer(other, 5)
+            assert shed.startswith("HTTP/1.1 503")  # its one place is taken meanwhile
+            answer, waited_s, closed = _answer(stalled, 10)
+        assert answer.startswith("HTTP/1.1 408"), answer
+        assert "request_timeout" in answer and "deadline" in answer
+        assert "connection: close" in answer.lower() and closed
+        assert waited_s < 3.0
+        deadline = time.monotonic() + 5
+        while lane.inside:
+            assert time.monotonic() < deadline, "the stalled request kept its place"
+            time.sleep(0.01)
+        assert state.metrics.admission_expired.value("localize", "body_timeout") == 1
+        with socket.create_connection(("127.0.0.1", port)) as after:
+            after.sendall(request)
+            served, _, _ = _answer(after, 60)
+        assert served.startswith("HTTP/1.1 200"), served[:200]
+
+
+def test_an_upload_that_stops_arriving_is_cut_one_that_trickles_is_not(map_copy):
+    from monoloc.server.api.app import create_app
+
+    app = create_app(make_settings(map_copy.data_dir, body_stall_timeout_s=0.5))
+    write = map_copy.keys.header("write")
+    with _uvicorn(app) as (port, _loop):
+        state = app.state.monoloc
+        import httpx
+
+        entries = httpx.get(
+            f"http://127.0.0.1:{port}/v1/maps/{map_copy.map_id}/entries", headers=write
+        ).json()
+        entry_id = entries["items"][0]["id"]
+        body = b'{"tags": ["night", "trickled"]}'
+        head = (
+            f"PATCH /v1/maps/{map_copy.map_id}/entries/{entry_id} HTTP/1.1\r\nHost: x\r\n"
+            f"X-API-Key: {write['X-API-Key']}\r\nContent-Type: application/json\r\n"
+            f"Content-Length: {len(body)}\r\n\r\n"
+        ).encode()
+        # 0.2 s between chunks, 1.6 s in all: longer than the stall timeout, never idle for it
+        with socket.create_connection(("127.0.0.1", port)) as slow:
+            slow.sendall(head)
+            for i in range(0, len(body), 4):
+                time.sleep(0.2)
+                slow.sendall(body[i : i + 4])
+            answer, _, _ = _answer(slow, 10)
+        assert answer.startswith("HTTP/1.1 200"), answer
+        assert '"trickled"' in answer
+        # the same write whose client goes silent after a few bytes
+        with socket.create_connection(("127.0.0.1", port)) as silent:
+            silent.sendall(head + body[:5])
+            answer, waited_s, closed = _answer(silent, 10)
+        assert answer.startswith("HTTP/1.1 408"), answer
+        assert "nothing of it arrived for 0.5 s" in answer and closed
+        assert 0.4 <= waited_s < 3.0
+        assert state.metrics.admission_expired.value("write", "body_timeout") == 1
+        assert state.admission.lanes["write"].inside == 0
+        tags = httpx.get(
+            f"http://127.0.0.1:{port}/v1/maps/{map_copy.map_id}/entries/{entry_id}",
+            headers=write,
+        ).json()["tags"]
+        assert sorted(tags) == ["night", "trickled"]  # the cut write changed nothing
