@@ -18,18 +18,21 @@ are spread over the replicas as a load balancer would. The map is a sim city's m
    taken inside the ``Retry-After`` of a shed frame (``http-honours``; those count as
    *held*, offered but not sent).
 
-After every 2x phase the capacity is measured again (closed loop, same clients), and a
-phase's served share is taken against the mean of the capacity phases right before and
-right after it: on this shared VM the capacity of the same code drifts by up to 20 %
-within minutes, so a baseline measured once at the start judged the drift as much as the
-server. The share of the first capacity (which set the offered load) is printed too.
+Each 2x phase runs in ``--slices`` slices (4 of 5 s by default) alternating with as many
+capacity slices (closed loop, same clients) in the order ABBA ABBA, and its served share
+is taken against the capacity of those slices: on this shared VM the capacity of the same
+code drifts by up to 20 % within minutes, so a baseline measured once at the start, or even
+right before and after a 20-s phase, judged the drift as much as the server. A slice counts
+the frames answered inside its window (not the ones finished after it), and its cores are
+metered over the same window. The share of the first capacity (which set the offered load)
+is printed too.
 
 Printed beside capacity, with the issue's goals: served rate at 2x >= 90 % of capacity;
 p99 of served frames <= 3 x their p50 at capacity; server memory (summed RSS of the
 replicas) within +300 MB of idle; writes p99 <= 1 s; no 5xx other than 503 (shed).
 
 The load generator runs on the same cores as the replicas, so it is kept cheap: every
-frame's request (h11 head, multipart body) is encoded once, vehicles share one asyncio
+frame's whole HTTP request is encoded once, vehicles share one asyncio
 loop and send over raw keep-alive connections (about 0.5 ms of CPU per frame; httpx took
 about 2 ms). Each phase reports where the cores went (this process, the replicas, every
 other process on the machine, from /proc) and frames served per core the replicas used,
@@ -237,10 +240,17 @@ class CpuMeter:
         return time.perf_counter(), client, sum(map(process_cpu_s, self.pids)), machine_busy_s()
 
     def __enter__(self) -> CpuMeter:
-        self._start = self._now()
+        self.start()
         return self
 
     def __exit__(self, *exc) -> None:
+        if not hasattr(self, "cores"):
+            self.stop()
+
+    def start(self) -> None:
+        self._start = self._now()
+
+    def stop(self) -> None:
         end = self._now()
         wall, client, server, machine = (b - a for a, b in zip(self._start, end, strict=True))
         self.cores = {
@@ -291,14 +301,11 @@ def multipart_body(png: bytes, boundary: str) -> bytes:
 
 
 class FrameRequests:
-    """The localize requests of the run, built once: h11 request heads and multipart
-    bodies per frame, so sending a frame costs a socket write, not an encoding."""
+    """The localize requests of the run, built once: each frame's whole HTTP/1.1 request
+    (head and multipart body) as bytes, so sending a frame costs one socket write."""
 
     def __init__(self, map_id: int, frames: list[bytes], deadline_ms: int | None) -> None:
-        import h11
-
         boundary = "monolocbench" + "0" * 20
-        self.bodies = [multipart_body(png, boundary) for png in frames]
         headers = [
             ("Host", "bench"),
             ("X-API-Key", ADMIN_KEY),
@@ -306,70 +313,59 @@ class FrameRequests:
         ]
         if deadline_ms is not None:
             headers.append(("X-Request-Deadline-Ms", str(deadline_ms)))
-        self.heads = [
-            h11.Request(
-                method="POST",
-                target=f"/v1/maps/{map_id}/localize",
-                headers=[*headers, ("Content-Length", str(len(body)))],
-            )
-            for body in self.bodies
-        ]
+        self.requests = []
+        for png in frames:
+            body = multipart_body(png, boundary)
+            lines = [f"POST /v1/maps/{map_id}/localize HTTP/1.1"]
+            lines += [f"{k}: {v}" for k, v in [*headers, ("Content-Length", str(len(body)))]]
+            self.requests.append(("\r\n".join(lines) + "\r\n\r\n").encode() + body)
 
     def __len__(self) -> int:
-        return len(self.bodies)
+        return len(self.requests)
 
 
 class _Connection:
-    """One keep-alive HTTP/1.1 connection: asyncio streams, h11 for the framing."""
+    """One keep-alive HTTP/1.1 connection over asyncio streams, with the least framing
+    the server's answers need (a status line, headers, a Content-Length body): h11 cost
+    the generator about twice the CPU per frame on the cores the replicas share."""
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        import h11
-
         self.reader, self.writer = reader, writer
-        self.h11 = h11.Connection(h11.CLIENT)
         self.retry_after_s = 0.0  # the last answer's Retry-After (seconds), 0 if none
+        self.open = True
 
-    async def exchange(self, head, body: bytes) -> int:
+    async def exchange(self, request: bytes) -> int:
         """Send one request, read its whole answer; the answer's status."""
-        import h11
-
-        conn = self.h11
-        self.writer.write(conn.send(head) + conn.send(h11.Data(data=body)))
-        self.writer.write(conn.send(h11.EndOfMessage()))
-        await self.writer.drain()
-        status = 0
+        self.writer.write(request)
+        try:
+            head = await self.reader.readuntil(b"\r\n\r\n")
+        except asyncio.IncompleteReadError as exc:
+            raise ConnectionError("the server closed the connection") from exc
+        lines = head.decode("latin-1").split("\r\n")
+        status = int(lines[0].split(" ", 2)[1])
+        fields = {}
+        for line in lines[1:]:
+            if line:
+                name, _, value = line.partition(":")
+                fields[name.strip().lower()] = value.strip()
+        if "content-length" not in fields:
+            raise ConnectionError(f"answer without Content-Length: {lines[0]!r}")
+        await self.reader.readexactly(int(fields["content-length"]))
         self.retry_after_s = 0.0
-        while True:
-            event = conn.next_event()
-            if event is h11.NEED_DATA:
-                data = await self.reader.read(65536)
-                if not data:
-                    raise ConnectionError("the server closed the connection")
-                conn.receive_data(data)
-            elif isinstance(event, h11.Response):
-                status = event.status_code
-                hints = dict(event.headers)
-                if hints.get(b"retry-after-ms", b"").isdigit():
-                    self.retry_after_s = int(hints[b"retry-after-ms"]) / 1000.0
-                elif hints.get(b"retry-after", b"").isdigit():
-                    self.retry_after_s = float(hints[b"retry-after"])
-            elif isinstance(event, h11.EndOfMessage):
-                break
-            elif isinstance(event, h11.ConnectionClosed):
-                raise ConnectionError("the server closed the connection")
-        if conn.our_state is h11.MUST_CLOSE or conn.their_state is h11.MUST_CLOSE:
+        if fields.get("retry-after-ms", "").isdigit():
+            self.retry_after_s = int(fields["retry-after-ms"]) / 1000.0
+        elif fields.get("retry-after", "").isdigit():
+            self.retry_after_s = float(fields["retry-after"])
+        if fields.get("connection", "").lower() == "close":
             self.close()
-        else:
-            conn.start_next_cycle()
         return status
 
     @property
     def reusable(self) -> bool:
-        import h11
-
-        return self.h11.our_state is h11.IDLE and not self.writer.is_closing()
+        return self.open and not self.writer.is_closing()
 
     def close(self) -> None:
+        self.open = False
         self.writer.close()
 
 
@@ -397,29 +393,30 @@ class VehicleLink:
         self._free: list[_Connection] = []
         self._slots = asyncio.Semaphore(max_connections)
 
-    async def post(self, requests: FrameRequests, i: int) -> tuple[int, float]:
-        """(status, seconds from the frame's send time to its answer)."""
+    async def post(self, requests: FrameRequests, i: int) -> tuple[int, float, float]:
+        """(status, seconds from the frame's send time to its answer, answer time)."""
         start = time.perf_counter()
         if self.honour_retry_after and start < self._hold_until:
-            return HELD, 0.0
+            return HELD, 0.0, start
         try:
             async with asyncio.timeout(self.pool_timeout_s):
                 await self._slots.acquire()
         except TimeoutError:
-            return -1, time.perf_counter() - start
+            end = time.perf_counter()
+            return -1, end - start, end
         conn = None
         try:
             async with asyncio.timeout(self.timeout_s):
                 if self._free:
                     conn = self._free.pop()
                     try:
-                        status = await conn.exchange(requests.heads[i], requests.bodies[i])
+                        status = await conn.exchange(requests.requests[i])
                     except ConnectionError:  # closed while idle (keep-alive timeout): retry
                         conn.close()
                         conn = None
                 if conn is None:
                     conn = _Connection(*await asyncio.open_connection(self.host, self.port))
-                    status = await conn.exchange(requests.heads[i], requests.bodies[i])
+                    status = await conn.exchange(requests.requests[i])
             if status == 503 and self.honour_retry_after:
                 self._hold_until = max(self._hold_until, start + conn.retry_after_s)
             if conn.reusable:
@@ -430,7 +427,8 @@ class VehicleLink:
                 conn.close()
         finally:
             self._slots.release()
-        return status, time.perf_counter() - start
+        end = time.perf_counter()
+        return status, end - start, end
 
     def close(self) -> None:
         for conn in self._free:
@@ -438,32 +436,38 @@ class VehicleLink:
         self._free.clear()
 
 
-async def closed_loop(urls, map_id, frames, clients_per_replica, duration_s) -> dict:
+async def _meter_window(meter: CpuMeter | None, start: float, stop_at: float) -> None:
+    """Start ``meter`` at ``start`` and stop it at ``stop_at`` (perf_counter times): the
+    cores of the slice's window, without its ramp and its tail."""
+    if meter is None:
+        return
+    await asyncio.sleep(max(0.0, start - time.perf_counter()))
+    meter.start()
+    await asyncio.sleep(max(0.0, stop_at - time.perf_counter()))
+    meter.stop()
+
+
+async def closed_loop(
+    urls, map_id, frames, clients_per_replica, duration_s, meter: CpuMeter | None = None
+) -> dict:
+    """Capacity: clients sending frames back to back for ``duration_s``; a slice of raw
+    answers (see :func:`summarise_capacity`)."""
     requests = FrameRequests(map_id, frames, None)
-    latencies: list[float] = []
-    statuses: list[int] = []
-    stop_at = time.perf_counter() + duration_s
+    answers: list[tuple[int, float, float]] = []
+    start = time.perf_counter()
+    stop_at = start + duration_s
 
     async def client_loop(url: str, offset: int) -> None:
         link = VehicleLink(url, 1, 30.0, 30.0)
         i = offset
         while time.perf_counter() < stop_at:
-            status, latency = await link.post(requests, i % len(requests))
-            statuses.append(status)
-            if status == 200:
-                latencies.append(latency)
+            answers.append(await link.post(requests, i % len(requests)))
             i += 1
         link.close()
 
-    start = time.perf_counter()
-    await asyncio.gather(*(client_loop(u, k * 7) for u in urls for k in range(clients_per_replica)))
-    wall = time.perf_counter() - start
-    return {
-        "served_per_s": len(latencies) / wall,
-        "p50_ms": pct(latencies, 50) * 1e3,
-        "p99_ms": pct(latencies, 99) * 1e3,
-        "statuses": {str(s): statuses.count(s) for s in sorted(set(statuses))},
-    }
+    clients = [client_loop(u, k * 7) for u in urls for k in range(clients_per_replica)]
+    await asyncio.gather(_meter_window(meter, start, stop_at), *clients)
+    return {"answers": answers, "writes": [], "start": start, "stop_at": stop_at}
 
 
 async def _writer(urls, map_id, entry_ids, stop_at, out: list) -> None:
@@ -490,7 +494,7 @@ async def _writer(urls, map_id, entry_ids, stop_at, out: list) -> None:
 
 
 async def open_loop_http(
-    urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries, honour=False
+    urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries, honour=False, meter=None
 ):
     requests = FrameRequests(map_id, frames, DEADLINE_MS)
     results: list[tuple[int, float]] = []
@@ -516,14 +520,16 @@ async def open_loop_http(
         results.extend(await asyncio.gather(*tasks))
         link.close()
 
-    jobs = [vehicle(v) for v in range(vehicles)]
+    jobs = [_meter_window(meter, t0, stop_at), *(vehicle(v) for v in range(vehicles))]
     if writes:
         jobs.append(_writer(urls, map_id, entries, stop_at, write_results))
     await asyncio.gather(*jobs)
-    return summarise(results, write_results, duration_s)
+    return {"answers": results, "writes": write_results, "start": t0, "stop_at": stop_at}
 
 
-async def open_loop_ws(urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries):
+async def open_loop_ws(
+    urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries, meter=None
+):
     import websockets
 
     from monoloc.client.api import encode_frame
@@ -555,7 +561,7 @@ async def open_loop_ws(urls, map_id, frames, vehicles, rate_hz, duration_s, writ
                     seq = answer.get("seq")
                     latency = time.perf_counter() - sent.pop(seq, time.perf_counter())
                     status = 503 if answer.get("dropped") else (500 if "error" in answer else 200)
-                    results.append((status, latency))
+                    results.append((status, latency, time.perf_counter()))
                     if not sent and all_sent.is_set():
                         return
 
@@ -575,24 +581,55 @@ async def open_loop_ws(urls, map_id, frames, vehicles, rate_hz, duration_s, writ
             if sent:  # else every answer is in: the receiver would wait for nothing
                 await receiver
             receiver.cancel()
-            results.extend((0, 0.0) for _ in sent)  # never answered (10 s): lost
+            results.extend((0, 0.0, math.inf) for _ in sent)  # never answered (10 s): lost
 
-    jobs = [vehicle(v) for v in range(vehicles)]
+    jobs = [_meter_window(meter, t0, stop_at), *(vehicle(v) for v in range(vehicles))]
     if writes:
         jobs.append(_writer(urls, map_id, entries, stop_at, write_results))
     await asyncio.gather(*jobs)
-    return summarise(results, write_results, duration_s)
+    return {"answers": results, "writes": write_results, "start": t0, "stop_at": stop_at}
 
 
-def summarise(results, write_results, duration_s) -> dict:
-    served = [lat for status, lat in results if status == 200]
-    statuses = [s for s, _ in results]
+def _window_s(slices: list[dict]) -> float:
+    return sum(sl["stop_at"] - sl["start"] for sl in slices)
+
+
+def _served(slices: list[dict]) -> list[float]:
+    """Latencies of the frames answered 200 inside their slice's window: a slice's rate is
+    what the server delivered while the load was on, not the tail it finished after."""
+    return [
+        lat
+        for sl in slices
+        for status, lat, answered_at in sl["answers"]
+        if status == 200 and answered_at <= sl["stop_at"]
+    ]
+
+
+def summarise_capacity(slices: list[dict]) -> dict:
+    """Closed-loop slices pooled: served frames per second of window, p50 / p99."""
+    served = _served(slices)
+    statuses = [a[0] for sl in slices for a in sl["answers"]]
+    return {
+        "served_per_s": len(served) / _window_s(slices),
+        "p50_ms": pct(served, 50) * 1e3,
+        "p99_ms": pct(served, 99) * 1e3,
+        "statuses": {str(s): statuses.count(s) for s in sorted(set(statuses))},
+        "slices_per_s": [len(_served([sl])) / _window_s([sl]) for sl in slices],
+    }
+
+
+def summarise(slices: list[dict]) -> dict:
+    """Open-loop slices pooled."""
+    served = _served(slices)
+    statuses = [a[0] for sl in slices for a in sl["answers"]]
+    write_results = [w for sl in slices for w in sl["writes"]]
     write_lat = [lat for _, lat in write_results]
     return {
-        "offered": len(results),
-        "served_per_s": len(served) / duration_s,
+        "offered": len(statuses),
+        "served_per_s": len(served) / _window_s(slices),
         "served_p50_ms": None if not served else pct(served, 50) * 1e3,
         "served_p99_ms": None if not served else pct(served, 99) * 1e3,
+        "served_after_window": statuses.count(200) - len(served),
         "shed": statuses.count(503),
         "errors_5xx": sum(1 for s in statuses if s >= 500 and s != 503),
         "failed_no_answer": statuses.count(0),
@@ -601,24 +638,24 @@ def summarise(results, write_results, duration_s) -> dict:
         "writes": len(write_results),
         "writes_failed": sum(1 for s, _ in write_results if s != 200),
         "writes_p99_s": pct(write_lat, 99),
+        "slices_per_s": [len(_served([sl])) / _window_s([sl]) for sl in slices],
     }
 
 
-def verdicts(run: dict, capacity: dict, idle_mb: float, bracket: tuple[dict, dict]) -> dict:
-    """The goals for one 2x phase. ``capacity`` is the run's first capacity phase (it set the
-    offered load); ``bracket`` the capacity phases measured right before and right after
-    this phase, whose mean is the served share's baseline: this VM's speed drifts by up to
-    20 % within minutes (same code, same load, no steal time in /proc/stat), and a baseline
-    measured minutes earlier would judge the drift, not the server."""
-    bracket_per_s = 0.5 * (bracket[0]["served_per_s"] + bracket[1]["served_per_s"])
-    share = run["served_per_s"] / bracket_per_s
+def verdicts(run: dict, first: dict, capacity: dict, idle_mb: float) -> dict:
+    """The goals for one 2x phase. ``capacity`` is the capacity measured in the slices
+    interleaved with this phase's (the served share's baseline: this VM's speed drifts by
+    up to 20 % within minutes, same code and load, no steal time in /proc/stat, and a
+    baseline measured minutes apart would judge the drift, not the server); ``first`` is
+    the run's first capacity phase, which set the offered load."""
+    share = run["served_per_s"] / capacity["served_per_s"]
     p99_ratio = (run["served_p99_ms"] or math.inf) / capacity["p50_ms"]
     growth = run["peak_mb"] - idle_mb
     out = {
-        "capacity_bracket_per_s": [bracket[0]["served_per_s"], bracket[1]["served_per_s"]],
+        "capacity_interleaved_per_s": capacity["served_per_s"],
         "served_share": share,
-        "served_share_of_first_capacity": run["served_per_s"] / capacity["served_per_s"],
-        "offered_over_bracket": run["offered"] / run["duration_s"] / bracket_per_s,
+        "served_share_of_first_capacity": run["served_per_s"] / first["served_per_s"],
+        "offered_over_capacity": run["offered"] / run["duration_s"] / capacity["served_per_s"],
         "served_share_met": share >= GOALS["served_share_min"],
         "p99_over_capacity_p50": p99_ratio,
         "p99_met": p99_ratio <= GOALS["p99_over_capacity_p50_max"],
@@ -631,15 +668,21 @@ def verdicts(run: dict, capacity: dict, idle_mb: float, bracket: tuple[dict, dic
     # cheap) and a served share below 1 is CPU they did not get (other processes, the load
     # generator), which this machine cannot separate further.
     per_core = run["served_per_s"] / max(1e-9, run["cpu_cores"]["server"])
-    cap_per_core = 0.5 * sum(
-        b["served_per_s"] / max(1e-9, b["cpu_cores"]["server"]) for b in bracket
-    )
+    cap_per_core = capacity["served_per_s"] / max(1e-9, capacity["cpu_cores"]["server"])
     out["served_per_server_core"] = per_core
     out["served_per_core_vs_capacity"] = per_core / cap_per_core
     if run["writes"]:
         out["writes_met"] = (run["writes_p99_s"] or 0.0) <= GOALS["writes_p99_s_max"] and not run[
             "writes_failed"
         ]
+    return out
+
+
+def mean_cores(per_slice: list[dict]) -> dict:
+    """Cores used, averaged over equally long slices."""
+    keys = ("load_generator", "server", "other")
+    out = {k: sum(c[k] for c in per_slice) / len(per_slice) for k in keys}
+    out["machine_cpus"] = per_slice[0]["machine_cpus"]
     return out
 
 
@@ -675,53 +718,65 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
         asyncio.run(closed_loop(urls, map_id, frames, 2 * args.workers, 5.0))
         time.sleep(2.0)
         idle_mb = sum(rss_mb(p) for p in pids)
-        with CpuMeter(pids) as cpu:
-            capacity = asyncio.run(
-                closed_loop(urls, map_id, frames, 2 * args.workers, args.duration)
-            )
-        capacity["cpu_cores"] = cpu.cores
+
+        def capacity_slice(duration_s: float, cores: list[dict]) -> dict:
+            cpu = CpuMeter(pids)
+            clients = 2 * args.workers
+            part = asyncio.run(closed_loop(urls, map_id, frames, clients, duration_s, cpu))
+            cores.append(cpu.cores)
+            return part
+
+        first_cores: list[dict] = []
+        capacity = summarise_capacity([capacity_slice(args.duration, first_cores)])
+        capacity["cpu_cores"] = first_cores[0]
         print(
             f"[{n_replicas} replica(s)] capacity {capacity['served_per_s']:.1f} frames/s, "
             f"p50 {capacity['p50_ms']:.0f} ms, p99 {capacity['p99_ms']:.0f} ms, idle "
-            f"{idle_mb:.0f} MB; {cpu_text(cpu.cores)}",
+            f"{idle_mb:.0f} MB; {cpu_text(capacity['cpu_cores'])}",
             flush=True,
         )
-        capacity_phases = [capacity]
         offered = 2.0 * capacity["served_per_s"]
         vehicles = max(1, math.ceil(offered / args.rate_hz))
         rate = offered / vehicles
         runs = {}
         honouring = functools.partial(open_loop_http, honour=True)
         transports = (("http", open_loop_http), ("http-honours", honouring), ("ws", open_loop_ws))
+        slice_s = args.duration / args.slices
         for transport, fn in transports:
             for writes in (False, True):
                 name = f"{transport}{'+writes' if writes else ''}"
                 if name not in args.runs:
                     continue
-                with MemorySampler(pids) as memory, CpuMeter(pids) as cpu:
-                    run = asyncio.run(
-                        fn(urls, map_id, frames, vehicles, rate, args.duration, writes, entries)
-                    )
-                run["peak_mb"] = memory.peak_mb
-                run["cpu_cores"] = cpu.cores
-                run["duration_s"] = args.duration
-                time.sleep(2.0)
-                # the capacity again, right after: this phase's baseline is the mean of the
-                # capacity phases before and after it (see verdicts)
-                with CpuMeter(pids) as cpu:
-                    after = asyncio.run(
-                        closed_loop(urls, map_id, frames, 2 * args.workers, args.duration)
-                    )
-                after["cpu_cores"] = cpu.cores
-                run["verdicts"] = verdicts(run, capacity, idle_mb, (capacity_phases[-1], after))
-                capacity_phases.append(after)
+                # capacity and 2x in alternating slices, in the order ABBA ABBA ..., so
+                # that a drift of the machine's speed weighs on both alike
+                load_parts, load_cores, cap_parts, cap_cores = [], [], [], []
+                peak_mb = 0.0
+                for k in range(args.slices):
+                    for step in ("cap", "load") if k % 2 == 0 else ("load", "cap"):
+                        if step == "cap":
+                            cap_parts.append(capacity_slice(slice_s, cap_cores))
+                            continue
+                        cpu = CpuMeter(pids)
+                        with MemorySampler(pids) as memory:
+                            args_ = (vehicles, rate, slice_s, writes, entries)
+                            phase = fn(urls, map_id, frames, *args_, meter=cpu)
+                            load_parts.append(asyncio.run(phase))
+                        peak_mb = max(peak_mb, memory.peak_mb)
+                        load_cores.append(cpu.cores)
+                run = summarise(load_parts)
+                run["peak_mb"] = peak_mb
+                run["cpu_cores"] = mean_cores(load_cores)
+                run["duration_s"] = slice_s * args.slices
+                beside = summarise_capacity(cap_parts)
+                beside["cpu_cores"] = mean_cores(cap_cores)
+                run["capacity_interleaved"] = beside
+                run["verdicts"] = verdicts(run, capacity, beside, idle_mb)
                 runs[name] = run
                 v = run["verdicts"]
                 print(
                     f"  2x ({vehicles} vehicles x {rate:.1f} Hz) {name:12s} served "
                     f"{run['served_per_s']:.1f}/s ({100 * v['served_share']:.0f} % of the "
-                    f"capacity before and after it, {v['capacity_bracket_per_s'][0]:.1f} and "
-                    f"{v['capacity_bracket_per_s'][1]:.1f}/s; "
+                    f"capacity in the slices between, {beside['served_per_s']:.1f}/s; "
                     f"{100 * v['served_share_of_first_capacity']:.0f} % of the first; "
                     f"per server core {100 * v['served_per_core_vs_capacity']:.0f} %), "
                     f"p99 {run['served_p99_ms'] or float('nan'):.0f} ms "
@@ -730,16 +785,21 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
                     f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
                     f"+{v['memory_growth_mb']:.0f} MB"
                     + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else "")
-                    + f"; {cpu_text(cpu.cores)}",
+                    + f"; {cpu_text(run['cpu_cores'])}",
                     flush=True,
                 )
-                time.sleep(2.0)
+                print(
+                    "      slices (frames/s): capacity "
+                    + ", ".join(f"{x:.1f}" for x in beside["slices_per_s"])
+                    + "; 2x "
+                    + ", ".join(f"{x:.1f}" for x in run["slices_per_s"]),
+                    flush=True,
+                )
     return {
         "replicas": n_replicas,
         "database": db_name,
         "idle_mb": idle_mb,
         "capacity": capacity,
-        "capacity_phases_per_s": [c["served_per_s"] for c in capacity_phases],
         "offered_per_s": offered,
         "vehicles": vehicles,
         "rate_hz": rate,
@@ -749,7 +809,15 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--duration", type=float, default=20.0, help="seconds per phase")
+    parser.add_argument(
+        "--duration", type=float, default=20.0, help="seconds per phase (2x, and its capacity)"
+    )
+    parser.add_argument(
+        "--slices",
+        type=int,
+        default=4,
+        help="each 2x phase and its capacity run in this many alternating slices",
+    )
     parser.add_argument("--replicas", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--rate-hz", type=float, default=10.0, help="per vehicle")
     parser.add_argument("--workers", type=int, default=2, help="worker threads per replica")
@@ -802,6 +870,7 @@ def main() -> None:
     out = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
         "duration_s": args.duration,
+        "slices": args.slices,
         "deadline_ms": DEADLINE_MS,
         "server": {"http": args.http, "loop": args.loop},
         "goals": GOALS,

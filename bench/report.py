@@ -282,10 +282,12 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
             "lower served share is CPU they did not get). *http-honours*: the vehicles "
             "do what monoloc's client library does after a shed frame, not sending the frames "
             "taken inside its Retry-After (*held*); *http*: they send every frame regardless. "
-            "*of cap.*: served at 2x over the mean of the capacity phases measured right "
-            "before and right after the phase (the machine's speed drifts; the capacity row "
-            "lists every capacity phase of the run), and in brackets over the first capacity, "
-            "which set the offered load.",
+            "*of cap.*: served at 2x over the capacity measured in slices alternating with "
+            "the phase's own (ABBA, "
+            + str(data.get("slices", 1))
+            + " of each; the machine's speed drifts within minutes), and in brackets over "
+            "the first capacity, which set the offered load; *capacity between* lists the "
+            "capacity of those slices.",
             "",
         ]
         rows = []
@@ -304,14 +306,7 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
                     "",
                     "",
                     _cores(cap),
-                    f"idle {r['idle_mb']:.0f} MB"
-                    + (
-                        "; capacity phases "
-                        + ", ".join(f"{c:.1f}" for c in r["capacity_phases_per_s"])
-                        + " /s"
-                        if "capacity_phases_per_s" in r
-                        else ""
-                    ),
+                    f"idle {r['idle_mb']:.0f} MB",
                 ]
             )
             for name, run in r["runs"].items():
@@ -341,7 +336,12 @@ def fleet_section(data: dict | None, footprint: dict | None) -> list[str]:
                             else ""
                         ),
                         f"+{v['memory_growth_mb']:.0f} MB; "
-                        + ("all met" if not met else "missed: " + ", ".join(met)),
+                        + ("all met" if not met else "missed: " + ", ".join(met))
+                        + (
+                            f"; capacity between {v['capacity_interleaved_per_s']:.1f}/s"
+                            if "capacity_interleaved_per_s" in v
+                            else ""
+                        ),
                     ]
                 )
         header = ["replicas", "phase", "served/s", "of cap.", "p50 ms", "p99 ms"]
