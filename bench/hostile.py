@@ -8,8 +8,9 @@ IDAT stream inflates to ``--inflate-mb`` MB of zeros (~1000:1, about 4 MB on the
 ``decode_gray`` (the IDAT inflated up to what the header needs, then OpenCV). The baseline
 is ``cv2.imdecode`` of the same bytes, as before the fix (run once; ``--no-baseline``
 skips it). A real frame: a 1241 x 376 photograph-like PNG (scikit-image's camera,
-resized), decoded through the same path. Figures are CPU seconds (process time, one
-thread). Usage:
+resized), decoded through the same path and by ``cv2.imdecode`` alone (the server's path
+inflates the data once, then hands OpenCV the scanlines in stored deflate blocks).
+Figures are CPU seconds (process time, one thread). Usage:
     python bench/hostile.py [--inflate-mb 4096] [--no-baseline]
 """
 
@@ -85,8 +86,13 @@ def main() -> None:
         info = check_image(data, "image", 10_000_000)
         return decode_gray(data, info, "image")
 
+    real_buffer = np.frombuffer(real, np.uint8)
     rows = {
         "real frame, server path": cpu_s(lambda: server_path(real), 20),
+        # the decoder alone, unguarded: what the guard's own inflation costs on top of it
+        "real frame, cv2.imdecode alone": cpu_s(
+            lambda: cv2.imdecode(real_buffer, cv2.IMREAD_GRAYSCALE), 20
+        ),
         "bomb, server path": cpu_s(lambda: server_path(bomb), 5),
     }
     if not args.no_baseline:
