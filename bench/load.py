@@ -32,16 +32,18 @@ p99 of served frames <= 3 x their p50 at capacity; server memory (summed RSS of 
 replicas) within +300 MB of idle; writes p99 <= 1 s; no 5xx other than 503 (shed).
 
 The load generator runs on the same cores as the replicas, so it is kept cheap: every
-frame's whole HTTP request is encoded once, vehicles share one asyncio
-loop and send over raw keep-alive connections (about 0.5 ms of CPU per frame; httpx took
-about 2 ms). Each phase reports where the cores went (this process, the replicas, every
-other process on the machine, from /proc) and frames served per core the replicas used,
-at 2x over at capacity: the served share at 2x mixes the server's own efficiency under
+frame's whole HTTP request is encoded once, vehicles share one asyncio loop and send
+over raw keep-alive connections, reading answers with the least framing they need (0.06-
+0.07 cores at twice capacity, about 0.6 ms of CPU per frame; httpx took about 2 ms).
+Each phase reports where the cores went (this process, the replicas, every other process
+on the machine, from /proc) and frames served per core the replicas used, at 2x over at
+capacity: the served share at 2x mixes the server's own efficiency under
 overload with the CPU it got from a shared machine, and only the second figure separates
 them. What it cannot separate: the GIL contention inside a replica, and the scheduler's
 split of the cores between the replicas, the generator and other jobs.
 Writes bench/results/load.json. Usage:
-    python bench/load.py [--duration 20] [--replicas 1 2] [--rate-hz 10] [--database auto]
+    python bench/load.py [--duration 20] [--slices 4] [--replicas 1 2] [--rate-hz 10]
+                         [--database auto]
 """
 
 from __future__ import annotations
