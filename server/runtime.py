@@ -233,12 +233,30 @@ class MapRegistry:
             cache.get(ids[start : start + 512])
 
     def get(self, map_id: int) -> MapRuntime:
-        """The map's runtime, loading or catching it up if needed (NotFoundError if gone)."""
+        """The map's runtime, loading it on first use (NotFoundError if gone).
+
+        The query path never waits on the database once a map is loaded: while the sync
+        thread runs it alone keeps the maps current; without it (embedded use) a query
+        checks the version at most once per ``version_check_s``, and only when no other
+        thread is checking or applying a change at that moment (it then answers from the
+        map as it is, at most one check old). A localize worker that queued on a catch-up
+        held its admission place idle for a database round trip, which under CPU
+        saturation cost served frames (bench/load.py, two replicas with writes)."""
         with self._lock:
             runtime = self._maps.get(map_id)
-        if runtime is not None and time.monotonic() - runtime.checked_at < self._version_check_s:
+        if runtime is None:
+            return self.catch_up(map_id)
+        if self._sync_thread is not None:
             return runtime
-        return self.catch_up(map_id)
+        if time.monotonic() - runtime.checked_at < self._version_check_s:
+            return runtime
+        lock = self._load_lock(map_id)
+        if not lock.acquire(blocking=False):
+            return runtime
+        try:
+            return self._catch_up_locked(map_id)
+        finally:
+            lock.release()
 
     def _load_lock(self, map_id: int) -> threading.Lock:
         with self._lock:
@@ -249,22 +267,26 @@ class MapRegistry:
         entries above the runtime's version as deltas, or build the runtime (first use, a
         vocabulary change, a gap in the log). NotFoundError if the map is gone."""
         with self._load_lock(map_id):
-            with self._lock:
-                runtime = self._maps.get(map_id)
-            if runtime is None:
-                runtime = self._build(map_id)
-            else:
-                with session_scope(self._sessions) as session:
-                    record = maps_repo.get_map(session, map_id)
-                    changes = maps_repo.list_changes(session, map_id, runtime.version)
-                if record.version != runtime.version:
-                    if not self._apply(runtime, changes, record.version):
-                        log.info("map %s: rebuilding (vocabulary change or log gap)", map_id)
-                        runtime = self._build(map_id)
-                runtime.record, runtime.checked_at = record, time.monotonic()
-            with self._lock:
-                self._maps[map_id] = runtime
-            return runtime
+            return self._catch_up_locked(map_id)
+
+    def _catch_up_locked(self, map_id: int) -> MapRuntime:
+        """:meth:`catch_up` with the map's load lock held."""
+        with self._lock:
+            runtime = self._maps.get(map_id)
+        if runtime is None:
+            runtime = self._build(map_id)
+        else:
+            with session_scope(self._sessions) as session:
+                record = maps_repo.get_map(session, map_id)
+                changes = maps_repo.list_changes(session, map_id, runtime.version)
+            if record.version != runtime.version:
+                if not self._apply(runtime, changes, record.version):
+                    log.info("map %s: rebuilding (vocabulary change or log gap)", map_id)
+                    runtime = self._build(map_id)
+            runtime.record, runtime.checked_at = record, time.monotonic()
+        with self._lock:
+            self._maps[map_id] = runtime
+        return runtime
 
     def _apply(self, runtime: MapRuntime, changes: list[MapChangeRecord], version: int) -> bool:
         """Apply ``changes`` (in version order) to ``runtime``; False when they cannot be

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -173,3 +174,53 @@ def test_entry_deleted_under_a_search_is_skipped_not_an_error(ingested, factory)
     assert victim in result.retrieved_ids.tolist()  # the index has not heard of it yet
     assert victim not in [h.entry_id for h in result.hypotheses]
     assert len(result.hypotheses) >= 1
+
+
+def test_a_query_does_not_wait_for_a_catch_up_in_progress(ingested):
+    """A query whose version check is due while another thread is catching the map up
+    (holding the map's load lock through database queries) answers from the map as it
+    is instead of queueing behind the catch-up; it checks again next time."""
+    registry, map_id, _ = ingested
+    registry._version_check_s = 0.0  # every query's check is due
+    runtime = registry.get(map_id)
+    got = []
+    with registry._load_lock(map_id):  # a catch-up in progress
+        thread = threading.Thread(target=lambda: got.append(registry.get(map_id)))
+        thread.start()
+        thread.join(timeout=5)
+        blocked = thread.is_alive()
+    thread.join(timeout=5)
+    assert not blocked
+    assert got == [runtime]
+
+
+def test_queries_read_no_database_while_the_sync_thread_keeps_the_map_current(ingested, factory):
+    """With the sync thread running, the query path leaves the version checks to it:
+    no database session per query, and a delete by another process still reaches the
+    index within the sync interval."""
+    from monoloc.server.storage import entries as entries_repo
+    from monoloc.server.storage.db import session_scope
+
+    registry, map_id, _ = ingested
+    sessions_opened = []
+
+    def counting_factory():
+        sessions_opened.append(threading.current_thread().name)
+        return factory()
+
+    registry._sessions = counting_factory
+    registry._version_check_s = 0.0
+    registry.start_sync(0.05)
+    try:
+        victim = int(registry.get(map_id).index.entry_ids()[0])
+        for _ in range(50):
+            registry.get(map_id)
+        assert [name for name in sessions_opened if name != "monoloc-replica-sync"] == []
+        with session_scope(factory) as session:  # another process's delete
+            entries_repo.delete_entry(session, victim)
+        deadline = time.monotonic() + 2.0
+        while victim in registry.get(map_id).index and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert victim not in registry.get(map_id).index
+    finally:
+        registry.stop_sync()
