@@ -48,8 +48,10 @@ from monoloc.server.vision.features import OrbConfig, extract_features
 from monoloc.server.vision.joint import (
     EntryInliers,
     JointConfig,
+    PooledConfig,
     consistent_group,
     estimate_joint_pose,
+    estimate_pooled_pose,
 )
 from monoloc.server.vision.matching import (
     MatchConfig,
@@ -106,13 +108,18 @@ class Preset:
     match: Match
     guided: bool = True
     joint: bool = True
+    pooled: bool = True
 
 
 PresetName = Literal["monoloc", "paper"]
 PRESETS: dict[PresetName, Preset] = {
     "monoloc": Preset(retrieve_shortlist, match_against_references),
     "paper": Preset(
-        retrieve_exhaustive, match_against_references_bruteforce, guided=False, joint=False
+        retrieve_exhaustive,
+        match_against_references_bruteforce,
+        guided=False,
+        joint=False,
+        pooled=False,
     ),
 }
 
@@ -130,6 +137,7 @@ class LocalizeConfig:
     guess_from_prior: bool = True
     joint: JointConfig | None = field(default_factory=JointConfig)
     fallback_until_confirmed: int | None = 2
+    pooled: PooledConfig | None = field(default_factory=PooledConfig)
 
     @property
     def preset(self) -> Preset:
@@ -144,6 +152,7 @@ class LocalizeConfig:
             guess_from_prior=self.guess_from_prior and self.guided_pnp and preset.guided,
             joint=self.joint if preset.joint else None,
             fallback_until_confirmed=self.fallback_until_confirmed,
+            pooled=self.pooled if preset.pooled else None,
         )
 
 
@@ -164,12 +173,18 @@ class PnpStrategy:
     query and accepted none of them, for about a third of the PnP time. Before
     confirmation (e.g. the first entry's RANSAC found a wrong pose) the fallback keeps
     its role.
+
+    pooled: pooled-PnP settings, None for none: a frame none of whose entries gives a
+    pose of its own gets one RANSAC on all its entries' matches together
+    (``vision.joint.estimate_pooled_pose``; at night an entry often keeps 6-14 matches,
+    under ``PnpConfig.min_inliers``, while its neighbours see the same lit facades).
     """
 
     guided: bool = True
     guess_from_prior: bool = True
     joint: JointConfig | None = field(default_factory=JointConfig)
     fallback_until_confirmed: int | None = 2
+    pooled: PooledConfig | None = field(default_factory=PooledConfig)
 
     def __post_init__(self) -> None:
         if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
@@ -199,7 +214,9 @@ class PoseHypothesis:
     """One accepted PnP solution against one retrieved entry (METHOD.md s. 6 step 5), or
     the joint pose of several (``joint``; then ``entry_id``, ``entry_pose_world`` and
     ``e_vlad`` are its anchor's, ``entry_ids`` every member, ``n_matches`` / ``n_inliers``
-    count the union). method: "ransac", "guided" or "joint"."""
+    count the union). method: "ransac", "guided", "joint" or "pooled" (one RANSAC on
+    the matches of several entries, for a frame whose entries gave no pose of their own;
+    ``entry_ids`` its members; not ``joint``)."""
 
     entry_id: int
     T_world_from_cam: np.ndarray
@@ -353,6 +370,12 @@ def pose_hypotheses(
         joint = _joint_hypothesis(hypotheses, inliers, intrinsics, config, strategy.joint)
         if joint is not None:
             hypotheses.append(joint)
+    if strategy.pooled is not None and not hypotheses and refs:
+        pooled = _pooled_hypothesis(
+            keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, strategy.pooled
+        )
+        if pooled is not None:
+            hypotheses.append(pooled)
     return hypotheses, rejected
 
 
@@ -450,6 +473,47 @@ def _prior_guess(prior: RetrievalPrior, T_world_from_ref: np.ndarray) -> np.ndar
     T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
     T[0, 3], T[1, 3] = prior.x_m, prior.y_m
     return T
+
+
+def _pooled_hypothesis(
+    keypoints_px: np.ndarray,
+    refs: Sequence[ReferenceEntry],
+    matches: Sequence[np.ndarray],
+    e_vlad: dict[int, float],
+    intrinsics: CameraIntrinsics,
+    pnp: PnpConfig,
+    rng: np.random.Generator,
+    config: PooledConfig,
+) -> PoseHypothesis | None:
+    """The pooled pose of the frame's entries, as a hypothesis: not marked ``joint`` (it
+    stands in for the per-entry hypotheses the frame did not get, and the paper's
+    measurement model leaves joint ones out); entry, entry pose and e_vlad are those of
+    the member with the most matches."""
+    pose = estimate_pooled_pose(
+        keypoints_px,
+        [r.T_world_from_cam for r in refs],
+        [r.points_cam for r in refs],
+        matches,
+        intrinsics,
+        pnp,
+        rng,
+        config,
+    )
+    if pose is None:
+        return None
+    anchor = refs[max(pose.members, key=lambda m: len(matches[m]))]
+    return PoseHypothesis(
+        entry_id=anchor.entry_id,
+        T_world_from_cam=pose.T_world_from_cam,
+        pose_world=planar_from_T_world_from_cam(pose.T_world_from_cam),
+        entry_pose_world=anchor.pose_world,
+        e_vlad=float(e_vlad[anchor.entry_id]),
+        n_matches=pose.n_correspondences,
+        n_inliers=pose.n_inliers,
+        reprojection_error_px=pose.reprojection_error_px,
+        entry_ids=tuple(refs[m].entry_id for m in pose.members),
+        method="pooled",
+    )
 
 
 def _joint_hypothesis(

@@ -259,8 +259,9 @@ class HypothesisPublic(BaseModel):
     method: str = Field(
         default="ransac",
         description="How the pose was found: ransac (the entry's own RANSAC), guided (a pose "
-        "found for another entry, re-scored and refined on this entry's own correspondences) "
-        "or joint.",
+        "found for another entry, re-scored and refined on this entry's own correspondences), "
+        "joint, or pooled (one RANSAC on the matches of several entries, for a frame none of "
+        "whose entries gave a pose of its own; entry_ids lists them).",
     )
 
 

@@ -19,6 +19,7 @@ of the scene's size. Pure: arrays in, a pose out.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -28,7 +29,7 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import invert_rigid, wrap_angle
-from monoloc.server.vision.pnp import PnpConfig, refine_from_pose
+from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose, refine_from_pose
 
 
 @dataclass(frozen=True)
@@ -139,4 +140,88 @@ def estimate_joint_pose(
         n_correspondences=len(points_local),
         n_inliers=n_inliers,
         reprojection_error_px=float(errors_px[mask].sum()) / n_inliers,
+    )
+
+
+@dataclass(frozen=True)
+class PooledConfig:
+    """Pooled-PnP settings (:func:`estimate_pooled_pose`). min_entries: entries that must
+    each keep at least ``min_inliers_per_entry`` of the pose's inliers (a pose that one
+    entry's matches explain alone is that entry's to give); iterations: the RANSAC budget
+    on the pooled matches (their inlier ratio is lower than one right entry's, since the
+    wrong entries' matches are pooled too)."""
+
+    min_entries: int = 2
+    min_inliers_per_entry: int = 4
+    iterations: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.min_entries < 2 or self.min_inliers_per_entry < 1 or self.iterations < 1:
+            raise InvalidInputError(f"invalid PooledConfig {self}")
+
+
+def estimate_pooled_pose(
+    keypoints_px: np.ndarray,
+    T_world_from_refs: Sequence[np.ndarray],
+    points_refs: Sequence[np.ndarray],
+    matches: Sequence[np.ndarray],
+    intrinsics: CameraIntrinsics,
+    pnp: PnpConfig,
+    rng: np.random.Generator,
+    config: PooledConfig,
+) -> JointPose | None:
+    """One PnP RANSAC on the matches of every retrieved entry together, for a frame whose
+    entries each had too few matches or inliers for a pose of their own (hloc pools a
+    query's 2D-3D matches over its retrieved images the same way).
+
+    keypoints_px (N, 2): the query's keypoints; per entry j: T_world_from_refs[j] (4, 4),
+    points_refs[j] (M_j, 3) its 3D points in its camera frame, matches[j] (K_j, 2) (query
+    keypoint, entry point) index pairs. The points are expressed in the frame of the entry
+    with the most matches (the anchor: PnP's rotation check is relative to it); a query
+    keypoint matched in several entries keeps its match in the entry with more matches.
+    ``members`` indexes the entries keeping inliers. None when RANSAC finds no pose with
+    ``pnp.min_inliers`` inliers, or fewer than ``config.min_entries`` entries keep
+    ``config.min_inliers_per_entry`` of them."""
+    order = sorted(range(len(matches)), key=lambda j: -len(matches[j]))
+    order = [j for j in order if len(matches[j])]
+    if len(order) < config.min_entries:
+        return None
+    anchor = order[0]
+    T_anchor_from_world = invert_rigid(np.asarray(T_world_from_refs[anchor], dtype=np.float64))
+    keypoints = np.asarray(keypoints_px, dtype=np.float64)
+    pixels, points, owners, seen = [], [], [], set()
+    for j in order:
+        pairs = np.asarray(matches[j]).reshape(-1, 2)
+        fresh = np.array([int(q) not in seen for q in pairs[:, 0]], dtype=bool)
+        pairs = pairs[fresh]
+        if not len(pairs):
+            continue
+        seen.update(int(q) for q in pairs[:, 0])
+        T = T_anchor_from_world @ np.asarray(T_world_from_refs[j], dtype=np.float64)
+        p_ref = np.asarray(points_refs[j], dtype=np.float64)[pairs[:, 1]]
+        points.append(p_ref @ T[:3, :3].T + T[:3, 3])
+        pixels.append(keypoints[pairs[:, 0]])
+        owners.append(np.full(len(pairs), j))
+    pooled = dataclasses.replace(pnp, iterations=max(pnp.iterations, config.iterations))
+    rel = estimate_relative_pose(
+        np.concatenate(pixels), np.concatenate(points), intrinsics, pooled, rng
+    )
+    if not rel.accepted:
+        return None
+    owner_of_inlier = np.concatenate(owners)[rel.inlier_mask]
+    kept, counts = np.unique(owner_of_inlier, return_counts=True)
+    members = tuple(
+        int(j) for j, n in zip(kept, counts, strict=True) if n >= config.min_inliers_per_entry
+    )
+    if len(members) < config.min_entries:
+        return None
+    T_world_from_cam = (
+        np.asarray(T_world_from_refs[anchor], dtype=np.float64) @ rel.T_ref_from_query
+    )
+    return JointPose(
+        T_world_from_cam=T_world_from_cam,
+        members=members,
+        n_correspondences=int(sum(len(p) for p in pixels)),
+        n_inliers=rel.n_inliers,
+        reprojection_error_px=rel.reprojection_error_px,
     )

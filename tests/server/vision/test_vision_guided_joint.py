@@ -19,11 +19,14 @@ from monoloc.server.localize import PnpStrategy, ReferenceEntry, pose_hypotheses
 from monoloc.server.vision.joint import (
     EntryInliers,
     JointConfig,
+    PooledConfig,
     consistent_group,
     estimate_joint_pose,
+    estimate_pooled_pose,
 )
 from monoloc.server.vision.pnp import (
     PnpConfig,
+    estimate_relative_pose,
     estimate_relative_pose_guided,
 )
 
@@ -334,3 +337,64 @@ def test_count_inliers_agrees_with_the_inlier_errors():
         expected.append(int(inliers.sum()))
     assert counts.tolist() == expected
     assert expected[0] > 0.6 * len(points) and min(expected) < expected[0]
+
+
+def _sparse(scene, per_entry):
+    """The scene with each entry cut to its first ``per_entry`` correspondences (a night
+    frame: every entry under PnpConfig.min_inliers, the place seen by all of them)."""
+    T_world_from_query, refs, matches, keypoints = scene
+    return T_world_from_query, refs, [m[:per_entry] for m in matches], keypoints
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_frame_whose_entries_are_each_too_sparse_gets_one_pooled_pose(seed):
+    T_world_from_query, refs, matches, keypoints = _sparse(
+        _scene(seed, n_refs=5, outlier_fraction=0.3), per_entry=12
+    )
+    assert all(len(m) < PnpConfig().min_inliers for m in matches)
+    without, rejected = _solve(refs, matches, keypoints, PnpStrategy(pooled=None))
+    assert without == [] and len(rejected) == len(refs)
+    hypotheses, _ = _solve(refs, matches, keypoints, PnpStrategy())
+    assert [h.method for h in hypotheses] == ["pooled"]
+    (pooled,) = hypotheses
+    assert not pooled.joint and len(pooled.entry_ids) >= 2
+    assert pooled.n_inliers >= PnpConfig().min_inliers
+    position_m, angle_deg = _pose_error(pooled.T_world_from_cam, T_world_from_query)
+    assert position_m < 0.15 and angle_deg < 0.5
+
+
+def test_pooled_pnp_runs_only_for_a_frame_without_any_other_hypothesis():
+    T_world_from_query, refs, matches, keypoints = _scene(2, n_refs=5, outlier_fraction=0.3)
+    hypotheses, _ = _solve(refs, matches, keypoints, PnpStrategy())
+    assert hypotheses and all(h.method != "pooled" for h in hypotheses)
+
+
+def test_a_pose_one_entry_explains_alone_is_not_a_pooled_pose():
+    """One entry's correct matches plus other entries whose matches are all wrong: RANSAC
+    finds the pose, but with every inlier from one entry it is that entry's pose to give,
+    not evidence pooled from several."""
+    T_world_from_query, refs, matches, keypoints = _scene(3, n_refs=3, outlier_fraction=0.0)
+    rng = np.random.default_rng(0)
+    noise = [keypoints[m[:, 0]] for m in matches[1:]]
+    scrambled = np.concatenate(
+        [keypoints[matches[0][:, 0]]]
+        + [
+            np.stack(
+                [rng.uniform(0, CAM.width_px, len(n)), rng.uniform(0, CAM.height_px, len(n))], 1
+            )
+            for n in noise
+        ]
+    )
+    bounds = np.cumsum([0] + [len(m) for m in matches])
+    pairs = [
+        np.stack([np.arange(bounds[j], bounds[j + 1]), m[:, 1]], 1) for j, m in enumerate(matches)
+    ]
+    args = ([r.T_world_from_cam for r in refs], [r.points_cam for r in refs], pairs, CAM)
+    own = estimate_relative_pose(
+        scrambled[pairs[0][:, 0]], refs[0].points_cam, CAM, PnpConfig(), np.random.default_rng(1)
+    )
+    assert own.accepted  # the pose is there to find, from entry 0 alone
+    pose = estimate_pooled_pose(
+        scrambled, *args, PnpConfig(), np.random.default_rng(1), PooledConfig()
+    )
+    assert pose is None
