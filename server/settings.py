@@ -203,6 +203,13 @@ class Settings(BaseSettings):
         description="How often a replica polls the maps' versions to apply the change log "
         "(PostgreSQL's NOTIFY wakes it at once).",
     )
+    key_cache_s: float = Field(
+        default=2.0,
+        ge=0,
+        description="How long a replica trusts an API key it has verified before asking the "
+        "database again (a key revoked through another replica is refused at the latest this "
+        "long after; the revoking replica refuses it at once). 0: every request asks.",
+    )
     min_version_wait_ms: int = Field(
         default=1000,
         ge=0,

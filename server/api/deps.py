@@ -29,6 +29,7 @@ from starlette.requests import HTTPConnection
 
 from monoloc.server.api.admission import Admission
 from monoloc.server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
+from monoloc.server.api.key_cache import KeyCache
 from monoloc.server.api.metrics import Metrics
 from monoloc.server.jobs.runner import JobRunner
 from monoloc.server.runtime import MapRegistry
@@ -52,6 +53,7 @@ class AppState:
     metrics: Metrics
     seeds: np.random.SeedSequence
     admission: Admission
+    keys: KeyCache = field(default_factory=lambda: KeyCache(0.0))
     ready: bool = False
     _seed_lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -126,10 +128,13 @@ def authenticate(state: AppState, presented: str | None, scope: str) -> ApiKeyRe
         raise UnauthorizedError(
             "missing API key: send it in the X-API-Key header (or Authorization: Bearer)"
         )
-    with session_scope(state.sessions) as session:
-        record = verify_api_key(session, presented)
+    record = state.keys.get(presented)
     if record is None:
-        raise UnauthorizedError("unknown or revoked API key")
+        with session_scope(state.sessions) as session:
+            record = verify_api_key(session, presented)
+        if record is None:
+            raise UnauthorizedError("unknown or revoked API key")
+        state.keys.put(presented, record)
     if not record.has_scope(scope):
         raise ForbiddenError(
             f"this API key ({record.prefix}..., scopes {sorted(record.scopes)}) lacks the "

@@ -6,7 +6,7 @@ from __future__ import annotations
 from fastapi import APIRouter, status
 
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
-from monoloc.server.api.deps import AdminKey, ReadKey, SessionDep
+from monoloc.server.api.deps import AdminKey, ReadKey, SessionDep, StateDep
 from monoloc.server.api.guard import GuardedRoute
 from monoloc.server.api.params import KeyId
 from monoloc.server.api.schemas_admin import KeyCreate, KeyCreated, KeyList, KeyPublic
@@ -49,8 +49,11 @@ def list_keys(session: SessionDep, _key: AdminKey, include_revoked: bool = True)
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Revoke an API key",
 )
-def revoke_key(key_id: KeyId, session: SessionDep, _key: AdminKey) -> KeyPublic:
-    """Takes effect on the next request (idempotent)."""
+def revoke_key(key_id: KeyId, session: SessionDep, state: StateDep, _key: AdminKey) -> KeyPublic:
+    """Takes effect on this replica's next request, on other replicas within
+    `MONOLOC_KEY_CACHE_S` (2 s by default: how long a replica trusts a key it has
+    verified) (idempotent)."""
     record = keys_repo.revoke_api_key(session, key_id)
     session.commit()
+    state.keys.forget(key_id)
     return KeyPublic.model_validate(record)

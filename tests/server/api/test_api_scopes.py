@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 
 import pytest
-from api_helpers import ADMIN_KEY, TestClient, make_settings, open_client
+from api_helpers import ADMIN_KEY, TestClient, create_keys, make_settings, open_client
 from fastapi.routing import APIRoute, APIWebSocketRoute
 from starlette.testclient import WebSocketDenialResponse
 
@@ -161,3 +161,61 @@ def test_every_key_reads_the_maps_and_its_own_record(fresh):
     assert client.post("/v1/maps/1/runs", headers=keys.header("localize")).status_code == 403
     answer = client.post("/v1/maps/1/localize", headers=keys.header("write"))
     assert answer.status_code == 403
+
+
+def test_a_replica_asks_the_database_about_a_key_once_per_key_cache_time(tmp_path):
+    """A vehicle's frames do not each cost a database query for its key; a key revoked
+    by another process (another replica, `monoloc keys revoke`) is refused once this
+    replica's memory of it expires, and one revoked through this replica at once."""
+    import time
+
+    from sqlalchemy import event
+
+    from monoloc.server.storage.db import session_scope
+    from monoloc.server.storage.keys import revoke_api_key
+
+    with open_client(make_settings(tmp_path / "d", key_cache_s=1.0)) as client:
+        keys = create_keys(client)
+        state = client.app.state.monoloc
+        key_queries = []
+
+        def count(conn, cursor, statement, *args):
+            if "FROM api_keys" in statement:
+                key_queries.append(statement)
+
+        event.listen(state.engine, "before_cursor_execute", count)
+        for _ in range(5):
+            assert client.get("/v1/maps", headers=keys.header("localize")).status_code == 200
+        assert len(key_queries) == 1
+        listed = client.get("/v1/keys", headers=keys.header("admin")).json()["items"]
+        (car,) = [k for k in listed if k["name"] == "localize"]
+        (team,) = [k for k in listed if k["name"] == "write"]
+        with session_scope(state.sessions) as session:  # another process revokes it
+            revoke_api_key(session, car["id"])
+        deadline = time.monotonic() + 5.0
+        while client.get("/v1/maps", headers=keys.header("localize")).status_code == 200:
+            assert time.monotonic() < deadline, "a key revoked elsewhere was never refused"
+            time.sleep(0.1)
+        assert client.get("/v1/maps", headers=keys.header("write")).status_code == 200
+        assert (
+            client.delete(f"/v1/keys/{team['id']}", headers=keys.header("admin")).status_code == 200
+        )
+        assert client.get("/v1/maps", headers=keys.header("write")).status_code == 401
+
+
+def test_the_key_cache_can_be_turned_off(tmp_path):
+    from sqlalchemy import event
+
+    with open_client(make_settings(tmp_path / "d", key_cache_s=0)) as client:
+        keys = create_keys(client)
+        key_queries = []
+        event.listen(
+            client.app.state.monoloc.engine,
+            "before_cursor_execute",
+            lambda conn, cursor, statement, *a: (
+                key_queries.append(statement) if "FROM api_keys" in statement else None
+            ),
+        )
+        for _ in range(3):
+            assert client.get("/v1/maps", headers=keys.header("localize")).status_code == 200
+        assert len(key_queries) == 3
