@@ -26,7 +26,10 @@ unexplained entries wait until every entry has been tried, so a confirmation fro
 them spares the others' RANSAC. Every per-entry hypothesis comes from that entry's own
 correspondences. Then a joint
 hypothesis (``vision.joint``): the union of the consistent entries' inliers in the world
-frame, refined together; it is appended to the hypotheses, marked ``joint``.
+frame, refined together; it is appended to the hypotheses, marked ``joint``. A frame
+none of whose entries gave a pose gets one RANSAC over all its entries' matches
+together (``vision.joint.estimate_pooled_pose``, method ``pooled``; night frames, whose
+entries each keep too few matches).
 """
 
 from __future__ import annotations
