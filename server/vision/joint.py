@@ -149,15 +149,22 @@ class PooledConfig:
     each keep at least ``min_inliers_per_entry`` of the pose's inliers (a pose that one
     entry's matches explain alone is that entry's to give); iterations: the RANSAC budget
     on the pooled matches (their inlier ratio is lower than one right entry's, since the
-    wrong entries' matches are pooled too)."""
+    wrong entries' matches are pooled too); neighbour_radius_m: only entries within this
+    (planar) distance of the entry with the most matches are pooled: entries that see one
+    place are neighbours, and a frame whose retrieved entries are scattered over the map
+    (a night frame against a day map) then does not pay a long RANSAC on matches that
+    cannot agree (about 20 ms a frame at 1000 iterations)."""
 
     min_entries: int = 2
     min_inliers_per_entry: int = 4
     iterations: int = 1000
+    neighbour_radius_m: float = 25.0
 
     def __post_init__(self) -> None:
         if self.min_entries < 2 or self.min_inliers_per_entry < 1 or self.iterations < 1:
             raise InvalidInputError(f"invalid PooledConfig {self}")
+        if not self.neighbour_radius_m > 0:
+            raise InvalidInputError(f"PooledConfig.neighbour_radius_m must be > 0: {self}")
 
 
 def estimate_pooled_pose(
@@ -177,16 +184,26 @@ def estimate_pooled_pose(
     keypoints_px (N, 2): the query's keypoints; per entry j: T_world_from_refs[j] (4, 4),
     points_refs[j] (M_j, 3) its 3D points in its camera frame, matches[j] (K_j, 2) (query
     keypoint, entry point) index pairs. The points are expressed in the frame of the entry
-    with the most matches (the anchor: PnP's rotation check is relative to it); a query
+    with the most matches (the anchor: PnP's rotation check is relative to it), the entries
+    farther than ``config.neighbour_radius_m`` from it left out; a query
     keypoint matched in several entries keeps its match in the entry with more matches.
     ``members`` indexes the entries keeping inliers. None when RANSAC finds no pose with
     ``pnp.min_inliers`` inliers, or fewer than ``config.min_entries`` entries keep
     ``config.min_inliers_per_entry`` of them."""
     order = sorted(range(len(matches)), key=lambda j: -len(matches[j]))
     order = [j for j in order if len(matches[j])]
-    if len(order) < config.min_entries:
+    if not order:
         return None
     anchor = order[0]
+    centre = np.asarray(T_world_from_refs[anchor], dtype=np.float64)[:2, 3]
+    order = [
+        j
+        for j in order
+        if np.hypot(*(np.asarray(T_world_from_refs[j], dtype=np.float64)[:2, 3] - centre))
+        <= config.neighbour_radius_m
+    ]
+    if len(order) < config.min_entries:
+        return None
     T_anchor_from_world = invert_rigid(np.asarray(T_world_from_refs[anchor], dtype=np.float64))
     keypoints = np.asarray(keypoints_px, dtype=np.float64)
     pixels, points, owners, seen = [], [], [], set()

@@ -398,3 +398,39 @@ def test_a_pose_one_entry_explains_alone_is_not_a_pooled_pose():
         scrambled, *args, PnpConfig(), np.random.default_rng(1), PooledConfig()
     )
     assert pose is None
+
+
+def test_only_the_neighbours_of_the_entry_with_most_matches_are_pooled():
+    """Entries that see one place are neighbours: an entry 100 m from the one with the
+    most matches is left out of the pooled set (its matches, right or wrong, are not
+    pooled), unless the radius reaches it."""
+    T_world_from_query, refs, matches, keypoints = _sparse(
+        _scene(11, n_refs=3, outlier_fraction=0.0), per_entry=12
+    )
+    # ties keep the scene's order: entry 0 is the anchor (12 matches each)
+    far = np.array(T_world_from_query, dtype=np.float64)
+    far[:3, 3] -= 100.0 * far[:3, 2]  # 100 m behind the query, looking the same way
+    rng = np.random.default_rng(5)
+    points_world, pixels = _street(rng, T_world_from_query, n=12)
+    T_far_from_world = invert_rigid(far)
+    points_far = points_world @ T_far_from_world[:3, :3].T + T_far_from_world[:3, 3]
+    offset = len(keypoints)
+    keypoints = np.concatenate([keypoints, pixels]).astype(np.float32)
+    refs = [*refs, ReferenceEntry(len(refs), far, np.zeros((12, 32)), points_far)]
+    matches = [*matches, np.stack([np.arange(offset, offset + 12), np.arange(12)], 1)]
+    args = ([r.T_world_from_cam for r in refs], [r.points_cam for r in refs], matches, CAM)
+    near = estimate_pooled_pose(
+        keypoints, *args, PnpConfig(), np.random.default_rng(1), PooledConfig()
+    )
+    wide = estimate_pooled_pose(
+        keypoints,
+        *args,
+        PnpConfig(),
+        np.random.default_rng(1),
+        PooledConfig(neighbour_radius_m=500.0),
+    )
+    assert near is not None and wide is not None
+    assert len(refs) - 1 not in near.members and len(refs) - 1 in wide.members
+    for pose in (near, wide):
+        position_m, angle_deg = _pose_error(pose.T_world_from_cam, T_world_from_query)
+        assert position_m < 0.15 and angle_deg < 0.5
