@@ -76,13 +76,17 @@ def keys_list(data_dir: DataDirOption = None) -> None:
 
 @keys_app.command("revoke")
 def keys_revoke(key_id: int, data_dir: DataDirOption = None) -> None:
-    """Revoke a key by id (see `monoloc keys list`)."""
+    """Revoke a key by id (see `monoloc keys list`). Running servers refuse it within
+    MONOLOC_KEY_CACHE_S (2 s by default)."""
     from monoloc.server.storage.db import session_scope
     from monoloc.server.storage.keys import revoke_api_key
 
     with session_scope(_sessions(data_dir)) as session:
         record = revoke_api_key(session, key_id)
-    typer.echo(f"revoked key {record.id} '{record.name}' ({record.prefix}...)")
+    typer.echo(
+        f"revoked key {record.id} '{record.name}' ({record.prefix}...); running servers "
+        "refuse it within MONOLOC_KEY_CACHE_S (2 s by default)"
+    )
 
 
 class HttpProtocol(enum.StrEnum):

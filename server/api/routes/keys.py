@@ -50,9 +50,9 @@ def list_keys(session: SessionDep, _key: AdminKey, include_revoked: bool = True)
     summary="Revoke an API key",
 )
 def revoke_key(key_id: KeyId, session: SessionDep, state: StateDep, _key: AdminKey) -> KeyPublic:
-    """Takes effect on this replica's next request, on other replicas within
-    `MONOLOC_KEY_CACHE_S` (2 s by default: how long a replica trusts a key it has
-    verified) (idempotent)."""
+    """Takes effect at once on this replica and within `MONOLOC_KEY_CACHE_S` (2 s by
+    default: how long a replica trusts a key it has verified) on the others. Revoking a
+    revoked key changes nothing."""
     record = keys_repo.revoke_api_key(session, key_id)
     session.commit()
     state.keys.forget(key_id)
