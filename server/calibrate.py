@@ -398,8 +398,8 @@ def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabu
         "joint_gated_outliers": samples.n_joint_gated,
         "gated_outliers": samples.n_gated,
         "pnp": "guided" if config.strategy.guided else "independent RANSAC per entry",
-        "quality_model": "ML: N(mu1, s Sigma1), log s = beta . [log(n_inliers / n_ref), "
-        "log(reprojection_error / error_ref), joint]",
+        "quality_model": "ML: (1 - eps) N(mu1, s Sigma1) + eps N(mu1, kappa^2 s Sigma1), "
+        "log s = beta . [log(n_inliers / n_ref), log(reprojection_error / error_ref), joint]",
         "k": config.k,
         "map_every": config.map_every,
         "gate_position_m": config.gate_position_m,

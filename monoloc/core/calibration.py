@@ -95,6 +95,7 @@ def fit_quality_model(
     error_ref_px: float = 1.0,
     iterations: int = 100,
     tolerance: float = 1e-9,
+    heavy_tail: bool = True,
 ) -> QualityModel:
     """Maximum-likelihood fit of the quality-aware model (monoloc.core.measurement) to
     pose errors e_i (N, 3) = truth - hypothesis with their quality features (N,) each.
@@ -106,6 +107,13 @@ def fit_quality_model(
     Sigma1), a convex function, by damped Newton steps. A feature that never varies
     (e.g. no joint sample) keeps a zero slope. Sigma1 gets the same diagonal floor as
     the paper's fit.
+
+    With ``heavy_tail`` the model's tail (``QualityModel.tail_weight`` / ``tail_scale``)
+    is fitted too, by EM started from the Gaussian fit: the E step gives each sample's
+    probability r_i of the tail; the M step is the same coordinate ascent with each
+    sample's Mahalanobis distance weighted by (1 - r_i) + r_i / tail_scale^2, then
+    tail_scale^2 = sum r_i m_i / s_i / (3 sum r_i) and tail_weight = mean r_i. The tail is
+    kept only if it improves the likelihood.
     """
     e = np.asarray(pose_error_samples, dtype=np.float64)
     x = quality_features(n_inliers, reprojection_error_px, joint, n_ref, error_ref_px)
@@ -133,7 +141,72 @@ def fit_quality_model(
         if previous - nll < tolerance * max(1.0, abs(nll)):
             break
         previous = nll
-    return QualityModel(mu1=mu1, Sigma1=Sigma1, beta=beta, n_ref=n_ref, error_ref_px=error_ref_px)
+    gaussian = QualityModel(
+        mu1=mu1, Sigma1=Sigma1, beta=beta, n_ref=n_ref, error_ref_px=error_ref_px
+    )
+    if not heavy_tail:
+        return gaussian
+    tailed = _fit_tail(e, x, free, gaussian, floor, iterations, tolerance)
+    return tailed if _mixture_nll(e, x, tailed) < _mixture_nll(e, x, gaussian) else gaussian
+
+
+def _fit_tail(
+    e: np.ndarray,
+    x: np.ndarray,
+    free: np.ndarray,
+    start: QualityModel,
+    floor: np.ndarray,
+    iterations: int,
+    tolerance: float,
+) -> QualityModel:
+    """EM for the heavy-tailed quality model (see :func:`fit_quality_model`), from the
+    Gaussian fit with its covariance split into a core a quarter as wide and a tail."""
+    mu1, beta = start.mu1, start.beta
+    Sigma1 = start.Sigma1 / 4.0
+    weight, k2 = 0.1, 16.0
+    previous = np.inf
+    for _ in range(iterations * 5):
+        centred = e - mu1
+        scaled = np.einsum("ij,ij->i", centred @ np.linalg.inv(Sigma1), centred) * np.exp(
+            -(x @ beta)
+        )
+        # E step: probability that each sample came from the tail
+        log_core = np.log1p(-weight) - 0.5 * scaled
+        log_tail = np.log(weight) - 1.5 * np.log(k2) - 0.5 * scaled / k2
+        r = 1.0 / (1.0 + np.exp(np.clip(log_core - log_tail, -700.0, 700.0)))
+        a = (1.0 - r) + r / k2
+        # M step
+        w = a * np.exp(-(x @ beta))
+        mu1 = (w[:, None] * e).sum(axis=0) / w.sum()
+        centred = e - mu1
+        Sigma1 = (w[:, None, None] * centred[:, :, None] * centred[:, None, :]).mean(axis=0)
+        Sigma1 = 0.5 * (Sigma1 + Sigma1.T) + floor
+        maha = np.einsum("ij,ij->i", centred @ np.linalg.inv(Sigma1), centred)
+        beta = _fit_log_scale(x[:, free], maha * a, beta[free], free)
+        scaled = maha * np.exp(-(x @ beta))
+        k2 = max(float((r * scaled).sum() / max(3.0 * r.sum(), 1e-12)), 1.0 + 1e-6)
+        weight = float(np.clip(r.mean(), 1e-6, 0.5))
+        model = QualityModel(
+            mu1=mu1,
+            Sigma1=Sigma1,
+            beta=beta,
+            n_ref=start.n_ref,
+            error_ref_px=start.error_ref_px,
+            tail_weight=weight,
+            tail_scale=float(np.sqrt(k2)),
+        )
+        nll = _mixture_nll(e, x, model)
+        if previous - nll < tolerance * max(1.0, abs(nll)):
+            break
+        previous = nll
+    return model
+
+
+def _mixture_nll(e: np.ndarray, x: np.ndarray, model: QualityModel) -> float:
+    """Negative log-likelihood of the samples under the (possibly tailed) model."""
+    centred = e - model.mu1
+    maha = np.einsum("ij,ij->i", centred @ np.linalg.inv(model.Sigma1), centred)
+    return float(-model.component_log_density(maha, x @ model.beta).sum())
 
 
 def _fit_log_scale(

@@ -140,6 +140,13 @@ class QualityModel:
     mu1 (3,), Sigma1 (3, 3): bias and covariance (m, m, rad) of a per-entry hypothesis
     with ``n_ref`` inliers at ``error_ref_px`` mean reprojection error. beta (3,): slopes
     for log(n_inliers / n_ref), log(error / error_ref_px) and the joint flag.
+
+    Heavy tail: with ``tail_weight`` eps > 0 the error is the scale mixture
+    (1 - eps) N(mu1, s_i Sigma1) + eps N(mu1, tail_scale^2 s_i Sigma1). PnP errors are far
+    from Gaussian (kurtosis 20-30 even after the quality scaling, on the sim's training
+    runs): one Gaussian fitted to them is wide where most hypotheses are precise and
+    narrow where the rare bad one lands, which then pulls the particles hard. 0 (a model
+    stored before the tail existed) is the single Gaussian.
     """
 
     mu1: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -150,11 +157,15 @@ class QualityModel:
     n_ref: float = 100.0
     error_ref_px: float = 1.0
     log_scale_bounds: tuple[float, float] = (-6.0, 6.0)
+    tail_weight: float = 0.0
+    tail_scale: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mu1", np.asarray(self.mu1, dtype=np.float64).reshape(3))
         object.__setattr__(self, "beta", np.asarray(self.beta, dtype=np.float64).reshape(3))
         object.__setattr__(self, "Sigma1", _as_cov(self.Sigma1, 3, "quality Sigma1"))
+        object.__setattr__(self, "tail_weight", float(self.tail_weight))
+        object.__setattr__(self, "tail_scale", float(self.tail_scale))
         lo, hi = (float(b) for b in self.log_scale_bounds)
         if not (
             np.all(np.isfinite(self.mu1))
@@ -162,6 +173,8 @@ class QualityModel:
             and self.n_ref > 0
             and self.error_ref_px > 0
             and lo < hi
+            and 0.0 <= self.tail_weight < 1.0
+            and 1.0 <= self.tail_scale < 1e3
         ):
             raise InvalidInputError(f"invalid quality model {self}")
         object.__setattr__(self, "log_scale_bounds", (lo, hi))
@@ -188,7 +201,27 @@ class QualityModel:
             "n_ref": self.n_ref,
             "error_ref_px": self.error_ref_px,
             "log_scale_bounds": list(self.log_scale_bounds),
+            "tail_weight": self.tail_weight,
+            "tail_scale": self.tail_scale,
         }
+
+    def spread(self) -> float:
+        """Variance of the error over that of its core, (1 - eps) + eps tail_scale^2: the
+        mixture's covariance is spread() s_i Sigma1."""
+        return (1.0 - self.tail_weight) + self.tail_weight * self.tail_scale**2
+
+    def component_log_density(self, maha: np.ndarray, log_scale: np.ndarray) -> np.ndarray:
+        """log of the pose-error density for Mahalanobis distances ``maha`` (..., H) under
+        Sigma1 (unscaled) and log scales (H,): the core Gaussian, or the core and the tail
+        mixed."""
+        norm = self._log_norm - 1.5 * log_scale
+        scaled = maha * np.exp(-log_scale)
+        core = norm - 0.5 * scaled
+        if self.tail_weight <= 0.0:
+            return core
+        k2 = self.tail_scale**2
+        tail = (norm - 1.5 * math.log(k2)) - 0.5 * scaled / k2
+        return np.logaddexp(core + math.log1p(-self.tail_weight), tail + math.log(self.tail_weight))
 
     @classmethod
     def from_dict(cls, data: dict) -> QualityModel:
@@ -200,6 +233,8 @@ class QualityModel:
             n_ref=float(data.get("n_ref", defaults.n_ref)),
             error_ref_px=float(data.get("error_ref_px", defaults.error_ref_px)),
             log_scale_bounds=tuple(data.get("log_scale_bounds", defaults.log_scale_bounds)),
+            tail_weight=float(data.get("tail_weight", 0.0)),
+            tail_scale=float(data.get("tail_scale", 1.0)),
         )
 
 
@@ -346,8 +381,11 @@ def log_likelihood_and_distance(
         terms = model._log_norm1 - 0.5 * maha1
     else:
         log_scale = quality.log_scale(hypotheses)  # (H,)
-        maha1 = _mahalanobis(r1, quality._whiten) * np.exp(-log_scale)
-        terms = (quality._log_norm - 1.5 * log_scale) - 0.5 * maha1
+        maha_unscaled = _mahalanobis(r1, quality._whiten)
+        terms = quality.component_log_density(maha_unscaled, log_scale)
+        # distance under the mixture's covariance (its second moment), so the "lost"
+        # threshold means the same with or without the tail
+        maha1 = maha_unscaled * np.exp(-log_scale) / quality.spread()
     closest = float(maha1.min())
     # Weight: N(e_i(x); mu2, Sigma2), e_i(x) = [e_vlad, X_i - X, Y_i - Y, psi_i - psi].
     entries = hypotheses.entry_pose_world - model.mu2[1:]  # (H, 3)

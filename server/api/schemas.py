@@ -441,7 +441,8 @@ class CalibrationUpdate(BaseModel):
     quality: dict[str, Any] | None = Field(
         default=None,
         description="Quality-aware pose-error model (mu1, Sigma1, beta, n_ref, error_ref_px, "
-        "log_scale_bounds; monoloc.core.measurement.QualityModel); null: none.",
+        "log_scale_bounds, tail_weight, tail_scale: a share tail_weight of hypotheses has "
+        "tail_scale times the spread; monoloc.core.measurement.QualityModel); null: none.",
     )
     covariance: Literal["paper", "quality"] = Field(
         default="paper",

@@ -141,6 +141,16 @@ def _describe_quality(calibration: dict[str, Any]) -> list[str]:
         f"psi {math.degrees(std[2]):.2f} deg",
         f"  log-variance slopes: log inliers {beta[0]:+.2f}, log reprojection error "
         f"{beta[1]:+.2f}, joint {beta[2]:+.2f}",
+    ] + _describe_tail(quality)
+
+
+def _describe_tail(quality: dict[str, Any]) -> list[str]:
+    weight = float(quality.get("tail_weight") or 0.0)
+    if weight <= 0.0:
+        return ["  tail   none (one Gaussian)"]
+    return [
+        f"  tail   {100 * weight:.0f} % of hypotheses, {float(quality['tail_scale']):.1f}x "
+        "the spread"
     ]
 
 

@@ -130,3 +130,86 @@ def test_hypotheses_check_the_quality_features_shape():
     with pytest.raises(InvalidInputError):
         Hypotheses(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros(2), n_inliers=np.ones(3))
     assert not Hypotheses(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros(2)).has_quality
+
+
+def _tailed_samples(rng, n, Sigma, beta, weight, scale):
+    errors, n_inliers, error_px, joint = _samples(rng, n, np.zeros(3), Sigma, beta)
+    in_tail = rng.random(n) < weight
+    errors[in_tail] *= scale
+    return errors, n_inliers, error_px, joint
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_heavy_tail_fit_recovers_the_tail_and_the_core(seed):
+    rng = np.random.default_rng(10 + seed)
+    # (a core well above the fit's 1 cm / 1 mrad floor, which would bias the slopes)
+    Sigma = np.diag([0.06**2, 0.05**2, 0.004**2])
+    beta = np.array([-0.8, 1.0, -1.0])
+    samples = _tailed_samples(rng, 8000, Sigma, beta, weight=0.15, scale=5.0)
+    q = fit_quality_model(*samples)
+    assert q.tail_weight == pytest.approx(0.15, abs=0.03)
+    assert q.tail_scale == pytest.approx(5.0, rel=0.1)
+    assert np.allclose(q.beta, beta, atol=0.1)
+    floor = np.diag([0.01**2, 0.01**2, 1e-3**2])
+    assert np.allclose(np.sqrt(np.diag(q.Sigma1 - floor)), np.sqrt(np.diag(Sigma)), rtol=0.1)
+    # One Gaussian fitted to the same samples is several times wider than the core.
+    gauss = fit_quality_model(*samples, heavy_tail=False)
+    assert gauss.tail_weight == 0.0
+    assert np.sqrt(gauss.Sigma1[0, 0]) > 1.5 * np.sqrt(q.Sigma1[0, 0])
+
+
+def test_tailed_density_is_the_two_gaussian_mixture():
+    q = QualityModel(Sigma1=np.diag([0.03**2, 0.02**2, 0.001**2]), tail_weight=0.2, tail_scale=4.0)
+    rng = np.random.default_rng(3)
+    residuals = rng.normal(size=(5, 3)) * [0.1, 0.1, 0.003]
+    log_scale = np.array([0.5])
+    maha = np.einsum("ij,jk,ik->i", residuals, np.linalg.inv(q.Sigma1), residuals)[:, None]
+
+    def gauss(cov, r):
+        return np.exp(-0.5 * r @ np.linalg.inv(cov) @ r) / np.sqrt(np.linalg.det(2 * np.pi * cov))
+
+    cov = math.exp(0.5) * q.Sigma1
+    expected = [np.log(0.8 * gauss(cov, r) + 0.2 * gauss(16.0 * cov, r)) for r in residuals]
+    assert np.allclose(q.component_log_density(maha, log_scale)[:, 0], expected)
+    assert q.spread() == pytest.approx(0.8 + 0.2 * 16.0)
+
+
+def test_a_lone_far_hypothesis_pulls_the_particles_less_with_the_tail():
+    rng = np.random.default_rng(5)
+    particles = rng.normal(size=(4000, 3)) * [0.05, 0.05, 0.001]
+    core = np.diag([0.03**2, 0.03**2, 0.001**2])
+    tailed = QualityModel(Sigma1=core, beta=[0.0, 0.0, 0.0], tail_weight=0.15, tail_scale=5.0)
+    # the single Gaussian with the same covariance as the tailed mixture
+    gauss = QualityModel(Sigma1=tailed.spread() * core, beta=[0.0, 0.0, 0.0])
+    lone = Hypotheses(
+        np.array([[0.4, 0.0, 0.0]]),
+        np.array([[0.4, 0.0, 0.0]]),
+        np.array([0.9]),
+        n_inliers=np.array([100.0]),
+        reprojection_error_px=np.array([1.0]),
+        joint=np.array([False]),
+    )
+    shifts = []
+    for quality in (gauss, tailed):
+        model = MeasurementModel(quality=quality, covariance="quality", outlier_log_density=None)
+        ll = log_likelihood(particles, lone, model)
+        w = np.exp(ll - ll.max())
+        shifts.append(float(w @ particles[:, 0] / w.sum()))
+    # 0.4 m is 2.7 sigma of the Gaussian but 13 sigma of the core: the tailed model
+    # treats it as a likely outlier and moves the cloud much less
+    assert shifts[1] < 0.6 * shifts[0]
+    assert shifts[0] > 0.05
+
+
+def test_the_tail_round_trips_and_an_untailed_quality_model_still_loads():
+    quality = QualityModel(beta=[-0.9, 1.1, -0.5], tail_weight=0.12, tail_scale=4.5)
+    model = MeasurementModel(quality=quality, covariance="quality")
+    back = MeasurementModel.from_dict(json.loads(json.dumps(model.to_dict())))
+    assert back.quality.tail_weight == 0.12 and back.quality.tail_scale == 4.5
+    stored = quality.to_dict()
+    del stored["tail_weight"], stored["tail_scale"]
+    assert QualityModel.from_dict(stored).tail_weight == 0.0
+    with pytest.raises(InvalidInputError):
+        QualityModel(tail_weight=1.0)
+    with pytest.raises(InvalidInputError):
+        QualityModel(tail_weight=0.1, tail_scale=0.5)

@@ -121,6 +121,10 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     assert prov["joint_used"] == prov["joint_hypotheses"] - prov["joint_gated_outliers"] > 0
     assert model.quality.beta[0] < 0.0, model.quality.beta
     assert np.linalg.eigvalsh(model.quality.Sigma1).min() > 0.0
+    # PnP errors have a heavy tail: the fit keeps one (a share of the hypotheses several
+    # times as spread as the core) and the core is tighter than the paper's one Gaussian.
+    assert 0.0 < model.quality.tail_weight < 0.5 and model.quality.tail_scale > 1.5
+    assert np.trace(model.quality.Sigma1[:2, :2]) < np.trace(model.Sigma1[:2, :2])
     done = [d for d, _ in calls]
     assert done == sorted(done) and calls[-1][0] == calls[-1][1] == N_FRAMES + N_FRAMES // 2
 
@@ -224,6 +228,8 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     out = result.output
     assert "job 1 done: map 1 calibrated" in out
     assert "std1   X" in out and " cm" in out and " deg" in out
+    tail = calibration_tail_line(out)
+    assert tail.endswith("x the spread") and "% of hypotheses" in tail
     assert "used:" in out and "gated_outliers:" in out and "vocabulary_hash:" in out
 
     short = runner.invoke(cli.app, [*args, "--frames", "0:10"], env=env)
@@ -243,3 +249,10 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert jobs[1].kind == "calibrate" and jobs[1].state == "done"
     assert jobs[1].result["provenance"] == calibration["provenance"]
     assert jobs[2].state == "failed" and "too short" in jobs[2].error
+
+
+def calibration_tail_line(output: str) -> str:
+    """The quality model's tail line of ``monoloc map calibrate``'s output."""
+    lines = [line.strip() for line in output.splitlines() if line.strip().startswith("tail ")]
+    assert len(lines) == 1, output
+    return lines[0]
