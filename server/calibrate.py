@@ -40,7 +40,7 @@ from monoloc.core.calibration import (
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
-from monoloc.core.measurement import CovarianceModel, MeasurementModel
+from monoloc.core.measurement import CovarianceModel, MeasurementModel, RetrievalFrame
 from monoloc.server.entry_builder import (
     BuildConfig,
     Source3d,
@@ -79,6 +79,9 @@ class CalibrationConfig:
     pnp: PnpConfig = field(default_factory=PnpConfig)
     strategy: PnpStrategy = field(default_factory=lambda: PnpStrategy(guess_from_prior=False))
     covariance: CovarianceModel = "paper"
+    # the frame of the retrieval vector's offset: "vehicle" (monoloc) or "world" (the
+    # paper; monoloc.core.measurement explains why not)
+    retrieval_frame: RetrievalFrame = "vehicle"
 
     def __post_init__(self) -> None:
         if self.k < 1 or self.map_every < 2:
@@ -297,10 +300,14 @@ def calibrate_runs(
     paper = fit_measurement_model(
         errors[~joint],
         retrieval_vectors(
-            np.array(samples.e_vlad)[~joint], np.array(samples.entry_pose)[~joint], truth[~joint]
+            np.array(samples.e_vlad)[~joint],
+            np.array(samples.entry_pose)[~joint],
+            truth[~joint],
+            config.retrieval_frame,
         ),
         unbiased=config.unbiased,
         source="calibrated",
+        retrieval_frame=config.retrieval_frame,
     )
     quality = fit_quality_model(
         errors, np.array(samples.n_inliers), np.array(samples.error_px), joint

@@ -10,7 +10,12 @@ import numpy as np
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
-from monoloc.core.measurement import MeasurementModel, QualityModel, quality_features
+from monoloc.core.measurement import (
+    MeasurementModel,
+    QualityModel,
+    RetrievalFrame,
+    quality_features,
+)
 
 
 def pose_errors(truth_world: np.ndarray, hypotheses_world: np.ndarray) -> np.ndarray:
@@ -21,14 +26,31 @@ def pose_errors(truth_world: np.ndarray, hypotheses_world: np.ndarray) -> np.nda
 
 
 def retrieval_vectors(
-    e_vlad: np.ndarray, entry_pose_world: np.ndarray, truth_world: np.ndarray
+    e_vlad: np.ndarray,
+    entry_pose_world: np.ndarray,
+    truth_world: np.ndarray,
+    frame: RetrievalFrame = "world",
 ) -> np.ndarray:
-    """[e_vlad_i, X_i - X_q, Y_i - Y_q, wrap(psi_i - psi_q)] per sample: (N, 4)."""
+    """[e_vlad_i, X_i - X_q, Y_i - Y_q, wrap(psi_i - psi_q)] per sample: (N, 4); with
+    ``frame="vehicle"`` the offset is turned into the query's frame (along, across its
+    heading psi_q; see monoloc.core.measurement)."""
     entry = np.asarray(entry_pose_world, dtype=np.float64)
     truth = np.asarray(truth_world, dtype=np.float64)
     out = np.empty((len(entry), 4))
     out[:, 0] = e_vlad
-    out[:, 1:3] = entry[:, :2] - truth[:, :2]
+    offset = entry[:, :2] - truth[:, :2]
+    if frame == "vehicle":
+        cos_q, sin_q = np.cos(truth[:, 2]), np.sin(truth[:, 2])
+        offset = np.stack(
+            [
+                cos_q * offset[:, 0] + sin_q * offset[:, 1],
+                cos_q * offset[:, 1] - sin_q * offset[:, 0],
+            ],
+            axis=1,
+        )
+    elif frame != "world":
+        raise InvalidInputError(f"retrieval frame must be 'world' or 'vehicle', got {frame!r}")
+    out[:, 1:3] = offset
     out[:, 3] = wrap_angle(entry[:, 2] - truth[:, 2])
     return out
 
@@ -56,17 +78,30 @@ def fit_gaussian(
     return mean, cov
 
 
+# Floors (1 sigma, added in quadrature) of the retrieval vector's spread: e_vlad; the
+# entry's offset (m, each axis); its heading difference (rad). The training run is split
+# into its own map and queries, all from one drive: its queries are never a lane beside
+# the map or turned a few degrees against it, as a later drive is (the issue's query laps
+# drive with lateral offsets). Without the floors a training run along one straight
+# street gives a Sigma2 5 cm wide across the street and 0.06 deg in heading, and a query
+# a metre to the side has every hypothesis weigh less than the outlier floor.
+RETRIEVAL_FLOOR_STD = np.array([0.01, 1.0, 1.0, 0.05])
+
+
 def fit_measurement_model(
     pose_error_samples: np.ndarray,
     retrieval_samples: np.ndarray,
     unbiased: bool = True,
     outlier_log_density: float | None = -16.0,
     source: str = "calibrated",
+    retrieval_frame: RetrievalFrame = "world",
 ) -> MeasurementModel:
-    """mu1, Sigma1 from pose errors (N, 3); mu2, Sigma2 from retrieval vectors (M, 4).
+    """mu1, Sigma1 from pose errors (N, 3); mu2, Sigma2 from retrieval vectors (M, 4)
+    computed in ``retrieval_frame`` (:func:`retrieval_vectors`).
 
     monoloc's default is the unbiased covariance about the mean (``unbiased=True``);
-    ``unbiased=False`` reproduces the paper's formula mean(e e^T).
+    ``unbiased=False`` reproduces the paper's formula mean(e e^T). Sigma2 gets
+    ``RETRIEVAL_FLOOR_STD``.
     """
     if not np.all(np.isfinite(pose_error_samples)) or not np.all(np.isfinite(retrieval_samples)):
         raise InvalidInputError("calibration samples contain NaN or infinite values")
@@ -74,7 +109,7 @@ def fit_measurement_model(
         np.asarray(pose_error_samples, np.float64), unbiased, np.array([0.01, 0.01, 1e-3])
     )
     mu2, Sigma2 = fit_gaussian(
-        np.asarray(retrieval_samples, np.float64), unbiased, np.array([0.01, 0.05, 0.05, 1e-3])
+        np.asarray(retrieval_samples, np.float64), unbiased, RETRIEVAL_FLOOR_STD
     )
     return MeasurementModel(
         mu1=mu1,
@@ -83,6 +118,7 @@ def fit_measurement_model(
         Sigma2=Sigma2,
         outlier_log_density=outlier_log_density,
         source=source,
+        retrieval_frame=retrieval_frame,
     )
 
 

@@ -8,6 +8,15 @@ For a particle x = (X, Y, psi) and hypotheses i = 1..H from one frame::
 
 Everything is vectorised over particles and hypotheses (P x H). Pure numpy.
 
+The retrieval vector's offset (``MeasurementModel.retrieval_frame``): "world" is the
+paper's (X_i - X, Y_i - Y, in the world frame); "vehicle" (what monoloc's calibration
+fits) is the same offset turned into the particle's frame, (along, across) its heading.
+A world-frame Sigma2 remembers the compass direction of the training run's streets: a
+training run along one straight street gives a Sigma2 centimetres wide across it, and
+every hypothesis of a query on a street running the other way then weighs nothing
+against the outlier floor (the filter dead-reckons while its hypotheses are right). In
+the vehicle frame the spread is along and across the road wherever the road runs.
+
 Two covariance models (``MeasurementModel.covariance``):
 
 - ``"paper"``: one (mu1, Sigma1) for every hypothesis, as the paper has it; joint
@@ -239,6 +248,7 @@ class QualityModel:
 
 
 CovarianceModel = Literal["paper", "quality"]
+RetrievalFrame = Literal["world", "vehicle"]
 
 
 @dataclass(frozen=True)
@@ -252,7 +262,9 @@ class MeasurementModel:
     whose hypotheses are all wrong cannot annihilate every particle (None disables it).
     ``covariance`` selects the pose-error model: "paper" (mu1, Sigma1 for all, joint
     hypotheses left out) or "quality" (``quality``'s per-hypothesis covariance; needs
-    ``quality``). ``with_covariance`` switches between them.
+    ``quality``). ``with_covariance`` switches between them. ``retrieval_frame``: the
+    frame of the retrieval vector's offset, "world" (the paper's; calibrations stored
+    before the choice existed) or "vehicle" (along and across the particle's heading).
     """
 
     mu1: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -267,11 +279,16 @@ class MeasurementModel:
     source: str = "defaults"
     quality: QualityModel | None = None
     covariance: CovarianceModel = "paper"
+    retrieval_frame: RetrievalFrame = "world"
 
     def __post_init__(self) -> None:
         if self.covariance not in ("paper", "quality"):
             raise InvalidInputError(
                 f"covariance must be 'paper' or 'quality', got {self.covariance!r}"
+            )
+        if self.retrieval_frame not in ("world", "vehicle"):
+            raise InvalidInputError(
+                f"retrieval_frame must be 'world' or 'vehicle', got {self.retrieval_frame!r}"
             )
         if self.covariance == "quality" and self.quality is None:
             raise InvalidInputError("the quality covariance model needs quality parameters")
@@ -296,6 +313,7 @@ class MeasurementModel:
             "source": self.source,
             "quality": None if self.quality is None else self.quality.to_dict(),
             "covariance": self.covariance,
+            "retrieval_frame": self.retrieval_frame,
         }
 
     def with_covariance(self, covariance: CovarianceModel) -> MeasurementModel:
@@ -317,6 +335,7 @@ class MeasurementModel:
                 source=str(data.get("source", "calibrated")),
                 quality=None if quality is None else QualityModel.from_dict(quality),
                 covariance=data.get("covariance") or "paper",
+                retrieval_frame=data.get("retrieval_frame") or "world",
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidInputError(f"malformed measurement model parameters: {exc}") from exc
@@ -387,13 +406,22 @@ def log_likelihood_and_distance(
         # threshold means the same with or without the tail
         maha1 = maha_unscaled * np.exp(-log_scale) / quality.spread()
     closest = float(maha1.min())
-    # Weight: N(e_i(x); mu2, Sigma2), e_i(x) = [e_vlad, X_i - X, Y_i - Y, psi_i - psi].
-    entries = hypotheses.entry_pose_world - model.mu2[1:]  # (H, 3)
+    # Weight: N(e_i(x); mu2, Sigma2), e_i(x) = [e_vlad, X_i - X, Y_i - Y, psi_i - psi]
+    # (world) or with the offset turned into the particle's frame (vehicle).
+    entries = hypotheses.entry_pose_world
+    if model.retrieval_frame == "world":
+        offset = [entries[:, 0] - model.mu2[1] - X, entries[:, 1] - model.mu2[2] - Y]
+    else:
+        dx, dy = entries[:, 0] - X, entries[:, 1] - Y
+        cos_psi, sin_psi = np.cos(psi), np.sin(psi)
+        offset = [
+            cos_psi * dx + sin_psi * dy - model.mu2[1],
+            cos_psi * dy - sin_psi * dx - model.mu2[2],
+        ]
     r2 = [
         np.broadcast_to(hypotheses.e_vlad - model.mu2[0], terms.shape),
-        entries[:, 0] - X,
-        entries[:, 1] - Y,
-        _wrap_residual(entries[:, 2] - psi),
+        *offset,
+        _wrap_residual(entries[:, 2] - model.mu2[3] - psi),
     ]
     terms += model._log_norm2 - 0.5 * _mahalanobis(r2, model._whiten2)
     peak = terms.max(axis=1)

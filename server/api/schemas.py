@@ -449,6 +449,12 @@ class CalibrationUpdate(BaseModel):
         description="Which pose-error model the vehicle uses: paper (mu1, Sigma1 for every "
         "hypothesis) or quality (needs quality).",
     )
+    retrieval_frame: Literal["world", "vehicle"] = Field(
+        default="world",
+        description="Frame of the retrieval vector's offset (mu2[1:3], Sigma2): world "
+        "(X_i - X, Y_i - Y, the paper's) or vehicle (along and across the vehicle's "
+        "heading; what monoloc's calibration fits).",
+    )
     provenance: dict[str, Any] = Field(default_factory=dict)
 
 

@@ -106,14 +106,18 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
     std1 = np.sqrt(np.diag(np.asarray(calibration["Sigma1"])))
     std2 = np.sqrt(np.diag(np.asarray(calibration["Sigma2"])))
     deg = math.degrees
+    if (calibration.get("retrieval_frame") or "world") == "vehicle":
+        head, a, b = "along / across the vehicle's heading", "along", "across"
+    else:
+        head, a, b = "X_i - X, Y_i - Y", "X", "Y"
     lines = [
         "pose error e = truth - hypothesis:",
         f"  mu1    X {100 * mu1[0]:+.1f} cm, Y {100 * mu1[1]:+.1f} cm, psi {deg(mu1[2]):+.2f} deg",
         f"  std1   X {100 * std1[0]:.1f} cm, Y {100 * std1[1]:.1f} cm, psi {deg(std1[2]):.2f} deg",
-        "retrieval vector [e_vlad, X_i - X, Y_i - Y, psi_i - psi]:",
-        f"  mu2    e_vlad {mu2[0]:.3f}, X {mu2[1]:+.2f} m, Y {mu2[2]:+.2f} m, "
+        f"retrieval vector [e_vlad, entry offset ({head}), psi_i - psi]:",
+        f"  mu2    e_vlad {mu2[0]:.3f}, {a} {mu2[1]:+.2f} m, {b} {mu2[2]:+.2f} m, "
         f"psi {deg(mu2[3]):+.2f} deg",
-        f"  std2   e_vlad {std2[0]:.3f}, X {std2[1]:.2f} m, Y {std2[2]:.2f} m, "
+        f"  std2   e_vlad {std2[0]:.3f}, {a} {std2[1]:.2f} m, {b} {std2[2]:.2f} m, "
         f"psi {deg(std2[3]):.2f} deg",
         f"outlier log density: {calibration.get('outlier_log_density')}",
         *_describe_quality(calibration),
@@ -213,6 +217,7 @@ def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
         "outlier_log_density",
         "quality",
         "covariance",
+        "retrieval_frame",
         "provenance",
     )
     return {key: calibration.get(key) for key in keys}

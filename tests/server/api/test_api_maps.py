@@ -81,6 +81,14 @@ def test_calibration_defaults_put_and_delete(fresh):
     assert got["provenance"] == CALIBRATION["provenance"]
     assert np.allclose(got["Sigma2"], CALIBRATION["Sigma2"]) and got["mu1"] == CALIBRATION["mu1"]
     assert client.get(f"/v1/maps/{map_id}", headers=w | keys.header("admin")).json()["calibrated"]
+    # A body without the retrieval frame is the paper's (world); a vehicle-frame one is
+    # served as such; anything else is refused.
+    assert got["retrieval_frame"] == "world"
+    vehicle = dict(CALIBRATION, retrieval_frame="vehicle")
+    assert client.put(url, headers=w, json=vehicle).json()["retrieval_frame"] == "vehicle"
+    assert client.get(url, headers=w).json()["retrieval_frame"] == "vehicle"
+    compass = dict(CALIBRATION, retrieval_frame="compass")
+    assert client.put(url, headers=w, json=compass).status_code == 422
 
     not_pd = dict(CALIBRATION, Sigma1=[[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     asymmetric = dict(CALIBRATION, Sigma1=[[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
