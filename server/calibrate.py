@@ -79,9 +79,9 @@ class CalibrationConfig:
     pnp: PnpConfig = field(default_factory=PnpConfig)
     strategy: PnpStrategy = field(default_factory=lambda: PnpStrategy(guess_from_prior=False))
     covariance: CovarianceModel = "paper"
-    # the frame of the retrieval vector's offset: "vehicle" (monoloc) or "world" (the
-    # paper; monoloc.core.measurement explains why not)
-    retrieval_frame: RetrievalFrame = "vehicle"
+    # the frame of the retrieval vector's offset: "world" (the paper's) or "vehicle"
+    # (along / across the heading; see monoloc.core.measurement)
+    retrieval_frame: RetrievalFrame = "world"
 
     def __post_init__(self) -> None:
         if self.k < 1 or self.map_every < 2:

@@ -78,14 +78,27 @@ def fit_gaussian(
     return mean, cov
 
 
-# Floors (1 sigma, added in quadrature) of the retrieval vector's spread: e_vlad; the
-# entry's offset (m, each axis); its heading difference (rad). The training run is split
-# into its own map and queries, all from one drive: its queries are never a lane beside
-# the map or turned a few degrees against it, as a later drive is (the issue's query laps
-# drive with lateral offsets). Without the floors a training run along one straight
-# street gives a Sigma2 5 cm wide across the street and 0.06 deg in heading, and a query
-# a metre to the side has every hypothesis weigh less than the outlier floor.
-RETRIEVAL_FLOOR_STD = np.array([0.01, 1.0, 1.0, 0.05])
+# Smallest spread Sigma2 may have (1 sigma): of the entry's offset in any direction (m)
+# and of its heading difference (rad). The training run is split into its own map and
+# queries, all from one drive: its queries are never a lane beside the map or turned a
+# few degrees against it, as a later drive is. A training run along one straight street
+# gave a Sigma2 5 cm wide across it and 0.06 deg in heading (dev city 6), and every
+# hypothesis of a query on a cross street then weighed less than the outlier floor: the
+# filter dead-reckoned 0.3-0.5 m off while its hypotheses were within 0.1 m. A minimum,
+# not an addition: a training run that turns (the usual case) keeps its Sigma2.
+RETRIEVAL_MIN_STD_M = 1.0
+RETRIEVAL_MIN_STD_RAD = 0.05
+
+
+def _clamp_retrieval_spread(Sigma2: np.ndarray) -> np.ndarray:
+    """Sigma2 (4, 4) with its offset block's eigenvalues and its heading variance raised
+    to the minimum spreads (raising either adds a positive semidefinite matrix)."""
+    out = Sigma2.copy()
+    values, vectors = np.linalg.eigh(out[1:3, 1:3])
+    raised = np.maximum(values, RETRIEVAL_MIN_STD_M**2) - values
+    out[1:3, 1:3] += (vectors * raised) @ vectors.T
+    out[3, 3] = max(out[3, 3], RETRIEVAL_MIN_STD_RAD**2)
+    return 0.5 * (out + out.T)
 
 
 def fit_measurement_model(
@@ -100,8 +113,8 @@ def fit_measurement_model(
     computed in ``retrieval_frame`` (:func:`retrieval_vectors`).
 
     monoloc's default is the unbiased covariance about the mean (``unbiased=True``);
-    ``unbiased=False`` reproduces the paper's formula mean(e e^T). Sigma2 gets
-    ``RETRIEVAL_FLOOR_STD``.
+    ``unbiased=False`` reproduces the paper's formula mean(e e^T). Sigma2's spread is
+    at least ``RETRIEVAL_MIN_STD_M`` / ``RETRIEVAL_MIN_STD_RAD``.
     """
     if not np.all(np.isfinite(pose_error_samples)) or not np.all(np.isfinite(retrieval_samples)):
         raise InvalidInputError("calibration samples contain NaN or infinite values")
@@ -109,8 +122,9 @@ def fit_measurement_model(
         np.asarray(pose_error_samples, np.float64), unbiased, np.array([0.01, 0.01, 1e-3])
     )
     mu2, Sigma2 = fit_gaussian(
-        np.asarray(retrieval_samples, np.float64), unbiased, RETRIEVAL_FLOOR_STD
+        np.asarray(retrieval_samples, np.float64), unbiased, np.array([0.01, 0.05, 0.05, 1e-3])
     )
+    Sigma2 = _clamp_retrieval_spread(Sigma2)
     return MeasurementModel(
         mu1=mu1,
         Sigma1=Sigma1,

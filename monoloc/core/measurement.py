@@ -9,24 +9,11 @@ For a particle x = (X, Y, psi) and hypotheses i = 1..H from one frame::
 Everything is vectorised over particles and hypotheses (P x H). Pure numpy.
 
 The retrieval vector's offset (``MeasurementModel.retrieval_frame``): "world" is the
-paper's (X_i - X, Y_i - Y, in the world frame); "vehicle" (what monoloc's calibration
-fits) is the same offset turned into the particle's frame, (along, across) its heading.
-A world-frame Sigma2 remembers the compass direction of the training run's streets: a
-training run along one straight street gives a Sigma2 centimetres wide across it, and
-every hypothesis of a query on a street running the other way then weighs nothing
-against the outlier floor (the filter dead-reckons while its hypotheses are right). In
-the vehicle frame the spread is along and across the road wherever the road runs.
-
-Two covariance models (``MeasurementModel.covariance``):
-
-- ``"paper"``: one (mu1, Sigma1) for every hypothesis, as the paper has it; joint
-  hypotheses (monoloc's multi-entry pose, not in the paper) are left out.
-- ``"quality"``: monoloc's quality-aware model (:class:`QualityModel`): hypothesis i is
-  N(x; z_i + mu1_q, s_i Sigma1_q) with log s_i = beta . [log(n_inliers_i / n_ref),
-  log(reprojection_error_i / error_ref), joint_i]: fewer inliers or a larger
-  reprojection error widen it; the joint pose gets its own factor. Fitted by maximum
-  likelihood on the training run like (mu1, Sigma1) (monoloc.core.calibration).
-  Hypotheses without quality features (an old server) fall back to the paper's model.
+paper's (X_i - X, Y_i - Y, in the world frame), monoloc's default; "vehicle" is the same
+offset turned into the particle's frame, (along, across) its heading. A world-frame
+Sigma2 remembers the compass direction of the training run's streets; in the vehicle
+frame the spread is along and across the road wherever the road runs. On the development
+cities neither was better across the board (bench notes in README), so the paper's stays.
 """
 
 from __future__ import annotations

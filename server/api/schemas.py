@@ -452,8 +452,8 @@ class CalibrationUpdate(BaseModel):
     retrieval_frame: Literal["world", "vehicle"] = Field(
         default="world",
         description="Frame of the retrieval vector's offset (mu2[1:3], Sigma2): world "
-        "(X_i - X, Y_i - Y, the paper's) or vehicle (along and across the vehicle's "
-        "heading; what monoloc's calibration fits).",
+        "(X_i - X, Y_i - Y, the paper's; monoloc's default) or vehicle (along and across "
+        "the vehicle's heading).",
     )
     provenance: dict[str, Any] = Field(default_factory=dict)
 

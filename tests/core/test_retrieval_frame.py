@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from monoloc.core.calibration import (
-    RETRIEVAL_FLOOR_STD,
+    RETRIEVAL_MIN_STD_M,
+    RETRIEVAL_MIN_STD_RAD,
     fit_measurement_model,
     retrieval_vectors,
 )
@@ -63,9 +64,16 @@ def test_a_model_calibrated_on_one_street_weighs_a_street_running_another_way_al
         )
         for frame in ("world", "vehicle")
     }
-    # the floors: a later drive a lane to the side is not ruled out by the training run
+    # the minimum spread: a later drive a lane to the side or turned a few degrees is not
+    # ruled out by the training run (which had 1 cm and 0.006 deg)
     for model in models.values():
-        assert np.all(np.sqrt(np.diag(model.Sigma2)) >= RETRIEVAL_FLOOR_STD)
+        assert np.linalg.eigvalsh(model.Sigma2[1:3, 1:3]).min() >= RETRIEVAL_MIN_STD_M**2 - 1e-9
+        assert model.Sigma2[3, 3] >= RETRIEVAL_MIN_STD_RAD**2 - 1e-12
+        assert np.linalg.eigvalsh(model.Sigma2).min() > 0.0
+    # a drive that spreads more keeps its own spread
+    assert models["vehicle"].Sigma2[1, 1] == pytest.approx(
+        np.var(entry[:, 0] - truth[:, 0]), rel=0.05
+    )
     # a query on the training street (heading +X) and the same scene turned by 90 deg
     # (a street running along +Y): entry 4 m ahead, hypothesis at the particle
     query = np.array([[10.0, 0.0, 0.0]])
@@ -95,3 +103,19 @@ def test_the_retrieval_frame_round_trips_and_old_calibrations_are_world():
     assert MeasurementModel.from_dict(stored).retrieval_frame == "world"
     with pytest.raises(InvalidInputError):
         MeasurementModel(retrieval_frame="compass")
+
+
+def test_the_minimum_spread_leaves_a_turning_drive_alone():
+    rng = np.random.default_rng(2)
+    n = 500
+    samples = np.column_stack(
+        [
+            rng.normal(0.9, 0.05, n),
+            rng.normal(0, 3.0, n),
+            rng.normal(0, 2.0, n),
+            rng.normal(0, 0.15, n),
+        ]
+    )
+    model = fit_measurement_model(rng.normal(size=(n, 3)) * [0.05, 0.05, 0.002], samples)
+    floor = np.diag(np.square([0.01, 0.05, 0.05, 1e-3]))  # the fit's own tiny floor
+    assert np.allclose(model.Sigma2 - floor, np.cov(samples.T))

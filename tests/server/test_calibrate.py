@@ -118,7 +118,11 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     # The quality-aware model is fitted beside the paper's, on the joint poses too; the
     # paper's stays selected. More inliers must not widen a hypothesis.
     assert model.covariance == "paper" and model.quality is not None
-    assert model.retrieval_frame == "vehicle"
+    assert model.retrieval_frame == "world"
+    assert (
+        np.sqrt(model.Sigma2[3, 3]) >= 0.05
+        and np.linalg.eigvalsh(model.Sigma2[1:3, 1:3]).min() >= 1.0 - 1e-9
+    )
     assert prov["joint_used"] == prov["joint_hypotheses"] - prov["joint_gated_outliers"] > 0
     assert model.quality.beta[0] < 0.0, model.quality.beta
     assert np.linalg.eigvalsh(model.quality.Sigma1).min() > 0.0
@@ -229,7 +233,7 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     out = result.output
     assert "job 1 done: map 1 calibrated" in out
     assert "std1   X" in out and " cm" in out and " deg" in out
-    assert "entry offset (along / across the vehicle's heading)" in out and "along " in out
+    assert "entry offset (X_i - X, Y_i - Y)" in out
     tail = calibration_tail_line(out)
     assert tail.endswith("x the spread") and "% of hypotheses" in tail
     assert "used:" in out and "gated_outliers:" in out and "vocabulary_hash:" in out
