@@ -257,6 +257,18 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert jobs[2].state == "failed" and "too short" in jobs[2].error
 
 
+def test_the_calibration_description_names_the_offsets_frame():
+    from monoloc.core.measurement import MeasurementModel
+    from monoloc.server.jobs.calibration import describe_calibration
+
+    stored = MeasurementModel(retrieval_frame="vehicle").to_dict()
+    text = "\n".join(describe_calibration(stored))
+    assert "entry offset (along / across the vehicle's heading)" in text
+    assert "along +0.00 m, across +0.00 m" in text
+    stored["retrieval_frame"] = "world"
+    assert "X +0.00 m, Y +0.00 m" in "\n".join(describe_calibration(stored))
+
+
 def calibration_tail_line(output: str) -> str:
     """The quality model's tail line of ``monoloc map calibrate``'s output."""
     lines = [line.strip() for line in output.splitlines() if line.strip().startswith("tail ")]
