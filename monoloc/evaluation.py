@@ -31,8 +31,10 @@ from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics
 from monoloc.core.geometry import circular_mean, planar_from_T_world_from_cam
 from monoloc.core.measurement import MeasurementModel
 from monoloc.core.prior import RetrievalPrior
+from monoloc.core.registration import RegistrationConfig, RunCorrection
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
 from monoloc.server.index.retrieval import RetrievalIndex
+from monoloc.server.ingest.register import register_source
 from monoloc.server.localize import LocalizationResult, LocalizeConfig, ReferenceEntry
 from monoloc.server.localizer import InProcessAnswer, InProcessLocalizer
 from monoloc.server.vision.vocabulary import Vocabulary
@@ -49,6 +51,7 @@ class MemoryMap:
     poses_world: dict[int, np.ndarray]
     vocabulary: Vocabulary
     skipped: int = 0
+    corrections: list[RunCorrection] = field(default_factory=list)  # of registered runs
 
     def lookup(self, ids: Sequence[int]) -> list[ReferenceEntry]:
         return [self.refs[i] for i in ids if i in self.refs]
@@ -60,8 +63,16 @@ class MemoryMap:
         tags: tuple[str, ...] = (),
         progress: Progress = None,
         every: int = 1,
+        register: RegistrationConfig | None = None,
     ) -> int:
-        """Add every ``every``-th frame of a KittiSequence / TumRun; returns entries added."""
+        """Add every ``every``-th frame of a KittiSequence / TumRun; returns entries added.
+        ``register``: first register the run to the entries already held (as the server's
+        ingestion does; the correction is appended to ``corrections``)."""
+        if register is not None:
+            seq, correction = register_source(
+                seq, self.vocabulary, self.index, self.lookup, np.random.default_rng(0), register
+            )
+            self.corrections.append(correction)
         next_id = max(self.refs, default=-1) + 1
         ids, codes, vlads, poses = [], [], [], []
         frames = seq.frames[::every]

@@ -152,9 +152,17 @@ def map_ingest(
             "repeatable; a role left out is found by message type."
         ),
     ] = None,
+    register: Annotated[
+        bool,
+        typer.Option(
+            help="Register the run to the map's entries first (localize its frames near "
+            "their written poses, move its poses by the smoothed difference)."
+        ),
+    ] = False,
 ) -> None:
     """Ingest a KITTI sequence, a TUM RGB-D run or a ROS 2 bag into a map (idempotent,
     resumable)."""
+    from monoloc.core.registration import RegistrationConfig
     from monoloc.server.entry_builder import BuildConfig
     from monoloc.server.ingest.common import parse_frame_range
     from monoloc.server.ingest.manage import CameraOverrides, ingest_source, open_source
@@ -173,7 +181,12 @@ def map_ingest(
         topics=parse_topics(topic),
         depth_from=depth_from,
     )
-    config = IngestConfig(build=BuildConfig(), workers=workers, skip_bad_frames=skip_bad_frames)
+    config = IngestConfig(
+        build=BuildConfig(),
+        workers=workers,
+        skip_bad_frames=skip_bad_frames,
+        register=RegistrationConfig() if register else None,
+    )
     tag_list = tuple(t.strip() for t in tags.split(",") if t.strip())
     with progress_bar(f"ingesting {source.name}") as update:
         summary = ingest_source(

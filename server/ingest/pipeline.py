@@ -41,8 +41,12 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam
+from monoloc.core.registration import RegistrationConfig
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
+from monoloc.server.index.retrieval import RetrievalIndex
 from monoloc.server.ingest.common import bytes_hash, content_hash, decode_gray, read_bytes
+from monoloc.server.ingest.register import register_source
+from monoloc.server.localize import ReferenceEntry
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
@@ -56,13 +60,16 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class IngestConfig:
     """``workers`` threads build entries; ``batch_size`` frames per transaction;
-    ``skip_bad_frames``: skip (and report) unreadable frames instead of failing."""
+    ``skip_bad_frames``: skip (and report) unreadable frames instead of failing;
+    ``register``: register the run to the map's entries from other runs before building
+    (``monoloc.core.registration``; None: keep the written poses)."""
 
     build: BuildConfig = field(default_factory=BuildConfig)
     workers: int = 2
     batch_size: int = 24
     skip_bad_frames: bool = False
     hash_chunk: int = 256  # frames hashed and looked up in the map at a time
+    register: RegistrationConfig | None = None
 
     def __post_init__(self) -> None:
         if self.workers < 1 or self.batch_size < 1 or self.hash_chunk < 1:
@@ -86,6 +93,7 @@ class IngestSummary:
     frames_per_s: float
     map_version: int
     interrupted: bool = False
+    registration: dict | None = None  # RunCorrection.summary() when the run was registered
 
 
 @dataclass(frozen=True)
@@ -291,6 +299,13 @@ def ingest_run(
 
     start = time.perf_counter()
     vocabulary, vocabulary_id = _load_vocabulary(session_factory, map_id, source)
+    registration = None
+    if config.register is not None:
+        with threadpool_limits(1):
+            source, correction = _register(
+                session_factory, map_id, run_id, source, vocabulary, config.register, should_stop
+            )
+        registration = correction.summary()
     frames = list(source.frames)
     read_skips = dict(getattr(source, "read_skips", {}) or {})
     total = len(frames) + sum(read_skips.values())
@@ -344,7 +359,34 @@ def ingest_run(
         frames_per_s=done / elapsed if elapsed > 0 else 0.0,
         map_version=writer.version,
         interrupted=interrupted,
+        registration=registration,
     )
+
+
+def _register(session_factory, map_id, run_id, source, vocabulary, config, should_stop):
+    """``source`` registered to the map's entries from other runs (an index of them built
+    from the database, so a resumed run is registered to the same entries as before)."""
+    index = RetrievalIndex()
+    with session_scope(session_factory) as session:
+        for batch in entries_repo.iter_map_vectors(session, map_id, exclude_run_id=run_id):
+            index.add(batch.entry_ids, batch.codes, batch.vlads, batch.planar)
+
+    def lookup(ids) -> list[ReferenceEntry]:
+        with session_scope(session_factory) as session:
+            rows = entries_repo.get_entry_data(session, list(ids))
+        return [
+            ReferenceEntry(
+                r.id,
+                np.asarray(r.T_world_from_cam),
+                np.asarray(r.descriptors),
+                np.asarray(r.points_cam),
+                r.summary.tags,
+            )
+            for r in rows
+        ]
+
+    rng = np.random.default_rng([map_id, run_id])
+    return register_source(source, vocabulary, index, lookup, rng, config, should_stop=should_stop)
 
 
 def _build_and_write(

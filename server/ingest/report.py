@@ -59,6 +59,15 @@ def print_ingest_summary(summary, console: Console | None = None) -> None:
     )
     table.add_row("time", f"{summary.elapsed_s:.1f} s ({summary.frames_per_s:.1f} frames/s)")
     table.add_row("map version", str(summary.map_version))
+    reg = summary.registration
+    if reg is not None:
+        mean_x, mean_y = reg["offset_mean_m"]
+        table.add_row(
+            "registered to the map",
+            f"{reg['frames_used']} of {reg['frames_measured']} localized frames used; "
+            f"moved by x {mean_x:+.3f} m, y {mean_y:+.3f} m on average "
+            f"(at most {reg['offset_max_m']:.3f} m)",
+        )
     if summary.interrupted:
         table.add_row("status", "interrupted (run again to resume)")
     console.print(table)

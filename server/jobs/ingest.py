@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from monoloc.core.errors import ConflictError
+from monoloc.core.registration import RegistrationConfig
 from monoloc.server.ingest.pipeline import IngestConfig, ingest_run
 from monoloc.server.ingest.vocab import change_map_vocabulary_detailed, train_map_vocabulary
 from monoloc.server.jobs.context import JobContext, JobInterruptedError
@@ -86,7 +87,10 @@ def run_ingest(ctx: JobContext) -> dict[str, Any]:
         tags=tuple(params.get("tags") or ()),
         progress=progress,
         should_stop=ctx.should_stop,
-        config=IngestConfig(workers=ctx.settings.worker_threads),
+        config=IngestConfig(
+            workers=ctx.settings.worker_threads,
+            register=RegistrationConfig() if params.get("register_to_map") else None,
+        ),
     )
     if summary.interrupted:
         raise JobInterruptedError(

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
-from sqlalchemy import Select, delete, exists, func, insert, select, update
+from sqlalchemy import Select, delete, exists, func, insert, or_, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from monoloc.core.errors import InvalidInputError, NotFoundError
@@ -338,13 +338,21 @@ _VECTOR_COLUMNS = (Entry.id, Entry.vlad, Entry.code, Entry.x_m, Entry.y_m, Entry
 
 
 def iter_map_vectors(
-    session: Session, map_id: int, *, batch_size: int = 4096
+    session: Session,
+    map_id: int,
+    *,
+    batch_size: int = 4096,
+    exclude_run_id: int | None = None,
 ) -> Iterator[MapVectors]:
     """All of a map's (entry id, VLAD, code, planar pose) in id order, in batches, for
-    building a retrieval index. Corrupt blobs raise InvalidInputError."""
+    building a retrieval index; without the entries of run ``exclude_run_id`` if given.
+    Corrupt blobs raise InvalidInputError."""
+    where = [Entry.map_id == map_id]
+    if exclude_run_id is not None:
+        where.append(or_(Entry.run_id.is_(None), Entry.run_id != exclude_run_id))
     stmt = (
         select(*_VECTOR_COLUMNS)
-        .where(Entry.map_id == map_id)
+        .where(*where)
         .order_by(Entry.id)
         .execution_options(yield_per=batch_size)
     )

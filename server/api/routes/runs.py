@@ -58,6 +58,7 @@ class _Ingest:
     kind: str
     tags: list[str]
     train_vocabulary: bool = False
+    register_to_map: bool = False
 
 
 def _store(
@@ -88,6 +89,7 @@ def _store(
             "source_name": up.source_name,
             "train_vocabulary": ingest.train_vocabulary,
             "depth_from": up.depth_from,
+            "register_to_map": ingest.register_to_map,
         }
         job = jobs_repo.create_job(
             session, "ingest", map_id=up.map_id, run_id=run.id, params=params, message="queued"
@@ -143,13 +145,24 @@ async def upload_run(
             "the stereo pair (image_1/ and P1 in calib.txt; the upload then needs no scans)."
         ),
     ] = "lidar",
+    register_to_map: Annotated[
+        bool,
+        Form(
+            description="Register the run to the map's entries before adding it: localize "
+            "its frames against them near their written poses and move its poses by the "
+            "smoothed difference (two runs' GNSS/INS disagree by centimetres to "
+            "decimetres). The job's result reports the correction."
+        ),
+    ] = False,
 ) -> UploadAccepted:
     """Stores the upload and queues its ingestion; follow the job at /v1/jobs/{id}."""
     check_upload_parts(archive, files)
     runs_repo.check_kind(kind, "run")
     up = RunUpload(map_id, format, sequence, frames, upload_name(archive), depth_from)
     asked = [t for t in (tags or "").split(",") if t.strip()]
-    ingest = _Ingest(kind, normalise_tags(runs_repo.tags_for_run(kind, asked)), train_vocabulary)
+    ingest = _Ingest(
+        kind, normalise_tags(runs_repo.tags_for_run(kind, asked)), train_vocabulary, register_to_map
+    )
     job, run, unpacked = await anyio.to_thread.run_sync(_store, state, up, ingest, archive, files)
     state.jobs.submit(job.id)
     return UploadAccepted(

@@ -147,3 +147,36 @@ def test_trained_vocabulary_then_change_back(sim_dataset, tmp_path):
             json={"vocabulary": "00000000deadbeef"},
         )
         assert r.status_code == 404
+
+
+def test_a_run_uploaded_with_register_reports_its_registration(sim_dataset, tmp_path):
+    """The second run of the street, uploaded with register_to_map=true: its frames localized
+    against the first run's entries, reported in the job's result (16 frames are fewer
+    than the 20 the default asks for before moving a run, so it is reported, not moved)."""
+    with open_client(make_settings(tmp_path / "data")) as client:
+        keys = create_keys(client)
+        map_id, job_id = _upload(client, keys, sim_dataset)
+        assert wait_job(client, job_id, keys.header("write"))["result"]["registration"] is None
+
+        def upload_query(**data):
+            r = client.post(
+                f"/v1/maps/{map_id}/runs",
+                headers=keys.header("write"),
+                files={
+                    "archive": ("q.tar.gz", tar_sequence(sim_dataset, "01"), "application/gzip")
+                },
+                data={"format": "kitti", "kind": "offcenter", **data},
+            )
+            return r
+
+        assert upload_query(register_to_map="perhaps").status_code == 422
+        r = upload_query(register_to_map="true")
+        assert r.status_code == 202, r.text
+        job = wait_job(client, r.json()["job"]["id"], keys.header("write"))
+        assert job["state"] == "done", job
+        assert job["params"]["register_to_map"] is True
+        reg = job["result"]["registration"]
+        assert reg["frames_measured"] >= MAP_FRAMES // 2, reg
+        assert reg["frames_used"] <= reg["frames_measured"] < 20
+        assert reg["offset_max_m"] == 0.0
+        assert len(reg["noise_m"]) == 2 and min(reg["noise_m"]) >= 0.01
