@@ -198,6 +198,24 @@ def main() -> None:
     (RESULTS / "accuracy_urban.json").write_text(json.dumps(out, indent=2) + "\n")
 
 
+def registered_night(root, meta, vocab, night_seq, nsig, model, lever):
+    """The night query against the day map + the night run registered to it first (as
+    ``monoloc map ingest --register`` / ``register_to_map`` does): (metrics row, the
+    registration's summary)."""
+    from monoloc.core.registration import RegistrationConfig
+    from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+
+    memory = MemoryMap.empty(vocab)
+    memory.add_run(read_kitti_sequence(root, sequence_of(meta, "map")))
+    nightmap = read_kitti_sequence(root, sequence_of(meta, "nightmap"))
+    memory.add_run(nightmap, tags=("night",), register=RegistrationConfig())
+    summary = memory.corrections[-1].summary()
+    print(f"night run registered to the day map: {summary}")
+    result = evaluate_run(memory, night_seq, nsig, model, lever_arm_m=lever, variants=("full",))
+    return metrics_row(result.metrics["full"]), summary
+
+
 def night_training_run(root: Path, meta: dict, args, exact: bool = False) -> tuple[Path, str]:
     """(dataset root, sequence id) of the `trainnight` run: in the dataset itself, or, for
     a dataset generated without it (cached before the run existed, or the error floor's),
@@ -379,6 +397,11 @@ def urban_city(
                 night_rows.append(
                     (f"night, + night entries, {compare[0]}", metrics_row(other.metrics["full"]))
                 )
+            registered, correction = registered_night(
+                root, meta, vocab, night_seq, nsig, model, lever
+            )
+            night_rows.append(("night, + night entries registered to the map", registered))
+            out["night_registration"] = correction
             out["night_entries_added"] = added
             out["night_bias"] = bias_report(after, ["full"])
             if true_world is not None:

@@ -103,6 +103,16 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
                 f"{rf['filter_vs_map_frame']['rmse_m']:.3f} m, best of k median "
                 f"{rf['best_of_k_vs_map_frame_median_m']:.3f} m.",
             ]
+    reg = data.get("night_registration")
+    if reg:
+        mean_x, mean_y = reg["offset_mean_m"]
+        out += [
+            "",
+            f"Night run registered to the day map (monoloc map ingest --register): "
+            f"{reg['frames_used']} of {reg['frames_measured']} localized night frames used "
+            f"(noise {reg['noise_m'][0]:.3f} / {reg['noise_m'][1]:.3f} m per frame); moved by "
+            f"x {mean_x:+.3f} m, y {mean_y:+.3f} m on average (fewer than 20 frames: not moved).",
+        ]
     prov = data.get("calibration", {}).get("provenance")
     if prov:
         out += ["", f"Calibration: {json.dumps(prov)}"]
