@@ -364,12 +364,25 @@ def ingest_run(
 
 
 def _register(session_factory, map_id, run_id, source, vocabulary, config, should_stop):
-    """``source`` registered to the map's entries from other runs (an index of them built
-    from the database, so a resumed run is registered to the same entries as before)."""
+    """``source`` registered to the map's entries from other runs (an index of those
+    within the search radius of the run's written path, built from the database, so a
+    resumed run is registered to the same entries as before)."""
     index = RetrievalIndex()
-    with session_scope(session_factory) as session:
-        for batch in entries_repo.iter_map_vectors(session, map_id, exclude_run_id=run_id):
-            index.add(batch.entry_ids, batch.codes, batch.vlads, batch.planar)
+    if source.frames:
+        planar = planar_from_T_world_from_cam(np.stack([f.T_world_from_cam for f in source.frames]))
+        r = config.search_radius_m
+        box = (
+            float(planar[:, 0].min() - r),
+            float(planar[:, 0].max() + r),
+            float(planar[:, 1].min() - r),
+            float(planar[:, 1].max() + r),
+        )
+        with session_scope(session_factory) as session:
+            batches = entries_repo.iter_map_vectors(
+                session, map_id, exclude_run_id=run_id, within_m=box
+            )
+            for batch in batches:
+                index.add(batch.entry_ids, batch.codes, batch.vlads, batch.planar)
 
     def lookup(ids) -> list[ReferenceEntry]:
         with session_scope(session_factory) as session:

@@ -343,13 +343,18 @@ def iter_map_vectors(
     *,
     batch_size: int = 4096,
     exclude_run_id: int | None = None,
+    within_m: tuple[float, float, float, float] | None = None,
 ) -> Iterator[MapVectors]:
     """All of a map's (entry id, VLAD, code, planar pose) in id order, in batches, for
-    building a retrieval index; without the entries of run ``exclude_run_id`` if given.
+    building a retrieval index; without the entries of run ``exclude_run_id`` and only
+    those inside the world box ``within_m`` = (x_min, x_max, y_min, y_max) if given.
     Corrupt blobs raise InvalidInputError."""
     where = [Entry.map_id == map_id]
     if exclude_run_id is not None:
         where.append(or_(Entry.run_id.is_(None), Entry.run_id != exclude_run_id))
+    if within_m is not None:
+        x_min, x_max, y_min, y_max = within_m
+        where += [Entry.x_m.between(x_min, x_max), Entry.y_m.between(y_min, y_max)]
     stmt = (
         select(*_VECTOR_COLUMNS)
         .where(*where)

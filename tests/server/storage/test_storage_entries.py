@@ -77,6 +77,13 @@ def test_filters_and_pagination(factory, map_id, make_entry):
         vectors = list(iter_map_vectors(session, map_id, batch_size=4))
         assert [len(v.entry_ids) for v in vectors] == [4, 4, 2]
         assert np.allclose(np.concatenate([v.planar[:, 0] for v in vectors]), np.arange(10))
+        # what a run registering to the map reads: other runs' entries near its path
+        others = list(iter_map_vectors(session, map_id, exclude_run_id=run.id))
+        assert np.allclose(np.concatenate([v.planar[:, 0] for v in others]), np.arange(3, 10))
+        boxed = iter_map_vectors(session, map_id, exclude_run_id=run.id, within_m=(1.5, 6.2, -1, 1))
+        assert np.allclose(np.concatenate([v.planar[:, 0] for v in boxed]), [3, 4, 5, 6])
+        outside = list(iter_map_vectors(session, map_id, within_m=(0, 9, 1.0, 2.0)))
+        assert sum(len(v.entry_ids) for v in outside) == 0
 
 
 def test_delete_entry_bumps_version(factory, map_id, make_entry):
