@@ -106,12 +106,19 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
     reg = data.get("night_registration")
     if reg:
         mean_x, mean_y = reg["offset_mean_m"]
+        registered = data.get("night", {}).get("night, + night entries registered to the map")
+        day = data.get("query", {}).get("full", {}).get("position_rmse_m")
+        ratio = (
+            f"{registered['position_rmse_m'] / day:.2f}x" if registered and day else "not measured"
+        )
         out += [
             "",
             f"Night run registered to the day map (monoloc map ingest --register): "
             f"{reg['frames_used']} of {reg['frames_measured']} localized night frames used "
             f"(noise {reg['noise_m'][0]:.3f} / {reg['noise_m'][1]:.3f} m per frame); moved by "
-            f"x {mean_x:+.3f} m, y {mean_y:+.3f} m on average (fewer than 20 frames: not moved).",
+            f"x {mean_x:+.3f} m, y {mean_y:+.3f} m on average (a run with fewer than 20 frames "
+            "used is left where it is). Night / day RMSE with the registered night run: "
+            f"{ratio}.",
         ]
     prov = data.get("calibration", {}).get("provenance")
     if prov:
