@@ -303,7 +303,7 @@ def ingest_run(
     if config.register is not None:
         with threadpool_limits(1):
             source, correction = _register(
-                session_factory, map_id, run_id, source, vocabulary, config.register, should_stop
+                session_factory, map_id, run_id, source, vocabulary, config, should_stop
             )
         registration = correction.summary()
     frames = list(source.frames)
@@ -370,7 +370,7 @@ def _register(session_factory, map_id, run_id, source, vocabulary, config, shoul
     index = RetrievalIndex()
     if source.frames:
         planar = planar_from_T_world_from_cam(np.stack([f.T_world_from_cam for f in source.frames]))
-        r = config.search_radius_m
+        r = config.register.search_radius_m
         box = (
             float(planar[:, 0].min() - r),
             float(planar[:, 0].max() + r),
@@ -399,7 +399,16 @@ def _register(session_factory, map_id, run_id, source, vocabulary, config, shoul
         ]
 
     rng = np.random.default_rng([map_id, run_id])
-    return register_source(source, vocabulary, index, lookup, rng, config, should_stop=should_stop)
+    return register_source(
+        source,
+        vocabulary,
+        index,
+        lookup,
+        rng,
+        config.register,
+        should_stop=should_stop,
+        workers=config.workers,
+    )
 
 
 def _build_and_write(

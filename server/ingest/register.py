@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -30,16 +31,20 @@ def measure_offsets(
     config: RegistrationConfig = RegistrationConfig(),
     localize: LocalizeConfig = LocalizeConfig(),
     should_stop: Callable[[], bool] | None = None,
+    workers: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(times (M,) s, offsets (M, 2) m, world x / y: localized minus written) of the
     sampled frames of ``source`` that localized; frames without a hypothesis give none.
-    ``index`` / ``lookup``: the map's entries the run is registered to."""
-    times, offsets = [], []
-    if len(index) == 0:
+    ``index`` / ``lookup``: the map's entries the run is registered to (both thread-safe);
+    ``workers`` threads localize, each frame with its own generator spawned from ``rng``
+    (so the result does not depend on the number of threads)."""
+    frames = source.frames[:: config.every]
+    if len(index) == 0 or not frames:
         return np.zeros(0), np.zeros((0, 2))
-    for frame in source.frames[:: config.every]:
+
+    def measure(frame, frame_rng) -> np.ndarray | None:
         if should_stop is not None and should_stop():
-            break
+            return None
         written = planar_from_T_world_from_cam(frame.T_world_from_cam)
         prior = RetrievalPrior(
             float(written[0]),
@@ -50,15 +55,37 @@ def measure_offsets(
         )
         image = source.load(frame).image_gray
         result = localize_frame(
-            image, source.intrinsics, vocabulary, index, lookup, localize, rng, prior, config.k
+            image,
+            source.intrinsics,
+            vocabulary,
+            index,
+            lookup,
+            localize,
+            frame_rng,
+            prior,
+            config.k,
         )
         if not result.hypotheses:
-            continue
+            return None
         joint = [h for h in result.hypotheses if h.joint]
         best = joint[0] if joint else max(result.hypotheses, key=lambda h: h.n_inliers)
-        times.append(frame.timestamp_s)
-        offsets.append(np.asarray(best.pose_world[:2], dtype=np.float64) - written[:2])
-    return np.asarray(times, dtype=np.float64), np.asarray(offsets).reshape(-1, 2)
+        return np.asarray(best.pose_world[:2], dtype=np.float64) - written[:2]
+
+    rngs = rng.spawn(len(frames))
+    if workers > 1:
+        with ThreadPoolExecutor(workers, initializer=_one_cv2_thread) as pool:
+            measured = list(pool.map(measure, frames, rngs))
+    else:
+        measured = [measure(f, r) for f, r in zip(frames, rngs, strict=True)]
+    kept = [(f.timestamp_s, d) for f, d in zip(frames, measured, strict=True) if d is not None]
+    times = np.array([t for t, _ in kept], dtype=np.float64)
+    return times, np.array([d for _, d in kept], dtype=np.float64).reshape(-1, 2)
+
+
+def _one_cv2_thread() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
 
 
 def correct_source(source, correction: RunCorrection):
@@ -81,10 +108,11 @@ def register_source(
     config: RegistrationConfig = RegistrationConfig(),
     localize: LocalizeConfig = LocalizeConfig(),
     should_stop: Callable[[], bool] | None = None,
+    workers: int = 1,
 ):
     """(corrected source, :class:`RunCorrection`): ``source`` registered to the map."""
     times, offsets = measure_offsets(
-        source, vocabulary, index, lookup, rng, config, localize, should_stop
+        source, vocabulary, index, lookup, rng, config, localize, should_stop, workers
     )
     frame_times = np.array([f.timestamp_s for f in source.frames], dtype=np.float64)
     correction = run_correction(frame_times, times, offsets, config)

@@ -137,3 +137,32 @@ def test_map_ingest_register_prints_the_registration(kitti_root, kitti_copy, tmp
     )
     # 8 frames: fewer than the 20 the default needs before it moves a run
     assert "registered to the map" in out and "moved by x +0.000 m, y +0.000 m" in out
+
+
+def test_the_measurement_does_not_depend_on_the_number_of_threads(kitti_root, kitti_copy):
+    from monoloc.evaluation import MemoryMap
+    from monoloc.server.ingest.register import measure_offsets
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
+
+    _second_recording(kitti_copy, np.random.default_rng(3))
+    memory = MemoryMap.empty(load_default_vocabulary())
+    memory.add_run(read_kitti_sequence(kitti_root.root))
+    second = read_kitti_sequence(kitti_copy.root)
+    runs = [
+        measure_offsets(
+            second,
+            memory.vocabulary,
+            memory.index,
+            memory.lookup,
+            np.random.default_rng(7),
+            REGISTER,
+            workers=workers,
+        )
+        for workers in (1, 2)
+    ]
+    (t1, d1), (t2, d2) = runs
+    assert len(t1) >= 3
+    np.testing.assert_array_equal(t1, t2)
+    np.testing.assert_array_equal(d1, d2)
+    # each measured offset is the shift undone (KITTI x right = world -y, z forward = world x)
+    np.testing.assert_allclose(np.median(d1, axis=0), [0.12, 0.20], atol=0.03)
