@@ -34,7 +34,7 @@ from monoloc.core.prior import RetrievalPrior
 from monoloc.core.registration import RegistrationConfig, RunCorrection
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
 from monoloc.server.index.retrieval import RetrievalIndex
-from monoloc.server.ingest.register import register_source
+from monoloc.server.ingest.register import RegistrationTarget, register_source
 from monoloc.server.localize import LocalizationResult, LocalizeConfig, ReferenceEntry
 from monoloc.server.localizer import InProcessAnswer, InProcessLocalizer
 from monoloc.server.vision.vocabulary import Vocabulary
@@ -69,8 +69,9 @@ class MemoryMap:
         ``register``: first register the run to the entries already held (as the server's
         ingestion does; the correction is appended to ``corrections``)."""
         if register is not None:
+            target = RegistrationTarget(self.vocabulary, self.index, self.lookup)
             seq, correction = register_source(
-                seq, self.vocabulary, self.index, self.lookup, np.random.default_rng(0), register
+                seq, target, np.random.default_rng(0), config=register
             )
             self.corrections.append(correction)
         next_id = max(self.refs, default=-1) + 1

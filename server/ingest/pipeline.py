@@ -45,7 +45,7 @@ from monoloc.core.registration import RegistrationConfig
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
 from monoloc.server.index.retrieval import RetrievalIndex
 from monoloc.server.ingest.common import bytes_hash, content_hash, decode_gray, read_bytes
-from monoloc.server.ingest.register import register_source
+from monoloc.server.ingest.register import RegistrationTarget, register_source
 from monoloc.server.localize import ReferenceEntry
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
@@ -399,15 +399,9 @@ def _register(session_factory, map_id, run_id, source, vocabulary, config, shoul
         ]
 
     rng = np.random.default_rng([map_id, run_id])
+    target = RegistrationTarget(vocabulary, index, lookup)
     return register_source(
-        source,
-        vocabulary,
-        index,
-        lookup,
-        rng,
-        config.register,
-        should_stop=should_stop,
-        workers=config.workers,
+        source, target, rng, config=config.register, should_stop=should_stop, workers=config.workers
     )
 
 

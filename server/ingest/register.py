@@ -12,21 +12,31 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
 from monoloc.core.geometry import planar_from_T_world_from_cam
 from monoloc.core.prior import RetrievalPrior
 from monoloc.core.registration import RegistrationConfig, RunCorrection, run_correction
+from monoloc.server.index.retrieval import RetrievalIndex
 from monoloc.server.localize import LocalizeConfig, ReferenceEntry, localize_frame
 from monoloc.server.vision.vocabulary import Vocabulary
 
 
+@dataclass(frozen=True)
+class RegistrationTarget:
+    """The map's entries a run is registered to: their retrieval index, a lookup of their
+    data by id (both thread-safe) and the map's vocabulary."""
+
+    vocabulary: Vocabulary
+    index: RetrievalIndex
+    lookup: Callable[[Sequence[int]], list[ReferenceEntry]]
+
+
 def measure_offsets(
     source,
-    vocabulary: Vocabulary,
-    index,
-    lookup: Callable[[Sequence[int]], list[ReferenceEntry]],
+    target: RegistrationTarget,
     rng: np.random.Generator,
     config: RegistrationConfig = RegistrationConfig(),
     localize: LocalizeConfig = LocalizeConfig(),
@@ -34,12 +44,11 @@ def measure_offsets(
     workers: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(times (M,) s, offsets (M, 2) m, world x / y: localized minus written) of the
-    sampled frames of ``source`` that localized; frames without a hypothesis give none.
-    ``index`` / ``lookup``: the map's entries the run is registered to (both thread-safe);
-    ``workers`` threads localize, each frame with its own generator spawned from ``rng``
-    (so the result does not depend on the number of threads)."""
+    sampled frames of ``source`` that localized against ``target``; frames without a
+    hypothesis give none. ``workers`` threads localize, each frame with its own generator
+    spawned from ``rng`` (so the result does not depend on the number of threads)."""
     frames = source.frames[:: config.every]
-    if len(index) == 0 or not frames:
+    if len(target.index) == 0 or not frames:
         return np.zeros(0), np.zeros((0, 2))
 
     def measure(frame, frame_rng) -> np.ndarray | None:
@@ -57,9 +66,9 @@ def measure_offsets(
         result = localize_frame(
             image,
             source.intrinsics,
-            vocabulary,
-            index,
-            lookup,
+            target.vocabulary,
+            target.index,
+            target.lookup,
             localize,
             frame_rng,
             prior,
@@ -99,21 +108,11 @@ def correct_source(source, correction: RunCorrection):
     return dataclasses.replace(source, frames=frames)
 
 
-def register_source(
-    source,
-    vocabulary: Vocabulary,
-    index,
-    lookup: Callable[[Sequence[int]], list[ReferenceEntry]],
-    rng: np.random.Generator,
-    config: RegistrationConfig = RegistrationConfig(),
-    localize: LocalizeConfig = LocalizeConfig(),
-    should_stop: Callable[[], bool] | None = None,
-    workers: int = 1,
-):
-    """(corrected source, :class:`RunCorrection`): ``source`` registered to the map."""
-    times, offsets = measure_offsets(
-        source, vocabulary, index, lookup, rng, config, localize, should_stop, workers
-    )
+def register_source(source, target: RegistrationTarget, rng: np.random.Generator, **options):
+    """(corrected source, :class:`RunCorrection`): ``source`` registered to ``target``;
+    ``options``: those of :func:`measure_offsets` (config, localize, should_stop, workers)."""
+    config = options.get("config", RegistrationConfig())
+    times, offsets = measure_offsets(source, target, rng, **options)
     frame_times = np.array([f.timestamp_s for f in source.frames], dtype=np.float64)
     correction = run_correction(frame_times, times, offsets, config)
     return correct_source(source, correction), correction

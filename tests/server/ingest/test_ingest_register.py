@@ -141,7 +141,7 @@ def test_map_ingest_register_prints_the_registration(kitti_root, kitti_copy, tmp
 
 def test_the_measurement_does_not_depend_on_the_number_of_threads(kitti_root, kitti_copy):
     from monoloc.evaluation import MemoryMap
-    from monoloc.server.ingest.register import measure_offsets
+    from monoloc.server.ingest.register import RegistrationTarget, measure_offsets
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     _second_recording(kitti_copy, np.random.default_rng(3))
@@ -151,9 +151,7 @@ def test_the_measurement_does_not_depend_on_the_number_of_threads(kitti_root, ki
     runs = [
         measure_offsets(
             second,
-            memory.vocabulary,
-            memory.index,
-            memory.lookup,
+            RegistrationTarget(memory.vocabulary, memory.index, memory.lookup),
             np.random.default_rng(7),
             REGISTER,
             workers=workers,
@@ -166,3 +164,19 @@ def test_the_measurement_does_not_depend_on_the_number_of_threads(kitti_root, ki
     np.testing.assert_array_equal(d1, d2)
     # each measured offset is the shift undone (KITTI x right = world -y, z forward = world x)
     np.testing.assert_allclose(np.median(d1, axis=0), [0.12, 0.20], atol=0.03)
+
+
+def test_the_in_memory_map_registers_a_run_as_ingestion_does(kitti_root, kitti_copy):
+    """monoloc.evaluation (the benchmark's engine) registers through the same code."""
+    from monoloc.evaluation import MemoryMap
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
+
+    _second_recording(kitti_copy, np.random.default_rng(4))
+    memory = MemoryMap.empty(load_default_vocabulary())
+    memory.add_run(read_kitti_sequence(kitti_root.root))
+    added = memory.add_run(read_kitti_sequence(kitti_copy.root), register=REGISTER)
+    assert added == 8 and memory.corrections[-1].used >= 3
+    moved = [memory.refs[i].T_world_from_cam for i in range(8, 16)]
+    truth = [memory.refs[i].T_world_from_cam for i in range(8)]
+    errors = [np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(moved, truth, strict=True)]
+    assert max(errors) < 0.03, errors
