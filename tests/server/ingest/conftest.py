@@ -5,6 +5,8 @@
   camera that slides sideways (and yaws a little), with a LiDAR scan of the wall written
   through a KITTI-like velodyne-to-camera transform. Written once per session; tests
   that damage it work on ``kitti_copy``.
+- ``tum_run``: the same wall as a TUM RGB-D run (depth images; frame 0 without ground
+  truth, frame 7 without depth).
 - ``factory``: a migrated SQLite file in tmp_path; ``make_map`` / ``make_run`` create
   an empty map (default vocabulary) and a run.
 
@@ -14,6 +16,7 @@ tests/server/test_localize_sim.py.
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -175,3 +178,51 @@ def make_map(factory):
 def make_run(factory):
     """make_run(map_id, source, kind="map") -> id of a new run of that source."""
     return lambda map_id, source, kind="map": new_run(factory, map_id, source, kind)
+
+
+@pytest.fixture
+def tum_run(tmp_path, kitti_root):
+    """8 frames of the wall; frame 0 has no ground truth, frame 7 no depth partner."""
+    import cv2
+
+    from monoloc.core.geometry import kitti_to_zup, quaternion_xyzw_from_R
+
+    root = tmp_path / "tum"
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    cam = kitti_root.camera
+    rgb_lines, depth_lines, gt_lines = ["# rgb"], ["# depth"], ["# ground truth"]
+    for i, T_kitti in enumerate(kitti_root.T_kitti_from_cam):
+        t = 10.0 + 0.1 * i
+        gray = cv2.imread(str(kitti_root.sequence_dir / "image_0" / f"{i:06d}.png"), 0)
+        colour = cv2.merge([gray, gray, gray])
+        cv2.imwrite(str(root / "rgb" / f"{t:.6f}.png"), colour)
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        # Depth of the wall z = 8 (KITTI world) along each pixel's ray.
+        K_inv = np.linalg.inv(cam.K)
+        u, v = np.meshgrid(np.arange(cam.width_px), np.arange(cam.height_px))
+        rays = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ K_inv.T
+        rays_world = rays @ T_kitti[:3, :3].T
+        z = (kitti_root.wall_z_m - T_kitti[2, 3]) / rays_world[:, 2]  # camera z = ray scale
+        depth = np.round(z * 5000).astype(np.uint16).reshape(cam.height_px, cam.width_px)
+        if i != 7:
+            cv2.imwrite(str(root / "depth" / f"{t + 0.004:.6f}.png"), depth)
+            depth_lines.append(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png")
+        T_zup = kitti_to_zup(T_kitti)
+        if i > 0:
+            q = quaternion_xyzw_from_R(T_zup[:3, :3])
+            gt_lines.append(f"{t:.4f} " + " ".join(f"{x:.9f}" for x in (*T_zup[:3, 3], *q)))
+    (root / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (root / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
+    intrinsics = {
+        "fx": cam.fx,
+        "fy": cam.fy,
+        "cx": cam.cx,
+        "cy": cam.cy,
+        "width": cam.width_px,
+        "height": cam.height_px,
+        "depth_scale": 5000,
+    }
+    (root / "intrinsics.json").write_text(json.dumps(intrinsics))
+    return root

@@ -180,3 +180,31 @@ def test_the_in_memory_map_registers_a_run_as_ingestion_does(kitti_root, kitti_c
     truth = [memory.refs[i].T_world_from_cam for i in range(8)]
     errors = [np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(moved, truth, strict=True)]
     assert max(errors) < 0.03, errors
+
+
+def test_a_tum_run_is_registered_too(kitti_root, tum_run):
+    """The same wall as a TUM RGB-D run with its ground truth off by a known shift is
+    moved back onto the KITTI run's map (another reader's frames, copied with new poses,
+    their depth images untouched)."""
+    from monoloc.core.registration import RunCorrection
+    from monoloc.evaluation import MemoryMap
+    from monoloc.server.ingest.register import RegistrationTarget, correct_source, register_source
+    from monoloc.server.ingest.tum import read_tum_run
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
+
+    memory = MemoryMap.empty(load_default_vocabulary())
+    memory.add_run(read_kitti_sequence(kitti_root.root))
+    run = read_tum_run(tum_run)
+    shift_world_m = np.array([0.15, -0.1])
+    planted = RunCorrection(np.tile(shift_world_m, (len(run.frames), 1)), 0, 0, np.zeros(2))
+    shifted = correct_source(run, planted)
+    target = RegistrationTarget(memory.vocabulary, memory.index, memory.lookup)
+    lenient = RegistrationConfig(min_frames=3)
+    registered, correction = register_source(
+        shifted, target, np.random.default_rng(0), config=lenient
+    )
+    assert correction.used >= 3 and type(registered) is type(run)
+    for before, after in zip(run.frames, registered.frames, strict=True):
+        assert after.depth_path == before.depth_path  # only the pose changed
+        error = np.linalg.norm(after.T_world_from_cam[:2, 3] - before.T_world_from_cam[:2, 3])
+        assert error < 0.03, error
