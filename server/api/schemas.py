@@ -351,6 +351,12 @@ class RunPublic(BaseModel):
     error: str | None
     created_at: datetime
     updated_at: datetime
+    registration: dict[str, Any] | None = Field(
+        None,
+        description="How the run was registered to the map before its entries were built "
+        "(uploaded with register_to_map=true): frames measured and used, the mean and "
+        "largest shift (m, world x / y), the noise of one measured offset; null if not.",
+    )
 
 
 _JOB_EXAMPLE = dict(

@@ -311,7 +311,9 @@ def ingest_run(
     total = len(frames) + sum(read_skips.values())
     writer = _Writer(session_factory, map_id, run_id, registry, total, read_skips)
     with session_scope(session_factory) as session:
-        runs_repo.update_run(session, run_id, status="running", frames_total=total)
+        runs_repo.update_run(
+            session, run_id, status="running", frames_total=total, registration=registration
+        )
     interrupted = False
     try:
         with (

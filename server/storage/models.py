@@ -135,6 +135,8 @@ class Run(Base):
     frames_skipped: Mapped[int] = mapped_column(default=0, server_default=text("0"))
     skip_reasons: Mapped[dict[str, Any]] = mapped_column(default=dict)  # reason -> count
     error: Mapped[str | None] = mapped_column(Text)
+    # RunCorrection.summary() when the run was registered to the map (migration 0006)
+    registration: Mapped[dict[str, Any] | None] = mapped_column()
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
 

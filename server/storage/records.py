@@ -77,6 +77,7 @@ class RunRecord:
     error: str | None
     created_at: datetime
     updated_at: datetime
+    registration: dict | None = None  # how the run was registered to the map, if it was
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,7 @@ def _run_record(row: Run) -> RunRecord:
         error=row.error,
         created_at=row.created_at,
         updated_at=row.updated_at,
+        registration=dict(row.registration) if row.registration is not None else None,
     )
 
 
@@ -120,8 +121,10 @@ def update_run(
     frames_skipped: int | None = None,
     skip_reasons: Mapping[str, int] | None = None,
     error: str | None = None,
+    registration: Mapping[str, object] | None = None,
 ) -> RunRecord:
-    """Set the given fields (absolute values; ``skip_reasons`` maps reason -> count)."""
+    """Set the given fields (absolute values; ``skip_reasons`` maps reason -> count;
+    ``registration``: the run's registration summary)."""
     row = _run_row(session, run_id)
     if status is not None:
         if status not in RUN_STATUSES:
@@ -135,6 +138,8 @@ def update_run(
     ):
         if value is not None:
             setattr(row, name, check_count(value, name))
+    if registration is not None:
+        row.registration = dict(registration)
     if skip_reasons is not None:
         row.skip_reasons = {
             str(k): check_count(v, f"skip_reasons[{k!r}]") for k, v in skip_reasons.items()

@@ -180,3 +180,5 @@ def test_a_run_uploaded_with_register_reports_its_registration(sim_dataset, tmp_
         assert reg["frames_used"] <= reg["frames_measured"] < 20
         assert reg["offset_max_m"] == 0.0
         assert len(reg["noise_m"]) == 2 and min(reg["noise_m"]) >= 0.01
+        runs = client.get(f"/v1/maps/{map_id}/runs", headers=keys.header("write")).json()
+        assert [r["registration"] for r in runs] == [None, reg]

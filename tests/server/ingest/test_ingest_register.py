@@ -11,6 +11,7 @@ from monoloc.core.registration import RegistrationConfig
 from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import IngestConfig, ingest_run
 from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.db import session_scope
 
 SHIFT_KITTI_M = np.array([0.20, 0.0, -0.12])  # x right, z forward: both horizontal
@@ -65,6 +66,8 @@ def test_a_shifted_second_run_is_moved_onto_the_map(
     assert abs(np.linalg.norm(reg["offset_mean_m"]) - shift) < 0.03
     errors = _position_errors_m(factory, registered_map, run_id, kitti_root.T_kitti_from_cam)
     assert errors.max() < 0.03, errors
+    with session_scope(factory) as session:  # the run keeps how it was registered
+        assert runs_repo.get_run(session, run_id).registration == reg
 
     # The same upload without registration keeps the written (shifted) poses.
     plain_map = make_map(name="plain")
@@ -72,6 +75,8 @@ def test_a_shifted_second_run_is_moved_onto_the_map(
     plain_run = make_run(plain_map, second, "night")
     plain = ingest_run(factory, plain_map, second, run_id=plain_run)
     assert plain.registration is None
+    with session_scope(factory) as session:
+        assert runs_repo.get_run(session, plain_run).registration is None
     errors = _position_errors_m(factory, plain_map, plain_run, kitti_root.T_kitti_from_cam)
     np.testing.assert_allclose(errors, shift, atol=1e-6)
 
