@@ -211,6 +211,17 @@ class ReferenceEntry:
     def pose_world(self) -> np.ndarray:
         return planar_from_T_world_from_cam(self.T_world_from_cam)
 
+    @classmethod
+    def from_entry_data(cls, data) -> ReferenceEntry:
+        """From a stored entry (``monoloc.server.storage.records.EntryData``)."""
+        return cls(
+            entry_id=data.id,
+            T_world_from_cam=np.asarray(data.T_world_from_cam),
+            descriptors=np.asarray(data.descriptors),
+            points_cam=np.asarray(data.points_cam),
+            tags=data.summary.tags,
+        )
+
 
 @dataclass(frozen=True)
 class PoseHypothesis:

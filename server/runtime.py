@@ -181,25 +181,8 @@ class MapRegistry:
         """The entries that still exist (an entry deleted in the database may linger in
         the index until ``entries_removed`` or the next version check: it is skipped)."""
         with session_scope(self._sessions) as session:
-            try:
-                rows = entries_repo.get_entry_data(session, list(ids))
-            except NotFoundError:
-                rows = []
-                for entry_id in ids:
-                    try:
-                        rows.extend(entries_repo.get_entry_data(session, [entry_id]))
-                    except NotFoundError:
-                        continue
-        return [
-            ReferenceEntry(
-                entry_id=r.id,
-                T_world_from_cam=np.asarray(r.T_world_from_cam),
-                descriptors=np.asarray(r.descriptors),
-                points_cam=np.asarray(r.points_cam),
-                tags=r.summary.tags,
-            )
-            for r in rows
-        ]
+            rows = entries_repo.existing_entry_data(session, list(ids))
+        return [ReferenceEntry.from_entry_data(r) for r in rows]
 
     def _build(self, map_id: int) -> MapRuntime:
         with session_scope(self._sessions) as session:

@@ -387,18 +387,10 @@ def _register(session_factory, map_id, run_id, source, vocabulary, config, shoul
                 index.add(batch.entry_ids, batch.codes, batch.vlads, batch.planar)
 
     def lookup(ids) -> list[ReferenceEntry]:
+        # an entry an operator deletes meanwhile is skipped, as the live index skips it
         with session_scope(session_factory) as session:
-            rows = entries_repo.get_entry_data(session, list(ids))
-        return [
-            ReferenceEntry(
-                r.id,
-                np.asarray(r.T_world_from_cam),
-                np.asarray(r.descriptors),
-                np.asarray(r.points_cam),
-                r.summary.tags,
-            )
-            for r in rows
-        ]
+            rows = entries_repo.existing_entry_data(session, list(ids))
+        return [ReferenceEntry.from_entry_data(r) for r in rows]
 
     rng = np.random.default_rng([map_id, run_id])
     target = RegistrationTarget(vocabulary, index, lookup)

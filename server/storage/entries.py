@@ -319,6 +319,21 @@ def get_entry_data(session: Session, entry_ids: Sequence[int]) -> list[EntryData
     return [_data(rows[int(i)]) for i in entry_ids]
 
 
+def existing_entry_data(session: Session, entry_ids: Sequence[int]) -> list[EntryData]:
+    """Like :func:`get_entry_data`, without those of ``entry_ids`` that no longer exist
+    (an index may still list an entry deleted a moment ago)."""
+    try:
+        return get_entry_data(session, entry_ids)
+    except NotFoundError:
+        rows = []
+        for entry_id in entry_ids:
+            try:
+                rows.extend(get_entry_data(session, [entry_id]))
+            except NotFoundError:
+                continue
+        return rows
+
+
 def _vectors(rows) -> MapVectors:
     ids = np.array([r[0] for r in rows], dtype=np.int64)
     if not len(ids):

@@ -10,8 +10,10 @@ from monoloc.server.storage.entries import (
     add_entry,
     count_entries,
     delete_entry,
+    existing_entry_data,
     existing_hashes,
     get_entry,
+    get_entry_data,
     iter_map_vectors,
     list_entries,
     set_entry_tags,
@@ -89,8 +91,14 @@ def test_filters_and_pagination(factory, map_id, make_entry):
 def test_delete_entry_bumps_version(factory, map_id, make_entry):
     with session_scope(factory) as session:
         entry = add_entry(session, map_id, make_entry("a", tags=("night",)))[0]
+        kept = add_entry(session, map_id, make_entry("b"))[0]
     with session_scope(factory) as session:
-        assert delete_entry(session, entry.id, map_id=map_id) == 2
+        assert delete_entry(session, entry.id, map_id=map_id) == 3
+        # an index may still list the deleted entry: the lookup that tolerates it
+        rows = existing_entry_data(session, [kept.id, entry.id, kept.id])
+        assert [r.id for r in rows] == [kept.id, kept.id]
+        with pytest.raises(NotFoundError):
+            get_entry_data(session, [entry.id])
         with pytest.raises(NotFoundError):
             get_entry(session, entry.id)
         with pytest.raises(NotFoundError):
