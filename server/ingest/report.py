@@ -59,18 +59,23 @@ def print_ingest_summary(summary, console: Console | None = None) -> None:
     )
     table.add_row("time", f"{summary.elapsed_s:.1f} s ({summary.frames_per_s:.1f} frames/s)")
     table.add_row("map version", str(summary.map_version))
-    reg = summary.registration
-    if reg is not None:
-        mean_x, mean_y = reg["offset_mean_m"]
-        table.add_row(
-            "registered to the map",
-            f"{reg['frames_used']} of {reg['frames_measured']} localized frames used; "
-            f"moved by x {mean_x:+.3f} m, y {mean_y:+.3f} m on average "
-            f"(at most {reg['offset_max_m']:.3f} m)",
-        )
+    if summary.registration is not None:
+        table.add_row("registered to the map", registration_text(summary.registration))
     if summary.interrupted:
         table.add_row("status", "interrupted (run again to resume)")
     console.print(table)
+
+
+def registration_text(reg: dict) -> str:
+    """One line for a run's registration summary (``RunCorrection.summary``)."""
+    mean_x, mean_y = reg["offset_mean_m"]
+    used = f"{reg['frames_used']} of {reg['frames_measured']} localized frames used"
+    if not reg["offset_max_m"]:
+        return f"{used}; not moved"
+    return (
+        f"{used}; moved by x {mean_x:+.3f} m, y {mean_y:+.3f} m on average "
+        f"(at most {reg['offset_max_m']:.3f} m)"
+    )
 
 
 def print_stats(stats, console: Console | None = None) -> None:
@@ -107,7 +112,16 @@ def print_stats(stats, console: Console | None = None) -> None:
     table.add_row("tags", ", ".join(f"{t}: {n}" for t, n in stats.tags.items()) or "-")
     console.print(table)
     runs = Table(
-        "run", "kind", "format", "status", "frames", "entries", "skipped", "source", title="runs"
+        "run",
+        "kind",
+        "format",
+        "status",
+        "frames",
+        "entries",
+        "skipped",
+        "registered",
+        "source",
+        title="runs",
     )
     for r in stats.runs:
         skipped = f"{r.frames_skipped} " + (str(r.skip_reasons) if r.skip_reasons else "")
@@ -119,6 +133,7 @@ def print_stats(stats, console: Console | None = None) -> None:
             f"{r.frames_done}/{r.frames_total}",
             str(r.entries_added),
             skipped,
+            registration_text(r.registration) if r.registration is not None else "-",
             r.source_name[-60:],
         )
     if stats.runs:

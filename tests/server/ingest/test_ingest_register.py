@@ -141,7 +141,9 @@ def test_map_ingest_register_prints_the_registration(kitti_root, kitti_copy, tmp
         "map", "ingest", "--map", "wall", str(kitti_copy.root), "--kind", "night", "--register"
     )
     # 8 frames: fewer than the 20 the default needs before it moves a run
-    assert "registered to the map" in out and "moved by x +0.000 m, y +0.000 m" in out
+    assert "registered to the map" in out and "localized frames used; not moved" in out
+    stats = run("map", "stats", "wall")
+    assert "registered" in stats and "localized frames used; not moved" in stats
 
 
 def test_the_measurement_does_not_depend_on_the_number_of_threads(kitti_root, kitti_copy):
@@ -213,3 +215,21 @@ def test_a_tum_run_is_registered_too(kitti_root, tum_run):
         assert after.depth_path == before.depth_path  # only the pose changed
         error = np.linalg.norm(after.T_world_from_cam[:2, 3] - before.T_world_from_cam[:2, 3])
         assert error < 0.03, error
+
+
+def test_the_registration_line_says_whether_the_run_moved():
+    from monoloc.server.ingest.report import registration_text
+
+    moved = {
+        "frames_measured": 33,
+        "frames_used": 27,
+        "offset_mean_m": [0.0551, 0.008],
+        "offset_max_m": 0.0588,
+        "noise_m": [0.07, 0.09],
+    }
+    assert registration_text(moved) == (
+        "27 of 33 localized frames used; moved by x +0.055 m, y +0.008 m on average "
+        "(at most 0.059 m)"
+    )
+    still = {**moved, "frames_used": 12, "offset_mean_m": [0.0, 0.0], "offset_max_m": 0.0}
+    assert registration_text(still) == "12 of 33 localized frames used; not moved"
