@@ -1,8 +1,10 @@
 """The ``ingest`` job kind: a mapping run uploaded as files is added to its map
 (idempotent by image hash, so a resumed job adds only the frames that were missing),
 optionally training the map's vocabulary on it first (``train_vocabulary``: seeded, so a
-resumed job trains the same one). Parameters are read from the job row, so a resumed
-job does what the first attempt meant to do.
+resumed job trains the same one) and registering the run to the map
+(``register_to_map``: a resumed job registers to the same entries, so it finds the same
+correction). Parameters are read from the job row, so a resumed job does what the first
+attempt meant to do.
 """
 
 from __future__ import annotations

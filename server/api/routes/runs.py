@@ -151,7 +151,8 @@ async def upload_run(
             description="Register the run to the map's entries before adding it: localize "
             "its frames against them near their written poses and move its poses by the "
             "smoothed difference (two runs' GNSS/INS disagree by centimetres to "
-            "decimetres). The job's result reports the correction."
+            "decimetres). The job's result and the run's `registration` report the "
+            "correction."
         ),
     ] = False,
 ) -> UploadAccepted:
