@@ -313,6 +313,7 @@ def urban_city(
     With ``true_world``
     (the sim's true poses per run), the recording errors' floor (:func:`recording_floor`)."""
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
+    from monoloc.client.trajectory import ExcursionCauses
     from monoloc.evaluation import (
         EvalConfig,
         MemoryMap,
@@ -370,6 +371,7 @@ def urban_city(
     }
     if "kidnapped" in result.estimates:
         out["kidnapped_recover_s"] = recovery_s(result, "kidnapped")
+    out["excursions"] = {"query": excursions(result, "full")}
     map_id = sequence_of(meta, "map")
     if true_world is not None:
         from monoloc.client.trajectory import truth_in_map_frame
@@ -404,6 +406,7 @@ def urban_city(
             out["night_registration"] = correction
             out["night_entries_added"] = added
             out["night_bias"] = bias_report(after, ["full"])
+            out["excursions"]["night, + night entries"] = excursions(after, "full")
             if true_world is not None:
                 placed = truth_in_map_frame(
                     true_world["night"],
@@ -424,6 +427,8 @@ def urban_city(
             "night, + night entries (day and night entries: approximate)",
             out["night_recording_floor"],
         )
+    for run, causes in out["excursions"].items():
+        print(f"{run}: {ExcursionCauses(**causes).text()}")
     if "kidnapped_recover_s" in out:
         print(
             f"kidnapped start ({EvalConfig().kidnap_offset_m:g} m to the side): back within 0.25 m "
@@ -441,6 +446,16 @@ def fitted_lever_arm_m(train_run, rig_m: float | None) -> float:
     rig = "-" if rig_m is None else f"{rig_m:.3f}"
     print(f"camera lever arm fitted on the train run: {fitted:.3f} m (sim rig: {rig} m)")
     return fitted
+
+
+def excursions(result, variant: str) -> dict:
+    """The frames beyond 0.25 m of the written truth, by what their hypotheses held."""
+    from monoloc.client.trajectory import excursion_causes
+
+    causes = excursion_causes(
+        result.estimates[variant], result.truth_world, result.hypotheses_world, 0.25
+    )
+    return causes.to_dict()
 
 
 def recovery_s(result, variant: str) -> float | None:

@@ -40,6 +40,17 @@ def verdict(value, goal, lower_is_better=True) -> str:
     return "met" if ok else "**missed**"
 
 
+def excursion_text(causes: dict) -> str:
+    """The accuracy bench's frames beyond 0.25 m, by what their hypotheses held (the
+    words of ``ExcursionCauses.text``)."""
+    return (
+        f"{causes['off']} of {causes['frames']} frames beyond {causes['tolerance_m']:g} m: "
+        f"{causes['no_estimate']} before the start, {causes['no_hypotheses']} without "
+        f"hypotheses, {causes['hypotheses_off']} with every hypothesis beyond it, "
+        f"{causes['filter_off']} with one within it but the filter elsewhere"
+    )
+
+
 def accuracy_section(name: str, data: dict | None) -> list[str]:
     if data is None:
         return [f"## Accuracy ({name})", "", "not run", ""]
@@ -103,6 +114,8 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
                 f"{rf['filter_vs_map_frame']['rmse_m']:.3f} m, best of k median "
                 f"{rf['best_of_k_vs_map_frame_median_m']:.3f} m.",
             ]
+    for run, causes in data.get("excursions", {}).items():
+        out += ["", f"Frames off ({run}): {excursion_text(causes)}."]
     reg = data.get("night_registration")
     if reg:
         mean_x, mean_y = reg["offset_mean_m"]

@@ -207,6 +207,67 @@ def best_of_k_errors(hypotheses_world: list[np.ndarray], truth_world: np.ndarray
     return out
 
 
+@dataclass(frozen=True)
+class ExcursionCauses:
+    """The frames whose estimate is missing or further than ``tolerance_m`` from the
+    truth (position only), by what the frame's hypotheses held: where the error came
+    from. ``no_estimate``: the filter had not started; ``no_hypotheses``: none came
+    (dead reckoning: a gap, or streets beyond the map); ``hypotheses_off``: every
+    hypothesis was as far off (the map or the PnP wrong, nothing a filter could pick);
+    ``filter_off``: one was within the tolerance and the filter was elsewhere."""
+
+    tolerance_m: float
+    frames: int
+    off: int
+    no_estimate: int
+    no_hypotheses: int
+    hypotheses_off: int
+    filter_off: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def text(self) -> str:
+        """One line: how many frames were off, and why."""
+        return (
+            f"{self.off} of {self.frames} frames beyond {self.tolerance_m:g} m: "
+            f"{self.no_estimate} before the start, {self.no_hypotheses} without hypotheses, "
+            f"{self.hypotheses_off} with every hypothesis beyond it, {self.filter_off} with "
+            "one within it but the filter elsewhere"
+        )
+
+
+def excursion_causes(
+    estimate_world: np.ndarray,
+    truth_world: np.ndarray,
+    hypotheses_world: list[np.ndarray],
+    tolerance_m: float = 0.25,
+) -> ExcursionCauses:
+    """Sort the frames whose estimate (N, 3; NaN rows: no estimate) is beyond
+    ``tolerance_m`` of the truth (N, 3) by their hypotheses ((H, 3) per frame)."""
+    if not tolerance_m > 0:
+        raise InvalidInputError(f"tolerance_m must be > 0, got {tolerance_m}")
+    est = np.asarray(estimate_world, dtype=np.float64).reshape(-1, 3)
+    truth = np.asarray(truth_world, dtype=np.float64)
+    if est.shape != truth.shape:
+        raise InvalidInputError(f"estimates {est.shape} and truth {truth.shape} differ")
+    best = best_of_k_errors(hypotheses_world, truth)
+    error = np.linalg.norm(est[:, :2] - truth[:, :2], axis=1)
+    missing = ~np.isfinite(error)
+    off = missing | (error > tolerance_m)
+    with_estimate_off = off & ~missing
+    none = ~np.isfinite(best)
+    return ExcursionCauses(
+        tolerance_m=float(tolerance_m),
+        frames=len(truth),
+        off=int(off.sum()),
+        no_estimate=int(missing.sum()),
+        no_hypotheses=int((with_estimate_off & none).sum()),
+        hypotheses_off=int((with_estimate_off & ~none & (best > tolerance_m)).sum()),
+        filter_off=int((with_estimate_off & ~none & (best <= tolerance_m)).sum()),
+    )
+
+
 def time_to_recover(
     position_error_m: np.ndarray,
     timestamps_s: np.ndarray,

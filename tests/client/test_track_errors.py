@@ -12,6 +12,7 @@ from monoloc.client.trajectory import (
     TurnClasses,
     best_of_k_errors,
     errors_by_turning,
+    excursion_causes,
     frame_errors,
     time_to_recover,
     yaw_rate_of,
@@ -106,6 +107,37 @@ def test_best_of_k_picks_the_closest_hypothesis_and_marks_empty_frames():
     np.testing.assert_allclose(best, [0.5, np.nan, 0.1])
     with pytest.raises(InvalidInputError):
         best_of_k_errors(hyps[:2], truth)
+
+
+def test_excursion_causes_sort_the_frames_off_by_their_hypotheses():
+    truth = np.column_stack([np.arange(6) * 1.0, np.zeros(6), np.zeros(6)])
+    est = truth.copy()
+    est[0] = np.nan  # not started
+    est[1, 1] += 0.1  # within the tolerance: not off, whatever its hypotheses
+    est[2, 1] += 0.4  # off, no hypotheses
+    est[3, 1] += 0.4  # off, every hypothesis off too
+    est[4, 1] += 0.4  # off, one hypothesis near the truth
+    est[5, 1] += 0.26  # just beyond: off, hypotheses exactly on the truth
+    hyps = [
+        np.array([[0.0, 0.0, 0.0]]),
+        np.array([[1.0, 3.0, 0.0]]),
+        np.zeros((0, 3)),
+        np.array([[3.0, 0.3, 0.0], [3.5, -0.5, 0.0]]),
+        np.array([[4.0, 0.6, 0.0], [4.0, 0.2, 0.0]]),
+        np.array([[5.0, 0.0, 0.0]]),
+    ]
+    causes = excursion_causes(est, truth, hyps, tolerance_m=0.25)
+    assert (causes.frames, causes.off, causes.no_estimate) == (6, 5, 1)
+    assert (causes.no_hypotheses, causes.hypotheses_off, causes.filter_off) == (1, 1, 2)
+    assert causes.off == (
+        causes.no_estimate + causes.no_hypotheses + causes.hypotheses_off + causes.filter_off
+    )
+    assert causes.text().startswith("5 of 6 frames beyond 0.25 m: 1 before the start")
+    assert causes.to_dict()["filter_off"] == 2
+    with pytest.raises(InvalidInputError):
+        excursion_causes(est[:5], truth, hyps)
+    with pytest.raises(InvalidInputError):
+        excursion_causes(est, truth, hyps, tolerance_m=0.0)
 
 
 def test_time_to_recover_needs_the_error_to_stay_small():
