@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from monoloc.client.trajectory import ExcursionCauses
+
 HERE = Path(__file__).parent
 RESULTS = HERE / "results"
 PLOTS = RESULTS / "plots"
@@ -38,17 +40,6 @@ def verdict(value, goal, lower_is_better=True) -> str:
         return "not run"
     ok = value <= goal if lower_is_better else value >= goal
     return "met" if ok else "**missed**"
-
-
-def excursion_text(causes: dict) -> str:
-    """The accuracy bench's frames beyond 0.25 m, by what their hypotheses held (the
-    words of ``ExcursionCauses.text``)."""
-    return (
-        f"{causes['off']} of {causes['frames']} frames beyond {causes['tolerance_m']:g} m: "
-        f"{causes['no_estimate']} before the start, {causes['no_hypotheses']} without "
-        f"hypotheses, {causes['hypotheses_off']} with every hypothesis beyond it, "
-        f"{causes['filter_off']} with one within it but the filter elsewhere"
-    )
 
 
 def accuracy_section(name: str, data: dict | None) -> list[str]:
@@ -115,7 +106,7 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
                 f"{rf['best_of_k_vs_map_frame_median_m']:.3f} m.",
             ]
     for run, causes in data.get("excursions", {}).items():
-        out += ["", f"Frames off ({run}): {excursion_text(causes)}."]
+        out += ["", f"Frames off ({run}): {ExcursionCauses(**causes).text()}."]
     reg = data.get("night_registration")
     if reg:
         mean_x, mean_y = reg["offset_mean_m"]
