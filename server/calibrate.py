@@ -130,6 +130,7 @@ class CalibrationResult:
 @dataclass(frozen=True)
 class _Query:
     keypoints_px: np.ndarray  # (N, 2) float32
+    keypoint_scales: np.ndarray  # (N,) float32 pyramid scale
     descriptors: np.ndarray  # (N, 32) uint8
     vlad: np.ndarray  # (2048,) float32
     truth_world: np.ndarray  # (3,) planar (X, Y, psi)
@@ -187,6 +188,7 @@ def _split_run(frames, intrinsics, vocabulary, config, tick):
             queries.append(
                 _Query(
                     features.keypoints_px,
+                    features.scales,
                     features.descriptors,
                     compute_vlad(features.descriptors, vocabulary),
                     planar_from_T_world_from_cam(np.asarray(frame.T_world_from_cam)),
@@ -213,7 +215,15 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
     )
     e_vlad = {int(j): float(np.linalg.norm(entries[j].vlad - query.vlad)) for j in nearest}
     hypotheses, _ = pose_hypotheses(
-        query.keypoints_px, refs, matches, e_vlad, intrinsics, config.pnp, rng, config.strategy
+        query.keypoints_px,
+        refs,
+        matches,
+        e_vlad,
+        intrinsics,
+        config.pnp,
+        rng,
+        config.strategy,
+        keypoint_scales=query.keypoint_scales,
     )
     for h in hypotheses:
         samples.n_hypotheses += int(not h.joint)

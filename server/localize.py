@@ -321,6 +321,7 @@ def localize_frame(
         rng,
         config.pnp_strategy,
         prior,
+        features.scales,
     )
     laps.lap("pnp")
     return LocalizationResult(
@@ -343,13 +344,23 @@ def pose_hypotheses(
     rng: np.random.Generator,
     strategy: PnpStrategy = PnpStrategy(),
     prior: RetrievalPrior | None = None,
+    keypoint_scales: np.ndarray | None = None,
 ) -> tuple[list[PoseHypothesis], list[tuple[int, str]]]:
     """PnP against each reference (its (K, 2) query/reference index pairs into
     ``keypoints_px`` (N, 2) and its points), guided or not, plus the joint hypothesis
-    (appended last). Returns the hypotheses in the references' order and (entry id,
+    (appended last). ``keypoint_scales`` (N,): the keypoints' pyramid scales
+    (``Features.scales``; None: all at full resolution), which weigh their errors
+    (``PnpConfig``). Returns the hypotheses in the references' order and (entry id,
     reason) of the rejected references."""
     keypoints_px = np.asarray(keypoints_px, dtype=np.float64)  # once, not per entry
-    solved = _solve_entries(keypoints_px, refs, matches, intrinsics, config, rng, strategy, prior)
+    scales = None if keypoint_scales is None else np.asarray(keypoint_scales, dtype=np.float64)
+    if scales is not None and scales.shape != (len(keypoints_px),):
+        raise InvalidInputError(
+            f"{len(keypoints_px)} keypoints but keypoint scales of shape {scales.shape}"
+        )
+    solved = _solve_entries(
+        keypoints_px, refs, matches, intrinsics, config, rng, strategy, prior, scales
+    )
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
     inliers: list[EntryInliers] = []
@@ -378,7 +389,12 @@ def pose_hypotheses(
         )
         kept = pairs[rel.inlier_mask]
         inliers.append(
-            EntryInliers(ref.T_world_from_cam, keypoints_px[kept[:, 0]], ref.points_cam[kept[:, 1]])
+            EntryInliers(
+                ref.T_world_from_cam,
+                keypoints_px[kept[:, 0]],
+                ref.points_cam[kept[:, 1]],
+                None if scales is None else scales[kept[:, 0]],
+            )
         )
     if strategy.joint is not None:
         joint = _joint_hypothesis(hypotheses, inliers, intrinsics, config, strategy.joint)
@@ -386,7 +402,7 @@ def pose_hypotheses(
             hypotheses.append(joint)
     if strategy.pooled is not None and not hypotheses and refs:
         pooled = _pooled_hypothesis(
-            keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, strategy.pooled
+            keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, strategy.pooled, scales
         )
         if pooled is not None:
             hypotheses.append(pooled)
@@ -402,6 +418,7 @@ def _solve_entries(
     rng: np.random.Generator,
     strategy: PnpStrategy,
     prior: RetrievalPrior | None,
+    scales: np.ndarray | None = None,
 ) -> list[RelativePose]:
     """One RelativePose per reference, in the references' order.
 
@@ -430,14 +447,15 @@ def _solve_entries(
         nonlocal n_found
         ref, pairs = refs[j], matches[j]
         pixels, points = keypoints_px[pairs[:, 0]], ref.points_cam[pairs[:, 1]]
+        pair_scales = None if scales is None else scales[pairs[:, 0]]
         if strategy.guided and n_found:
             # every found pose brought into this entry's frame: T_ref_from_world @ T
             guesses = invert_rigid(ref.T_world_from_cam) @ found_world[:n_found]
             rel = estimate_relative_pose_guided(
-                pixels, points, guesses, intrinsics, config, rng, fallback=fallback
+                pixels, points, guesses, intrinsics, config, rng, fallback, pair_scales
             )
         else:
-            rel = estimate_relative_pose(pixels, points, intrinsics, config, rng)
+            rel = estimate_relative_pose(pixels, points, intrinsics, config, rng, pair_scales)
         if rel.accepted and strategy.guided:
             found_world[n_found] = ref.T_world_from_cam @ rel.T_ref_from_query
             votes.add(found_world[n_found])
@@ -498,6 +516,7 @@ def _pooled_hypothesis(
     pnp: PnpConfig,
     rng: np.random.Generator,
     config: PooledConfig,
+    keypoint_scales: np.ndarray | None = None,
 ) -> PoseHypothesis | None:
     """The pooled pose of the frame's entries, as a hypothesis: not marked ``joint`` (it
     stands in for the per-entry hypotheses the frame did not get, and the paper's
@@ -512,6 +531,7 @@ def _pooled_hypothesis(
         pnp,
         rng,
         config,
+        keypoint_scales,
     )
     if pose is None:
         return None

@@ -16,10 +16,11 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, errors_px, inliers):
+def inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, thresholds_px, errors_px, inliers):
     """Fill errors_px (M,) with the reprojection error of each point (a 1e-9 m floor on
-    depth) and inliers (M,) bool with whether it is within ``threshold_px`` and in front
-    of the camera: one pass, no depth array and no element-wise passes after it."""
+    depth) and inliers (M,) bool with whether it is within its own ``thresholds_px`` (M,)
+    and in front of the camera: one pass, no depth array and no element-wise passes after
+    it."""
     for k in range(points_ref.shape[0]):
         X, Y, Z = points_ref[k, 0], points_ref[k, 1], points_ref[k, 2]
         x = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]
@@ -30,14 +31,14 @@ def inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, errors
         du = fx * x / z + cx - pixels[k, 0]
         dv = fy * y / z + cy - pixels[k, 1]
         errors_px[k] = np.sqrt(du * du + dv * dv)
-        inliers[k] = in_front and errors_px[k] <= threshold_px
+        inliers[k] = in_front and errors_px[k] <= thresholds_px[k]
 
 
 @njit(cache=True, nogil=True)
-def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, counts):
-    """Fill counts (G,) with the number of points within ``threshold_px`` of their pixel
-    and in front of the camera under each of G poses R (G, 3, 3), t (G, 3): the test of
-    ``inlier_errors``, same arithmetic, without storing the errors."""
+def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, thresholds_px, counts):
+    """Fill counts (G,) with the number of points within their ``thresholds_px`` (M,) of
+    their pixel and in front of the camera under each of G poses R (G, 3, 3), t (G, 3):
+    the test of ``inlier_errors``, same arithmetic, without storing the errors."""
     for g in range(R.shape[0]):
         n = 0
         for k in range(points_ref.shape[0]):
@@ -50,16 +51,17 @@ def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, counts
             z = max(z, 1e-9)
             du = fx * x / z + cx - pixels[k, 0]
             dv = fy * y / z + cy - pixels[k, 1]
-            if np.sqrt(du * du + dv * dv) <= threshold_px:
+            if np.sqrt(du * du + dv * dv) <= thresholds_px[k]:
                 n += 1
         counts[g] = n
 
 
 @njit(inline="always")
-def _normal_equations(points_ref, pixels, mask, R, t, fx, fy, cx, cy, H, g):
+def _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H, g):
     """Gauss-Newton normal equations H (6, 6), g (6,) for a left perturbation
-    (rotation vector w, translation v) of the pose, over the masked points; returns the
-    squared reprojection error sum at the pose."""
+    (rotation vector w, translation v) of the pose, over the masked points, each point's
+    squared error weighted by ``weights`` (M,) (its inverse variance); returns the
+    weighted squared reprojection error sum at the pose."""
     H[:, :] = 0.0
     g[:] = 0.0
     cost = 0.0
@@ -76,7 +78,8 @@ def _normal_equations(points_ref, pixels, mask, R, t, fx, fy, cx, cy, H, g):
         iz = 1.0 / z
         ru = fx * x * iz + cx - pixels[k, 0]
         rv = fy * y * iz + cy - pixels[k, 1]
-        cost += ru * ru + rv * rv
+        wk = weights[k]
+        cost += wk * (ru * ru + rv * rv)
         # d(u, v)/d(x, y, z), then d(x, y, z)/d(w, v) = [-[p]_x | I]
         a, b = fx * iz, -fx * x * iz * iz
         c, d = fy * iz, -fy * y * iz * iz
@@ -93,9 +96,9 @@ def _normal_equations(points_ref, pixels, mask, R, t, fx, fy, cx, cy, H, g):
         J[1, 4] = c
         J[1, 5] = d
         for i in range(6):
-            g[i] += J[0, i] * ru + J[1, i] * rv
+            g[i] += wk * (J[0, i] * ru + J[1, i] * rv)
             for j in range(i, 6):
-                H[i, j] += J[0, i] * J[0, j] + J[1, i] * J[1, j]
+                H[i, j] += wk * (J[0, i] * J[0, j] + J[1, i] * J[1, j])
     for i in range(6):
         for j in range(i):
             H[i, j] = H[j, i]
@@ -114,15 +117,16 @@ def _exp_so3(w):
 
 
 @njit(cache=True, nogil=True)
-def refine_lm(points_ref, pixels, mask, R, t, fx, fy, cx, cy, iterations):
-    """Levenberg-Marquardt on the masked points' reprojection error, starting at (R, t);
-    at most ``iterations`` accepted steps (and as many rejected ones). Returns the refined
-    (R, t) and the final squared error sum."""
+def refine_lm(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, iterations):
+    """Levenberg-Marquardt on the masked points' reprojection error, each point's squared
+    error weighted by ``weights`` (M,), starting at (R, t); at most ``iterations`` accepted
+    steps (and as many rejected ones). Returns the refined (R, t) and the final weighted
+    squared error sum."""
     H = np.empty((6, 6))
     g = np.empty(6)
     H_new = np.empty((6, 6))
     g_new = np.empty(6)
-    cost = _normal_equations(points_ref, pixels, mask, R, t, fx, fy, cx, cy, H, g)
+    cost = _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H, g)
     damping = 1e-4
     accepted = 0
     for _ in range(2 * iterations):
@@ -134,7 +138,7 @@ def refine_lm(points_ref, pixels, mask, R, t, fx, fy, cx, cy, iterations):
         R_new = dR @ R
         t_new = dR @ t + step[3:]
         cost_new = _normal_equations(
-            points_ref, pixels, mask, R_new, t_new, fx, fy, cx, cy, H_new, g_new
+            points_ref, pixels, mask, weights, R_new, t_new, fx, fy, cx, cy, H_new, g_new
         )
         if cost_new < cost:
             R, t, cost = R_new, t_new, cost_new

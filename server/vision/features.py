@@ -56,10 +56,13 @@ class Features:
 
     keypoints_px: (N, 2) float32 pixel (x, y); pixel (0, 0) is the centre of the top-left
     pixel (OpenCV's convention). descriptors: (N, 32) uint8, row i describes keypoint i.
+    scales: (N,) float32, the pyramid scale each keypoint was found at
+    (``scale_factor ** octave``, 1 = full resolution): its position is that much coarser.
     """
 
     keypoints_px: np.ndarray
     descriptors: np.ndarray
+    scales: np.ndarray
 
     def __len__(self) -> int:
         return int(self.keypoints_px.shape[0])
@@ -70,6 +73,7 @@ def empty_features() -> Features:
     return Features(
         keypoints_px=np.zeros((0, 2), dtype=np.float32),
         descriptors=np.zeros((0, DESCRIPTOR_BYTES), dtype=np.uint8),
+        scales=np.zeros(0, dtype=np.float32),
     )
 
 
@@ -124,9 +128,11 @@ def extract_features(image_gray: np.ndarray, config: OrbConfig = OrbConfig()) ->
     if descriptors is None or len(keypoints) == 0:
         return empty_features()
     points_px = cv2.KeyPoint_convert(keypoints).astype(np.float32, copy=False).reshape(-1, 2)
+    octaves = np.fromiter((k.octave for k in keypoints), dtype=np.float32, count=len(keypoints))
     return Features(
         keypoints_px=points_px,
         descriptors=np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(-1, DESCRIPTOR_BYTES),
+        scales=np.float32(config.scale_factor) ** octaves,
     )
 
 

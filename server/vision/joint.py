@@ -54,11 +54,13 @@ class JointConfig:
 @dataclass(frozen=True)
 class EntryInliers:
     """One entry's share of the union: its pose (4, 4) T_world_from_ref, its inlier query
-    pixels (M, 2) and their 3D points (M, 3) in the reference camera frame."""
+    pixels (M, 2) and their 3D points (M, 3) in the reference camera frame, and the query
+    keypoints' pyramid scales (M,) (None: all at full resolution; see ``PnpConfig``)."""
 
     T_world_from_ref: np.ndarray
     pixels_px: np.ndarray
     points_ref: np.ndarray
+    keypoint_scales: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -104,12 +106,17 @@ def estimate_joint_pose(
         return None
     init = np.asarray(T_world_from_cam_init, dtype=np.float64)
     origin_world = init[:3, 3].copy()
-    points, pixels = [], []
+    points, pixels, scales = [], [], []
     for e in entries:
         T = np.asarray(e.T_world_from_ref, dtype=np.float64)
         p_ref = np.asarray(e.points_ref, dtype=np.float64).reshape(-1, 3)
         points.append(p_ref @ T[:3, :3].T + (T[:3, 3] - origin_world))
         pixels.append(np.asarray(e.pixels_px, dtype=np.float64).reshape(-1, 2))
+        scales.append(
+            np.ones(len(p_ref))
+            if e.keypoint_scales is None
+            else np.asarray(e.keypoint_scales, dtype=np.float64).reshape(-1)
+        )
     points_local, pixels_all = np.concatenate(points), np.concatenate(pixels)
     bounds = np.cumsum([0] + [len(p) for p in points]).tolist()
     T_local_from_cam = init.copy()
@@ -123,6 +130,7 @@ def estimate_joint_pose(
         intrinsics.K,
         pnp,
         config.rounds,
+        keypoint_scales=np.concatenate(scales),
     )
     if R is None or np.count_nonzero(mask) < pnp.min_inliers:
         return None
@@ -176,6 +184,7 @@ def estimate_pooled_pose(
     pnp: PnpConfig,
     rng: np.random.Generator,
     config: PooledConfig,
+    keypoint_scales: np.ndarray | None = None,
 ) -> JointPose | None:
     """One PnP RANSAC on the matches of every retrieved entry together, for a frame whose
     entries each had too few matches or inliers for a pose of their own (hloc pools a
@@ -187,6 +196,7 @@ def estimate_pooled_pose(
     with the most matches (the anchor: PnP's rotation check is relative to it), the entries
     farther than ``config.neighbour_radius_m`` from it left out; a query
     keypoint matched in several entries keeps its match in the entry with more matches.
+    ``keypoint_scales`` (N,): the keypoints' pyramid scales (None: all at full resolution).
     ``members`` indexes the entries keeping inliers. None when RANSAC finds no pose with
     ``pnp.min_inliers`` inliers, or fewer than ``config.min_entries`` entries keep
     ``config.min_inliers_per_entry`` of them."""
@@ -206,7 +216,7 @@ def estimate_pooled_pose(
         return None
     T_anchor_from_world = invert_rigid(np.asarray(T_world_from_refs[anchor], dtype=np.float64))
     keypoints = np.asarray(keypoints_px, dtype=np.float64)
-    pixels, points, owners, seen = [], [], [], set()
+    pixels, points, owners, pair_scales, seen = [], [], [], [], set()
     for j in order:
         pairs = np.asarray(matches[j]).reshape(-1, 2)
         fresh = np.array([int(q) not in seen for q in pairs[:, 0]], dtype=bool)
@@ -219,9 +229,16 @@ def estimate_pooled_pose(
         points.append(p_ref @ T[:3, :3].T + T[:3, 3])
         pixels.append(keypoints[pairs[:, 0]])
         owners.append(np.full(len(pairs), j))
+        if keypoint_scales is not None:
+            pair_scales.append(np.asarray(keypoint_scales, dtype=np.float64)[pairs[:, 0]])
     pooled = dataclasses.replace(pnp, iterations=max(pnp.iterations, config.iterations))
     rel = estimate_relative_pose(
-        np.concatenate(pixels), np.concatenate(points), intrinsics, pooled, rng
+        np.concatenate(pixels),
+        np.concatenate(points),
+        intrinsics,
+        pooled,
+        rng,
+        np.concatenate(pair_scales) if keypoint_scales is not None else None,
     )
     if not rel.accepted:
         return None

@@ -59,6 +59,18 @@ class PnpConfig:
     twenty to 0.5 mm on the bench scene); minimal_solver: RANSAC's hypothesis solver, one of
     ``SOLVERS`` ("p3p": the fastest at equal accuracy in bench/vision.py).
 
+    Keypoint scale (used when the caller gives each query pixel its ORB pyramid scale,
+    ``scale_factor ** octave``): a keypoint found on a coarser level is located less
+    precisely, in proportion to its scale (on a dev city's matches, judged against the true
+    pose, the median residual grows from 0.6 px at level 0 to 2.0 px at level 7, day and
+    night alike, and night frames hold twice the day's share of level 5-7 keypoints). With
+    ``scale_weighting`` LM weighs each squared error by 1 / scale^2, its inverse variance
+    (ORB-SLAM weighs its reprojection errors the same way); the inlier threshold stays one
+    for all (a threshold growing with the scale was tried: more wrong poses passed
+    ``min_inliers`` at night and the filter re-seeded on them). ``bench/pnp_scale.py``
+    measures the per-entry pose error with and without the weights against the sim's true
+    poses.
+
     Guided PnP (:func:`estimate_relative_pose_guided`): a pose guessed from elsewhere
     chooses the entry's consensus set (its correspondences within the threshold), which is
     refit as RANSAC's would be; the result is kept when it holds at least
@@ -80,6 +92,7 @@ class PnpConfig:
     minimal_solver: str = "p3p"
     guided_min_inlier_ratio: float = 0.3
     guided_refit_min_fraction: float = 0.5
+    scale_weighting: bool = True
 
     def __post_init__(self) -> None:
         if not self.reprojection_error_px > 0 or self.iterations < 1:
@@ -141,28 +154,58 @@ def _rejected(
     )
 
 
+@dataclass(frozen=True, eq=False)
+class _Noise:
+    """Per correspondence: LM weight (M,) (inverse variance, 1 at full resolution) and
+    inlier threshold (M,) px (the kernels take one per point)."""
+
+    weights: np.ndarray
+    thresholds_px: np.ndarray
+
+
+def _noise(keypoint_scales: np.ndarray | None, n_points: int, config: PnpConfig) -> _Noise:
+    """The weights and thresholds of ``n_points`` correspondences whose query keypoints
+    have ``keypoint_scales`` (M,) (None: all at full resolution)."""
+    thresholds_px = np.full(n_points, config.reprojection_error_px)
+    if keypoint_scales is None:
+        return _Noise(np.ones(n_points), thresholds_px)
+    scales = np.asarray(keypoint_scales, dtype=np.float64).reshape(-1)
+    if len(scales) != n_points or not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
+        raise InvalidInputError(
+            f"need {n_points} positive finite keypoint scales, got shape {scales.shape}"
+        )
+    if not config.scale_weighting:
+        return _Noise(np.ones(n_points), thresholds_px)
+    return _Noise(1.0 / (scales * scales), thresholds_px)
+
+
 def _inliers(
     points: np.ndarray,
     pixels: np.ndarray,
     R: np.ndarray,
     t: np.ndarray,
     K: np.ndarray,
-    threshold_px: float,
+    thresholds_px: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Inlier mask (within ``threshold_px`` and in front of the camera) and reprojection
-    errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
+    """Inlier mask (within each point's ``thresholds_px`` (M,) and in front of the camera)
+    and reprojection errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
     from monoloc.server.vision._pnp_kernel import inlier_errors
 
     errors_px = np.empty(len(points))
     mask = np.empty(len(points), dtype=bool)
     inlier_errors(
-        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], threshold_px, errors_px, mask
+        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], thresholds_px, errors_px, mask
     )
     return mask, errors_px
 
 
 def _refit(
-    points: np.ndarray, pixels: np.ndarray, mask: np.ndarray, K: np.ndarray, config: PnpConfig
+    points: np.ndarray,
+    pixels: np.ndarray,
+    mask: np.ndarray,
+    K: np.ndarray,
+    config: PnpConfig,
+    noise: _Noise,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
     """Pose from RANSAC's inliers: SQPnP refit, inlier re-selection, then optional LM.
 
@@ -171,9 +214,9 @@ def _refit(
     textured wall), and early termination leaves an inlier set chosen by a 4-point model.
     SQPnP (globally optimal, planar-safe, cheap next to RANSAC) on those inliers, then
     re-selecting the inliers with that better pose, fixes both; LM then minimises the
-    reprojection error (``_pnp_kernel.refine_lm``). Returns (R_query_from_ref (3, 3),
-    t_query_from_ref (3,), final inlier mask, errors_px (M,)); R is None if a solver gave
-    nothing finite.
+    reprojection error (``_pnp_kernel.refine_lm``, weighted by ``noise``). Returns
+    (R_query_from_ref (3, 3), t_query_from_ref (3,), final inlier mask, errors_px (M,)); R
+    is None if a solver gave nothing finite.
     """
     from monoloc.server.vision._pnp_kernel import refine_lm
 
@@ -181,14 +224,15 @@ def _refit(
     if not ok or not _finite(rvec, tvec):
         return None, None, mask, np.full(len(mask), np.inf)
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
-    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+    mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
     if config.refine and np.count_nonzero(mask) >= _MIN_POINTS_FOR_SOLVER:
         R, t, _ = refine_lm(
-            points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
-        )
+            points, pixels, mask, noise.weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            config.refine_iterations,
+        )  # fmt: skip
         if not _finite(R, t):
             return None, None, mask, errors_px
-        mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+        mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
     return R, t, mask, errors_px
 
 
@@ -214,9 +258,12 @@ def estimate_relative_pose(
     intrinsics: CameraIntrinsics,
     config: PnpConfig,
     rng: np.random.Generator,
+    keypoint_scales: np.ndarray | None = None,
 ) -> RelativePose:
     """PnP RANSAC on M matches: query pixels (M, 2) and their 3D points in the reference
     camera frame (M, 3), metres. Returns T_ref_from_query and inlier statistics.
+    ``keypoint_scales`` (M,): the query keypoints' pyramid scales (see ``PnpConfig``;
+    None: all at full resolution).
 
     Rejects (accepted=False) on: too few correspondences, RANSAC failure, fewer than
     ``min_inliers`` inliers, relative rotation above ``max_rotation_rad`` (default: the
@@ -224,6 +271,7 @@ def estimate_relative_pose(
     """
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
+    noise = _noise(keypoint_scales, n_points, config)
     if n_points < max(config.min_inliers, _MIN_POINTS_FOR_SOLVER):
         return _rejected(n_points, f"too few correspondences ({n_points})")
     K = intrinsics.K
@@ -232,7 +280,7 @@ def estimate_relative_pose(
         if mask is None:
             return _rejected(n_points, "PnP RANSAC found no pose")
         R_query_from_ref, t_query_from_ref, mask, errors_px = _refit(
-            points, pixels, mask, K, config
+            points, pixels, mask, K, config, noise
         )
     except cv2.error as exc:  # degenerate input (e.g. all points identical)
         return _rejected(n_points, f"PnP failed: {str(exc).strip().splitlines()[-1]}")
@@ -357,30 +405,34 @@ def refine_from_pose(
     config: PnpConfig,
     rounds: int,
     candidates: np.ndarray | None = None,
+    keypoint_scales: np.ndarray | None = None,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
     """Score the correspondences against a pose and refine it on its inliers, ``rounds``
     times: select the inliers of (R, t), Levenberg-Marquardt on them, then a last
     selection. The shared step of guided PnP and the joint pose.
 
     points (M, 3) float64 in the frame (R, t) maps to the query camera, pixels (M, 2)
-    float64; ``candidates`` (M,) bool limits which correspondences may be inliers.
+    float64; ``candidates`` (M,) bool limits which correspondences may be inliers;
+    ``keypoint_scales`` (M,) as for :func:`estimate_relative_pose`.
     Returns (R, t, inlier mask, errors_px (M,)); R is None if LM left the finite numbers
     or fewer than 6 inliers remained to refine on.
     """
     from monoloc.server.vision._pnp_kernel import refine_lm
 
-    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+    noise = _noise(keypoint_scales, len(points), config)
+    mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
     if candidates is not None:
         mask &= candidates
     for _ in range(rounds):
         if np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
             return None, None, mask, errors_px
         R, t, _ = refine_lm(
-            points, pixels, mask, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.refine_iterations
-        )
+            points, pixels, mask, noise.weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            config.refine_iterations,
+        )  # fmt: skip
         if not _finite(R, t):
             return None, None, mask, errors_px
-        mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+        mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
         if candidates is not None:
             mask &= candidates
     return R, t, mask, errors_px
@@ -408,6 +460,7 @@ def estimate_relative_pose_guided(
     config: PnpConfig,
     rng: np.random.Generator,
     fallback: bool = True,
+    keypoint_scales: np.ndarray | None = None,
 ) -> RelativePose:
     """PnP seeded by poses found elsewhere (guided PnP), falling back to RANSAC.
 
@@ -420,12 +473,13 @@ def estimate_relative_pose_guided(
     "guided"); otherwise, or without guesses, the entry gets its own
     :func:`estimate_relative_pose`, unless ``fallback`` is False: then it is rejected
     (``method`` "guided"). Either way the pose comes from this entry's own
-    correspondences only.
+    correspondences only. ``keypoint_scales`` (M,) as for :func:`estimate_relative_pose`.
     """
     from monoloc.server.vision._pnp_kernel import count_inliers
 
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
+    noise = _noise(keypoint_scales, n_points, config)
     needed = guided_min_inliers(n_points, config)
     K = intrinsics.K
     best_count = -1
@@ -435,7 +489,7 @@ def estimate_relative_pose_guided(
         counts = np.empty(n_guesses, dtype=np.int64)
         count_inliers(
             points, pixels, R_all, t_all, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-            config.reprojection_error_px, counts,
+            noise.thresholds_px, counts,
         )  # fmt: skip
         g = int(counts.argmax())
         best_count = int(counts[g])
@@ -443,9 +497,9 @@ def estimate_relative_pose_guided(
         # The guess only chooses the consensus set, as RANSAC's best sample does: the pose
         # is then this entry's own (SQPnP on that set, re-selection, LM), so it does not
         # stay anchored to the guess along directions this entry constrains poorly.
-        mask, _ = _inliers(points, pixels, R_all[g], t_all[g], K, config.reprojection_error_px)
+        mask, _ = _inliers(points, pixels, R_all[g], t_all[g], K, noise.thresholds_px)
         try:
-            R, t, mask, errors_px = _refit(points, pixels, mask, K, config)
+            R, t, mask, errors_px = _refit(points, pixels, mask, K, config, noise)
         except cv2.error:
             R = None
         if R is not None and np.count_nonzero(mask) >= needed:
@@ -462,4 +516,4 @@ def estimate_relative_pose_guided(
             f"(< {needed}); no own RANSAC once the pose is confirmed",
             method="guided",
         )
-    return estimate_relative_pose(pixels, points, intrinsics, config, rng)
+    return estimate_relative_pose(pixels, points, intrinsics, config, rng, keypoint_scales)

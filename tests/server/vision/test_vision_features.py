@@ -3,7 +3,7 @@ import pytest
 from skimage import data
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.vision.features import OrbConfig, extract_features
+from monoloc.server.vision.features import OrbConfig, _create_orb, extract_features
 
 
 def test_real_photo_gives_1000_features_with_documented_shapes():
@@ -99,3 +99,21 @@ def test_describe_keypoints_reproduces_orb_at_its_own_full_resolution_detections
     assert kept[:-1].all() and not kept[-1]
     differing_bits = np.unpackbits(described ^ descriptors[level0], axis=1).sum(axis=1)
     assert np.mean(differing_bits == 0) > 0.95 and differing_bits.max() <= 4
+
+
+def test_scales_are_the_pyramid_scale_opencv_detected_each_keypoint_at():
+    import cv2
+
+    config = OrbConfig()
+    image = data.camera()
+    features = extract_features(image, config)
+    assert features.scales.shape == (len(features),) and features.scales.dtype == np.float32
+    # OpenCV's ORB gives a keypoint found on level L the size patch_size * scale_factor ** L.
+    blurred = cv2.GaussianBlur(image, (config.blur_ksize, config.blur_ksize), 0)
+    keypoints, _ = _create_orb(config).detectAndCompute(blurred, None)
+    assert np.allclose(cv2.KeyPoint_convert(keypoints), features.keypoints_px)
+    sizes = np.array([k.size for k in keypoints])
+    assert np.allclose(features.scales * config.edge_threshold, sizes, rtol=1e-5)
+    levels = np.round(np.log(features.scales) / np.log(config.scale_factor))
+    assert levels.min() == 0 and levels.max() >= 4  # a photograph has corners at every scale
+    assert extract_features(np.full((64, 64), 9, dtype=np.uint8)).scales.shape == (0,)

@@ -327,13 +327,17 @@ def test_count_inliers_agrees_with_the_inlier_errors():
     t = np.ascontiguousarray(np.array([T[:3, 3] for T in poses]))
     counts = np.empty(len(poses), dtype=np.int64)
     K = CAM.K
-    count_inliers(points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], 3.0, counts)
+    # per-point thresholds: 3 px, and 1.5 px for every other point
+    thresholds_px = np.where(np.arange(len(points)) % 2 == 0, 3.0, 1.5)
+    count_inliers(points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], thresholds_px, counts)
     expected = []
     for g in range(len(poses)):
         errors, inliers = np.empty(len(points)), np.empty(len(points), dtype=bool)
         inlier_errors(
-            points, pixels, R[g], t[g], K[0, 0], K[1, 1], K[0, 2], K[1, 2], 3.0, errors, inliers
-        )
+            points, pixels, R[g], t[g], K[0, 0], K[1, 1], K[0, 2], K[1, 2], thresholds_px,
+            errors, inliers,
+        )  # fmt: skip
+        assert np.array_equal(inliers[errors > 1.5], (errors <= thresholds_px)[errors > 1.5])
         expected.append(int(inliers.sum()))
     assert counts.tolist() == expected
     assert expected[0] > 0.6 * len(points) and min(expected) < expected[0]
@@ -434,3 +438,33 @@ def test_only_the_neighbours_of_the_entry_with_most_matches_are_pooled():
     for pose in (near, wide):
         position_m, angle_deg = _pose_error(pose.T_world_from_cam, T_world_from_query)
         assert position_m < 0.15 and angle_deg < 0.5
+
+
+def test_keypoint_scales_reach_every_pose_and_are_checked():
+    from monoloc.core.errors import InvalidInputError
+
+    T_world_from_query, refs, matches, keypoints = _scene(8)
+    e_vlad = {r.entry_id: 0.8 for r in refs}
+
+    def solve(scales):
+        return pose_hypotheses(
+            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(0),
+            PnpStrategy(), None, scales,
+        )[0]  # fmt: skip
+
+    plain = solve(None)
+    assert any(h.joint for h in plain)
+    # Unit scales are full resolution: the very same poses.
+    same = solve(np.ones(len(keypoints)))
+    assert [h.T_world_from_cam.tolist() for h in same] == [
+        h.T_world_from_cam.tolist() for h in plain
+    ]
+    # Varied scales change the weights of the per-entry and the joint fits, not their truth.
+    scales = 1.2 ** np.random.default_rng(1).integers(0, 8, len(keypoints))
+    weighted = solve(scales)
+    assert [h.method for h in weighted] == [h.method for h in plain]
+    for h_w, h_p in zip(weighted, plain, strict=True):
+        assert not np.array_equal(h_w.T_world_from_cam, h_p.T_world_from_cam)
+        assert _pose_error(h_w.T_world_from_cam, T_world_from_query)[0] < 0.1
+    with pytest.raises(InvalidInputError, match="keypoint scales"):
+        solve(np.ones(len(keypoints) - 1))

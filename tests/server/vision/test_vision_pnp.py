@@ -175,13 +175,15 @@ def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
     projected, _ = cv2.projectPoints(points, cv2.Rodrigues(R0)[0], t0, K, None)
     expected_px = np.linalg.norm(projected[:, 0] - pixels, axis=1)
     threshold_px = float(np.median(expected_px))  # half the points inside
-    inlier_errors(points, pixels, R0, t0, *args, threshold_px, errors_px, inliers)
+    thresholds_px = np.full(len(points), threshold_px)
+    inlier_errors(points, pixels, R0, t0, *args, thresholds_px, errors_px, inliers)
     assert np.allclose(errors_px, expected_px, atol=1e-6)
     in_front = (points @ R0.T + t0)[:, 2] > 0
     assert np.array_equal(inliers, (errors_px <= threshold_px) & in_front)
     assert 0 < inliers.sum() < len(points)
 
-    R, t, cost = refine_lm(points, pixels, mask, R0, t0, *args, 20)
+    ones = np.ones(len(points))
+    R, t, cost = refine_lm(points, pixels, mask, ones, R0, t0, *args, 20)
     rvec_cv, tvec_cv = cv2.solvePnPRefineLM(
         points,
         pixels,
@@ -195,13 +197,91 @@ def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
     assert np.allclose(t, tvec_cv.ravel(), atol=1e-5)
     # 0.5 px noise: the optimum sits near the truth, and far below the starting cost.
     assert np.linalg.norm(t - T_query_from_ref[:3, 3]) < 0.05
-    inlier_errors(points, pixels, R, t, *args, threshold_px, errors_px, inliers)
+    inlier_errors(points, pixels, R, t, *args, thresholds_px, errors_px, inliers)
     assert cost == pytest.approx(float(np.sum(errors_px**2)), rel=1e-9)
     assert np.sqrt(cost / len(points)) < 1.0
     # Masked-out points do not pull the fit: corrupt them and the result stays.
     corrupted = pixels.copy()
     corrupted[:50] += 40.0
     mask[:50] = False
-    R2, t2, _ = refine_lm(points, corrupted, mask, R0, t0, *args, 20)
+    R2, t2, _ = refine_lm(points, corrupted, mask, ones, R0, t0, *args, 20)
     assert np.linalg.norm(t2 - t) < 0.02
     assert np.degrees(rotation_angle_rad(R2 @ R.T)) < 0.05
+
+
+def _scaled_scene(rng, n=200, noise_px_at_full_resolution=0.4):
+    """A scene whose keypoints come from ORB pyramid levels 0-7 (scale 1.2 ** level) and
+    are located to noise proportional to their scale, 10 % outliers; returns it with
+    the scales (n,)."""
+    observed, points_ref, T_true, outliers = _scene(rng, n=n, outlier_fraction=0.1, noise_px=0.0)
+    scales = 1.2 ** rng.integers(0, 8, n)
+    observed = (
+        observed
+        + rng.normal(0.0, 1.0, observed.shape)
+        * (noise_px_at_full_resolution * scales[:, None])
+        * ~outliers[:, None]
+    )
+    return observed, points_ref, T_true, scales
+
+
+def test_keypoint_scales_weigh_the_fit_and_make_it_more_accurate():
+    weighted, unweighted = [], []
+    for seed in range(20):
+        observed, points_ref, T_true, scales = _scaled_scene(np.random.default_rng(seed))
+        for errors, given in ((weighted, scales), (unweighted, None)):
+            result = estimate_relative_pose(
+                observed, points_ref, CAM, PnpConfig(), np.random.default_rng(seed), given
+            )
+            assert result.accepted, result.reject_reason
+            errors.append(_errors(T_true, result.T_ref_from_query)[0])
+    # Same RANSAC samples, same inlier threshold: only the LM weights differ.
+    assert np.median(weighted) < 0.85 * np.median(unweighted)
+    assert np.mean(weighted) < 0.85 * np.mean(unweighted)
+    # Switched off in the config, the scales change nothing.
+    observed, points_ref, _, scales = _scaled_scene(np.random.default_rng(3))
+    off = PnpConfig(scale_weighting=False)
+    a = estimate_relative_pose(observed, points_ref, CAM, off, np.random.default_rng(3), scales)
+    b = estimate_relative_pose(observed, points_ref, CAM, off, np.random.default_rng(3))
+    assert np.array_equal(a.T_ref_from_query, b.T_ref_from_query)
+
+
+@pytest.mark.parametrize(
+    "scales", [np.ones(5), np.zeros(200), np.full(200, np.nan), -np.ones(200), np.ones((200, 2))]
+)
+def test_wrong_keypoint_scales_raise(scales):
+    observed, points_ref, _, _ = _scene(np.random.default_rng(0), n=200)
+    with pytest.raises(InvalidInputError, match="keypoint scales"):
+        estimate_relative_pose(
+            observed, points_ref, CAM, PnpConfig(), np.random.default_rng(0), scales
+        )
+
+
+def test_lm_weights_are_inverse_variances():
+    from monoloc.server.vision._pnp_kernel import refine_lm
+
+    rng = np.random.default_rng(11)
+    pixels, points, T_ref_from_query, _ = _scene(rng, n=300, outlier_fraction=0.0)
+    T_query_from_ref = invert_rigid(T_ref_from_query)
+    R0 = _rotation([0.2, -1.0, 0.4], np.radians(1.0)) @ T_query_from_ref[:3, :3]
+    t0 = T_query_from_ref[:3, 3] + [0.2, 0.1, -0.2]
+    K = CAM.K
+    args = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    corrupted = pixels.copy()
+    corrupted[:60] += 25.0
+    all_points = np.ones(len(points), dtype=bool)
+    masked = all_points.copy()
+    masked[:60] = False
+    ones = np.ones(len(points))
+    R_masked, t_masked, _ = refine_lm(points, corrupted, masked, ones, R0, t0, *args, 30)
+    # A weight of (almost) zero leaves a point out as the mask does ...
+    nearly_out = ones.copy()
+    nearly_out[:60] = 1e-12
+    R_w, t_w, _ = refine_lm(points, corrupted, all_points, nearly_out, R0, t0, *args, 30)
+    assert np.linalg.norm(t_w - t_masked) < 1e-4
+    assert np.degrees(rotation_angle_rad(R_w @ R_masked.T)) < 1e-3
+    # ... with unit weights the corrupted points pull the pose away ...
+    R_u, t_u, _ = refine_lm(points, corrupted, all_points, ones, R0, t0, *args, 30)
+    assert np.linalg.norm(t_u - t_masked) > 0.01
+    # ... and scaling every weight alike changes the cost, not the optimum.
+    R_s, t_s, cost_s = refine_lm(points, corrupted, masked, 4.0 * ones, R0, t0, *args, 30)
+    assert np.linalg.norm(t_s - t_masked) < 1e-6

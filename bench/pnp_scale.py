@@ -1,0 +1,160 @@
+"""Per-entry PnP accuracy with the keypoints' pyramid scales as LM weights, beside without.
+
+A keypoint ORB finds on pyramid level L is located to about scale_factor ** L pixels, and
+night frames hold more coarse-level keypoints than day frames. ``PnpConfig.scale_weighting``
+weighs each reprojection error by 1 / scale^2 when the caller gives the scales (the
+server's localizer does). This bench measures what that buys on an urban sim city (the
+held-out one by default, generated if missing): for every ``--step``-th frame of the day
+query (against the map's entries) and of the night query (against the night entries), the
+k retrieved entries are matched and each entry's relative pose T_ref_from_query is
+estimated twice from the same matches and the same RANSAC samples, with and without the
+scales. Each is judged against the sim's true relative pose (its written poses carry
+recording errors; the true ones are re-planned from the seed, ``monoloc.sim.urban.truth``).
+Entries whose pose either run rejects, or puts more than 2 m off, are left out of both.
+
+Prints the median, mean and 75th percentile of the translation error of both, day and
+night, and writes bench/results/pnp_scale.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from accuracy import HELD_OUT_SEED, ensure_dataset, limit_threads  # noqa: E402
+
+RIGHT_POSE_M = 2.0
+
+
+def true_camera_poses_by_run(meta: dict, size: str, seed: int, frames: int):
+    """The sim's true camera poses (N, 4, 4) per run kind, in the dataset's z-up world."""
+    from monoloc.core.geometry import invert_rigid
+    from monoloc.sim.generate import GenerateConfig
+    from monoloc.sim.urban.city import build_city
+    from monoloc.sim.urban.runs import plan_runs, true_camera_poses
+
+    runs = tuple(seq["run"] for seq in meta["sequences"])
+    config = GenerateConfig(scenario="urban", size=size, seed=seed, runs=runs, max_frames=frames)
+    city = build_city(config.city_config(), seed)
+    T_zup_from_sim = invert_rigid(np.asarray(meta["T_simworld_from_zupworld"], dtype=np.float64))
+    return {
+        p.kind: T_zup_from_sim @ true_camera_poses(p, config.rig) for p in plan_runs(city, config)
+    }
+
+
+def entry_truth(memory, written_positions: np.ndarray, true_poses: np.ndarray) -> dict:
+    """Entry id -> the true pose of the frame it was built from (the frame whose written
+    position is the entry's)."""
+    out = {}
+    for entry_id, ref in memory.refs.items():
+        frame = int(
+            np.argmin(np.linalg.norm(written_positions - ref.T_world_from_cam[:3, 3], axis=1))
+        )
+        out[entry_id] = true_poses[frame]
+    return out
+
+
+def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, step: int) -> dict:
+    """Translation errors (m) of the per-entry poses with and without the scales."""
+    from monoloc.core.geometry import invert_rigid
+    from monoloc.evaluation import EvalConfig, MemoryMap
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.vision.binary_code import vlad_binary_code
+    from monoloc.server.vision.features import extract_features
+    from monoloc.server.vision.pnp import estimate_relative_pose
+    from monoloc.server.vision.vlad import compute_vlad
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
+
+    vocabulary = load_default_vocabulary()
+    memory = MemoryMap.empty(vocabulary)
+    map_seq = read_kitti_sequence(root, ids[map_run])
+    memory.add_run(map_seq)
+    written = np.array([f.T_world_from_cam[:3, 3] for f in map_seq.frames])
+    ref_truth = entry_truth(memory, written, truth[map_run])
+    query = read_kitti_sequence(root, ids[query_run])
+    config = EvalConfig().localize
+    errors = {"weighted": [], "unweighted": []}
+    for i in range(0, len(query.frames), step):
+        features = extract_features(query.load(query.frames[i]).image_gray, config.orb)
+        vlad = compute_vlad(features.descriptors, vocabulary)
+        found = config.preset.retrieve(memory.index, vlad, vlad_binary_code(vlad), config.k, None)
+        refs = memory.lookup(found.entry_ids.tolist())
+        matches = config.preset.match(
+            features.descriptors, [r.descriptors for r in refs], config.match
+        )
+        for ref, pairs in zip(refs, matches, strict=True):
+            pixels = features.keypoints_px[pairs[:, 0]]
+            points = ref.points_cam[pairs[:, 1]]
+            T_ref_from_query_true = invert_rigid(ref_truth[ref.entry_id]) @ truth[query_run][i]
+            got = {}
+            for name, scales in (("weighted", features.scales[pairs[:, 0]]), ("unweighted", None)):
+                rng = np.random.default_rng((i, ref.entry_id))  # same RANSAC samples for both
+                rel = estimate_relative_pose(
+                    pixels, points, query.intrinsics, config.pnp, rng, scales
+                )
+                if rel.accepted:
+                    got[name] = float(
+                        np.linalg.norm(rel.T_ref_from_query[:3, 3] - T_ref_from_query_true[:3, 3])
+                    )
+            if len(got) == 2 and max(got.values()) <= RIGHT_POSE_M:
+                for name, error in got.items():
+                    errors[name].append(error)
+    return {name: np.array(values) for name, values in errors.items()}
+
+
+def summary(errors: np.ndarray) -> dict:
+    return {
+        "n": int(len(errors)),
+        "median_m": float(np.median(errors)),
+        "mean_m": float(np.mean(errors)),
+        "p75_m": float(np.percentile(errors, 75)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--size", default="medium")
+    parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED)
+    parser.add_argument("--step", type=int, default=5, help="every step-th query frame")
+    parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
+    parser.add_argument(
+        "--root", type=Path, default=None, help="an existing dataset (its size, frames, seed given)"
+    )
+    args = parser.parse_args()
+    limit_threads()
+    root = args.root or args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
+    runs = ("map", "query", "train", "night", "offcenter", "nightmap")
+    meta = ensure_dataset(root, args.size, args.frames, args.seed, runs)
+    ids = {seq["run"]: seq["id"] for seq in meta["sequences"]}
+    truth = true_camera_poses_by_run(meta, args.size, args.seed, args.frames)
+    report = {"dataset": root.name, "step": args.step}
+    t0 = time.time()
+    for label, query_run, map_run in (("day", "query", "map"), ("night", "night", "nightmap")):
+        if map_run not in ids:
+            print(f"{label}: the dataset has no {map_run} run; skipped")
+            continue
+        errors = measure(root, ids, truth, query_run, map_run, args.step)
+        rows = {name: summary(values) for name, values in errors.items()}
+        report[label] = rows
+        w, u = rows["weighted"], rows["unweighted"]
+        print(
+            f"{label}: {w['n']} entry poses; translation error median {w['median_m']:.4f} m "
+            f"(without scales {u['median_m']:.4f}), mean {w['mean_m']:.4f} "
+            f"({u['mean_m']:.4f}), p75 {w['p75_m']:.4f} ({u['p75_m']:.4f})",
+            flush=True,
+        )
+    print(f"done in {time.time() - t0:.0f} s")
+    out = Path(__file__).parent / "results" / "pnp_scale.json"
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
