@@ -13,7 +13,10 @@ recording errors; the true ones are re-planned from the seed, ``monoloc.sim.urba
 Entries whose pose either run rejects, or puts more than 2 m off, are left out of both.
 
 Prints the median, mean and 75th percentile of the translation error of both, day and
-night, and writes bench/results/pnp_scale.json.
+night. Also what the matches are, per ORB pyramid level of the query keypoint: the share
+of the right matches (within ``RIGHT_MATCH_PX`` of the true projection of their 3D point)
+on that level and their median residual under the true pose, plus the share of all
+matches that are right. Writes bench/results/pnp_scale.json.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from accuracy import HELD_OUT_SEED, ensure_dataset, limit_threads  # noqa: E402
 
 RIGHT_POSE_M = 2.0
+RIGHT_MATCH_PX = 3.0
 
 
 def true_camera_poses_by_run(meta: dict, size: str, seed: int, frames: int):
@@ -61,7 +65,8 @@ def entry_truth(memory, written_positions: np.ndarray, true_poses: np.ndarray) -
 
 
 def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, step: int) -> dict:
-    """Translation errors (m) of the per-entry poses with and without the scales."""
+    """Translation errors (m) of the per-entry poses with and without the scales, and
+    every match's residual (px) under the true pose with its query keypoint's scale."""
     from monoloc.core.geometry import invert_rigid
     from monoloc.evaluation import EvalConfig, MemoryMap
     from monoloc.server.ingest.kitti import read_kitti_sequence
@@ -80,6 +85,7 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     query = read_kitti_sequence(root, ids[query_run])
     config = EvalConfig().localize
     errors = {"weighted": [], "unweighted": []}
+    residuals_px, scales_of_matches = [], []
     for i in range(0, len(query.frames), step):
         features = extract_features(query.load(query.frames[i]).image_gray, config.orb)
         vlad = compute_vlad(features.descriptors, vocabulary)
@@ -92,6 +98,8 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
             pixels = features.keypoints_px[pairs[:, 0]]
             points = ref.points_cam[pairs[:, 1]]
             T_ref_from_query_true = invert_rigid(ref_truth[ref.entry_id]) @ truth[query_run][i]
+            residuals_px.append(true_residuals_px(points, pixels, T_ref_from_query_true, query))
+            scales_of_matches.append(features.scales[pairs[:, 0]])
             got = {}
             for name, scales in (("weighted", features.scales[pairs[:, 0]]), ("unweighted", None)):
                 rng = np.random.default_rng((i, ref.entry_id))  # same RANSAC samples for both
@@ -105,7 +113,41 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
             if len(got) == 2 and max(got.values()) <= RIGHT_POSE_M:
                 for name, error in got.items():
                     errors[name].append(error)
-    return {name: np.array(values) for name, values in errors.items()}
+    out = {name: np.array(values) for name, values in errors.items()}
+    out["residuals_px"] = np.concatenate(residuals_px)
+    out["scales"] = np.concatenate(scales_of_matches)
+    return out
+
+
+def true_residuals_px(points_ref, pixels, T_ref_from_query, query) -> np.ndarray:
+    """Reprojection residual (M,) px of each match under the true relative pose (inf for
+    a point behind the query camera)."""
+    from monoloc.core.geometry import invert_rigid
+    from monoloc.server.vision.depth import project_points
+
+    T = invert_rigid(T_ref_from_query)
+    points_query = np.asarray(points_ref, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+    in_front = points_query[:, 2] > 0.1
+    residuals = np.full(len(points_query), np.inf)
+    projected = project_points(points_query[in_front], query.intrinsics)
+    residuals[in_front] = np.linalg.norm(projected - np.asarray(pixels)[in_front], axis=1)
+    return residuals
+
+
+def by_level(residuals_px: np.ndarray, scales: np.ndarray, scale_factor: float) -> dict:
+    """Share of all matches that are right, and per pyramid level the right matches'
+    share and median residual."""
+    right = residuals_px <= RIGHT_MATCH_PX
+    levels = np.rint(np.log(scales) / np.log(scale_factor)).astype(int)
+    rows = {}
+    for level in range(int(levels.max()) + 1):
+        on = right & (levels == level)
+        if on.any():
+            rows[str(level)] = {
+                "share_of_right": float(on.sum() / right.sum()),
+                "median_residual_px": float(np.median(residuals_px[on])),
+            }
+    return {"matches": int(len(right)), "right_share": float(right.mean()), "levels": rows}
 
 
 def summary(errors: np.ndarray) -> dict:
@@ -141,13 +183,26 @@ def main() -> None:
             print(f"{label}: the dataset has no {map_run} run; skipped")
             continue
         errors = measure(root, ids, truth, query_run, map_run, args.step)
-        rows = {name: summary(values) for name, values in errors.items()}
-        report[label] = rows
+        rows = {name: summary(errors[name]) for name in ("weighted", "unweighted")}
+        from monoloc.server.vision.features import OrbConfig
+
+        matches = by_level(errors["residuals_px"], errors["scales"], OrbConfig().scale_factor)
+        report[label] = {**rows, "matches": matches}
         w, u = rows["weighted"], rows["unweighted"]
         print(
             f"{label}: {w['n']} entry poses; translation error median {w['median_m']:.4f} m "
             f"(without scales {u['median_m']:.4f}), mean {w['mean_m']:.4f} "
             f"({u['mean_m']:.4f}), p75 {w['p75_m']:.4f} ({u['p75_m']:.4f})",
+            flush=True,
+        )
+        levels = matches["levels"]
+        coarse = sum(levels.get(str(k), {}).get("share_of_right", 0.0) for k in (5, 6, 7))
+        print(
+            f"  {matches['matches']} matches, {matches['right_share']:.0%} within "
+            f"{RIGHT_MATCH_PX:g} px of the true projection; of those, {coarse:.0%} from levels "
+            "5-7; median residual per level: "
+            + ", ".join(f"{k}: {v['median_residual_px']:.2f}" for k, v in levels.items())
+            + " px",
             flush=True,
         )
     print(f"done in {time.time() - t0:.0f} s")
