@@ -65,10 +65,13 @@ class PnpConfig:
     city's right matches, judged against the true pose, the median residual grows from
     0.66 px at level 0 to 1.54 px at level 7, and night frames hold twice the day's share
     of level 5-7 keypoints). With
-    ``scale_weighting`` LM weighs each squared error by 1 / scale^2, its inverse variance
-    (ORB-SLAM weighs its reprojection errors the same way); the inlier threshold stays one
-    for all (a threshold growing with the scale was tried: more wrong poses passed
-    ``min_inliers`` at night and the filter re-seeded on them). ``bench/pnp_scale.py``
+    ``scale_weighting`` the pose is a last LM on the inliers that weighs each squared
+    error by 1 / scale^2, its inverse variance (ORB-SLAM weighs its reprojection errors the
+    same way). The inliers themselves, and so whether an entry is accepted, are chosen as
+    without weights (one threshold for all, by the unweighted pose): re-selected by the
+    weighted pose, coarse keypoints just beyond the threshold dropped out and night entries
+    near ``min_inliers`` with them; a threshold growing with the scale let more wrong poses
+    pass ``min_inliers`` at night and the filter re-seeded on them. ``bench/pnp_scale.py``
     measures the per-entry pose error with and without the weights against the sim's true
     poses.
 
@@ -157,10 +160,10 @@ def _rejected(
 
 @dataclass(frozen=True, eq=False)
 class _Noise:
-    """Per correspondence: LM weight (M,) (inverse variance, 1 at full resolution) and
-    inlier threshold (M,) px (the kernels take one per point)."""
+    """Per correspondence: LM weight (M,) (inverse variance, 1 at full resolution; None
+    when all are alike) and inlier threshold (M,) px (the kernels take one per point)."""
 
-    weights: np.ndarray
+    weights: np.ndarray | None
     thresholds_px: np.ndarray
 
 
@@ -169,15 +172,45 @@ def _noise(keypoint_scales: np.ndarray | None, n_points: int, config: PnpConfig)
     have ``keypoint_scales`` (M,) (None: all at full resolution)."""
     thresholds_px = np.full(n_points, config.reprojection_error_px)
     if keypoint_scales is None:
-        return _Noise(np.ones(n_points), thresholds_px)
+        return _Noise(None, thresholds_px)
     scales = np.asarray(keypoint_scales, dtype=np.float64).reshape(-1)
     if len(scales) != n_points or not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
         raise InvalidInputError(
             f"need {n_points} positive finite keypoint scales, got shape {scales.shape}"
         )
-    if not config.scale_weighting:
-        return _Noise(np.ones(n_points), thresholds_px)
+    if not config.scale_weighting or bool(np.all(scales == 1.0)):  # all alike: no weights
+        return _Noise(None, thresholds_px)
     return _Noise(1.0 / (scales * scales), thresholds_px)
+
+
+def _weighted_final(
+    points: np.ndarray,
+    pixels: np.ndarray,
+    mask: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    config: PnpConfig,
+    noise: _Noise,
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
+    """The last step of a refit with keypoint weights: LM on the inliers the unweighted
+    pose chose, weighted (the inliers stay those: re-selecting them with the weighted pose
+    would drop coarse keypoints that a pose fitted to the fine ones leaves just beyond the
+    one threshold, and with it entries near ``min_inliers``, as measured at night).
+    Returns (R, t, errors_px (M,)) of the weighted pose (R None if LM left the finite
+    numbers); without weights the pose is returned as it is, errors None."""
+    from monoloc.server.vision._pnp_kernel import refine_lm
+
+    if noise.weights is None or np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
+        return R, t, None
+    R, t, _ = refine_lm(
+        points, pixels, mask, noise.weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+        config.refine_iterations,
+    )  # fmt: skip
+    if not _finite(R, t):
+        return None, None, None
+    _, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
+    return R, t, errors_px
 
 
 def _inliers(
@@ -215,7 +248,9 @@ def _refit(
     textured wall), and early termination leaves an inlier set chosen by a 4-point model.
     SQPnP (globally optimal, planar-safe, cheap next to RANSAC) on those inliers, then
     re-selecting the inliers with that better pose, fixes both; LM then minimises the
-    reprojection error (``_pnp_kernel.refine_lm``, weighted by ``noise``). Returns
+    reprojection error (``_pnp_kernel.refine_lm``) and re-selects the inliers, and with
+    keypoint weights a last weighted LM on those inliers gives the pose
+    (:func:`_weighted_final`). Returns
     (R_query_from_ref (3, 3), t_query_from_ref (3,), final inlier mask, errors_px (M,)); R
     is None if a solver gave nothing finite.
     """
@@ -228,12 +263,17 @@ def _refit(
     mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
     if config.refine and np.count_nonzero(mask) >= _MIN_POINTS_FOR_SOLVER:
         R, t, _ = refine_lm(
-            points, pixels, mask, noise.weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            points, pixels, mask, np.ones(len(mask)), R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
             config.refine_iterations,
         )  # fmt: skip
         if not _finite(R, t):
             return None, None, mask, errors_px
         mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
+        R, t, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, noise)
+        if R is None:
+            return None, None, mask, errors_px
+        if weighted_errors_px is not None:
+            errors_px = weighted_errors_px
     return R, t, mask, errors_px
 
 
@@ -410,7 +450,8 @@ def refine_from_pose(
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
     """Score the correspondences against a pose and refine it on its inliers, ``rounds``
     times: select the inliers of (R, t), Levenberg-Marquardt on them, then a last
-    selection. The shared step of guided PnP and the joint pose.
+    selection (with keypoint weights, a last weighted LM on those inliers:
+    :func:`_weighted_final`). The shared step of guided PnP and the joint pose.
 
     points (M, 3) float64 in the frame (R, t) maps to the query camera, pixels (M, 2)
     float64; ``candidates`` (M,) bool limits which correspondences may be inliers;
@@ -428,7 +469,7 @@ def refine_from_pose(
         if np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
             return None, None, mask, errors_px
         R, t, _ = refine_lm(
-            points, pixels, mask, noise.weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            points, pixels, mask, np.ones(len(mask)), R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
             config.refine_iterations,
         )  # fmt: skip
         if not _finite(R, t):
@@ -436,7 +477,10 @@ def refine_from_pose(
         mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
         if candidates is not None:
             mask &= candidates
-    return R, t, mask, errors_px
+    R_w, t_w, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, noise)
+    if R_w is None:
+        return None, None, mask, errors_px
+    return R_w, t_w, mask, errors_px if weighted_errors_px is None else weighted_errors_px
 
 
 def guided_min_inliers(n_points: int, config: PnpConfig) -> int:

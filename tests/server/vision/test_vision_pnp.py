@@ -228,12 +228,16 @@ def test_keypoint_scales_weigh_the_fit_and_make_it_more_accurate():
     weighted, unweighted = [], []
     for seed in range(20):
         observed, points_ref, T_true, scales = _scaled_scene(np.random.default_rng(seed))
+        results = []
         for errors, given in ((weighted, scales), (unweighted, None)):
             result = estimate_relative_pose(
                 observed, points_ref, CAM, PnpConfig(), np.random.default_rng(seed), given
             )
             assert result.accepted, result.reject_reason
             errors.append(_errors(T_true, result.T_ref_from_query)[0])
+            results.append(result)
+        # The weights move the pose, not the choice of inliers.
+        assert np.array_equal(results[0].inlier_mask, results[1].inlier_mask)
     # Same RANSAC samples, same inlier threshold: only the LM weights differ.
     assert np.median(weighted) < 0.85 * np.median(unweighted)
     assert np.mean(weighted) < 0.85 * np.mean(unweighted)
