@@ -1,16 +1,18 @@
 """Per-entry PnP accuracy with the keypoints' pyramid scales as LM weights, beside without.
 
-A keypoint ORB finds on pyramid level L is located to about scale_factor ** L pixels, and
-night frames hold more coarse-level keypoints than day frames. ``PnpConfig.scale_weighting``
-weighs each reprojection error by 1 / scale^2 when the caller gives the scales (the
-server's localizer does). This bench measures what that buys on an urban sim city (the
-held-out one by default, generated if missing): for every ``--step``-th frame of the day
-query (against the map's entries) and of the night query (against the night entries), the
-k retrieved entries are matched and each entry's relative pose T_ref_from_query is
+A keypoint ORB finds on pyramid level L is located to about scale_factor ** L pixels,
+and night frames hold more coarse-level keypoints than day frames.
+``PnpConfig.scale_weighting`` (off by default; see its docstring for why) weighs each
+reprojection error by 1 / scale^2 when the caller gives the scales (the server's
+localizer does). This bench measures what that buys on an urban sim city (the held-out
+one by default, generated if missing): for every ``--step``-th frame of the day query
+(against the map's entries) and of the night query (against the night entries), the k
+retrieved entries are matched and each entry's relative pose T_ref_from_query is
 estimated twice from the same matches and the same RANSAC samples, with and without the
 scales. Each is judged against the sim's true relative pose (its written poses carry
-recording errors; the true ones are re-planned from the seed, ``monoloc.sim.urban.truth``).
-Entries whose pose either run rejects, or puts more than 2 m off, are left out of both.
+recording errors; the true ones are re-planned from the seed,
+``monoloc.sim.urban.truth``). Entries whose pose either run rejects, or puts more than 2
+m off, are left out of both.
 
 Prints the median, mean and 75th percentile of the translation error of both, day and
 night. Also what the matches are, per ORB pyramid level of the query keypoint: the share
@@ -22,6 +24,7 @@ matches that are right. Writes bench/results/pnp_scale.json.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -84,6 +87,7 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     ref_truth = entry_truth(memory, written, truth[map_run])
     query = read_kitti_sequence(root, ids[query_run])
     config = EvalConfig().localize
+    weighted_pnp = dataclasses.replace(config.pnp, scale_weighting=True)
     errors = {"weighted": [], "unweighted": []}
     residuals_px, scales_of_matches = [], []
     for i in range(0, len(query.frames), step):
@@ -104,7 +108,7 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
             for name, scales in (("weighted", features.scales[pairs[:, 0]]), ("unweighted", None)):
                 rng = np.random.default_rng((i, ref.entry_id))  # same RANSAC samples for both
                 rel = estimate_relative_pose(
-                    pixels, points, query.intrinsics, config.pnp, rng, scales
+                    pixels, points, query.intrinsics, weighted_pnp, rng, scales
                 )
                 if rel.accepted:
                     got[name] = float(

@@ -448,8 +448,8 @@ def test_keypoint_scales_reach_every_pose_and_are_checked():
 
     def solve(scales):
         return pose_hypotheses(
-            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(0),
-            PnpStrategy(), None, scales,
+            keypoints, refs, matches, e_vlad, CAM, PnpConfig(scale_weighting=True),
+            np.random.default_rng(0), PnpStrategy(), None, scales,
         )[0]  # fmt: skip
 
     plain = solve(None)

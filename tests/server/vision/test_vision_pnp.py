@@ -224,6 +224,9 @@ def _scaled_scene(rng, n=200, noise_px_at_full_resolution=0.4):
     return observed, points_ref, T_true, scales
 
 
+WEIGHTED = PnpConfig(scale_weighting=True)
+
+
 def test_keypoint_scales_weigh_the_fit_and_make_it_more_accurate():
     weighted, unweighted = [], []
     for seed in range(20):
@@ -231,7 +234,7 @@ def test_keypoint_scales_weigh_the_fit_and_make_it_more_accurate():
         results = []
         for errors, given in ((weighted, scales), (unweighted, None)):
             result = estimate_relative_pose(
-                observed, points_ref, CAM, PnpConfig(), np.random.default_rng(seed), given
+                observed, points_ref, CAM, WEIGHTED, np.random.default_rng(seed), given
             )
             assert result.accepted, result.reject_reason
             errors.append(_errors(T_true, result.T_ref_from_query)[0])
@@ -241,9 +244,10 @@ def test_keypoint_scales_weigh_the_fit_and_make_it_more_accurate():
     # Same RANSAC samples, same inlier threshold: only the LM weights differ.
     assert np.median(weighted) < 0.85 * np.median(unweighted)
     assert np.mean(weighted) < 0.85 * np.mean(unweighted)
-    # Switched off in the config, the scales change nothing.
+    # Switched off in the config (the default), the scales change nothing.
     observed, points_ref, _, scales = _scaled_scene(np.random.default_rng(3))
-    off = PnpConfig(scale_weighting=False)
+    off = PnpConfig()
+    assert not off.scale_weighting
     a = estimate_relative_pose(observed, points_ref, CAM, off, np.random.default_rng(3), scales)
     b = estimate_relative_pose(observed, points_ref, CAM, off, np.random.default_rng(3))
     assert np.array_equal(a.T_ref_from_query, b.T_ref_from_query)
@@ -256,7 +260,7 @@ def test_wrong_keypoint_scales_raise(scales):
     observed, points_ref, _, _ = _scene(np.random.default_rng(0), n=200)
     with pytest.raises(InvalidInputError, match="keypoint scales"):
         estimate_relative_pose(
-            observed, points_ref, CAM, PnpConfig(), np.random.default_rng(0), scales
+            observed, points_ref, CAM, WEIGHTED, np.random.default_rng(0), scales
         )
 
 
