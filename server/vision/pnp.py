@@ -177,14 +177,14 @@ def _noise(keypoint_scales: np.ndarray | None, n_points: int, config: PnpConfig)
     """The weights and thresholds of ``n_points`` correspondences whose query keypoints
     have ``keypoint_scales`` (M,) (None: all at full resolution)."""
     thresholds_px = np.full(n_points, config.reprojection_error_px)
-    if keypoint_scales is None:
+    if keypoint_scales is None or not config.scale_weighting:  # unused: not even checked
         return _Noise(None, thresholds_px)
     scales = np.asarray(keypoint_scales, dtype=np.float64).reshape(-1)
     if len(scales) != n_points or not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
         raise InvalidInputError(
             f"need {n_points} positive finite keypoint scales, got shape {scales.shape}"
         )
-    if not config.scale_weighting or bool(np.all(scales == 1.0)):  # all alike: no weights
+    if bool(np.all(scales == 1.0)):  # all alike: no weights
         return _Noise(None, thresholds_px)
     return _Noise(1.0 / (scales * scales), thresholds_px)
 
