@@ -91,7 +91,8 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     errors = {"weighted": [], "unweighted": []}
     residuals_px, scales_of_matches = [], []
     for i in range(0, len(query.frames), step):
-        features = extract_features(query.load(query.frames[i]).image_gray, config.orb)
+        image = query.load(query.frames[i]).image_gray
+        features = extract_features(image, config.orb, scales=True)
         vlad = compute_vlad(features.descriptors, vocabulary)
         found = config.preset.retrieve(memory.index, vlad, vlad_binary_code(vlad), config.k, None)
         refs = memory.lookup(found.entry_ids.tolist())

@@ -130,7 +130,7 @@ class CalibrationResult:
 @dataclass(frozen=True)
 class _Query:
     keypoints_px: np.ndarray  # (N, 2) float32
-    keypoint_scales: np.ndarray  # (N,) float32 pyramid scale
+    keypoint_scales: np.ndarray | None  # (N,) float32 pyramid scale, if PnP weighs by it
     descriptors: np.ndarray  # (N, 32) uint8
     vlad: np.ndarray  # (2048,) float32
     truth_world: np.ndarray  # (3,) planar (X, Y, psi)
@@ -184,7 +184,9 @@ def _split_run(frames, intrinsics, vocabulary, config, tick):
             except TooFewPointsError:
                 n_skipped += 1
         else:
-            features = extract_features(frame.image_gray, config.build.orb)
+            features = extract_features(
+                frame.image_gray, config.build.orb, scales=config.pnp.scale_weighting
+            )
             queries.append(
                 _Query(
                     features.keypoints_px,

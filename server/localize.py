@@ -298,7 +298,7 @@ def localize_frame(
 ) -> LocalizationResult:
     """Hypotheses for one grayscale frame (H, W) uint8 taken with ``intrinsics``."""
     laps, preset = _Laps(), config.preset
-    features = extract_features(image_gray, config.orb)
+    features = extract_features(image_gray, config.orb, scales=config.pnp.scale_weighting)
     laps.lap("features")
     vlad = compute_vlad(features.descriptors, vocabulary)
     code = vlad_binary_code(vlad)

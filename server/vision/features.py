@@ -57,12 +57,15 @@ class Features:
     keypoints_px: (N, 2) float32 pixel (x, y); pixel (0, 0) is the centre of the top-left
     pixel (OpenCV's convention). descriptors: (N, 32) uint8, row i describes keypoint i.
     scales: (N,) float32, the pyramid scale each keypoint was found at
-    (``scale_factor ** octave``, 1 = full resolution): its position is that much coarser.
+    (``scale_factor ** octave``, 1 = full resolution): its position is that much coarser;
+    None unless asked for (``extract_features(..., scales=True)``: reading them off
+    OpenCV's keypoints costs about 0.1 ms a frame, which only PnP's opt-in scale weighting
+    uses).
     """
 
     keypoints_px: np.ndarray
     descriptors: np.ndarray
-    scales: np.ndarray
+    scales: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.keypoints_px.shape[0])
@@ -111,7 +114,9 @@ def _create_orb(config: OrbConfig) -> cv2.ORB:
     )
 
 
-def extract_features(image_gray: np.ndarray, config: OrbConfig = OrbConfig()) -> Features:
+def extract_features(
+    image_gray: np.ndarray, config: OrbConfig = OrbConfig(), scales: bool = False
+) -> Features:
     """Gaussian blur (``config.blur_ksize`` square) then ORB; at most ``max_features``.
 
     image_gray: (H, W) uint8 (or (H, W, 3) uint8 RGB, converted to gray). Returns
@@ -128,11 +133,15 @@ def extract_features(image_gray: np.ndarray, config: OrbConfig = OrbConfig()) ->
     if descriptors is None or len(keypoints) == 0:
         return empty_features()
     points_px = cv2.KeyPoint_convert(keypoints).astype(np.float32, copy=False).reshape(-1, 2)
-    octaves = np.fromiter((k.octave for k in keypoints), dtype=np.float32, count=len(keypoints))
+    octaves = (
+        np.fromiter((k.octave for k in keypoints), dtype=np.float32, count=len(keypoints))
+        if scales
+        else None
+    )
     return Features(
         keypoints_px=points_px,
         descriptors=np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(-1, DESCRIPTOR_BYTES),
-        scales=np.float32(config.scale_factor) ** octaves,
+        scales=None if octaves is None else np.float32(config.scale_factor) ** octaves,
     )
 
 

@@ -106,7 +106,8 @@ def test_scales_are_the_pyramid_scale_opencv_detected_each_keypoint_at():
 
     config = OrbConfig()
     image = data.camera()
-    features = extract_features(image, config)
+    assert extract_features(image, config).scales is None  # only when asked for
+    features = extract_features(image, config, scales=True)
     assert features.scales.shape == (len(features),) and features.scales.dtype == np.float32
     # OpenCV's ORB gives a keypoint found on level L the size patch_size * scale_factor ** L.
     blurred = cv2.GaussianBlur(image, (config.blur_ksize, config.blur_ksize), 0)
