@@ -16,11 +16,10 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, thresholds_px, errors_px, inliers):
+def inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, errors_px, inliers):
     """Fill errors_px (M,) with the reprojection error of each point (a 1e-9 m floor on
-    depth) and inliers (M,) bool with whether it is within its own ``thresholds_px`` (M,)
-    and in front of the camera: one pass, no depth array and no element-wise passes after
-    it."""
+    depth) and inliers (M,) bool with whether it is within ``threshold_px`` and in front
+    of the camera: one pass, no depth array and no element-wise passes after it."""
     for k in range(points_ref.shape[0]):
         X, Y, Z = points_ref[k, 0], points_ref[k, 1], points_ref[k, 2]
         x = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]
@@ -31,14 +30,14 @@ def inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, thresholds_px, error
         du = fx * x / z + cx - pixels[k, 0]
         dv = fy * y / z + cy - pixels[k, 1]
         errors_px[k] = np.sqrt(du * du + dv * dv)
-        inliers[k] = in_front and errors_px[k] <= thresholds_px[k]
+        inliers[k] = in_front and errors_px[k] <= threshold_px
 
 
 @njit(cache=True, nogil=True)
-def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, thresholds_px, counts):
-    """Fill counts (G,) with the number of points within their ``thresholds_px`` (M,) of
-    their pixel and in front of the camera under each of G poses R (G, 3, 3), t (G, 3):
-    the test of ``inlier_errors``, same arithmetic, without storing the errors."""
+def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, counts):
+    """Fill counts (G,) with the number of points within ``threshold_px`` of their pixel
+    and in front of the camera under each of G poses R (G, 3, 3), t (G, 3): the test of
+    ``inlier_errors``, same arithmetic, without storing the errors."""
     for g in range(R.shape[0]):
         n = 0
         for k in range(points_ref.shape[0]):
@@ -51,7 +50,7 @@ def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, thresholds_px, count
             z = max(z, 1e-9)
             du = fx * x / z + cx - pixels[k, 0]
             dv = fy * y / z + cy - pixels[k, 1]
-            if np.sqrt(du * du + dv * dv) <= thresholds_px[k]:
+            if np.sqrt(du * du + dv * dv) <= threshold_px:
                 n += 1
         counts[g] = n
 
@@ -60,8 +59,9 @@ def count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, thresholds_px, count
 def _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H, g):
     """Gauss-Newton normal equations H (6, 6), g (6,) for a left perturbation
     (rotation vector w, translation v) of the pose, over the masked points, each point's
-    squared error weighted by ``weights`` (M,) (its inverse variance); returns the
-    weighted squared reprojection error sum at the pose."""
+    squared error weighted by ``weights`` (M,) (its inverse variance; an empty array: all
+    1); returns the weighted squared reprojection error sum at the pose."""
+    unit = weights.shape[0] == 0
     H[:, :] = 0.0
     g[:] = 0.0
     cost = 0.0
@@ -78,7 +78,7 @@ def _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H
         iz = 1.0 / z
         ru = fx * x * iz + cx - pixels[k, 0]
         rv = fy * y * iz + cy - pixels[k, 1]
-        wk = weights[k]
+        wk = 1.0 if unit else weights[k]
         cost += wk * (ru * ru + rv * rv)
         # d(u, v)/d(x, y, z), then d(x, y, z)/d(w, v) = [-[p]_x | I]
         a, b = fx * iz, -fx * x * iz * iz
@@ -119,9 +119,9 @@ def _exp_so3(w):
 @njit(cache=True, nogil=True)
 def refine_lm(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, iterations):
     """Levenberg-Marquardt on the masked points' reprojection error, each point's squared
-    error weighted by ``weights`` (M,), starting at (R, t); at most ``iterations`` accepted
-    steps (and as many rejected ones). Returns the refined (R, t) and the final weighted
-    squared error sum."""
+    error weighted by ``weights`` (M,) (empty: all 1), starting at (R, t); at most
+    ``iterations`` accepted steps (and as many rejected ones). Returns the refined (R, t)
+    and the final weighted squared error sum."""
     H = np.empty((6, 6))
     g = np.empty(6)
     H_new = np.empty((6, 6))

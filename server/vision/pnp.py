@@ -164,29 +164,24 @@ def _rejected(
     )
 
 
-@dataclass(frozen=True, eq=False)
-class _Noise:
-    """Per correspondence: LM weight (M,) (inverse variance, 1 at full resolution; None
-    when all are alike) and inlier threshold (M,) px (the kernels take one per point)."""
-
-    weights: np.ndarray | None
-    thresholds_px: np.ndarray
+# LM weights meaning "all 1" (the kernel's convention): no array to allocate per call.
+_UNIT_WEIGHTS = np.empty(0)
 
 
-def _noise(keypoint_scales: np.ndarray | None, n_points: int, config: PnpConfig) -> _Noise:
-    """The weights and thresholds of ``n_points`` correspondences whose query keypoints
-    have ``keypoint_scales`` (M,) (None: all at full resolution)."""
-    thresholds_px = np.full(n_points, config.reprojection_error_px)
+def _lm_weights(keypoint_scales: np.ndarray | None, n_points: int, config: PnpConfig):
+    """The LM weights (M,) of ``n_points`` correspondences whose query keypoints have
+    ``keypoint_scales`` (M,): 1 / scale^2 with ``config.scale_weighting``, else (or without
+    scales, or all at full resolution) the empty array that stands for all 1."""
     if keypoint_scales is None or not config.scale_weighting:  # unused: not even checked
-        return _Noise(None, thresholds_px)
+        return _UNIT_WEIGHTS
     scales = np.asarray(keypoint_scales, dtype=np.float64).reshape(-1)
     if len(scales) != n_points or not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
         raise InvalidInputError(
             f"need {n_points} positive finite keypoint scales, got shape {scales.shape}"
         )
-    if bool(np.all(scales == 1.0)):  # all alike: no weights
-        return _Noise(None, thresholds_px)
-    return _Noise(1.0 / (scales * scales), thresholds_px)
+    if bool(np.all(scales == 1.0)):
+        return _UNIT_WEIGHTS
+    return 1.0 / (scales * scales)
 
 
 def _weighted_final(
@@ -197,7 +192,7 @@ def _weighted_final(
     t: np.ndarray,
     K: np.ndarray,
     config: PnpConfig,
-    noise: _Noise,
+    weights: np.ndarray,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
     """The last step of a refit with keypoint weights: LM on the inliers the unweighted
     pose chose, weighted (the inliers stay those: re-selecting them with the weighted pose
@@ -207,15 +202,15 @@ def _weighted_final(
     numbers); without weights the pose is returned as it is, errors None."""
     from monoloc.server.vision._pnp_kernel import refine_lm
 
-    if noise.weights is None or np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
+    if not len(weights) or np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
         return R, t, None
     R, t, _ = refine_lm(
-        points, pixels, mask, noise.weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+        points, pixels, mask, weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
         config.refine_iterations,
     )  # fmt: skip
     if not _finite(R, t):
         return None, None, None
-    _, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
+    _, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
     return R, t, errors_px
 
 
@@ -225,16 +220,16 @@ def _inliers(
     R: np.ndarray,
     t: np.ndarray,
     K: np.ndarray,
-    thresholds_px: np.ndarray,
+    threshold_px: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Inlier mask (within each point's ``thresholds_px`` (M,) and in front of the camera)
-    and reprojection errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
+    """Inlier mask (within ``threshold_px`` and in front of the camera) and reprojection
+    errors (M,) px of the pose (R_query_from_ref, t_query_from_ref)."""
     from monoloc.server.vision._pnp_kernel import inlier_errors
 
     errors_px = np.empty(len(points))
     mask = np.empty(len(points), dtype=bool)
     inlier_errors(
-        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], thresholds_px, errors_px, mask
+        points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], threshold_px, errors_px, mask
     )
     return mask, errors_px
 
@@ -245,7 +240,7 @@ def _refit(
     mask: np.ndarray,
     K: np.ndarray,
     config: PnpConfig,
-    noise: _Noise,
+    weights: np.ndarray,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
     """Pose from RANSAC's inliers: SQPnP refit, inlier re-selection, then optional LM.
 
@@ -266,16 +261,16 @@ def _refit(
     if not ok or not _finite(rvec, tvec):
         return None, None, mask, np.full(len(mask), np.inf)
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
-    mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
+    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
     if config.refine and np.count_nonzero(mask) >= _MIN_POINTS_FOR_SOLVER:
         R, t, _ = refine_lm(
-            points, pixels, mask, np.ones(len(mask)), R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            points, pixels, mask, _UNIT_WEIGHTS, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
             config.refine_iterations,
         )  # fmt: skip
         if not _finite(R, t):
             return None, None, mask, errors_px
-        mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
-        R, t, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, noise)
+        mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+        R, t, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, weights)
         if R is None:
             return None, None, mask, errors_px
         if weighted_errors_px is not None:
@@ -318,7 +313,7 @@ def estimate_relative_pose(
     """
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
-    noise = _noise(keypoint_scales, n_points, config)
+    weights = _lm_weights(keypoint_scales, n_points, config)
     if n_points < max(config.min_inliers, _MIN_POINTS_FOR_SOLVER):
         return _rejected(n_points, f"too few correspondences ({n_points})")
     K = intrinsics.K
@@ -327,7 +322,7 @@ def estimate_relative_pose(
         if mask is None:
             return _rejected(n_points, "PnP RANSAC found no pose")
         R_query_from_ref, t_query_from_ref, mask, errors_px = _refit(
-            points, pixels, mask, K, config, noise
+            points, pixels, mask, K, config, weights
         )
     except cv2.error as exc:  # degenerate input (e.g. all points identical)
         return _rejected(n_points, f"PnP failed: {str(exc).strip().splitlines()[-1]}")
@@ -467,23 +462,23 @@ def refine_from_pose(
     """
     from monoloc.server.vision._pnp_kernel import refine_lm
 
-    noise = _noise(keypoint_scales, len(points), config)
-    mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
+    weights = _lm_weights(keypoint_scales, len(points), config)
+    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
     if candidates is not None:
         mask &= candidates
     for _ in range(rounds):
         if np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
             return None, None, mask, errors_px
         R, t, _ = refine_lm(
-            points, pixels, mask, np.ones(len(mask)), R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            points, pixels, mask, _UNIT_WEIGHTS, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
             config.refine_iterations,
         )  # fmt: skip
         if not _finite(R, t):
             return None, None, mask, errors_px
-        mask, errors_px = _inliers(points, pixels, R, t, K, noise.thresholds_px)
+        mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
         if candidates is not None:
             mask &= candidates
-    R_w, t_w, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, noise)
+    R_w, t_w, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, weights)
     if R_w is None:
         return None, None, mask, errors_px
     return R_w, t_w, mask, errors_px if weighted_errors_px is None else weighted_errors_px
@@ -530,7 +525,7 @@ def estimate_relative_pose_guided(
 
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
-    noise = _noise(keypoint_scales, n_points, config)
+    weights = _lm_weights(keypoint_scales, n_points, config)
     needed = guided_min_inliers(n_points, config)
     K = intrinsics.K
     best_count = -1
@@ -540,7 +535,7 @@ def estimate_relative_pose_guided(
         counts = np.empty(n_guesses, dtype=np.int64)
         count_inliers(
             points, pixels, R_all, t_all, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-            noise.thresholds_px, counts,
+            config.reprojection_error_px, counts,
         )  # fmt: skip
         g = int(counts.argmax())
         best_count = int(counts[g])
@@ -548,9 +543,9 @@ def estimate_relative_pose_guided(
         # The guess only chooses the consensus set, as RANSAC's best sample does: the pose
         # is then this entry's own (SQPnP on that set, re-selection, LM), so it does not
         # stay anchored to the guess along directions this entry constrains poorly.
-        mask, _ = _inliers(points, pixels, R_all[g], t_all[g], K, noise.thresholds_px)
+        mask, _ = _inliers(points, pixels, R_all[g], t_all[g], K, config.reprojection_error_px)
         try:
-            R, t, mask, errors_px = _refit(points, pixels, mask, K, config, noise)
+            R, t, mask, errors_px = _refit(points, pixels, mask, K, config, weights)
         except cv2.error:
             R = None
         if R is not None and np.count_nonzero(mask) >= needed:

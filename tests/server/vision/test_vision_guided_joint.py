@@ -327,17 +327,13 @@ def test_count_inliers_agrees_with_the_inlier_errors():
     t = np.ascontiguousarray(np.array([T[:3, 3] for T in poses]))
     counts = np.empty(len(poses), dtype=np.int64)
     K = CAM.K
-    # per-point thresholds: 3 px, and 1.5 px for every other point
-    thresholds_px = np.where(np.arange(len(points)) % 2 == 0, 3.0, 1.5)
-    count_inliers(points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], thresholds_px, counts)
+    count_inliers(points, pixels, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], 3.0, counts)
     expected = []
     for g in range(len(poses)):
         errors, inliers = np.empty(len(points)), np.empty(len(points), dtype=bool)
         inlier_errors(
-            points, pixels, R[g], t[g], K[0, 0], K[1, 1], K[0, 2], K[1, 2], thresholds_px,
-            errors, inliers,
-        )  # fmt: skip
-        assert np.array_equal(inliers[errors > 1.5], (errors <= thresholds_px)[errors > 1.5])
+            points, pixels, R[g], t[g], K[0, 0], K[1, 1], K[0, 2], K[1, 2], 3.0, errors, inliers
+        )
         expected.append(int(inliers.sum()))
     assert counts.tolist() == expected
     assert expected[0] > 0.6 * len(points) and min(expected) < expected[0]

@@ -175,8 +175,7 @@ def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
     projected, _ = cv2.projectPoints(points, cv2.Rodrigues(R0)[0], t0, K, None)
     expected_px = np.linalg.norm(projected[:, 0] - pixels, axis=1)
     threshold_px = float(np.median(expected_px))  # half the points inside
-    thresholds_px = np.full(len(points), threshold_px)
-    inlier_errors(points, pixels, R0, t0, *args, thresholds_px, errors_px, inliers)
+    inlier_errors(points, pixels, R0, t0, *args, threshold_px, errors_px, inliers)
     assert np.allclose(errors_px, expected_px, atol=1e-6)
     in_front = (points @ R0.T + t0)[:, 2] > 0
     assert np.array_equal(inliers, (errors_px <= threshold_px) & in_front)
@@ -197,7 +196,7 @@ def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
     assert np.allclose(t, tvec_cv.ravel(), atol=1e-5)
     # 0.5 px noise: the optimum sits near the truth, and far below the starting cost.
     assert np.linalg.norm(t - T_query_from_ref[:3, 3]) < 0.05
-    inlier_errors(points, pixels, R, t, *args, thresholds_px, errors_px, inliers)
+    inlier_errors(points, pixels, R, t, *args, threshold_px, errors_px, inliers)
     assert cost == pytest.approx(float(np.sum(errors_px**2)), rel=1e-9)
     assert np.sqrt(cost / len(points)) < 1.0
     # Masked-out points do not pull the fit: corrupt them and the result stays.
@@ -290,6 +289,10 @@ def test_lm_weights_are_inverse_variances():
     # ... with unit weights the corrupted points pull the pose away ...
     R_u, t_u, _ = refine_lm(points, corrupted, all_points, ones, R0, t0, *args, 30)
     assert np.linalg.norm(t_u - t_masked) > 0.01
+    # ... an empty weights array stands for all 1 ...
+    R_e, t_e, cost_e = refine_lm(points, corrupted, masked, np.empty(0), R0, t0, *args, 30)
+    R_1, t_1, cost_1 = refine_lm(points, corrupted, masked, ones, R0, t0, *args, 30)
+    assert np.array_equal(t_e, t_1) and np.array_equal(R_e, R_1) and cost_e == cost_1
     # ... and scaling every weight alike changes the cost, not the optimum.
     R_s, t_s, cost_s = refine_lm(points, corrupted, masked, 4.0 * ones, R0, t0, *args, 30)
     assert np.linalg.norm(t_s - t_masked) < 1e-6
