@@ -364,9 +364,16 @@ def pose_hypotheses(
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
     inliers: list[EntryInliers] = []
+    near_misses: list[np.ndarray] = []  # T_world_from_query of poses short of min_inliers
     for ref, pairs, rel in zip(refs, matches, solved, strict=True):
         if not rel.accepted:
             rejected.append((ref.entry_id, rel.reject_reason or "rejected"))
+            if (
+                strategy.pooled is not None
+                and rel.n_inliers >= strategy.pooled.guess_min_inliers
+                and np.isfinite(rel.T_ref_from_query[0, 0])
+            ):
+                near_misses.append(ref.T_world_from_cam @ rel.T_ref_from_query)
             continue
         # compose_hypothesis without its rigidity checks: entry poses are checked when
         # stored (storage.entry_checks) and an accepted pose is finite and rigid by
@@ -402,7 +409,16 @@ def pose_hypotheses(
             hypotheses.append(joint)
     if strategy.pooled is not None and not hypotheses and refs:
         pooled = _pooled_hypothesis(
-            keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, strategy.pooled, scales
+            keypoints_px,
+            refs,
+            matches,
+            e_vlad,
+            intrinsics,
+            config,
+            rng,
+            strategy.pooled,
+            scales,
+            near_misses,
         )
         if pooled is not None:
             hypotheses.append(pooled)
@@ -517,6 +533,7 @@ def _pooled_hypothesis(
     rng: np.random.Generator,
     config: PooledConfig,
     keypoint_scales: np.ndarray | None = None,
+    guesses_T_world_from_cam: Sequence[np.ndarray] = (),
 ) -> PoseHypothesis | None:
     """The pooled pose of the frame's entries, as a hypothesis: not marked ``joint`` (it
     stands in for the per-entry hypotheses the frame did not get, and the paper's
@@ -532,6 +549,7 @@ def _pooled_hypothesis(
         rng,
         config,
         keypoint_scales,
+        guesses_T_world_from_cam,
     )
     if pose is None:
         return None

@@ -29,7 +29,13 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import invert_rigid, wrap_angle
-from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose, refine_from_pose
+from monoloc.server.vision.pnp import (
+    PnpConfig,
+    RelativePose,
+    estimate_relative_pose,
+    estimate_relative_pose_guided,
+    refine_from_pose,
+)
 
 
 @dataclass(frozen=True)
@@ -161,16 +167,21 @@ class PooledConfig:
     (planar) distance of the entry with the most matches are pooled: entries that see one
     place are neighbours, and a frame whose retrieved entries are scattered over the map
     (a night frame against a day map) then does not pay a long RANSAC on matches that
-    cannot agree (about 20 ms a frame at 1000 iterations)."""
+    cannot agree (about 20 ms a frame at 1000 iterations); guess_min_inliers: an entry
+    whose own pose fell short of ``min_inliers`` but kept at least this many inliers
+    offers that pose as a guess (see :func:`estimate_pooled_pose`)."""
 
     min_entries: int = 2
     min_inliers_per_entry: int = 4
     iterations: int = 1000
     neighbour_radius_m: float = 25.0
+    guess_min_inliers: int = 6
 
     def __post_init__(self) -> None:
         if self.min_entries < 2 or self.min_inliers_per_entry < 1 or self.iterations < 1:
             raise InvalidInputError(f"invalid PooledConfig {self}")
+        if self.guess_min_inliers < 4:  # fewer than a minimal sample's: no pose to guess
+            raise InvalidInputError(f"PooledConfig.guess_min_inliers must be >= 4: {self}")
         if not self.neighbour_radius_m > 0:
             raise InvalidInputError(f"PooledConfig.neighbour_radius_m must be > 0: {self}")
 
@@ -185,6 +196,7 @@ def estimate_pooled_pose(
     rng: np.random.Generator,
     config: PooledConfig,
     keypoint_scales: np.ndarray | None = None,
+    guesses_T_world_from_cam: Sequence[np.ndarray] = (),
 ) -> JointPose | None:
     """One PnP RANSAC on the matches of every retrieved entry together, for a frame whose
     entries each had too few matches or inliers for a pose of their own (hloc pools a
@@ -197,6 +209,13 @@ def estimate_pooled_pose(
     farther than ``config.neighbour_radius_m`` from it left out; a query
     keypoint matched in several entries keeps its match in the entry with more matches.
     ``keypoint_scales`` (N,): the keypoints' pyramid scales (None: all at full resolution).
+    ``guesses_T_world_from_cam``: poses (4, 4) of the query found elsewhere that fell short
+    (each entry's own pose with fewer than ``pnp.min_inliers``): as in guided PnP the one
+    that keeps the most pooled matches chooses the consensus set, refit on it, and the
+    pose stands if it keeps ``pnp.min_inliers`` and the members below; otherwise (or
+    without guesses) the RANSAC on the pooled matches runs as before. The RANSAC pays its
+    full budget on pooled matches (their inlier ratio is low: 15-20 % on bench/localize.py's
+    frames, about 20 ms), a guess one scoring pass and a refit.
     ``members`` indexes the entries keeping inliers. None when RANSAC finds no pose with
     ``pnp.min_inliers`` inliers, or fewer than ``config.min_entries`` entries keep
     ``config.min_inliers_per_entry`` of them."""
@@ -232,21 +251,21 @@ def estimate_pooled_pose(
         if keypoint_scales is not None:
             pair_scales.append(np.asarray(keypoint_scales, dtype=np.float64)[pairs[:, 0]])
     pooled = dataclasses.replace(pnp, iterations=max(pnp.iterations, config.iterations))
-    rel = estimate_relative_pose(
-        np.concatenate(pixels),
-        np.concatenate(points),
-        intrinsics,
-        pooled,
-        rng,
-        np.concatenate(pair_scales) if keypoint_scales is not None else None,
-    )
-    if not rel.accepted:
-        return None
-    owner_of_inlier = np.concatenate(owners)[rel.inlier_mask]
-    kept, counts = np.unique(owner_of_inlier, return_counts=True)
-    members = tuple(
-        int(j) for j, n in zip(kept, counts, strict=True) if n >= config.min_inliers_per_entry
-    )
+    pixels_all, points_all = np.concatenate(pixels), np.concatenate(points)
+    scales_all = np.concatenate(pair_scales) if keypoint_scales is not None else None
+    owners_all = np.concatenate(owners)
+    rel, members = None, ()
+    if len(guesses_T_world_from_cam):
+        guesses = T_anchor_from_world @ np.asarray(guesses_T_world_from_cam, dtype=np.float64)
+        # the guess only has to keep min_inliers (a pooled set's inlier ratio is low)
+        guided = dataclasses.replace(pooled, guided_min_inlier_ratio=0.0)
+        rel = estimate_relative_pose_guided(
+            pixels_all, points_all, guesses, intrinsics, guided, rng, False, scales_all
+        )
+        members = _pooled_members(rel, owners_all, config)
+    if len(members) < config.min_entries:
+        rel = estimate_relative_pose(pixels_all, points_all, intrinsics, pooled, rng, scales_all)
+        members = _pooled_members(rel, owners_all, config)
     if len(members) < config.min_entries:
         return None
     T_world_from_cam = (
@@ -258,4 +277,15 @@ def estimate_pooled_pose(
         n_correspondences=int(sum(len(p) for p in pixels)),
         n_inliers=rel.n_inliers,
         reprojection_error_px=rel.reprojection_error_px,
+    )
+
+
+def _pooled_members(rel: RelativePose, owners: np.ndarray, config: PooledConfig) -> tuple:
+    """The entries (indices) keeping ``config.min_inliers_per_entry`` of an accepted
+    pooled pose's inliers; () for a rejected pose."""
+    if not rel.accepted:
+        return ()
+    kept, counts = np.unique(owners[rel.inlier_mask], return_counts=True)
+    return tuple(
+        int(j) for j, n in zip(kept, counts, strict=True) if n >= config.min_inliers_per_entry
     )

@@ -464,3 +464,64 @@ def test_keypoint_scales_reach_every_pose_and_are_checked():
         assert _pose_error(h_w.T_world_from_cam, T_world_from_query)[0] < 0.1
     with pytest.raises(InvalidInputError, match="keypoint scales"):
         solve(np.ones(len(keypoints) - 1))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_near_miss_pose_guides_the_pooled_pose_without_its_ransac(seed):
+    """Each entry's own pose fell short of min_inliers; the best of them chooses the pooled
+    consensus (no RANSAC on the pooled matches: rng None would fail if one ran), and the
+    result matches what the RANSAC finds. A wrong guess falls back to the RANSAC."""
+    T_world_from_query, refs, matches, keypoints = _sparse(
+        _scene(seed, n_refs=5, outlier_fraction=0.3), per_entry=12
+    )
+    args = ([r.T_world_from_cam for r in refs], [r.points_cam for r in refs], matches, CAM)
+    near_miss = T_world_from_query.copy()
+    near_miss[:3, 3] += [0.05, -0.04, 0.03]  # an entry's own pose on its few inliers
+    guided = estimate_pooled_pose(
+        keypoints, *args, PnpConfig(), None, PooledConfig(), guesses_T_world_from_cam=[near_miss]
+    )
+    assert guided is not None and len(guided.members) >= 2
+    ransac = estimate_pooled_pose(
+        keypoints, *args, PnpConfig(), np.random.default_rng(seed), PooledConfig()
+    )
+    assert ransac is not None
+    for pose in (guided, ransac):
+        position_m, angle_deg = _pose_error(pose.T_world_from_cam, T_world_from_query)
+        assert position_m < 0.15 and angle_deg < 0.5
+    assert abs(guided.n_inliers - ransac.n_inliers) <= 2
+    wrong = T_world_from_query.copy()
+    wrong[:3, 3] += [8.0, 3.0, 0.0]
+    fell_back = estimate_pooled_pose(
+        keypoints, *args, PnpConfig(), np.random.default_rng(seed), PooledConfig(),
+        guesses_T_world_from_cam=[wrong],
+    )  # fmt: skip
+    assert fell_back is not None
+    assert _pose_error(fell_back.T_world_from_cam, T_world_from_query)[0] < 0.15
+    with pytest.raises(AttributeError):  # the wrong guess left it to the RANSAC
+        estimate_pooled_pose(
+            keypoints, *args, PnpConfig(), None, PooledConfig(), guesses_T_world_from_cam=[wrong]
+        )
+
+
+def test_pose_hypotheses_offer_the_entries_near_misses_to_pooled_pnp(monkeypatch):
+    import monoloc.server.localize as localize_module
+
+    # 17 matches each, 30 % wrong: every entry's RANSAC finds a pose short of 15 inliers
+    T_world_from_query, refs, matches, keypoints = _sparse(
+        _scene(1, n_refs=5, outlier_fraction=0.3), per_entry=17
+    )
+    offered = []
+    real = localize_module.estimate_pooled_pose
+
+    def spy(*args, **kwargs):
+        offered.append(list(args[-1]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(localize_module, "estimate_pooled_pose", spy)
+    hypotheses, rejected = _solve(refs, matches, keypoints, PnpStrategy())
+    assert [h.method for h in hypotheses] == ["pooled"]
+    (guesses,) = offered
+    short = [reason for _, reason in rejected if "inliers < min_inliers" in reason]
+    assert len(short) == len(refs) == len(guesses)
+    assert all(g.shape == (4, 4) and np.all(np.isfinite(g)) for g in guesses)
+    assert min(_pose_error(g, T_world_from_query)[0] for g in guesses) < 0.5
