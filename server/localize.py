@@ -370,6 +370,7 @@ def pose_hypotheses(
             rejected.append((ref.entry_id, rel.reject_reason or "rejected"))
             if (
                 strategy.pooled is not None
+                and strategy.pooled.near_miss_guesses
                 and rel.n_inliers >= strategy.pooled.guess_min_inliers
                 and np.isfinite(rel.T_ref_from_query[0, 0])
             ):

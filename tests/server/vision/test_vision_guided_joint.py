@@ -520,6 +520,11 @@ def test_pose_hypotheses_offer_the_entries_near_misses_to_pooled_pnp(monkeypatch
     monkeypatch.setattr(localize_module, "estimate_pooled_pose", spy)
     hypotheses, rejected = _solve(refs, matches, keypoints, PnpStrategy())
     assert [h.method for h in hypotheses] == ["pooled"]
+    assert offered == [[]]  # off by default
+    offered.clear()
+    opted_in = PnpStrategy(pooled=PooledConfig(near_miss_guesses=True))
+    hypotheses, rejected = _solve(refs, matches, keypoints, opted_in)
+    assert [h.method for h in hypotheses] == ["pooled"]
     (guesses,) = offered
     short = [reason for _, reason in rejected if "inliers < min_inliers" in reason]
     assert len(short) == len(refs) == len(guesses)
