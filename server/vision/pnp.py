@@ -44,6 +44,12 @@ SOLVERS = {
 }
 
 
+# "opencv": cv2.solvePnPRansac's classic RANSAC with ``minimal_solver`` and the budget of
+# :func:`ransac_iterations`; "usac": OpenCV's USAC framework (uniform sampling, MSAC
+# score, its own adaptive stop within ``iterations``; the minimal solver is its own).
+RANSAC_METHODS = ("opencv", "usac")
+
+
 @dataclass(frozen=True)
 class PnpConfig:
     """PnP RANSAC settings.
@@ -103,6 +109,7 @@ class PnpConfig:
     guided_min_inlier_ratio: float = 0.3
     guided_refit_min_fraction: float = 0.5
     scale_weighting: bool = False
+    ransac: str = "opencv"
 
     def __post_init__(self) -> None:
         if not self.reprojection_error_px > 0 or self.iterations < 1:
@@ -115,6 +122,10 @@ class PnpConfig:
             0.0 <= self.guided_refit_min_fraction <= 1.0
         ):
             raise InvalidInputError(f"invalid PnpConfig guided settings {self}")
+        if self.ransac not in RANSAC_METHODS:
+            raise InvalidInputError(
+                f"PnpConfig.ransac must be one of {RANSAC_METHODS}, got {self.ransac!r}"
+            )
         if self.minimal_solver not in SOLVERS:
             raise InvalidInputError(
                 f"PnpConfig.minimal_solver must be one of {sorted(SOLVERS)}, got "
@@ -373,17 +384,31 @@ def _ransac_inliers(
     on ``rng`` only (see the module docstring)."""
     n_points = len(pixels)
     order = rng.permutation(n_points)
-    cv2.setRNGSeed(int(rng.integers(2**31)))
-    ok, _, _, inliers = cv2.solvePnPRansac(
-        points[order],
-        pixels[order],
-        K,
-        None,
-        iterationsCount=ransac_iterations(n_points, config),
-        reprojectionError=config.reprojection_error_px,
-        confidence=config.confidence,
-        flags=SOLVERS[config.minimal_solver],
-    )
+    seed = int(rng.integers(2**31))
+    if config.ransac == "usac":
+        params = cv2.UsacParams()
+        params.confidence = config.confidence
+        params.maxIterations = config.iterations
+        params.threshold = config.reprojection_error_px
+        params.sampler = cv2.SAMPLING_UNIFORM
+        params.score = cv2.SCORE_METHOD_MSAC
+        params.loMethod = cv2.LOCAL_OPTIM_NULL
+        params.randomGeneratorState = seed
+        ok, _, _, _, inliers = cv2.solvePnPRansac(
+            points[order], pixels[order], K, None, None, None, None, params
+        )
+    else:
+        cv2.setRNGSeed(seed)
+        ok, _, _, inliers = cv2.solvePnPRansac(
+            points[order],
+            pixels[order],
+            K,
+            None,
+            iterationsCount=ransac_iterations(n_points, config),
+            reprojectionError=config.reprojection_error_px,
+            confidence=config.confidence,
+            flags=SOLVERS[config.minimal_solver],
+        )
     if not ok or inliers is None or len(inliers) < _MIN_POINTS_FOR_SOLVER:
         return None
     mask = np.zeros(n_points, dtype=bool)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from monoloc.core.camera import KITTI_CAM0 as CAM
+from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import (
     T_world_from_cam_planar,
     invert_rigid,
@@ -530,3 +531,23 @@ def test_pose_hypotheses_offer_the_entries_near_misses_to_pooled_pnp(monkeypatch
     assert len(short) == len(refs) == len(guesses)
     assert all(g.shape == (4, 4) and np.all(np.isfinite(g)) for g in guesses)
     assert min(_pose_error(g, T_world_from_query)[0] for g in guesses) < 0.5
+
+
+def test_pooled_pnp_runs_usac_by_default_and_the_classic_ransac_finds_the_same_pose():
+    T_world_from_query, refs, matches, keypoints = _sparse(
+        _scene(6, n_refs=5, outlier_fraction=0.3), per_entry=12
+    )
+    args = ([r.T_world_from_cam for r in refs], [r.points_cam for r in refs], matches, CAM)
+    assert PooledConfig().ransac == "usac"
+    poses = [
+        estimate_pooled_pose(
+            keypoints, *args, PnpConfig(), np.random.default_rng(2), PooledConfig(ransac=method)
+        )
+        for method in ("usac", "opencv")
+    ]
+    assert all(pose is not None for pose in poses)
+    for pose in poses:
+        assert _pose_error(pose.T_world_from_cam, T_world_from_query)[0] < 0.15
+    assert abs(poses[0].n_inliers - poses[1].n_inliers) <= 2
+    with pytest.raises(InvalidInputError):
+        PooledConfig(ransac="magic")

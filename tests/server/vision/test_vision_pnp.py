@@ -296,3 +296,31 @@ def test_lm_weights_are_inverse_variances():
     # ... and scaling every weight alike changes the cost, not the optimum.
     R_s, t_s, cost_s = refine_lm(points, corrupted, masked, 4.0 * ones, R0, t0, *args, 30)
     assert np.linalg.norm(t_s - t_masked) < 1e-6
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_usac_recovers_the_pose_reproducibly_and_like_the_classic_ransac(seed):
+    observed, points_ref, T_true, outliers = _scene(np.random.default_rng(seed))
+    usac = PnpConfig(ransac="usac")
+    first = estimate_relative_pose(observed, points_ref, CAM, usac, np.random.default_rng(seed))
+    again = estimate_relative_pose(observed, points_ref, CAM, usac, np.random.default_rng(seed))
+    classic = estimate_relative_pose(
+        observed, points_ref, CAM, PnpConfig(), np.random.default_rng(seed)
+    )
+    assert first.accepted and classic.accepted
+    error_m, error_deg = _errors(T_true, first.T_ref_from_query)
+    assert error_m < 0.01 and error_deg < 0.1
+    assert np.array_equal(first.T_ref_from_query, again.T_ref_from_query)
+    assert abs(first.n_inliers - classic.n_inliers) <= 2
+    assert np.mean(first.inlier_mask == ~outliers) > 0.98
+    # and unrelated points are still no pose
+    shuffled = np.random.default_rng(seed).permutation(len(points_ref))
+    junk = estimate_relative_pose(
+        observed, points_ref[shuffled], CAM, usac, np.random.default_rng(seed)
+    )
+    assert not junk.accepted
+
+
+def test_unknown_ransac_method_is_refused():
+    with pytest.raises(InvalidInputError, match="ransac"):
+        PnpConfig(ransac="magic")
