@@ -11,7 +11,9 @@ OpenCV's (per-thread) global RNG with ``cv2.setRNGSeed(rng.integers(2**31))`` ri
 reproducible. Measured with OpenCV 5.0: its PnP RANSAC seeds its sampler with a constant
 and ignores the global RNG, so the call alone would be deterministic but deaf to ``rng``;
 the correspondences are therefore also shuffled with ``rng`` before the call, which makes
-the samples depend on ``rng`` (and only on it) whatever the OpenCV version does.
+the samples depend on ``rng`` (and only on it) whatever the OpenCV version does. With
+``PnpConfig.ransac == "usac"`` the same draw seeds USAC's own generator
+(``UsacParams.randomGeneratorState``), after the same shuffle.
 
 Pipeline: RANSAC with P3P hypotheses on 4-point samples (several times faster than
 OpenCV's default EPnP 5-point kernel at equal accuracy; bench/vision.py), then SQPnP on
