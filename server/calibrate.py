@@ -226,6 +226,7 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         rng,
         config.strategy,
         keypoint_scales=query.keypoint_scales,
+        descriptors=query.descriptors,
     )
     for h in hypotheses:
         samples.n_hypotheses += int(not h.joint)

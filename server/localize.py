@@ -66,6 +66,12 @@ from monoloc.server.vision.pnp import (
     RelativePose,
     estimate_relative_pose,
     estimate_relative_pose_guided,
+    refit_relative_pose,
+)
+from monoloc.server.vision.projection import (
+    KeypointGrid,
+    ProjectionMatchConfig,
+    match_by_projection,
 )
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
@@ -141,6 +147,9 @@ class LocalizeConfig:
     joint: JointConfig | None = field(default_factory=JointConfig)
     fallback_until_confirmed: int | None = 2
     pooled: PooledConfig | None = field(default_factory=PooledConfig)
+    refine_by_projection: ProjectionMatchConfig | None = field(
+        default_factory=lambda: ProjectionMatchConfig(radius_px=8.0)
+    )
 
     @property
     def preset(self) -> Preset:
@@ -156,6 +165,7 @@ class LocalizeConfig:
             joint=self.joint if preset.joint else None,
             fallback_until_confirmed=self.fallback_until_confirmed,
             pooled=self.pooled if preset.pooled else None,
+            refine=self.refine_by_projection if preset.guided else None,
         )
 
 
@@ -188,6 +198,9 @@ class PnpStrategy:
     joint: JointConfig | None = field(default_factory=JointConfig)
     fallback_until_confirmed: int | None = 2
     pooled: PooledConfig | None = field(default_factory=PooledConfig)
+    refine: ProjectionMatchConfig | None = field(
+        default_factory=lambda: ProjectionMatchConfig(radius_px=8.0)
+    )
 
     def __post_init__(self) -> None:
         if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
@@ -322,6 +335,7 @@ def localize_frame(
         config.pnp_strategy,
         prior,
         features.scales,
+        features.descriptors,
     )
     laps.lap("pnp")
     return LocalizationResult(
@@ -345,6 +359,7 @@ def pose_hypotheses(
     strategy: PnpStrategy = PnpStrategy(),
     prior: RetrievalPrior | None = None,
     keypoint_scales: np.ndarray | None = None,
+    descriptors: np.ndarray | None = None,
 ) -> tuple[list[PoseHypothesis], list[tuple[int, str]]]:
     """PnP against each reference (its (K, 2) query/reference index pairs into
     ``keypoints_px`` (N, 2) and its points), guided or not, plus the joint hypothesis
@@ -361,11 +376,19 @@ def pose_hypotheses(
     solved = _solve_entries(
         keypoints_px, refs, matches, intrinsics, config, rng, strategy, prior, scales
     )
+    pairs_used = matches
+    if strategy.refine is not None:
+        if descriptors is None:
+            raise InvalidInputError("refining by projection needs the query's descriptors")
+        pairs_used, solved = _refined_by_projection(
+            keypoints_px, descriptors, refs, matches, solved, intrinsics, config,
+            strategy.refine, scales,
+        )  # fmt: skip
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
     inliers: list[EntryInliers] = []
     near_misses: list[np.ndarray] = []  # T_world_from_query of poses short of min_inliers
-    for ref, pairs, rel in zip(refs, matches, solved, strict=True):
+    for ref, pairs, rel in zip(refs, pairs_used, solved, strict=True):
         if not rel.accepted:
             rejected.append((ref.entry_id, rel.reject_reason or "rejected"))
             if (
@@ -567,6 +590,47 @@ def _pooled_hypothesis(
         entry_ids=tuple(refs[m].entry_id for m in pose.members),
         method="pooled",
     )
+
+
+def _refined_by_projection(
+    keypoints_px: np.ndarray,
+    descriptors: np.ndarray,
+    refs: Sequence[ReferenceEntry],
+    matches: Sequence[np.ndarray],
+    solved: Sequence[RelativePose],
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    window: ProjectionMatchConfig,
+    scales: np.ndarray | None,
+) -> tuple[list[np.ndarray], list[RelativePose]]:
+    """Each accepted entry's pose refit on the entry's points matched by projection from
+    that pose (``vision.projection``: the query keypoints near where the pose puts each
+    point compete, instead of the whole image), kept when it keeps more inliers. Returns
+    the entries' (K, 2) pairs and poses, the refined ones replaced."""
+    pairs_out, solved_out = list(matches), list(solved)
+    grid = None
+    for j, (ref, rel) in enumerate(zip(refs, solved, strict=True)):
+        if not rel.accepted:
+            continue
+        if grid is None:
+            grid = KeypointGrid(keypoints_px, descriptors, intrinsics, window.radius_px)
+        pairs = match_by_projection(
+            grid, ref.descriptors, ref.points_cam, invert_rigid(rel.T_ref_from_query), window
+        )
+        if len(pairs) <= rel.n_inliers:
+            continue
+        refit = refit_relative_pose(
+            keypoints_px[pairs[:, 0]],
+            ref.points_cam[pairs[:, 1]],
+            rel.T_ref_from_query,
+            intrinsics,
+            config,
+            rel.method,
+            keypoint_scales=None if scales is None else scales[pairs[:, 0]],
+        )
+        if refit.accepted and refit.n_inliers > rel.n_inliers:
+            pairs_out[j], solved_out[j] = pairs, refit
+    return pairs_out, solved_out
 
 
 def _joint_hypothesis(

@@ -511,6 +511,39 @@ def refine_from_pose(
     return R_w, t_w, mask, errors_px if weighted_errors_px is None else weighted_errors_px
 
 
+def refit_relative_pose(
+    points_query_px: np.ndarray,
+    points_ref_cam: np.ndarray,
+    T_ref_from_query: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    method: str,
+    rounds: int = 2,
+    keypoint_scales: np.ndarray | None = None,
+) -> RelativePose:
+    """A pose (4, 4) T_ref_from_query re-scored and refined on other correspondences
+    (pixels (M, 2), points (M, 3) in the reference frame): inlier selection and LM
+    ``rounds`` times (:func:`refine_from_pose`), then the usual checks; ``method`` is
+    kept. Rejected when LM fails or fewer than ``min_inliers`` remain."""
+    pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
+    n_points = len(pixels)
+    if n_points < _MIN_POINTS_FOR_SOLVER:
+        return _rejected(n_points, f"{n_points} correspondences to refit on", method=method)
+    T_query_from_ref = invert_rigid(np.asarray(T_ref_from_query, dtype=np.float64))
+    R0 = np.ascontiguousarray(T_query_from_ref[:3, :3])
+    t0 = np.ascontiguousarray(T_query_from_ref[:3, 3])
+    R, t, mask, errors_px = refine_from_pose(
+        points, pixels, R0, t0, intrinsics.K, config, rounds, None, keypoint_scales
+    )
+    if R is None:
+        return _rejected(
+            n_points, "the refit left too few inliers or finite numbers", method=method
+        )
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return _judged(invert_rigid(T), mask, errors_px, intrinsics, config, method)
+
+
 def guided_min_inliers(n_points: int, config: PnpConfig) -> int:
     """The fewest inliers a guided pose must keep to stand without the entry's own RANSAC."""
     return max(config.min_inliers, math.ceil(config.guided_min_inlier_ratio * n_points))

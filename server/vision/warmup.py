@@ -15,12 +15,17 @@ from monoloc.server.vision.pnp import (
     estimate_relative_pose,
     estimate_relative_pose_guided,
 )
+from monoloc.server.vision.projection import (
+    KeypointGrid,
+    ProjectionMatchConfig,
+    match_by_projection,
+)
 from monoloc.server.vision.vlad import compute_vlad
 
 
 def warm_up() -> None:
-    """Run the VLAD kernels, the matching kernel and PnP (RANSAC's inlier scoring + LM,
-    guided PnP's guess scoring) once on a small exact scene."""
+    """Run the VLAD kernels, the matching kernel, PnP (RANSAC's inlier scoring + LM,
+    guided PnP's guess scoring) and matching by projection once on a small exact scene."""
     rng = np.random.default_rng(0)
     descriptors = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
     compute_vlad(descriptors, descriptors[:2].astype(np.float32))
@@ -32,3 +37,6 @@ def warm_up() -> None:
     pixels = points_cam[:, :2] / points_cam[:, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
     estimate_relative_pose(pixels, points_cam, camera, PnpConfig(), rng)
     estimate_relative_pose_guided(pixels, points_cam, [np.eye(4)], camera, PnpConfig(), rng)
+    point_descriptors = rng.integers(0, 256, size=(40, 32), dtype=np.uint8)
+    grid = KeypointGrid(pixels, point_descriptors, camera, ProjectionMatchConfig().radius_px)
+    match_by_projection(grid, point_descriptors, points_cam, np.eye(4), ProjectionMatchConfig())

@@ -26,11 +26,17 @@ class Outcome:
     timings_ms: list[dict]
 
 
+@dataclass(frozen=True)
+class City:
+    registry: object  # monoloc.server.runtime.MapRegistry, map id 1
+    query_run: object
+    entry_xy: dict
+
+
 @pytest.fixture(scope="module")
-def city_outcome(tmp_path_factory) -> Outcome:
+def city(tmp_path_factory) -> City:
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.ingest.manage import create_map, ingest_source
-    from monoloc.server.localize import LocalizeConfig
     from monoloc.server.runtime import MapRegistry
     from monoloc.server.settings import Settings
     from monoloc.server.storage.db import create_engine_for, make_session_factory
@@ -58,12 +64,26 @@ def city_outcome(tmp_path_factory) -> Outcome:
     runtime = registry.get(1)
     snapshot = runtime.index.snapshot()
     entry_xy = dict(zip(snapshot["ids"].tolist(), snapshot["poses"][:, :2], strict=True))
+    return City(registry, query_run, entry_xy)
+
+
+def _queries(city):
+    """(frame, planar truth) of the query frames with a map entry within 2 m."""
+    for frame in city.query_run.frames:
+        truth = planar_from_T_world_from_cam(frame.T_world_from_cam)
+        if min(np.linalg.norm(xy - truth[:2]) for xy in city.entry_xy.values()) <= 2.0:
+            yield frame, truth  # else: the query pass ran past the map pass's last frame
+
+
+@pytest.fixture(scope="module")
+def city_outcome(city) -> Outcome:
+    from monoloc.server.localize import LocalizeConfig
+
+    registry, query_run, entry_xy = city.registry, city.query_run, city.entry_xy
     hits, errors, timings = [], [], []
     rng = np.random.default_rng(0)
-    for frame in query_run.frames:
-        truth = planar_from_T_world_from_cam(frame.T_world_from_cam)[:2]
-        if min(np.linalg.norm(xy - truth) for xy in entry_xy.values()) > 2.0:
-            continue  # the query pass ran past the map pass's last frame
+    for frame, truth_pose in _queries(city):
+        truth = truth_pose[:2]
         result, _ = registry.localize(1, query_run.load(frame).image_gray, LocalizeConfig(), rng)
         hits.append(any(np.linalg.norm(entry_xy[i] - truth) <= 2.0 for i in result.retrieved_ids))
         best = result.best
@@ -90,3 +110,28 @@ def test_every_stage_is_timed(city_outcome):
     for timings in city_outcome.timings_ms:
         assert stages <= set(timings)
         assert timings["total"] >= sum(timings[s] for s in stages - {"total"}) * 0.99
+
+
+def test_refinement_by_projection_keeps_more_of_each_entrys_points(city):
+    """Each entry's pose refit on its points matched around where that pose projects them
+    (``LocalizeConfig.refine_by_projection``, the default) keeps more inliers than the
+    global matches gave, and the entries' poses come closer to the truth."""
+    from monoloc.server.localize import LocalizeConfig
+
+    configs = {"refined": LocalizeConfig(), "plain": LocalizeConfig(refine_by_projection=None)}
+    inliers = {name: [] for name in configs}
+    errors = {name: [] for name in configs}  # every per-entry hypothesis's position error
+    for frame, truth in _queries(city):
+        image = city.query_run.load(frame).image_gray
+        for name, config in configs.items():
+            result, _ = city.registry.localize(1, image, config, np.random.default_rng(3))
+            per_entry = [h for h in result.hypotheses if not h.joint]
+            inliers[name] += [h.n_inliers for h in per_entry]
+            errors[name] += [np.linalg.norm(h.pose_world[:2] - truth[:2]) for h in per_entry]
+    refined, plain = np.array(errors["refined"]), np.array(errors["plain"])
+    assert np.median(inliers["refined"]) >= 1.2 * np.median(inliers["plain"])
+    assert np.median(refined) <= np.median(plain)
+    # measured when written: 104 poses either way, inliers median 29 vs 23, error median
+    # 0.060 vs 0.065 m, 86.5 vs 88.5 % within 0.3 m (two poses of entries seeing little)
+    assert len(refined) == len(plain)
+    assert np.mean(refined <= 0.3) >= np.mean(plain <= 0.3) - 0.05

@@ -12,7 +12,7 @@ _PROBE = """
 import json
 from numba.core.registry import CPUDispatcher
 from monoloc.server.index import _scan_kernel
-from monoloc.server.vision import _hamming_kernel, _pnp_kernel, _vlad_kernel
+from monoloc.server.vision import _hamming_kernel, _pnp_kernel, _vlad_kernel, _window_kernel
 from monoloc.server.index.warmup import warm_up as warm_up_index
 from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
@@ -21,7 +21,7 @@ if WARM:
     warm_up_vision()
     warm_up_index()
 kernels = {{}}
-for module in (_hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel):
+for module in (_hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel, _window_kernel):
     for name, obj in vars(module).items():
         if isinstance(obj, CPUDispatcher) and obj.__module__ == module.__name__:
             if obj.targetoptions.get("inline") == "always":
@@ -66,7 +66,7 @@ from monoloc.server.index import _scan_kernel
 from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 from monoloc.server.index.warmup import warm_up as warm_up_index
 from monoloc.server.localize import ReferenceEntry, pose_hypotheses
-from monoloc.server.vision import _hamming_kernel, _pnp_kernel, _vlad_kernel
+from monoloc.server.vision import _hamming_kernel, _pnp_kernel, _vlad_kernel, _window_kernel
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.matching import match_against_references
 from monoloc.server.vision.pnp import PnpConfig
@@ -74,7 +74,7 @@ from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
 def signatures():
     out = {{}}
-    for module in (_hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel):
+    for module in (_hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel, _window_kernel):
         for name, obj in vars(module).items():
             if isinstance(obj, CPUDispatcher) and obj.__module__ == module.__name__:
                 out[module.__name__ + "." + name] = len(obj.signatures)
@@ -113,7 +113,7 @@ matches = match_against_references(descriptors, [r.descriptors for r in refs])
 for prior in (None, RetrievalPrior(10.0, 2.0, 5.0, 0.3, 0.5)):
     hyps, _ = pose_hypotheses(
         pixels.astype(np.float32), refs, matches, {{j: 0.5 for j in range(4)}}, CAM, PnpConfig(),
-        rng, prior=prior,
+        rng, prior=prior, descriptors=descriptors,
     )
     assert len(hyps) == 5, len(hyps)
 after = signatures()

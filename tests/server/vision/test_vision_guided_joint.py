@@ -32,6 +32,12 @@ from monoloc.server.vision.pnp import (
 )
 
 
+def _no_descriptors(**fields):
+    """The PnP strategy for these scenes: correspondences without descriptors, so no
+    refinement by projection (it needs the query's descriptors)."""
+    return PnpStrategy(**{"refine": None, **fields})
+
+
 def _pose_error(T_a, T_b):
     delta = invert_rigid(T_a) @ T_b
     return np.linalg.norm(delta[:3, 3]), math.degrees(rotation_angle_rad(delta[:3, :3]))
@@ -109,7 +115,7 @@ def test_guided_pnp_matches_full_ransac_on_clean_data(seed):
         CAM,
         config,
         np.random.default_rng(0),
-        PnpStrategy(joint=None),
+        _no_descriptors(joint=None),
     )
     full, rej_f = pose_hypotheses(
         keypoints,
@@ -119,7 +125,7 @@ def test_guided_pnp_matches_full_ransac_on_clean_data(seed):
         CAM,
         config,
         np.random.default_rng(0),
-        PnpStrategy(guided=False, joint=None),
+        _no_descriptors(guided=False, joint=None),
     )
     assert not rej_g and not rej_f
     assert [h.entry_id for h in guided] == [h.entry_id for h in full] == list(range(len(refs)))
@@ -185,8 +191,9 @@ def test_joint_pose_round_trip_recovers_the_query_pose(seed):
         )
         e_vlad = {r.entry_id: 0.8 for r in refs}
         hyps, _ = pose_hypotheses(
-            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(seed)
-        )
+            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(seed),
+            _no_descriptors(),
+        )  # fmt: skip
         joint = [h for h in hyps if h.joint]
         assert len(joint) == 1 and hyps[-1].joint and hyps[-1].method == "joint"
         joint = joint[0]
@@ -258,7 +265,7 @@ def test_no_fallback_ransac_once_two_entries_confirm_the_pose():
     T_world_from_query, refs, matches, keypoints = _with_mislabelled_entry(7, subset=0.15)
     assert len(matches[-1]) == min(len(m) for m in matches)
     always, _ = _solve(
-        refs, matches, keypoints, PnpStrategy(joint=None, fallback_until_confirmed=None)
+        refs, matches, keypoints, _no_descriptors(joint=None, fallback_until_confirmed=None)
     )
     odd = [h for h in always if h.entry_id == refs[-1].entry_id]
     assert len(odd) == 1 and odd[0].method == "ransac"
@@ -266,7 +273,7 @@ def test_no_fallback_ransac_once_two_entries_confirm_the_pose():
         np.hypot(*(odd[0].pose_world[:2] - planar_from_T_world_from_cam(T_world_from_query)[:2]))
         > 4.0
     )
-    confirmed, rejected = _solve(refs, matches, keypoints, PnpStrategy(joint=None))
+    confirmed, rejected = _solve(refs, matches, keypoints, _no_descriptors(joint=None))
     assert [h.entry_id for h in confirmed] == [h.entry_id for h in always if h is not odd[0]]
     assert [e for e, _ in rejected] == [refs[-1].entry_id]
     assert "no own RANSAC" in rejected[0][1]
@@ -278,7 +285,7 @@ def test_fallback_ransac_still_runs_before_the_pose_is_confirmed():
     # each other, and every entry keeps its own hypothesis.
     T_world_from_query, refs, matches, keypoints = _with_mislabelled_entry(8, subset=1.0)
     assert len(matches[-1]) == max(len(m) for m in matches)
-    hyps, rejected = _solve(refs, matches, keypoints, PnpStrategy(joint=None))
+    hyps, rejected = _solve(refs, matches, keypoints, _no_descriptors(joint=None))
     assert not rejected and len(hyps) == len(refs)
     truth = planar_from_T_world_from_cam(T_world_from_query)
     good = [h for h in hyps if h.entry_id != refs[-1].entry_id]
@@ -296,7 +303,11 @@ def test_a_prior_with_a_heading_is_one_confirming_vote():
         truth[0] + 0.1, truth[1], 10.0, float(truth[2] + math.radians(0.3)), math.radians(20)
     )
     hyps, rejected = _solve(
-        refs[:1] + refs[-1:], matches[:1] + matches[-1:], keypoints, PnpStrategy(joint=None), prior
+        refs[:1] + refs[-1:],
+        matches[:1] + matches[-1:],
+        keypoints,
+        _no_descriptors(joint=None),
+        prior,
     )
     assert [h.method for h in hyps] == ["guided"]
     assert [e for e, _ in rejected] == [refs[-1].entry_id] and "no own RANSAC" in rejected[0][1]
@@ -304,7 +315,7 @@ def test_a_prior_with_a_heading_is_one_confirming_vote():
         refs[:1] + refs[-1:],
         matches[:1] + matches[-1:],
         keypoints,
-        PnpStrategy(joint=None, fallback_until_confirmed=None),
+        _no_descriptors(joint=None, fallback_until_confirmed=None),
         prior,
     )
     assert not rejected and sorted(h.method for h in hyps) == ["guided", "ransac"]
@@ -353,9 +364,9 @@ def test_a_frame_whose_entries_are_each_too_sparse_gets_one_pooled_pose(seed):
         _scene(seed, n_refs=5, outlier_fraction=0.3), per_entry=12
     )
     assert all(len(m) < PnpConfig().min_inliers for m in matches)
-    without, rejected = _solve(refs, matches, keypoints, PnpStrategy(pooled=None))
+    without, rejected = _solve(refs, matches, keypoints, _no_descriptors(pooled=None))
     assert without == [] and len(rejected) == len(refs)
-    hypotheses, _ = _solve(refs, matches, keypoints, PnpStrategy())
+    hypotheses, _ = _solve(refs, matches, keypoints, _no_descriptors())
     assert [h.method for h in hypotheses] == ["pooled"]
     (pooled,) = hypotheses
     assert not pooled.joint and len(pooled.entry_ids) >= 2
@@ -366,7 +377,7 @@ def test_a_frame_whose_entries_are_each_too_sparse_gets_one_pooled_pose(seed):
 
 def test_pooled_pnp_runs_only_for_a_frame_without_any_other_hypothesis():
     T_world_from_query, refs, matches, keypoints = _scene(2, n_refs=5, outlier_fraction=0.3)
-    hypotheses, _ = _solve(refs, matches, keypoints, PnpStrategy())
+    hypotheses, _ = _solve(refs, matches, keypoints, _no_descriptors())
     assert hypotheses and all(h.method != "pooled" for h in hypotheses)
 
 
@@ -446,7 +457,7 @@ def test_keypoint_scales_reach_every_pose_and_are_checked():
     def solve(scales):
         return pose_hypotheses(
             keypoints, refs, matches, e_vlad, CAM, PnpConfig(scale_weighting=True),
-            np.random.default_rng(0), PnpStrategy(), None, scales,
+            np.random.default_rng(0), _no_descriptors(), None, scales,
         )[0]  # fmt: skip
 
     plain = solve(None)
@@ -519,11 +530,11 @@ def test_pose_hypotheses_offer_the_entries_near_misses_to_pooled_pnp(monkeypatch
         return real(*args, **kwargs)
 
     monkeypatch.setattr(localize_module, "estimate_pooled_pose", spy)
-    hypotheses, rejected = _solve(refs, matches, keypoints, PnpStrategy())
+    hypotheses, rejected = _solve(refs, matches, keypoints, _no_descriptors())
     assert [h.method for h in hypotheses] == ["pooled"]
     assert offered == [[]]  # off by default
     offered.clear()
-    opted_in = PnpStrategy(pooled=PooledConfig(near_miss_guesses=True))
+    opted_in = _no_descriptors(pooled=PooledConfig(near_miss_guesses=True))
     hypotheses, rejected = _solve(refs, matches, keypoints, opted_in)
     assert [h.method for h in hypotheses] == ["pooled"]
     (guesses,) = offered

@@ -1,0 +1,173 @@
+"""Projection-guided matching: match a query against a reference's 3D points where a
+pose says they should appear.
+
+Global matching (``vision.matching``) compares every query descriptor with every
+reference descriptor, and its ratio test rejects a match whenever the reference holds a
+second descriptor almost as close anywhere in the image: repeated facades by day, and at
+night most of the lamp-lit scene (bench/pnp_scale.py). An entry's PnP pose then rests on
+a fraction of the points it sees. Given a pose of the query relative to the reference,
+each reference point is projected into the query image and only the query keypoints
+within ``radius_px`` of it compete, so the ratio test compares it with the few
+descriptors nearby instead of the whole image (the search tracking front ends such as
+ORB-SLAM run against their local map).
+
+The localizer uses it to refine each entry's pose (``LocalizeConfig.refine_by_projection``):
+the entry's own RANSAC or guided pose chooses where to look, the entry's points found
+there are refit (inlier selection and LM), so the pose still comes from that entry's
+correspondences only. The pose only decides which keypoints compete: one that is off by
+more than the radius finds few right matches, and a refit is kept only when it keeps
+more inliers than the pose it started from.
+
+Pure: arrays in, (K, 2) index pairs out, as ``vision.matching`` gives.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.errors import InvalidInputError
+
+_NO_MATCHES = np.zeros((0, 2), dtype=np.int32)
+
+
+@dataclass(frozen=True)
+class ProjectionMatchConfig:
+    """radius_px: search radius around a projected reference point; max_hamming_bits and
+    ratio: the match rule among the keypoints in that window (d1 <= max_hamming_bits,
+    d1 < ratio * d2); min_depth_m: reference points closer to the predicted camera are
+    not projected."""
+
+    radius_px: float = 40.0
+    max_hamming_bits: int = 64
+    ratio: float = 0.9
+    min_depth_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.radius_px) and self.radius_px >= 1.0):
+            raise InvalidInputError(f"ProjectionMatchConfig.radius_px must be >= 1: {self}")
+        if not 0 <= self.max_hamming_bits <= 256:
+            raise InvalidInputError(
+                f"ProjectionMatchConfig.max_hamming_bits must be in [0, 256]: {self}"
+            )
+        if not 0.0 < self.ratio <= 1.0:
+            raise InvalidInputError(f"ProjectionMatchConfig.ratio must be in (0, 1]: {self}")
+        if not self.min_depth_m > 0:
+            raise InvalidInputError(f"ProjectionMatchConfig.min_depth_m must be > 0: {self}")
+
+
+class KeypointGrid:
+    """The query's keypoints bucketed in cells of the search radius (built once a frame,
+    shared by every reference)."""
+
+    def __init__(
+        self,
+        keypoints_px: np.ndarray,
+        descriptors: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        radius_px: float,
+    ) -> None:
+        keypoints = np.ascontiguousarray(keypoints_px, dtype=np.float64).reshape(-1, 2)
+        descriptors = np.ascontiguousarray(descriptors)
+        if descriptors.dtype != np.uint8 or descriptors.shape != (len(keypoints), 32):
+            raise InvalidInputError(
+                f"{len(keypoints)} keypoints need (N, 32) uint8 descriptors, got "
+                f"{descriptors.shape} {descriptors.dtype}"
+            )
+        self.keypoints_px = keypoints
+        self.words = descriptors.view(np.uint64)
+        self.radius_px = float(radius_px)
+        self.intrinsics = intrinsics
+        self.grid_width = int(math.ceil(intrinsics.width_px / radius_px)) + 1
+        self.grid_height = int(math.ceil(intrinsics.height_px / radius_px)) + 1
+        cx = np.clip(np.floor(keypoints[:, 0] / radius_px), 0, self.grid_width - 1)
+        cy = np.clip(np.floor(keypoints[:, 1] / radius_px), 0, self.grid_height - 1)
+        cells = (cy * self.grid_width + cx).astype(np.int64)
+        self.members = np.argsort(cells, kind="stable").astype(np.int64)
+        counts = np.bincount(cells, minlength=self.grid_width * self.grid_height)
+        self.start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+
+
+def project_points(
+    points_ref_cam: np.ndarray,
+    T_query_from_ref: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    min_depth_m: float,
+    margin_px: float = 0.0,
+) -> np.ndarray:
+    """(M, 2) pixels of reference points (M, 3) in the query camera at T_query_from_ref
+    (4, 4); NaN for points closer than ``min_depth_m`` or outside the image widened by
+    ``margin_px``."""
+    points = np.asarray(points_ref_cam, dtype=np.float64).reshape(-1, 3)
+    T = np.asarray(T_query_from_ref, dtype=np.float64)
+    p = points @ T[:3, :3].T + T[:3, 3]
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = intrinsics.fx * p[:, 0] / z + intrinsics.cx
+        v = intrinsics.fy * p[:, 1] / z + intrinsics.cy
+    seen = (
+        (z >= min_depth_m)
+        & (u >= -margin_px)
+        & (u <= intrinsics.width_px - 1 + margin_px)
+        & (v >= -margin_px)
+        & (v <= intrinsics.height_px - 1 + margin_px)
+    )
+    out = np.full((len(points), 2), np.nan)
+    out[seen, 0], out[seen, 1] = u[seen], v[seen]
+    return out
+
+
+def match_by_projection(
+    grid: KeypointGrid,
+    ref_descriptors: np.ndarray,
+    points_ref_cam: np.ndarray,
+    T_query_from_ref: np.ndarray,
+    config: ProjectionMatchConfig,
+) -> np.ndarray:
+    """(K, 2) int32 [query keypoint, reference point] matches of one reference whose
+    points (M, 3) (its camera frame) and descriptors (M, 32) uint8 are projected with the
+    predicted T_query_from_ref (4, 4); a query keypoint matched by several reference
+    points keeps the closest descriptor (ties: none). Sorted by query index."""
+    from monoloc.server.vision._window_kernel import window_match
+
+    ref_descriptors = np.ascontiguousarray(ref_descriptors)
+    if ref_descriptors.dtype != np.uint8 or ref_descriptors.shape != (len(points_ref_cam), 32):
+        raise InvalidInputError(
+            f"{len(points_ref_cam)} reference points need (M, 32) uint8 descriptors, got "
+            f"{ref_descriptors.shape} {ref_descriptors.dtype}"
+        )
+    if not len(ref_descriptors) or not len(grid.keypoints_px):
+        return _NO_MATCHES
+    projected = project_points(
+        points_ref_cam, T_query_from_ref, grid.intrinsics, config.min_depth_m, grid.radius_px
+    )
+    pairs = np.empty((len(projected), 2), dtype=np.int32)
+    dists = np.empty(len(projected), dtype=np.int32)
+    k = window_match(
+        projected,
+        grid.keypoints_px,
+        grid.start,
+        grid.members,
+        grid.grid_width,
+        grid.grid_height,
+        grid.radius_px,
+        grid.words,
+        ref_descriptors.view(np.uint64),
+        config.max_hamming_bits,
+        config.ratio,
+        pairs,
+        dists,
+    )
+    pairs, dists = pairs[:k], dists[:k]
+    if not k:
+        return _NO_MATCHES
+    # one match per query keypoint: its closest reference point, none when tied
+    order = np.lexsort((dists, pairs[:, 0]))
+    pairs, dists = pairs[order], dists[order]
+    first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
+    tied = np.r_[pairs[1:, 0] == pairs[:-1, 0], False] & np.r_[dists[1:] == dists[:-1], False]
+    keep = first & ~tied
+    return np.ascontiguousarray(pairs[keep])
