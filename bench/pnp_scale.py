@@ -1,4 +1,5 @@
-"""Per-entry PnP accuracy with the keypoints' pyramid scales as LM weights, beside without.
+"""Per-entry PnP accuracy: the keypoints' pyramid scales as LM weights, and the refit on
+matches by projection, each beside the plain pose.
 
 A keypoint ORB finds on pyramid level L is located to about scale_factor ** L pixels,
 and night frames hold more coarse-level keypoints than day frames.
@@ -12,13 +13,16 @@ estimated twice from the same matches and the same RANSAC samples, with and with
 scales. Each is judged against the sim's true relative pose (its written poses carry
 recording errors; the true ones are re-planned from the seed,
 ``monoloc.sim.urban.truth``). Entries whose pose either run rejects, or puts more than 2
-m off, are left out of both.
+m off, are left out of both. The plain pose is then refit on the entry's points matched
+by projection from it (``LocalizeConfig.refine_by_projection``, the localizer's default:
+``server.localize``), and judged the same way ("refined").
 
-Prints the median, mean and 75th percentile of the translation error of both, day and
-night. Also what the matches are, per ORB pyramid level of the query keypoint: the share
-of the right matches (within ``RIGHT_MATCH_PX`` of the true projection of their 3D point)
-on that level and their median residual under the true pose, plus the share of all
-matches that are right. Writes bench/results/pnp_scale.json.
+Prints the median, mean and 75th percentile of the translation error of each, day and
+night, and the median inliers of the plain and the refined poses. Also what the matches
+are, per ORB pyramid level of the query keypoint: the share of the right matches (within
+``RIGHT_MATCH_PX`` of the true projection of their 3D point) on that level and their
+median residual under the true pose, plus the share of all matches that are right.
+Writes bench/results/pnp_scale.json.
 """
 
 from __future__ import annotations
@@ -76,6 +80,7 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     from monoloc.server.vision.binary_code import vlad_binary_code
     from monoloc.server.vision.features import extract_features
     from monoloc.server.vision.pnp import estimate_relative_pose
+    from monoloc.server.vision.projection import KeypointGrid, refine_by_projection
     from monoloc.server.vision.vlad import compute_vlad
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
@@ -88,7 +93,9 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     query = read_kitti_sequence(root, ids[query_run])
     config = EvalConfig().localize
     weighted_pnp = dataclasses.replace(config.pnp, scale_weighting=True)
-    errors = {"weighted": [], "unweighted": []}
+    window = config.refine_by_projection
+    errors = {"weighted": [], "unweighted": [], "refined": []}
+    inliers = {"unweighted": [], "refined": []}
     residuals_px, scales_of_matches = [], []
     for i in range(0, len(query.frames), step):
         image = query.load(query.frames[i]).image_gray
@@ -99,13 +106,16 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
         matches = config.preset.match(
             features.descriptors, [r.descriptors for r in refs], config.match
         )
+        grid = KeypointGrid(
+            features.keypoints_px, features.descriptors, query.intrinsics, window.radius_px
+        )
         for ref, pairs in zip(refs, matches, strict=True):
             pixels = features.keypoints_px[pairs[:, 0]]
             points = ref.points_cam[pairs[:, 1]]
             T_ref_from_query_true = invert_rigid(ref_truth[ref.entry_id]) @ truth[query_run][i]
             residuals_px.append(true_residuals_px(points, pixels, T_ref_from_query_true, query))
             scales_of_matches.append(features.scales[pairs[:, 0]])
-            got = {}
+            got, plain = {}, None
             for name, scales in (("weighted", features.scales[pairs[:, 0]]), ("unweighted", None)):
                 rng = np.random.default_rng((i, ref.entry_id))  # same RANSAC samples for both
                 rel = estimate_relative_pose(
@@ -115,10 +125,21 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
                     got[name] = float(
                         np.linalg.norm(rel.T_ref_from_query[:3, 3] - T_ref_from_query_true[:3, 3])
                     )
+                    plain = rel if scales is None else plain
             if len(got) == 2 and max(got.values()) <= RIGHT_POSE_M:
+                found = refine_by_projection(
+                    grid, ref.descriptors, ref.points_cam, plain, config.pnp, window
+                )
+                refined = plain if found is None else found[1]
+                got["refined"] = float(
+                    np.linalg.norm(refined.T_ref_from_query[:3, 3] - T_ref_from_query_true[:3, 3])
+                )
                 for name, error in got.items():
                     errors[name].append(error)
+                inliers["unweighted"].append(plain.n_inliers)
+                inliers["refined"].append(refined.n_inliers)
     out = {name: np.array(values) for name, values in errors.items()}
+    out["inliers"] = {name: float(np.median(values)) for name, values in inliers.items()}
     out["residuals_px"] = np.concatenate(residuals_px)
     out["scales"] = np.concatenate(scales_of_matches)
     return out
@@ -188,16 +209,24 @@ def main() -> None:
             print(f"{label}: the dataset has no {map_run} run; skipped")
             continue
         errors = measure(root, ids, truth, query_run, map_run, args.step)
-        rows = {name: summary(errors[name]) for name in ("weighted", "unweighted")}
+        rows = {name: summary(errors[name]) for name in ("weighted", "unweighted", "refined")}
         from monoloc.server.vision.features import OrbConfig
 
         matches = by_level(errors["residuals_px"], errors["scales"], OrbConfig().scale_factor)
-        report[label] = {**rows, "matches": matches}
+        report[label] = {**rows, "inliers_median": errors["inliers"], "matches": matches}
         w, u = rows["weighted"], rows["unweighted"]
         print(
             f"{label}: {w['n']} entry poses; translation error median {w['median_m']:.4f} m "
             f"(without scales {u['median_m']:.4f}), mean {w['mean_m']:.4f} "
             f"({u['mean_m']:.4f}), p75 {w['p75_m']:.4f} ({u['p75_m']:.4f})",
+            flush=True,
+        )
+        r = rows["refined"]
+        print(
+            f"  refined by projection: median {r['median_m']:.4f} m (plain {u['median_m']:.4f}), "
+            f"mean {r['mean_m']:.4f} ({u['mean_m']:.4f}), p75 {r['p75_m']:.4f} "
+            f"({u['p75_m']:.4f}); inliers median {errors['inliers']['refined']:.0f} "
+            f"({errors['inliers']['unweighted']:.0f})",
             flush=True,
         )
         levels = matches["levels"]

@@ -66,12 +66,11 @@ from monoloc.server.vision.pnp import (
     RelativePose,
     estimate_relative_pose,
     estimate_relative_pose_guided,
-    refit_relative_pose,
 )
 from monoloc.server.vision.projection import (
     KeypointGrid,
     ProjectionMatchConfig,
-    match_by_projection,
+    refine_by_projection,
 )
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
@@ -614,22 +613,11 @@ def _refined_by_projection(
             continue
         if grid is None:
             grid = KeypointGrid(keypoints_px, descriptors, intrinsics, window.radius_px)
-        pairs = match_by_projection(
-            grid, ref.descriptors, ref.points_cam, invert_rigid(rel.T_ref_from_query), window
+        refined = refine_by_projection(
+            grid, ref.descriptors, ref.points_cam, rel, config, window, scales
         )
-        if len(pairs) <= rel.n_inliers:
-            continue
-        refit = refit_relative_pose(
-            keypoints_px[pairs[:, 0]],
-            ref.points_cam[pairs[:, 1]],
-            rel.T_ref_from_query,
-            intrinsics,
-            config,
-            rel.method,
-            keypoint_scales=None if scales is None else scales[pairs[:, 0]],
-        )
-        if refit.accepted and refit.n_inliers > rel.n_inliers:
-            pairs_out[j], solved_out[j] = pairs, refit
+        if refined is not None:
+            pairs_out[j], solved_out[j] = refined
     return pairs_out, solved_out
 
 

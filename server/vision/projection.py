@@ -30,6 +30,8 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import invert_rigid
+from monoloc.server.vision.pnp import PnpConfig, RelativePose, refit_relative_pose
 
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int32)
 
@@ -171,3 +173,36 @@ def match_by_projection(
     tied = np.r_[pairs[1:, 0] == pairs[:-1, 0], False] & np.r_[dists[1:] == dists[:-1], False]
     keep = first & ~tied
     return np.ascontiguousarray(pairs[keep])
+
+
+def refine_by_projection(
+    grid: KeypointGrid,
+    ref_descriptors: np.ndarray,
+    points_ref_cam: np.ndarray,
+    rel: RelativePose,
+    pnp: PnpConfig,
+    config: ProjectionMatchConfig,
+    keypoint_scales: np.ndarray | None = None,
+) -> tuple[np.ndarray, RelativePose] | None:
+    """An accepted entry pose ``rel`` refit on the entry's points (M, 3) matched by
+    projection from it: (the (K, 2) matches, the refit pose), or None when the matches
+    or the refit keep no more inliers than ``rel`` or the refit fails its checks.
+    ``keypoint_scales`` (N,): the query keypoints' pyramid scales, for
+    ``PnpConfig.scale_weighting``."""
+    pairs = match_by_projection(
+        grid, ref_descriptors, points_ref_cam, invert_rigid(rel.T_ref_from_query), config
+    )
+    if len(pairs) <= rel.n_inliers:
+        return None
+    refit = refit_relative_pose(
+        grid.keypoints_px[pairs[:, 0]],
+        np.asarray(points_ref_cam)[pairs[:, 1]],
+        rel.T_ref_from_query,
+        grid.intrinsics,
+        pnp,
+        rel.method,
+        keypoint_scales=None if keypoint_scales is None else keypoint_scales[pairs[:, 0]],
+    )
+    if not refit.accepted or refit.n_inliers <= rel.n_inliers:
+        return None
+    return pairs, refit
