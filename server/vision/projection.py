@@ -93,35 +93,6 @@ class KeypointGrid:
         self.start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
 
-def project_points(
-    points_ref_cam: np.ndarray,
-    T_query_from_ref: np.ndarray,
-    intrinsics: CameraIntrinsics,
-    min_depth_m: float,
-    margin_px: float = 0.0,
-) -> np.ndarray:
-    """(M, 2) pixels of reference points (M, 3) in the query camera at T_query_from_ref
-    (4, 4); NaN for points closer than ``min_depth_m`` or outside the image widened by
-    ``margin_px``."""
-    points = np.asarray(points_ref_cam, dtype=np.float64).reshape(-1, 3)
-    T = np.asarray(T_query_from_ref, dtype=np.float64)
-    p = points @ T[:3, :3].T + T[:3, 3]
-    z = p[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = intrinsics.fx * p[:, 0] / z + intrinsics.cx
-        v = intrinsics.fy * p[:, 1] / z + intrinsics.cy
-    seen = (
-        (z >= min_depth_m)
-        & (u >= -margin_px)
-        & (u <= intrinsics.width_px - 1 + margin_px)
-        & (v >= -margin_px)
-        & (v <= intrinsics.height_px - 1 + margin_px)
-    )
-    out = np.full((len(points), 2), np.nan)
-    out[seen, 0], out[seen, 1] = u[seen], v[seen]
-    return out
-
-
 def match_by_projection(
     grid: KeypointGrid,
     ref_descriptors: np.ndarray,
@@ -132,24 +103,32 @@ def match_by_projection(
     """(K, 2) int32 [query keypoint, reference point] matches of one reference whose
     points (M, 3) (its camera frame) and descriptors (M, 32) uint8 are projected with the
     predicted T_query_from_ref (4, 4); a query keypoint matched by several reference
-    points keeps the closest descriptor (ties: none). Sorted by query index."""
+    points keeps the closest descriptor (ties: none). In reference order."""
     from monoloc.server.vision._window_kernel import window_match
 
     ref_descriptors = np.ascontiguousarray(ref_descriptors)
-    if ref_descriptors.dtype != np.uint8 or ref_descriptors.shape != (len(points_ref_cam), 32):
+    points = np.ascontiguousarray(points_ref_cam, dtype=np.float64).reshape(-1, 3)
+    if ref_descriptors.dtype != np.uint8 or ref_descriptors.shape != (len(points), 32):
         raise InvalidInputError(
-            f"{len(points_ref_cam)} reference points need (M, 32) uint8 descriptors, got "
+            f"{len(points)} reference points need (M, 32) uint8 descriptors, got "
             f"{ref_descriptors.shape} {ref_descriptors.dtype}"
         )
     if not len(ref_descriptors) or not len(grid.keypoints_px):
         return _NO_MATCHES
-    projected = project_points(
-        points_ref_cam, T_query_from_ref, grid.intrinsics, config.min_depth_m, grid.radius_px
-    )
-    pairs = np.empty((len(projected), 2), dtype=np.int32)
-    dists = np.empty(len(projected), dtype=np.int32)
+    T = np.asarray(T_query_from_ref, dtype=np.float64)
+    camera = grid.intrinsics
+    pairs = np.empty((len(points), 2), dtype=np.int32)
     k = window_match(
-        projected,
+        points,
+        np.ascontiguousarray(T[:3, :3]),
+        np.ascontiguousarray(T[:3, 3]),
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        float(camera.width_px),
+        float(camera.height_px),
+        config.min_depth_m,
         grid.keypoints_px,
         grid.start,
         grid.members,
@@ -161,18 +140,8 @@ def match_by_projection(
         config.max_hamming_bits,
         config.ratio,
         pairs,
-        dists,
     )
-    pairs, dists = pairs[:k], dists[:k]
-    if not k:
-        return _NO_MATCHES
-    # one match per query keypoint: its closest reference point, none when tied
-    order = np.lexsort((dists, pairs[:, 0]))
-    pairs, dists = pairs[order], dists[order]
-    first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
-    tied = np.r_[pairs[1:, 0] == pairs[:-1, 0], False] & np.r_[dists[1:] == dists[:-1], False]
-    keep = first & ~tied
-    return np.ascontiguousarray(pairs[keep])
+    return pairs[:k]
 
 
 def refine_by_projection(
