@@ -468,6 +468,40 @@ def pnp_calibration_section(data: dict | None) -> list[str]:
     return lines
 
 
+def pnp_scale_section(data: dict | None) -> list[str]:
+    """Per-entry PnP accuracy against the sim's true relative poses (bench/pnp_scale.py)."""
+    lines = ["", "## Per-entry PnP against the true poses (bench/pnp_scale.py)", ""]
+    if not data:
+        return lines + ["not run"]
+    names = {
+        "unweighted": "plain (the entry's RANSAC)",
+        "weighted": "keypoint scales as LM weights (opt-in)",
+        "refined": "refined by projection (default)",
+    }
+    rows = []
+    for label in ("day", "night"):
+        run = data.get(label)
+        if not run:
+            continue
+        inliers = run.get("inliers_median", {})
+        for key, name in names.items():
+            if key not in run:
+                continue
+            r = run[key]
+            count = inliers.get(key, "-")
+            rows.append([label, name, r["n"], r["median_m"], r["mean_m"], r["p75_m"], count])
+    lines.append(
+        table(["query", "pose", "entry poses", "median m", "mean m", "p75 m", "inliers"], rows)
+    )
+    lines += [
+        "",
+        f"Dataset {data.get('dataset')}, every {data.get('step')}th query frame; the same "
+        "matches and RANSAC samples for each row; translation error of T_ref_from_query "
+        "against the sim's true relative pose (inliers: median; '-' where not recorded).",
+    ]
+    return lines
+
+
 def main() -> None:
     lines = [
         "# monoloc benchmark report",
@@ -634,6 +668,7 @@ def main() -> None:
     else:
         lines.append("not run")
     lines += pnp_calibration_section(load("pnp_calibration"))
+    lines += pnp_scale_section(load("pnp_scale"))
     lines += [""] + fleet_section(load("load"), load("footprint"))
     for name in ("filter", "ingest", "sim"):
         data = load(name)
