@@ -24,12 +24,16 @@ RANSAC only while the pose is unconfirmed: once two entries (or the prior and on
 agree, it is rejected without one (``PnpStrategy.fallback_until_confirmed``); the
 unexplained entries wait until every entry has been tried, so a confirmation from any of
 them spares the others' RANSAC. Every per-entry hypothesis comes from that entry's own
-correspondences. Then a joint
+correspondences. Each accepted entry's pose is then refit on the entry's points matched
+by projection from it (``vision.projection``: the query keypoints near where the pose
+puts each point compete, not the whole image; ``LocalizeConfig.refine_by_projection``),
+kept when it keeps more inliers. Then a joint
 hypothesis (``vision.joint``): the union of the consistent entries' inliers in the world
 frame, refined together; it is appended to the hypotheses, marked ``joint``. A frame
 none of whose entries gave a pose gets one RANSAC over all its entries' matches
 together (``vision.joint.estimate_pooled_pose``, method ``pooled``; night frames, whose
-entries each keep too few matches).
+entries each keep too few matches), refit in turn on the entries' points matched by
+projection from it.
 """
 
 from __future__ import annotations
@@ -70,6 +74,7 @@ from monoloc.server.vision.pnp import (
 from monoloc.server.vision.projection import (
     KeypointGrid,
     ProjectionMatchConfig,
+    match_by_projection,
     refine_by_projection,
 )
 from monoloc.server.vision.vlad import compute_vlad
@@ -443,6 +448,12 @@ def pose_hypotheses(
             scales,
             near_misses,
         )
+        if pooled is not None and strategy.refine is not None:
+            assert descriptors is not None  # checked above
+            pooled = _refined_pooled(
+                pooled, keypoints_px, descriptors, refs, e_vlad, intrinsics, config, rng,
+                strategy, scales,
+            )  # fmt: skip
         if pooled is not None:
             hypotheses.append(pooled)
     return hypotheses, rejected
@@ -557,6 +568,7 @@ def _pooled_hypothesis(
     config: PooledConfig,
     keypoint_scales: np.ndarray | None = None,
     guesses_T_world_from_cam: Sequence[np.ndarray] = (),
+    fallback: bool = True,
 ) -> PoseHypothesis | None:
     """The pooled pose of the frame's entries, as a hypothesis: not marked ``joint`` (it
     stands in for the per-entry hypotheses the frame did not get, and the paper's
@@ -573,6 +585,7 @@ def _pooled_hypothesis(
         config,
         keypoint_scales,
         guesses_T_world_from_cam,
+        fallback,
     )
     if pose is None:
         return None
@@ -619,6 +632,54 @@ def _refined_by_projection(
         if refined is not None:
             pairs_out[j], solved_out[j] = refined
     return pairs_out, solved_out
+
+
+def _refined_pooled(
+    pooled: PoseHypothesis,
+    keypoints_px: np.ndarray,
+    descriptors: np.ndarray,
+    refs: Sequence[ReferenceEntry],
+    e_vlad: dict[int, float],
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    rng: np.random.Generator,
+    strategy: PnpStrategy,
+    scales: np.ndarray | None,
+) -> PoseHypothesis:
+    """The pooled pose refit on every entry's points matched by projection from it (as
+    each entry's own pose is): the pooled pose chooses the consensus set of those matches
+    and is refit on it, with pooled PnP's rules (``min_inliers``, at least two entries
+    keeping their share); kept when it keeps more inliers, else the pooled pose as it
+    was. No RANSAC on these matches: they were chosen around the pooled pose."""
+    assert strategy.refine is not None and strategy.pooled is not None
+    grid = KeypointGrid(keypoints_px, descriptors, intrinsics, strategy.refine.radius_px)
+    T_query_from_world = invert_rigid(pooled.T_world_from_cam)
+    matches = [
+        match_by_projection(
+            grid,
+            ref.descriptors,
+            ref.points_cam,
+            T_query_from_world @ ref.T_world_from_cam,
+            strategy.refine,
+        )  # fmt: skip
+        for ref in refs
+    ]
+    refined = _pooled_hypothesis(
+        keypoints_px,
+        refs,
+        matches,
+        e_vlad,
+        intrinsics,
+        config,
+        rng,
+        strategy.pooled,
+        scales,
+        [pooled.T_world_from_cam],
+        fallback=False,
+    )
+    if refined is None or refined.n_inliers <= pooled.n_inliers:
+        return pooled
+    return refined
 
 
 def _joint_hypothesis(

@@ -215,6 +215,7 @@ def estimate_pooled_pose(
     config: PooledConfig,
     keypoint_scales: np.ndarray | None = None,
     guesses_T_world_from_cam: Sequence[np.ndarray] = (),
+    fallback: bool = True,
 ) -> JointPose | None:
     """One PnP RANSAC on the matches of every retrieved entry together, for a frame whose
     entries each had too few matches or inliers for a pose of their own (hloc pools a
@@ -234,6 +235,7 @@ def estimate_pooled_pose(
     without guesses) the RANSAC on the pooled matches runs as before. The RANSAC pays its
     full budget on pooled matches (their inlier ratio is low: 15-20 % on bench/localize.py's
     frames, about 20 ms), a guess one scoring pass and a refit.
+    With ``fallback`` False there is no RANSAC: only the guesses are tried.
     ``members`` indexes the entries keeping inliers. None when RANSAC finds no pose with
     ``pnp.min_inliers`` inliers, or fewer than ``config.min_entries`` entries keep
     ``config.min_inliers_per_entry`` of them."""
@@ -283,7 +285,7 @@ def estimate_pooled_pose(
             pixels_all, points_all, guesses, intrinsics, guided, rng, False, scales_all
         )
         members = _pooled_members(rel, owners_all, config)
-    if len(members) < config.min_entries:
+    if len(members) < config.min_entries and fallback:
         rel = estimate_relative_pose(pixels_all, points_all, intrinsics, pooled, rng, scales_all)
         members = _pooled_members(rel, owners_all, config)
     if len(members) < config.min_entries:

@@ -150,6 +150,35 @@ def test_each_entrys_pose_refined_by_projection_keeps_more_inliers_and_comes_clo
     assert np.mean(refined_errors) < 0.7 * np.mean(plain_errors)
 
 
+def test_a_pooled_pose_is_refined_by_projection_too():
+    """Entries each too sparse for a pose of their own (a PnP config asking 40 inliers)
+    give one pooled pose; with the default strategy it is refit on every entry's points
+    matched by projection from it: more inliers, closer to the truth, still pooled."""
+    pnp = PnpConfig(min_inliers=40)
+    plain_errors, refined_errors = [], []
+    for seed in range(3):
+        T_world_from_query, keypoints, descriptors, scene_refs = _aliased_scene(
+            seed, n_refs=4, noise_px=1.0
+        )
+        refs = [ReferenceEntry(j, T, d, p) for j, (T, p, d, _) in enumerate(scene_refs)]
+        matches = match_against_references(descriptors, [r.descriptors for r in refs])
+        e_vlad = {r.entry_id: 0.5 for r in refs}
+        pooled = {}
+        for name, strategy in (("plain", PnpStrategy(refine=None)), ("refined", PnpStrategy())):
+            hypotheses, _ = pose_hypotheses(
+                keypoints, refs, matches, e_vlad, CAM, pnp, np.random.default_rng(seed),
+                strategy, descriptors=descriptors,
+            )  # fmt: skip
+            assert [h.method for h in hypotheses] == ["pooled"]
+            pooled[name] = hypotheses[0]
+        assert pooled["refined"].n_inliers > 2 * pooled["plain"].n_inliers
+        assert len(pooled["refined"].entry_ids) >= 2
+        for name, out in (("plain", plain_errors), ("refined", refined_errors)):
+            T = pooled[name].T_world_from_cam
+            out.append(np.linalg.norm(T[:3, 3] - T_world_from_query[:3, 3]))
+    assert np.mean(refined_errors) < 0.7 * np.mean(plain_errors)
+
+
 def test_refinement_needs_the_query_descriptors():
     _, keypoints, descriptors, scene_refs = _aliased_scene(0)
     refs = [ReferenceEntry(j, T, d, p) for j, (T, p, d, _) in enumerate(scene_refs)]
