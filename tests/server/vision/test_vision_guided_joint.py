@@ -526,7 +526,7 @@ def test_pose_hypotheses_offer_the_entries_near_misses_to_pooled_pnp(monkeypatch
     real = localize_module.estimate_pooled_pose
 
     def spy(*args, **kwargs):
-        offered.append(list(args[-1]))
+        offered.append(list(args[9]))  # guesses_T_world_from_cam
         return real(*args, **kwargs)
 
     monkeypatch.setattr(localize_module, "estimate_pooled_pose", spy)
