@@ -139,7 +139,9 @@ PRESETS: dict[PresetName, Preset] = {
 
 @dataclass(frozen=True)
 class LocalizeConfig:
-    """Settings of :func:`localize_frame`; ``pipeline`` names its preset in ``PRESETS``."""
+    """Settings of :func:`localize_frame`; ``pipeline`` names its preset in ``PRESETS``.
+    ``refine_by_projection``: the window of the refit of every pose on matches by
+    projection (``PnpStrategy.refine``; None: no refit; the paper's preset has none)."""
 
     orb: OrbConfig = field(default_factory=OrbConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -152,7 +154,7 @@ class LocalizeConfig:
     fallback_until_confirmed: int | None = 2
     pooled: PooledConfig | None = field(default_factory=PooledConfig)
     refine_by_projection: ProjectionMatchConfig | None = field(
-        default_factory=lambda: ProjectionMatchConfig(radius_px=8.0)
+        default_factory=ProjectionMatchConfig
     )
 
     @property
@@ -195,6 +197,11 @@ class PnpStrategy:
     pose of its own gets one RANSAC on all its entries' matches together
     (``vision.joint.estimate_pooled_pose``; at night an entry often keeps 6-14 matches,
     under ``PnpConfig.min_inliers``, while its neighbours see the same lit facades).
+
+    refine: the projection window (``vision.projection``) on which every accepted entry
+    pose, and a pooled pose, is refit on its entries' points matched around where it puts
+    them; a refit is kept when it keeps more inliers. None for none. Needs the query's
+    descriptors (:func:`pose_hypotheses`' ``descriptors``).
     """
 
     guided: bool = True
@@ -202,9 +209,7 @@ class PnpStrategy:
     joint: JointConfig | None = field(default_factory=JointConfig)
     fallback_until_confirmed: int | None = 2
     pooled: PooledConfig | None = field(default_factory=PooledConfig)
-    refine: ProjectionMatchConfig | None = field(
-        default_factory=lambda: ProjectionMatchConfig(radius_px=8.0)
-    )
+    refine: ProjectionMatchConfig | None = field(default_factory=ProjectionMatchConfig)
 
     def __post_init__(self) -> None:
         if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
@@ -369,8 +374,10 @@ def pose_hypotheses(
     ``keypoints_px`` (N, 2) and its points), guided or not, plus the joint hypothesis
     (appended last). ``keypoint_scales`` (N,): the keypoints' pyramid scales
     (``Features.scales``; None: all at full resolution), which weigh their errors
-    (``PnpConfig``). Returns the hypotheses in the references' order and (entry id,
-    reason) of the rejected references."""
+    (``PnpConfig``). ``descriptors`` (N, 32) uint8: the keypoints' descriptors, for the
+    refit by projection (``strategy.refine``; InvalidInputError without them). Returns
+    the hypotheses in the references' order and (entry id, reason) of the rejected
+    references."""
     keypoints_px = np.asarray(keypoints_px, dtype=np.float64)  # once, not per entry
     scales = None if keypoint_scales is None else np.asarray(keypoint_scales, dtype=np.float64)
     if scales is not None and scales.shape != (len(keypoints_px),):

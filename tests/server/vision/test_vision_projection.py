@@ -4,6 +4,7 @@ image (repeated facades, a lamp-lit night), so the global ratio test keeps few m
 while a search around each point's predicted position keeps most."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -24,6 +25,9 @@ from monoloc.server.vision.projection import (
     ProjectionMatchConfig,
     match_by_projection,
 )
+
+# a wide window for these scenes' poses a few decimetres off (the localizer's is 8 px)
+WINDOW = ProjectionMatchConfig(radius_px=40.0)
 
 
 def _flip_bits(rng, descriptors, n_bits):
@@ -83,11 +87,11 @@ def _moved(T_world_from_cam, dx_m, dyaw_rad):
 def test_projection_keeps_the_matches_the_global_ratio_test_loses_to_aliasing(seed):
     T_world_from_query, keypoints, descriptors, refs = _aliased_scene(seed)
     guess = _moved(T_world_from_query, 0.3, math.radians(0.5))  # a pose a little off
-    grid = KeypointGrid(keypoints, descriptors, CAM, 40.0)
+    grid = KeypointGrid(keypoints, descriptors, CAM, WINDOW.radius_px)
     for T_world_from_ref, points_ref, ref_descriptors, truth in refs:
         projected = match_by_projection(
             grid, ref_descriptors, points_ref,
-            invert_rigid(guess) @ T_world_from_ref, ProjectionMatchConfig(),
+            invert_rigid(guess) @ T_world_from_ref, WINDOW,
         )  # fmt: skip
         right = np.mean(projected[:, 0] == truth[projected[:, 1]])
         global_ = match_descriptors(descriptors, ref_descriptors, MatchConfig())
@@ -102,10 +106,9 @@ def test_projected_matches_give_the_pose_and_a_wrong_prediction_gives_none():
     pnp, pooled = PnpConfig(), PooledConfig()
 
     def pooled_pose(guess):
-        grid = KeypointGrid(keypoints, descriptors, CAM, 40.0)
+        grid = KeypointGrid(keypoints, descriptors, CAM, WINDOW.radius_px)
         matches = [
-            match_by_projection(grid, d, p, invert_rigid(guess) @ T, ProjectionMatchConfig())
-            for T, p, d, _ in refs
+            match_by_projection(grid, d, p, invert_rigid(guess) @ T, WINDOW) for T, p, d, _ in refs
         ]
         return estimate_pooled_pose(
             keypoints, [r[0] for r in refs], [r[1] for r in refs], matches, CAM, pnp,
@@ -196,10 +199,8 @@ def test_points_behind_too_close_or_beyond_the_window_margin_are_not_matched():
     centre = np.array([CAM.cx, CAM.cy])
 
     def matched(point_cam, keypoint_px):
-        grid = KeypointGrid(np.array([keypoint_px]), descriptors[:1], CAM, 40.0)
-        found = match_by_projection(
-            grid, descriptors[:1], np.array([point_cam]), np.eye(4), ProjectionMatchConfig()
-        )
+        grid = KeypointGrid(np.array([keypoint_px]), descriptors[:1], CAM, WINDOW.radius_px)
+        found = match_by_projection(grid, descriptors[:1], np.array([point_cam]), np.eye(4), WINDOW)
         return len(found) == 1
 
     assert matched([0.0, 0.0, 10.0], centre)  # in front, at the principal point
@@ -221,8 +222,8 @@ def test_window_rule_nearest_in_the_radius_ratio_and_ties():
     keypoints = np.array([centre + [5.0, 0.0], centre + [300.0, 0.0]])
 
     def run(kps, descs, **cfg):
-        grid = KeypointGrid(kps, np.concatenate(descs), CAM, 40.0)
-        return match_by_projection(grid, ref_desc, point, np.eye(4), ProjectionMatchConfig(**cfg))
+        grid = KeypointGrid(kps, np.concatenate(descs), CAM, WINDOW.radius_px)
+        return match_by_projection(grid, ref_desc, point, np.eye(4), replace(WINDOW, **cfg))
 
     assert run(keypoints, [near, far_twin]).tolist() == [[0, 0]]
     # a rival inside the window, as close as the match: the ratio test refuses both
@@ -230,10 +231,9 @@ def test_window_rule_nearest_in_the_radius_ratio_and_ties():
     # too many bits off
     assert len(run(keypoints[:1], [_flip_bits(rng, ref_desc, 80)])) == 0
     # two reference points both nearest to one keypoint at equal distance: no match
-    grid = KeypointGrid(keypoints[:1], near, CAM, 40.0)
+    grid = KeypointGrid(keypoints[:1], near, CAM, WINDOW.radius_px)
     twice = match_by_projection(
-        grid, np.concatenate([ref_desc, ref_desc]), np.repeat(point, 2, 0), np.eye(4),
-        ProjectionMatchConfig(),
+        grid, np.concatenate([ref_desc, ref_desc]), np.repeat(point, 2, 0), np.eye(4), WINDOW,
     )  # fmt: skip
     assert len(twice) == 0
 
@@ -245,7 +245,9 @@ def test_bad_configs_and_inputs_are_refused():
     with pytest.raises(InvalidInputError):
         KeypointGrid(np.zeros((3, 2)), np.zeros((2, 32), np.uint8), CAM, 40.0)
     grid = KeypointGrid(np.zeros((1, 2)), np.zeros((1, 32), np.uint8), CAM, 40.0)
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(InvalidInputError, match="uint8"):  # float descriptors
+        match_by_projection(grid, np.zeros((2, 32)), np.zeros((2, 3)), np.eye(4), WINDOW)
+    with pytest.raises(InvalidInputError, match="grid"):  # the grid's cells are 40 px
         match_by_projection(
-            grid, np.zeros((2, 32)), np.zeros((2, 3)), np.eye(4), ProjectionMatchConfig()
+            grid, np.zeros((2, 32), np.uint8), np.zeros((2, 3)), np.eye(4), ProjectionMatchConfig()
         )
