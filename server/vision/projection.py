@@ -75,6 +75,10 @@ class KeypointGrid:
         radius_px: float,
     ) -> None:
         keypoints = np.ascontiguousarray(keypoints_px, dtype=np.float64).reshape(-1, 2)
+        if not (math.isfinite(radius_px) and radius_px >= 1.0):
+            raise InvalidInputError(f"KeypointGrid needs a radius >= 1 px, got {radius_px}")
+        if not np.isfinite(keypoints).all():
+            raise InvalidInputError("keypoints contain NaN or infinite values")
         descriptors = np.ascontiguousarray(descriptors)
         if descriptors.dtype != np.uint8 or descriptors.shape != (len(keypoints), 32):
             raise InvalidInputError(

@@ -244,6 +244,10 @@ def test_bad_configs_and_inputs_are_refused():
             ProjectionMatchConfig(**bad)
     with pytest.raises(InvalidInputError):
         KeypointGrid(np.zeros((3, 2)), np.zeros((2, 32), np.uint8), CAM, 40.0)
+    with pytest.raises(InvalidInputError, match="radius"):
+        KeypointGrid(np.zeros((2, 2)), np.zeros((2, 32), np.uint8), CAM, 0.0)
+    with pytest.raises(InvalidInputError, match="NaN"):
+        KeypointGrid(np.full((2, 2), np.nan), np.zeros((2, 32), np.uint8), CAM, 8.0)
     grid = KeypointGrid(np.zeros((1, 2)), np.zeros((1, 32), np.uint8), CAM, 40.0)
     with pytest.raises(InvalidInputError, match="uint8"):  # float descriptors
         match_by_projection(grid, np.zeros((2, 32)), np.zeros((2, 3)), np.eye(4), WINDOW)
