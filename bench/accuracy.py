@@ -156,6 +156,13 @@ def main() -> None:
         "--no-floor", action="store_true", help="skip the error floor (recording errors off)"
     )
     parser.add_argument(
+        "--filter-seeds",
+        type=int,
+        default=3,
+        help="the day query and the night with night entries also with filter seeds "
+        "1..N-1: the night/day goal is judged on the mean over the seeds",
+    )
+    parser.add_argument(
         "--no-stereo",
         action="store_true",
         help="skip the stereo-built map vs the LiDAR-built map (bench/stereo.py)",
@@ -171,7 +178,16 @@ def main() -> None:
     true_world = true_poses(meta, args)
     out = {"scenario": "urban", "size": args.size, "seed": args.seed}
     out["frames_per_run"] = args.frames
-    out.update(urban_city(root, meta, night=True, night_train=night_train, true_world=true_world))
+    out.update(
+        urban_city(
+            root,
+            meta,
+            night=True,
+            night_train=night_train,
+            true_world=true_world,
+            filter_seeds=args.filter_seeds,
+        )
+    )
     if not args.no_floor:
         exact_root = root.with_name(root.name + "_exact")
         exact_meta = ensure_dataset(
@@ -300,6 +316,7 @@ def urban_city(
     variants=URBAN_VARIANTS,
     night_train: tuple[Path, str] | None = None,
     true_world: dict[str, np.ndarray] | None = None,
+    filter_seeds: int = 1,
 ) -> dict:
     """Calibrate on `train`, map the `map` run, evaluate the `query` run with each variant
     (and the night runs); print the tables; the figures as a dict.
@@ -311,7 +328,10 @@ def urban_city(
     on development cities 41 and 42 but worse on the held-out city: not a default that
     never makes night worse.)
     With ``true_world``
-    (the sim's true poses per run), the recording errors' floor (:func:`recording_floor`)."""
+    (the sim's true poses per run), the recording errors' floor (:func:`recording_floor`).
+    With ``filter_seeds`` N > 1, the day query ("full") and the night with night entries
+    run again with the filter seeds 1..N-1 (``EvalConfig.seed``; the RANSAC draws follow
+    it): a night's RMSE turns on a few stretches and moves a lot from seed to seed."""
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.client.trajectory import ExcursionCauses
     from monoloc.evaluation import (
@@ -372,6 +392,12 @@ def urban_city(
     if "kidnapped" in result.estimates:
         out["kidnapped_recover_s"] = recovery_s(result, "kidnapped")
     out["excursions"] = {"query": excursions(result, "full")}
+    by_seed = {"day_rmse_m": [result.metrics["full"].position_rmse_m], "night_rmse_m": []}
+    for seed in range(1, filter_seeds if night else 1):
+        again = evaluate_run(
+            memory, query, signals, model, EvalConfig(seed=seed), lever, variants=("full",)
+        )
+        by_seed["day_rmse_m"].append(again.metrics["full"].position_rmse_m)
     map_id = sequence_of(meta, "map")
     if true_world is not None:
         from monoloc.client.trajectory import truth_in_map_frame
@@ -392,6 +418,12 @@ def urban_city(
                 memory, night_seq, nsig, model, lever_arm_m=lever, variants=("full",)
             )
             night_rows.append(("night, + night entries", metrics_row(after.metrics["full"])))
+            by_seed["night_rmse_m"].append(after.metrics["full"].position_rmse_m)
+            for seed in range(1, filter_seeds):
+                again = evaluate_run(
+                    memory, night_seq, nsig, model, EvalConfig(seed=seed), lever, ("full",)
+                )
+                by_seed["night_rmse_m"].append(again.metrics["full"].position_rmse_m)
             if compare is not None:
                 other = evaluate_run(
                     memory, night_seq, nsig, compare[1], lever_arm_m=lever, variants=("full",)
@@ -417,6 +449,14 @@ def urban_city(
                 # the nearest entry of either stands for the map, a rougher placement
                 out["night_recording_floor"] = recording_floor(after, "full", placed)
     out["night"] = dict(night_rows)
+    if len(by_seed["day_rmse_m"]) > 1 and len(by_seed["night_rmse_m"]) > 1:
+        out["filter_seeds"] = by_seed
+        day = " / ".join(f"{v:.3f}" for v in by_seed["day_rmse_m"])
+        night_rmse = " / ".join(f"{v:.3f}" for v in by_seed["night_rmse_m"])
+        print(
+            f"filter seeds 0-{len(by_seed['day_rmse_m']) - 1}: day RMSE {day} m, "
+            f"night with night entries {night_rmse} m"
+        )
     print_table(rows + night_rows)
     print_bias(out["bias"])
     if "recording_floor" in out:
@@ -557,15 +597,25 @@ def print_goals(out: dict) -> None:
                     GOALS["night_rmse_over_day"],
                 )
             )
+        seeds = out.get("filter_seeds")
+        if seeds:
+            rows.append(
+                (
+                    f"night / day, filter seeds 0-{len(seeds['day_rmse_m']) - 1} mean",
+                    float(np.mean(seeds["night_rmse_m"]) / np.mean(seeds["day_rmse_m"])),
+                    "<=",
+                    GOALS["night_rmse_over_day"],
+                )
+            )
         before = night.get("night, day map", {}).get("position_rmse_m")
         if before is not None and n_rmse is not None:
             rows.append(("night +night / day map RMSE", n_rmse / before, "<=", 1.0))
     print(f"\nseed {out['seed']}: goals of issue 13 item 5 (medium city, recording errors on)")
-    print(f"{'figure':<30}{'measured':>10}{'goal':>12}  met")
+    print(f"{'figure':<38}{'measured':>10}{'goal':>12}  met")
     for name, value, op, goal in rows:
         met = value <= goal if op == "<=" else value >= goal
         print(
-            f"{name:<30}{value:>10.3f}{op + ' ' + format(goal, 'g'):>12}  {'yes' if met else 'NO'}"
+            f"{name:<38}{value:>10.3f}{op + ' ' + format(goal, 'g'):>12}  {'yes' if met else 'NO'}"
         )
     if "floor" in out:
         fl = out["floor"]["query"]["full"]

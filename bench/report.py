@@ -81,6 +81,17 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
         seed = data.get("seed", "?")
         verdicts = "; ".join(f"{k}: {'met' if v else 'NOT met'}" for k, v in met.items())
         out += ["", f"Goals (city seed {seed}): {verdicts}."]
+    seeds = data.get("filter_seeds")
+    if seeds:
+        day, night = seeds["day_rmse_m"], seeds["night_rmse_m"]
+        out += [
+            "",
+            f"Filter seeds 0-{len(day) - 1} (the RANSAC draws follow them): day RMSE "
+            + " / ".join(f"{v:.3f}" for v in day)
+            + " m, night with night entries "
+            + " / ".join(f"{v:.3f}" for v in night)
+            + f" m; night / day of the means {sum(night) / sum(day):.2f}x.",
+        ]
     floor = data.get("floor", {}).get("query", {}).get("full")
     if floor:
         out += [
