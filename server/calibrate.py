@@ -52,6 +52,7 @@ from monoloc.server.storage.records import NewEntry
 from monoloc.server.vision.features import extract_features
 from monoloc.server.vision.matching import MatchConfig, match_against_references
 from monoloc.server.vision.pnp import PnpConfig
+from monoloc.server.vision.projection import ProjectionMatchConfig
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -96,6 +97,13 @@ class CalibrationConfig:
     def min_frames(self) -> int:
         """The shortest run that yields k map frames and at least one query frame."""
         return self.map_every * (self.k - 1) + 2
+
+
+def server_calibration_config(k: int, refine_by_projection: bool) -> CalibrationConfig:
+    """The calibration matching a server's localizer: its PnP strategy with the refit by
+    projection on or off (``Settings.localize_refine``), ``k`` entries per query."""
+    refine = ProjectionMatchConfig() if refine_by_projection else None
+    return CalibrationConfig(k=k, strategy=PnpStrategy(guess_from_prior=False, refine=refine))
 
 
 def check_run_length(n_frames: int, config: CalibrationConfig, what: str) -> None:

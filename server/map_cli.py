@@ -276,14 +276,14 @@ def map_calibrate(
 ) -> None:
     """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
     store it with its provenance (a recorded job; the run is not added to the map)."""
-    from monoloc.server.calibrate import CalibrationConfig
+    from monoloc.server.calibrate import server_calibration_config
     from monoloc.server.ingest.common import parse_frame_range
     from monoloc.server.ingest.manage import open_source
     from monoloc.server.ingest.report import progress_bar
     from monoloc.server.jobs.calibration import describe_calibration, run_calibration_job
 
-    _, factory = open_database(ctx)
-    config = CalibrationConfig(k=k)
+    settings, factory = open_database(ctx)
+    config = server_calibration_config(k, settings.localize_refine)
     source = open_source(
         fmt,
         run,

@@ -125,6 +125,13 @@ class Settings(BaseSettings):
         "every VLAD of the index, OpenCV brute-force matching per entry), same answers, "
         "for benchmarks.",
     )
+    localize_refine: bool = Field(
+        default=True,
+        description="Refit every PnP pose on the entry's points matched by projection from it "
+        "(server.vision.projection; LocalizeConfig.refine_by_projection). False: the poses "
+        "as PnP RANSAC found them, e.g. to compare both on a fleet's own data. Calibration "
+        "jobs follow it, so a map's measurement model is fitted on the hypotheses sent.",
+    )
     localize_seed: int | None = Field(
         default=None,
         description="Seed of the server's RNG seed sequence (RANSAC); None draws OS entropy. "

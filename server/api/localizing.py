@@ -23,6 +23,7 @@ from monoloc.server.api.deps import AppState
 from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
 from monoloc.server.localize import LocalizeConfig
+from monoloc.server.vision.projection import ProjectionMatchConfig
 
 
 def _intrinsics(
@@ -49,10 +50,14 @@ def localize_encoded(
     image = decode_gray(data, info, "image")
     decode_ms = (time.perf_counter() - start) * 1e3
     seed = options.seed if options.seed is not None else state.next_seed()
+    refine = ProjectionMatchConfig() if state.settings.localize_refine else None
     result, version = state.registry.localize(
         map_id,
         image,
-        LocalizeConfig(pipeline=state.settings.localize_pipeline),
+        LocalizeConfig(
+            pipeline=state.settings.localize_pipeline,
+            refine_by_projection=refine,
+        ),
         np.random.default_rng(seed),
         intrinsics,
         options.prior,

@@ -21,7 +21,13 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.errors import ConflictError
-from monoloc.server.calibrate import CalibrationConfig, TrainingFrame, calibrate, check_run_length
+from monoloc.server.calibrate import (
+    CalibrationConfig,
+    TrainingFrame,
+    calibrate,
+    check_run_length,
+    server_calibration_config,
+)
 from monoloc.server.ingest.manage import find_map
 from monoloc.server.jobs.context import JobContext, JobInterruptedError
 from monoloc.server.jobs.lifecycle import run_recorded_job
@@ -253,7 +259,9 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
         ctx.sessions,
         job.map_id,
         source,
-        config=CalibrationConfig(k=int(params.get("k", CalibrationConfig.k))),
+        config=server_calibration_config(
+            int(params.get("k", CalibrationConfig.k)), ctx.settings.localize_refine
+        ),
         seed=int(params.get("seed", 0)),
         job_id=job.id,
         source_name=params.get("source_name") or "upload",
