@@ -151,3 +151,56 @@ def refine_lm(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, iteration
         else:
             damping *= 10.0
     return R, t, cost
+
+
+@njit(cache=True, nogil=True)
+def refine_rounds(
+    points_ref,
+    pixels,
+    candidates,
+    R,
+    t,
+    fx,
+    fy,
+    cx,
+    cy,
+    threshold_px,
+    rounds,
+    iterations,
+    errors_px,
+    inliers,
+):
+    """``rounds`` times: the inliers of (R, t) (``inlier_errors``; only where
+    ``candidates`` (M,) bool is set, an empty array: everywhere), then unweighted
+    ``refine_lm`` on them; a last selection. One call instead of a Python loop over the
+    kernels (the refit of every entry pose runs it). Fills errors_px and inliers (M,) with
+    the last selection; returns (R, t, status): 0 done, 1 fewer than 6 inliers before an
+    LM, 2 LM left the finite numbers (the selection then is the one before it)."""
+    unit = np.empty(0)
+    masked = candidates.shape[0] > 0
+    inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, errors_px, inliers)
+    if masked:
+        for k in range(inliers.shape[0]):
+            inliers[k] = inliers[k] and candidates[k]
+    for _ in range(rounds):
+        n = 0
+        for k in range(inliers.shape[0]):
+            n += inliers[k]
+        if n < 6:
+            return R, t, 1
+        R_new, t_new, _ = refine_lm(
+            points_ref, pixels, inliers, unit, R, t, fx, fy, cx, cy, iterations
+        )
+        total = 0.0
+        for i in range(3):
+            total += t_new[i]
+            for j in range(3):
+                total += R_new[i, j]
+        if not np.isfinite(total):
+            return R, t, 2
+        R, t = R_new, t_new
+        inlier_errors(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, errors_px, inliers)
+        if masked:
+            for k in range(inliers.shape[0]):
+                inliers[k] = inliers[k] and candidates[k]
+    return R, t, 0

@@ -179,6 +179,8 @@ def _rejected(
 
 # LM weights meaning "all 1" (the kernel's convention): no array to allocate per call.
 _UNIT_WEIGHTS = np.empty(0)
+# refine_rounds' "every correspondence may be an inlier"
+_NO_CANDIDATES = np.empty(0, dtype=bool)
 
 
 def _lm_weights(keypoint_scales: np.ndarray | None, n_points: int, config: PnpConfig):
@@ -487,24 +489,19 @@ def refine_from_pose(
     Returns (R, t, inlier mask, errors_px (M,)); R is None if LM left the finite numbers
     or fewer than 6 inliers remained to refine on.
     """
-    from monoloc.server.vision._pnp_kernel import refine_lm
+    from monoloc.server.vision._pnp_kernel import refine_rounds
 
     weights = _lm_weights(keypoint_scales, len(points), config)
-    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
-    if candidates is not None:
-        mask &= candidates
-    for _ in range(rounds):
-        if np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
-            return None, None, mask, errors_px
-        R, t, _ = refine_lm(
-            points, pixels, mask, _UNIT_WEIGHTS, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-            config.refine_iterations,
-        )  # fmt: skip
-        if not _finite(R, t):
-            return None, None, mask, errors_px
-        mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
-        if candidates is not None:
-            mask &= candidates
+    errors_px = np.empty(len(points))
+    mask = np.empty(len(points), dtype=bool)
+    R, t, status = refine_rounds(
+        points, pixels, _NO_CANDIDATES if candidates is None else candidates,
+        np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64),
+        K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.reprojection_error_px, rounds,
+        config.refine_iterations, errors_px, mask,
+    )  # fmt: skip
+    if status:
+        return None, None, mask, errors_px
     R_w, t_w, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, weights)
     if R_w is None:
         return None, None, mask, errors_px

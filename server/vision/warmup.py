@@ -14,6 +14,7 @@ from monoloc.server.vision.pnp import (
     PnpConfig,
     estimate_relative_pose,
     estimate_relative_pose_guided,
+    refit_relative_pose,
 )
 from monoloc.server.vision.projection import (
     KeypointGrid,
@@ -40,3 +41,5 @@ def warm_up() -> None:
     point_descriptors = rng.integers(0, 256, size=(40, 32), dtype=np.uint8)
     grid = KeypointGrid(pixels, point_descriptors, camera, ProjectionMatchConfig().radius_px)
     match_by_projection(grid, point_descriptors, points_cam, np.eye(4), ProjectionMatchConfig())
+    # the refit of a pose on its projection matches (refine_rounds)
+    refit_relative_pose(pixels, points_cam, np.eye(4), camera, PnpConfig(), "ransac")

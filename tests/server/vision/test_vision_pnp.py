@@ -324,3 +324,54 @@ def test_usac_recovers_the_pose_reproducibly_and_like_the_classic_ransac(seed):
 def test_unknown_ransac_method_is_refused():
     with pytest.raises(InvalidInputError, match="ransac"):
         PnpConfig(ransac="magic")
+
+
+def _refine_step_by_step(points, pixels, R, t, K, config, rounds, candidates):
+    """refine_from_pose's rounds written out with the single-step kernels (what the
+    compiled refine_rounds replaced): inliers, LM, inliers, ..."""
+    from monoloc.server.vision._pnp_kernel import inlier_errors, refine_lm
+
+    def select(R, t):
+        errors, mask = np.empty(len(points)), np.empty(len(points), dtype=bool)
+        inlier_errors(points, pixels, R, t, *K[[0, 1, 0, 1], [0, 1, 2, 2]],
+                      config.reprojection_error_px, errors, mask)  # fmt: skip
+        return (mask & candidates if candidates is not None else mask), errors
+
+    mask, errors = select(R, t)
+    for _ in range(rounds):
+        if mask.sum() < 6:
+            return None, None, mask, errors
+        R, t, _ = refine_lm(points, pixels, mask, np.empty(0), R, t,
+                            *K[[0, 1, 0, 1], [0, 1, 2, 2]], config.refine_iterations)  # fmt: skip
+        mask, errors = select(R, t)
+    return R, t, mask, errors
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_refine_rounds_equals_the_step_by_step_refit(seed):
+    from monoloc.server.vision.pnp import refine_from_pose
+
+    rng = np.random.default_rng(seed)
+    pixels, points, T_true, _ = _scene(rng, outlier_fraction=0.3, noise_px=0.7)
+    T_query_from_ref = invert_rigid(T_true)
+    R0 = _rotation(rng.normal(size=3), np.radians(0.05)) @ T_query_from_ref[:3, :3]
+    t0 = T_query_from_ref[:3, 3] + rng.normal(0, 0.01, 3)
+    config = PnpConfig()
+    solved = 0
+    for candidates in (None, rng.random(len(points)) < 0.8):
+        for rounds in (1, 2, 3):
+            got = refine_from_pose(points, pixels, R0, t0, CAM.K, config, rounds, candidates)
+            want = _refine_step_by_step(points, pixels, R0, t0, CAM.K, config, rounds, candidates)
+            np.testing.assert_array_equal(got[2], want[2])
+            np.testing.assert_allclose(got[3], want[3], rtol=0, atol=1e-12)
+            assert (got[0] is None) == (want[0] is None)
+            if want[0] is not None:
+                solved += 1
+                np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
+                np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-12)
+    assert solved >= 3  # the start is close enough for most settings to refine
+    # too few inliers to refine on: no pose, the selection as it stood
+    few = np.zeros(len(points), dtype=bool)
+    few[:5] = True
+    R, t, mask, _ = refine_from_pose(points, pixels, R0, t0, CAM.K, config, 2, few)
+    assert R is None and t is None and mask.sum() <= 5
