@@ -9,6 +9,8 @@ _M1 = np.uint64(0x5555555555555555)
 _M2 = np.uint64(0x3333333333333333)
 _M4 = np.uint64(0x0F0F0F0F0F0F0F0F)
 _H01 = np.uint64(0x0101010101010101)
+# "no distance yet": above any Hamming distance of two 256-bit descriptors
+FAR = np.int32(1 << 20)
 
 
 @njit(inline="always")

@@ -10,9 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from monoloc.server.vision._bits import FAR as _FAR
 from monoloc.server.vision._bits import popcount64 as _popcount64
-
-_FAR = np.int32(1 << 20)
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
