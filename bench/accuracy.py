@@ -4,7 +4,7 @@ Generates (or reuses) a sim dataset, builds the map in memory with the server's 
 code, calibrates the measurement model on the `train` run (a district the map and the
 query never see; with a `trainnight` run, the quality-aware model also on both together,
 run beside the paper's), and localizes the `query` run with each variant of
-monoloc.evaluation. With a `nightmap` run in the dataset, the `night` query is run twice:
+monoloc.evaluation (and with the paper's single Gaussian, without monoloc's tail). With a `nightmap` run in the dataset, the `night` query is run twice:
 against the day map, and after adding the night entries. Prints the table next to the
 paper's numbers and the goals; writes bench/results/accuracy_<scenario>.json.
 Then (unless `--no-stereo`) the same city recorded with a stereo camera: a map built with
@@ -18,6 +18,7 @@ Usage: python bench/accuracy.py [--scenario urban|indoor] [--size medium] [--fra
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -309,6 +310,9 @@ def print_floor(name: str, f: dict) -> None:
     )
 
 
+NO_TAIL = "paper model without the tail"
+
+
 def urban_city(
     root: Path,
     meta: dict,
@@ -371,6 +375,10 @@ def urban_city(
     signals = read_kitti_run(root, query_id).signals
     result = evaluate_run(memory, query, signals, model, lever_arm_m=lever, variants=variants)
     rows = [(v, metrics_row(m)) for v, m in result.metrics.items()]
+    # the paper's single Gaussian, without monoloc's tail (MeasurementModel.tail_weight)
+    untailed = dataclasses.replace(model, tail_weight=0.0)
+    plain = evaluate_run(memory, query, signals, untailed, lever_arm_m=lever, variants=("full",))
+    rows.append((f"full, {NO_TAIL}", metrics_row(plain.metrics["full"])))
     if compare is not None:
         other = evaluate_run(
             memory, query, signals, compare[1], lever_arm_m=lever, variants=("full",)
@@ -424,6 +432,12 @@ def urban_city(
                     memory, night_seq, nsig, model, EvalConfig(seed=seed), lever, ("full",)
                 )
                 by_seed["night_rmse_m"].append(again.metrics["full"].position_rmse_m)
+            plain = evaluate_run(
+                memory, night_seq, nsig, untailed, lever_arm_m=lever, variants=("full",)
+            )
+            night_rows.append(
+                (f"night, + night entries, {NO_TAIL}", metrics_row(plain.metrics["full"]))
+            )
             if compare is not None:
                 other = evaluate_run(
                     memory, night_seq, nsig, compare[1], lever_arm_m=lever, variants=("full",)

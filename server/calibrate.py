@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from monoloc.core.calibration import (
+    PAPER_TAIL_SCALE,
+    PAPER_TAIL_WEIGHT,
     fit_measurement_model,
     fit_quality_model,
     pose_errors,
@@ -83,6 +85,10 @@ class CalibrationConfig:
     # the frame of the retrieval vector's offset: "world" (the paper's) or "vehicle"
     # (along / across the heading; see monoloc.core.measurement)
     retrieval_frame: RetrievalFrame = "world"
+    # the paper covariance's tail (monoloc.core.calibration.PAPER_TAIL_WEIGHT): set, not
+    # fitted; tail_weight 0 stores the paper's single Gaussian
+    tail_weight: float = PAPER_TAIL_WEIGHT
+    tail_scale: float = PAPER_TAIL_SCALE
 
     def __post_init__(self) -> None:
         if self.k < 1 or self.map_every < 2:
@@ -329,6 +335,8 @@ def calibrate_runs(
         unbiased=config.unbiased,
         source="calibrated",
         retrieval_frame=config.retrieval_frame,
+        tail_weight=config.tail_weight,
+        tail_scale=config.tail_scale,
     )
     quality = fit_quality_model(
         errors, np.array(samples.n_inliers), np.array(samples.error_px), joint
@@ -435,6 +443,12 @@ def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabu
         "covariance": "unbiased about the mean (N - 1)"
         if config.unbiased
         else "paper: mean(e e^T) about zero",
+        "paper_tail": (
+            f"set, not fitted: (1 - {config.tail_weight:g}) N(mu1, Sigma1) + "
+            f"{config.tail_weight:g} N(mu1, {config.tail_scale:g}^2 Sigma1)"
+            if config.tail_weight > 0
+            else "none (the paper's single Gaussian)"
+        ),
         "error_convention": ERROR_CONVENTION,
         "vocabulary_hash": vocabulary.version,
     }

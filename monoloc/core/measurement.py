@@ -211,13 +211,9 @@ class QualityModel:
         Sigma1 (unscaled) and log scales (H,): the core Gaussian, or the core and the tail
         mixed."""
         norm = self._log_norm - 1.5 * log_scale
-        scaled = maha * np.exp(-log_scale)
-        core = norm - 0.5 * scaled
-        if self.tail_weight <= 0.0:
-            return core
-        k2 = self.tail_scale**2
-        tail = (norm - 1.5 * math.log(k2)) - 0.5 * scaled / k2
-        return np.logaddexp(core + math.log1p(-self.tail_weight), tail + math.log(self.tail_weight))
+        return _scale_mixture_log_density(
+            norm, maha * np.exp(-log_scale), self.tail_weight, self.tail_scale
+        )
 
     @classmethod
     def from_dict(cls, data: dict) -> QualityModel:
@@ -247,6 +243,12 @@ class MeasurementModel:
     [e_vlad, X_i - X, Y_i - Y, psi_i - psi] in (1, m, m, rad).
     ``outlier_log_density`` is monoloc's addition: a constant density mixed in so a frame
     whose hypotheses are all wrong cannot annihilate every particle (None disables it).
+    ``tail_weight`` eps and ``tail_scale`` k, also monoloc's (paper covariance only; the
+    quality model has its own fitted tail): each hypothesis's pose error is
+    (1 - eps) N(mu1, Sigma1) + eps N(mu1, k^2 Sigma1), so a hypothesis a few decimetres
+    off pulls the particles near the truth by 1/k^2 of a Gaussian's pull instead of
+    dragging the cloud onto itself. eps = 0 (the default, and a calibration stored before
+    the tail existed) is the paper's single Gaussian.
     ``covariance`` selects the pose-error model: "paper" (mu1, Sigma1 for all, joint
     hypotheses left out) or "quality" (``quality``'s per-hypothesis covariance; needs
     ``quality``). ``with_covariance`` switches between them. ``retrieval_frame``: the
@@ -267,8 +269,17 @@ class MeasurementModel:
     quality: QualityModel | None = None
     covariance: CovarianceModel = "paper"
     retrieval_frame: RetrievalFrame = "world"
+    tail_weight: float = 0.0
+    tail_scale: float = 1.0
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "tail_weight", float(self.tail_weight))
+        object.__setattr__(self, "tail_scale", float(self.tail_scale))
+        if not (0.0 <= self.tail_weight < 1.0 and 1.0 <= self.tail_scale < 1e3):
+            raise InvalidInputError(
+                "tail_weight must be in [0, 1) and tail_scale in [1, 1000), got "
+                f"{self.tail_weight} and {self.tail_scale}"
+            )
         if self.covariance not in ("paper", "quality"):
             raise InvalidInputError(
                 f"covariance must be 'paper' or 'quality', got {self.covariance!r}"
@@ -301,7 +312,14 @@ class MeasurementModel:
             "quality": None if self.quality is None else self.quality.to_dict(),
             "covariance": self.covariance,
             "retrieval_frame": self.retrieval_frame,
+            "tail_weight": self.tail_weight,
+            "tail_scale": self.tail_scale,
         }
+
+    def paper_log_density(self, maha: np.ndarray) -> np.ndarray:
+        """log of the paper covariance's pose-error density for squared Mahalanobis
+        distances ``maha`` under Sigma1: the Gaussian, or with the tail mixed in."""
+        return _scale_mixture_log_density(self._log_norm1, maha, self.tail_weight, self.tail_scale)
 
     def with_covariance(self, covariance: CovarianceModel) -> MeasurementModel:
         """The same parameters with the other covariance model selected."""
@@ -323,9 +341,25 @@ class MeasurementModel:
                 quality=None if quality is None else QualityModel.from_dict(quality),
                 covariance=data.get("covariance") or "paper",
                 retrieval_frame=data.get("retrieval_frame") or "world",
+                tail_weight=float(data.get("tail_weight") or 0.0),
+                tail_scale=float(data.get("tail_scale") or 1.0),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidInputError(f"malformed measurement model parameters: {exc}") from exc
+
+
+def _scale_mixture_log_density(
+    log_norm: float | np.ndarray, maha: np.ndarray, tail_weight: float, tail_scale: float
+) -> np.ndarray:
+    """log[(1 - eps) N + eps N(k^2 cov)] of 3-vectors at squared Mahalanobis distances
+    ``maha`` under cov, whose Gaussian has log normaliser ``log_norm``; eps = 0: the
+    Gaussian alone."""
+    core = log_norm - 0.5 * maha
+    if tail_weight <= 0.0:
+        return core
+    k2 = tail_scale**2
+    tail = (log_norm - 1.5 * math.log(k2)) - 0.5 * maha / k2
+    return np.logaddexp(core + math.log1p(-tail_weight), tail + math.log(tail_weight))
 
 
 def _whitening(cov: np.ndarray) -> np.ndarray:
@@ -384,7 +418,7 @@ def log_likelihood_and_distance(
     r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
     if quality is None:
         maha1 = _mahalanobis(r1, model._whiten1)
-        terms = model._log_norm1 - 0.5 * maha1
+        terms = model.paper_log_density(maha1)
     else:
         log_scale = quality.log_scale(hypotheses)  # (H,)
         maha_unscaled = _mahalanobis(r1, quality._whiten)

@@ -455,6 +455,17 @@ class CalibrationUpdate(BaseModel):
         description="Which pose-error model the vehicle uses: paper (mu1, Sigma1 for every "
         "hypothesis) or quality (needs quality).",
     )
+    tail_weight: float = Field(
+        default=0.0,
+        ge=0.0,
+        lt=1.0,
+        description="Share eps of the paper covariance's heavy tail: each hypothesis's "
+        "error is (1 - eps) N(mu1, Sigma1) + eps N(mu1, tail_scale^2 Sigma1); 0: the paper's "
+        "single Gaussian (a calibration job sets 0.3).",
+    )
+    tail_scale: float = Field(
+        default=1.0, ge=1.0, lt=1000.0, description="Spread of that tail over Sigma1's (10)."
+    )
     retrieval_frame: Literal["world", "vehicle"] = Field(
         default="world",
         description="Frame of the retrieval vector's offset (mu2[1:3], Sigma2): world "

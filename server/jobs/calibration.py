@@ -120,6 +120,7 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
         "pose error e = truth - hypothesis:",
         f"  mu1    X {100 * mu1[0]:+.1f} cm, Y {100 * mu1[1]:+.1f} cm, psi {deg(mu1[2]):+.2f} deg",
         f"  std1   X {100 * std1[0]:.1f} cm, Y {100 * std1[1]:.1f} cm, psi {deg(std1[2]):.2f} deg",
+        *_describe_tail(calibration),
         f"retrieval vector [e_vlad, entry offset ({head}), psi_i - psi]:",
         f"  mu2    e_vlad {mu2[0]:.3f}, {a} {mu2[1]:+.2f} m, {b} {mu2[2]:+.2f} m, "
         f"psi {deg(mu2[3]):+.2f} deg",
@@ -154,13 +155,13 @@ def _describe_quality(calibration: dict[str, Any]) -> list[str]:
     ] + _describe_tail(quality)
 
 
-def _describe_tail(quality: dict[str, Any]) -> list[str]:
-    weight = float(quality.get("tail_weight") or 0.0)
+def _describe_tail(model: dict[str, Any]) -> list[str]:
+    """The pose-error tail of the paper's parameters or the quality model's, one line."""
+    weight = float(model.get("tail_weight") or 0.0)
     if weight <= 0.0:
         return ["  tail   none (one Gaussian)"]
     return [
-        f"  tail   {100 * weight:.0f} % of hypotheses, {float(quality['tail_scale']):.1f}x "
-        "the spread"
+        f"  tail   {100 * weight:.0f} % of hypotheses, {float(model['tail_scale']):.1f}x the spread"
     ]
 
 
@@ -224,6 +225,8 @@ def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
         "quality",
         "covariance",
         "retrieval_frame",
+        "tail_weight",
+        "tail_scale",
         "provenance",
     )
     return {key: calibration.get(key) for key in keys}

@@ -234,8 +234,9 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert "job 1 done: map 1 calibrated" in out
     assert "std1   X" in out and " cm" in out and " deg" in out
     assert "entry offset (X_i - X, Y_i - Y)" in out
-    tail = calibration_tail_line(out)
-    assert tail.endswith("x the spread") and "% of hypotheses" in tail
+    paper_tail, quality_tail = calibration_tail_lines(out)
+    assert paper_tail == "tail   30 % of hypotheses, 10.0x the spread"
+    assert quality_tail.endswith("x the spread") and "% of hypotheses" in quality_tail
     assert "used:" in out and "gated_outliers:" in out and "vocabulary_hash:" in out
 
     short = runner.invoke(cli.app, [*args, "--frames", "0:10"], env=env)
@@ -267,10 +268,15 @@ def test_the_calibration_description_names_the_offsets_frame():
     assert "along +0.00 m, across +0.00 m" in text
     stored["retrieval_frame"] = "world"
     assert "X +0.00 m, Y +0.00 m" in "\n".join(describe_calibration(stored))
+    # the paper covariance's tail: none for a model without one (or stored before it)
+    assert "tail   none (one Gaussian)" in text
+    tailed = MeasurementModel(tail_weight=0.3, tail_scale=10.0).to_dict()
+    assert "tail   30 % of hypotheses, 10.0x the spread" in describe_calibration(tailed)[3]
 
 
-def calibration_tail_line(output: str) -> str:
-    """The quality model's tail line of ``monoloc map calibrate``'s output."""
+def calibration_tail_lines(output: str) -> list[str]:
+    """The tail lines of ``monoloc map calibrate``'s output: the paper covariance's, then
+    the quality model's."""
     lines = [line.strip() for line in output.splitlines() if line.strip().startswith("tail ")]
-    assert len(lines) == 1, output
-    return lines[0]
+    assert len(lines) == 2, output
+    return lines

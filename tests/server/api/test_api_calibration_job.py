@@ -85,6 +85,9 @@ def test_uploaded_training_run_calibrates_the_map(app, sim_dataset):
     std_m = np.sqrt(np.diag(Sigma1)[:2])
     assert np.all((std_m > 0.01) & (std_m < 1.0)) and np.hypot(*got["mu1"][:2]) < 0.2
     assert job["result"]["mu1"] == got["mu1"] and job["result"]["provenance"] == prov
+    # the paper covariance's tail is set, not fitted, and recorded as such
+    assert (got["tail_weight"], got["tail_scale"]) == (0.3, 10.0)
+    assert job["result"]["tail_weight"] == 0.3 and "set, not fitted" in prov["paper_tail"]
 
     # The training run is not part of the map; its upload is gone once the job is done.
     assert m["n_entries"] == 0
@@ -99,6 +102,7 @@ def test_uploaded_training_run_calibrates_the_map(app, sim_dataset):
     vehicle = MonolocClient("http://testserver", keys.localize, transport=client._transport)
     model, calibrated = vehicle.measurement_model(map_id)
     assert calibrated and np.allclose(model.Sigma1, Sigma1)
+    assert (model.tail_weight, model.tail_scale) == (0.3, 10.0)
 
 
 def test_too_short_a_run_is_refused_and_leaves_nothing(app, sim_dataset):

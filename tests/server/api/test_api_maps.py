@@ -89,6 +89,16 @@ def test_calibration_defaults_put_and_delete(fresh):
     assert client.get(url, headers=w).json()["retrieval_frame"] == "vehicle"
     compass = dict(CALIBRATION, retrieval_frame="compass")
     assert client.put(url, headers=w, json=compass).status_code == 422
+    # The paper covariance's tail: none unless given; given, served and used by the
+    # vehicle; out of range refused with the field named, the stored one kept.
+    assert (got["tail_weight"], got["tail_scale"]) == (0.0, 1.0)
+    tailed = dict(CALIBRATION, tail_weight=0.3, tail_scale=10.0)
+    assert client.put(url, headers=w, json=tailed).json()["tail_weight"] == 0.3
+    assert client.get(url, headers=w).json()["tail_scale"] == 10.0
+    for bad in ({"tail_weight": 1.0}, {"tail_weight": -0.1}, {"tail_scale": 0.5}):
+        refused = client.put(url, headers=w, json=dict(CALIBRATION, **bad))
+        assert refused.status_code == 422 and next(iter(bad)) in refused.text
+    assert client.get(url, headers=w).json()["tail_weight"] == 0.3
 
     not_pd = dict(CALIBRATION, Sigma1=[[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     asymmetric = dict(CALIBRATION, Sigma1=[[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
