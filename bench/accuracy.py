@@ -4,7 +4,8 @@ Generates (or reuses) a sim dataset, builds the map in memory with the server's 
 code, calibrates the measurement model on the `train` run (a district the map and the
 query never see; with a `trainnight` run, the quality-aware model also on both together,
 run beside the paper's), and localizes the `query` run with each variant of
-monoloc.evaluation (and with the paper's single Gaussian, without monoloc's tail). With a `nightmap` run in the dataset, the `night` query is run twice:
+monoloc.evaluation (and with the paper's single Gaussian, without monoloc's tail). With a
+`nightmap` run in the dataset, the `night` query is run twice:
 against the day map, and after adding the night entries. Prints the table next to the
 paper's numbers and the goals; writes bench/results/accuracy_<scenario>.json.
 Then (unless `--no-stereo`) the same city recorded with a stereo camera: a map built with
