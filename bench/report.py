@@ -107,11 +107,20 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
     for key, what in floors:
         rf = data.get(key)
         if rf:
+            extra = ""
+            if "exact_over_best_of_k" in rf:  # results written since 2026-11-27, late morning
+                extra = (
+                    f" (filter / best of k {rf['exact_over_best_of_k']:.2f}); the run's written "
+                    f"truth alone is off its true poses by median "
+                    f"{rf['query_alone']['median_m']:.3f} m, RMSE "
+                    f"{rf['query_alone']['rmse_m']:.3f} m"
+                )
             out += [
                 "",
                 f"Recording errors' floor ({what}): a pose exact relative to the map scores "
                 f"median {rf['floor']['median_m']:.3f} m, RMSE {rf['floor']['rmse_m']:.3f} m "
-                "against the written truth; judged against the map's own frame the filter has "
+                f"against the written truth{extra}; judged against the map's own frame the "
+                "filter has "
                 f"median {rf['filter_vs_map_frame']['median_m']:.3f} m, RMSE "
                 f"{rf['filter_vs_map_frame']['rmse_m']:.3f} m, best of k median "
                 f"{rf['best_of_k_vs_map_frame_median_m']:.3f} m.",
