@@ -71,6 +71,7 @@ from monoloc.server.vision.pnp import (
     estimate_relative_pose,
     estimate_relative_pose_guided,
 )
+from monoloc.server.vision.pose_covariance import planar_pose_covariance
 from monoloc.server.vision.projection import (
     KeypointGrid,
     ProjectionMatchConfig,
@@ -202,6 +203,11 @@ class PnpStrategy:
     pose, and a pooled pose, is refit on its entries' points matched around where it puts
     them; a refit is kept when it keeps more inliers. None for none. Needs the query's
     descriptors (:func:`pose_hypotheses`' ``descriptors``).
+
+    covariance: give each per-entry hypothesis the Gauss-Newton covariance of its planar
+    pose from its own inliers at 1 px (``PoseHypothesis.covariance_px1``,
+    ``vision.pose_covariance``: where the inliers lie, which their count does not say).
+    Off by default: no measurement model uses it yet, and it costs ~20 us a hypothesis.
     """
 
     guided: bool = True
@@ -210,6 +216,7 @@ class PnpStrategy:
     fallback_until_confirmed: int | None = 2
     pooled: PooledConfig | None = field(default_factory=PooledConfig)
     refine: ProjectionMatchConfig | None = field(default_factory=ProjectionMatchConfig)
+    covariance: bool = False
 
     def __post_init__(self) -> None:
         if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
@@ -252,7 +259,10 @@ class PoseHypothesis:
     ``e_vlad`` are its anchor's, ``entry_ids`` every member, ``n_matches`` / ``n_inliers``
     count the union). method: "ransac", "guided", "joint" or "pooled" (one RANSAC on
     the matches of several entries, for a frame whose entries gave no pose of their own;
-    ``entry_ids`` its members; not ``joint``)."""
+    ``entry_ids`` its members; not ``joint``). ``covariance_px1`` (3, 3): the planar
+    pose's (X m, Y m, psi rad) covariance from its own inliers at 1 px of pixel noise
+    (``PnpStrategy.covariance``; None when not asked for, for joint and pooled poses, or
+    when the inliers do not determine it)."""
 
     entry_id: int
     T_world_from_cam: np.ndarray
@@ -265,6 +275,7 @@ class PoseHypothesis:
     joint: bool = False
     entry_ids: tuple[int, ...] = ()
     method: str = "ransac"
+    covariance_px1: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -416,6 +427,14 @@ def pose_hypotheses(
         T_world_from_query = np.asarray(ref.T_world_from_cam, dtype=np.float64) @ (
             rel.T_ref_from_query
         )
+        kept = pairs[rel.inlier_mask]
+        covariance = None
+        if strategy.covariance:
+            T_world_from_ref = np.asarray(ref.T_world_from_cam, dtype=np.float64)
+            points_world = ref.points_cam[kept[:, 1]] @ T_world_from_ref[:3, :3].T
+            covariance = planar_pose_covariance(
+                T_world_from_query, points_world + T_world_from_ref[:3, 3], intrinsics
+            )
         hypotheses.append(
             PoseHypothesis(
                 entry_id=ref.entry_id,
@@ -427,9 +446,9 @@ def pose_hypotheses(
                 n_inliers=rel.n_inliers,
                 reprojection_error_px=rel.reprojection_error_px,
                 method=rel.method,
+                covariance_px1=covariance,
             )
         )
-        kept = pairs[rel.inlier_mask]
         inliers.append(
             EntryInliers(
                 ref.T_world_from_cam,
