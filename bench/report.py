@@ -522,6 +522,57 @@ def pnp_scale_section(data: dict | None) -> list[str]:
     return lines
 
 
+def pose_covariance_section(data: dict | None) -> list[str]:
+    """What the PnP pose covariance says about a hypothesis's error (bench/pose_covariance.py)."""
+    lines = ["", "## PnP pose covariance against the error (bench/pose_covariance.py)", ""]
+    if not data:
+        return lines + ["not run"]
+    rows = []
+    for run in ("query", "night"):
+        r = data.get(run)
+        if not r:
+            continue
+        rows.append(
+            [
+                run,
+                r["hypotheses"],
+                r["spearman_error_vs_spread"],
+                r["spearman_error_vs_inv_sqrt_inliers"],
+                r["spearman_error_vs_reprojection"],
+                " / ".join(f"{v:.3f}" for v in r["error_quartiles_m"]),
+                " / ".join(f"{v:.3f}" for v in r["spread_quartiles_m"]),
+                f"{100 * r['off_share_small_spread']:.1f} / "
+                f"{100 * r['off_share_large_spread']:.1f}",
+                r["pixel_noise_px"],
+            ]
+        )
+    off = data.get("off_m", 0.3)
+    lines.append(
+        table(
+            [
+                "query",
+                "hypotheses",
+                "rho(error, spread)",
+                "rho(error, 1/sqrt(inliers))",
+                "rho(error, reproj.)",
+                "error quartiles m",
+                "spread quartiles m (1 px)",
+                f"% > {off:g} m, smaller / larger spread half",
+                "error / spread px",
+            ],
+            rows,
+        )
+    )
+    lines += [
+        "",
+        f"Dataset {data.get('dataset')}, every frame, one search of the whole map; per-entry "
+        "hypotheses; error against the entry's own map frame (the recording errors between "
+        "runs left out); rho: Spearman rank correlation; spread: sqrt(var X + var Y) of the "
+        "planar pose covariance from the hypothesis's own inliers at 1 px.",
+    ]
+    return lines
+
+
 def main() -> None:
     lines = [
         "# monoloc benchmark report",
@@ -689,6 +740,7 @@ def main() -> None:
         lines.append("not run")
     lines += pnp_calibration_section(load("pnp_calibration"))
     lines += pnp_scale_section(load("pnp_scale"))
+    lines += pose_covariance_section(load("pose_covariance"))
     lines += [""] + fleet_section(load("load"), load("footprint"))
     for name in ("filter", "ingest", "sim"):
         data = load(name)

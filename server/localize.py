@@ -142,7 +142,9 @@ PRESETS: dict[PresetName, Preset] = {
 class LocalizeConfig:
     """Settings of :func:`localize_frame`; ``pipeline`` names its preset in ``PRESETS``.
     ``refine_by_projection``: the window of the refit of every pose on matches by
-    projection (``PnpStrategy.refine``; None: no refit; the paper's preset has none)."""
+    projection (``PnpStrategy.refine``; None: no refit; the paper's preset has none).
+    ``pose_covariance``: each per-entry hypothesis's covariance from its inliers
+    (``PnpStrategy.covariance``)."""
 
     orb: OrbConfig = field(default_factory=OrbConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -157,6 +159,7 @@ class LocalizeConfig:
     refine_by_projection: ProjectionMatchConfig | None = field(
         default_factory=ProjectionMatchConfig
     )
+    pose_covariance: bool = False
 
     @property
     def preset(self) -> Preset:
@@ -173,6 +176,7 @@ class LocalizeConfig:
             fallback_until_confirmed=self.fallback_until_confirmed,
             pooled=self.pooled if preset.pooled else None,
             refine=self.refine_by_projection if preset.guided else None,
+            covariance=self.pose_covariance,
         )
 
 
