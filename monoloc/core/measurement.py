@@ -37,7 +37,10 @@ class Hypotheses:
     e_vlad: (H,) VLAD distance between the query and the entry.
     Quality features, optional (None: unknown, e.g. an old server): n_inliers (H,) PnP
     inliers, reprojection_error_px (H,) their mean error, joint (H,) bool: the hypothesis
-    is the joint pose of several entries, not one entry's.
+    is the joint pose of several entries, not one entry's; pose_covariance (H, 3, 3): the
+    planar pose's (X m, Y m, psi rad) covariance from the hypothesis's own inliers at 1 px
+    of pixel noise (the server's ``vision.pose_covariance``), NaN for a hypothesis
+    without one (a joint or pooled pose).
     """
 
     pose_world: np.ndarray
@@ -46,6 +49,7 @@ class Hypotheses:
     n_inliers: np.ndarray | None = None
     reprojection_error_px: np.ndarray | None = None
     joint: np.ndarray | None = None
+    pose_covariance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.pose_world)
@@ -66,6 +70,13 @@ class Hypotheses:
                 raise InvalidInputError(f"hypotheses' {name} must be ({n},), got {np.shape(value)}")
         if self.joint is not None:
             object.__setattr__(self, "joint", np.asarray(self.joint, dtype=bool))
+        if self.pose_covariance is not None:
+            cov = np.asarray(self.pose_covariance, dtype=np.float64)
+            if cov.shape != (n, 3, 3):
+                raise InvalidInputError(
+                    f"hypotheses' pose_covariance must be ({n}, 3, 3), got {cov.shape}"
+                )
+            object.__setattr__(self, "pose_covariance", cov)
 
     @property
     def has_quality(self) -> bool:
@@ -84,6 +95,7 @@ class Hypotheses:
             None if self.n_inliers is None else self.n_inliers[keep],
             None if self.reprojection_error_px is None else self.reprojection_error_px[keep],
             self.joint[keep],
+            None if self.pose_covariance is None else self.pose_covariance[keep],
         )
 
     @classmethod
@@ -230,7 +242,71 @@ class QualityModel:
         )
 
 
-CovarianceModel = Literal["paper", "quality"]
+@dataclass(frozen=True)
+class PnpCovarianceModel:
+    """Pose-error model from each hypothesis's own PnP geometry: hypothesis i has error
+    (truth - z_i) ~ N(mu1, pixel_std_px^2 C_i + floor), C_i its planar pose covariance
+    at 1 px (``Hypotheses.pose_covariance``: where its inliers lie, how many, how deep),
+    ``pixel_std_px`` the effective pixel noise and ``floor`` (3, 3) what the geometry
+    does not see (the map points' own errors). A hypothesis without C_i (joint or pooled
+    poses, an old server) falls back to the paper's Sigma1. Heavy tail as the paper
+    covariance's: (1 - eps) N(mu1, S_i) + eps N(mu1, k^2 S_i). Fitted by maximum
+    likelihood (``core.calibration.fit_pnp_covariance_model``).
+    """
+
+    mu1: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    pixel_std_px: float = 1.0
+    floor: np.ndarray = field(
+        default_factory=lambda: np.diag([0.02**2, 0.02**2, math.radians(0.1) ** 2])
+    )
+    tail_weight: float = 0.0
+    tail_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mu1", np.asarray(self.mu1, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "floor", _as_cov(self.floor, 3, "PnP covariance floor"))
+        object.__setattr__(self, "pixel_std_px", float(self.pixel_std_px))
+        object.__setattr__(self, "tail_weight", float(self.tail_weight))
+        object.__setattr__(self, "tail_scale", float(self.tail_scale))
+        if not (
+            np.all(np.isfinite(self.mu1))
+            and 0.0 < self.pixel_std_px < 1e3
+            and 0.0 <= self.tail_weight < 1.0
+            and 1.0 <= self.tail_scale < 1e3
+        ):
+            raise InvalidInputError(f"invalid PnP covariance model {self}")
+
+    def covariances(self, pose_covariance: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+        """(H, 3, 3) S_i of hypotheses with planar covariances (H, 3, 3) at 1 px (NaN where
+        unknown: ``fallback`` (3, 3) there)."""
+        C = np.asarray(pose_covariance, dtype=np.float64)
+        known = np.isfinite(C).all(axis=(1, 2))
+        out = np.empty_like(C)
+        out[known] = self.pixel_std_px**2 * C[known] + self.floor
+        out[~known] = fallback
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "mu1": self.mu1.tolist(),
+            "pixel_std_px": self.pixel_std_px,
+            "floor": self.floor.tolist(),
+            "tail_weight": self.tail_weight,
+            "tail_scale": self.tail_scale,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> PnpCovarianceModel:
+        return cls(
+            mu1=data["mu1"],
+            pixel_std_px=float(data["pixel_std_px"]),
+            floor=data["floor"],
+            tail_weight=float(data.get("tail_weight", 0.0)),
+            tail_scale=float(data.get("tail_scale", 1.0)),
+        )
+
+
+CovarianceModel = Literal["paper", "quality", "pnp"]
 RetrievalFrame = Literal["world", "vehicle"]
 
 
@@ -250,8 +326,9 @@ class MeasurementModel:
     dragging the cloud onto itself. eps = 0 (the default, and a calibration stored before
     the tail existed) is the paper's single Gaussian.
     ``covariance`` selects the pose-error model: "paper" (mu1, Sigma1 for all, joint
-    hypotheses left out) or "quality" (``quality``'s per-hypothesis covariance; needs
-    ``quality``). ``with_covariance`` switches between them. ``retrieval_frame``: the
+    hypotheses left out), "quality" (``quality``'s per-hypothesis covariance; needs
+    ``quality``) or "pnp" (``pnp``'s covariance from each hypothesis's own PnP geometry,
+    joint hypotheses left out; needs ``pnp``). ``with_covariance`` switches between them. ``retrieval_frame``: the
     frame of the retrieval vector's offset, "world" (the paper's; calibrations stored
     before the choice existed) or "vehicle" (along and across the particle's heading).
     """
@@ -268,6 +345,7 @@ class MeasurementModel:
     source: str = "defaults"
     quality: QualityModel | None = None
     covariance: CovarianceModel = "paper"
+    pnp: PnpCovarianceModel | None = None
     retrieval_frame: RetrievalFrame = "world"
     tail_weight: float = 0.0
     tail_scale: float = 1.0
@@ -280,9 +358,9 @@ class MeasurementModel:
                 "tail_weight must be in [0, 1) and tail_scale in [1, 1000), got "
                 f"{self.tail_weight} and {self.tail_scale}"
             )
-        if self.covariance not in ("paper", "quality"):
+        if self.covariance not in ("paper", "quality", "pnp"):
             raise InvalidInputError(
-                f"covariance must be 'paper' or 'quality', got {self.covariance!r}"
+                f"covariance must be 'paper', 'quality' or 'pnp', got {self.covariance!r}"
             )
         if self.retrieval_frame not in ("world", "vehicle"):
             raise InvalidInputError(
@@ -290,6 +368,8 @@ class MeasurementModel:
             )
         if self.covariance == "quality" and self.quality is None:
             raise InvalidInputError("the quality covariance model needs quality parameters")
+        if self.covariance == "pnp" and self.pnp is None:
+            raise InvalidInputError("the pnp covariance model needs its fitted parameters")
         object.__setattr__(self, "mu1", np.asarray(self.mu1, dtype=np.float64).reshape(3))
         object.__setattr__(self, "mu2", np.asarray(self.mu2, dtype=np.float64).reshape(4))
         object.__setattr__(self, "Sigma1", _as_cov(self.Sigma1, 3, "Sigma1"))
@@ -311,6 +391,7 @@ class MeasurementModel:
             "source": self.source,
             "quality": None if self.quality is None else self.quality.to_dict(),
             "covariance": self.covariance,
+            "pnp": None if self.pnp is None else self.pnp.to_dict(),
             "retrieval_frame": self.retrieval_frame,
             "tail_weight": self.tail_weight,
             "tail_scale": self.tail_scale,
@@ -328,7 +409,8 @@ class MeasurementModel:
     @classmethod
     def from_dict(cls, data: dict) -> MeasurementModel:
         """Parameters from :meth:`to_dict` output; a calibration stored before the quality
-        model existed (no ``quality`` / ``covariance``) loads as the paper's model."""
+        model existed (no ``quality`` / ``covariance``) loads as the paper's model, one
+        stored before the PnP covariance model without it (``pnp`` None)."""
         try:
             quality = data.get("quality")
             return cls(
@@ -340,6 +422,7 @@ class MeasurementModel:
                 source=str(data.get("source", "calibrated")),
                 quality=None if quality is None else QualityModel.from_dict(quality),
                 covariance=data.get("covariance") or "paper",
+                pnp=None if data.get("pnp") is None else PnpCovarianceModel.from_dict(data["pnp"]),
                 retrieval_frame=data.get("retrieval_frame") or "world",
                 tail_weight=float(data.get("tail_weight") or 0.0),
                 tail_scale=float(data.get("tail_scale") or 1.0),
@@ -409,14 +492,24 @@ def log_likelihood_and_distance(
         quality = None
         per_entry = hypotheses.without_joint()
         hypotheses = per_entry if len(per_entry) else hypotheses
+    pnp = model.pnp if model.covariance == "pnp" and quality is None else None
+    if pnp is not None and hypotheses.pose_covariance is None:
+        pnp = None  # an old server: the paper's covariance
     # Work column by column on (P, H) arrays: with 3- and 4-vectors this beats batched
     # matmuls by a wide margin (see bench/filter.py).
     X, Y, psi = (particles[:, k : k + 1] for k in range(3))
     # Component: N(x; z_i + mu1, s_i Sigma1), residual x - (z_i + mu1), wrapped heading.
     mu1 = model.mu1 if quality is None else quality.mu1
+    if pnp is not None:
+        mu1 = pnp.mu1
     centres = hypotheses.pose_world + mu1  # (H, 3)
     r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
-    if quality is None:
+    if pnp is not None:
+        S = pnp.covariances(hypotheses.pose_covariance, model.Sigma1)
+        maha1 = _mahalanobis_each(r1, np.linalg.inv(np.linalg.cholesky(S)))
+        log_norm = -0.5 * (np.linalg.slogdet(S)[1] + 3.0 * math.log(2.0 * math.pi))
+        terms = _scale_mixture_log_density(log_norm, maha1, pnp.tail_weight, pnp.tail_scale)
+    elif quality is None:
         maha1 = _mahalanobis(r1, model._whiten1)
         terms = model.paper_log_density(maha1)
     else:
@@ -452,6 +545,18 @@ def log_likelihood_and_distance(
     if model.outlier_log_density is not None:
         total += np.exp(model.outlier_log_density - peak)
     return peak + np.log(total), closest
+
+
+def _mahalanobis_each(residuals: list[np.ndarray], whiten: np.ndarray) -> np.ndarray:
+    """|W_h r|^2 for residual components r_k (each (P, H)) and one lower-triangular
+    W_h (H, 3, 3) per column h."""
+    total = None
+    for i in range(3):
+        y = residuals[0] * whiten[:, i, 0]
+        for k in range(1, i + 1):
+            y = y + residuals[k] * whiten[:, i, k]
+        total = y * y if total is None else total + y * y
+    return total
 
 
 def _mahalanobis(residuals: list[np.ndarray], whiten: np.ndarray) -> np.ndarray:
