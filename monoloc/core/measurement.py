@@ -328,9 +328,10 @@ class MeasurementModel:
     ``covariance`` selects the pose-error model: "paper" (mu1, Sigma1 for all, joint
     hypotheses left out), "quality" (``quality``'s per-hypothesis covariance; needs
     ``quality``) or "pnp" (``pnp``'s covariance from each hypothesis's own PnP geometry,
-    joint hypotheses left out; needs ``pnp``). ``with_covariance`` switches between them. ``retrieval_frame``: the
-    frame of the retrieval vector's offset, "world" (the paper's; calibrations stored
-    before the choice existed) or "vehicle" (along and across the particle's heading).
+    joint hypotheses left out; needs ``pnp``). ``with_covariance`` switches between them.
+    ``retrieval_frame``: the frame of the retrieval vector's offset, "world" (the paper's;
+    calibrations stored before the choice existed) or "vehicle" (along and across the
+    particle's heading).
     """
 
     mu1: np.ndarray = field(default_factory=lambda: np.zeros(3))

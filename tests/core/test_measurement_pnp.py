@@ -31,9 +31,7 @@ PNP = PnpCovarianceModel(
 
 
 def _model(**fields) -> MeasurementModel:
-    values = dict(
-        Sigma1=SIGMA1, Sigma2=SIGMA2, outlier_log_density=None, pnp=PNP, covariance="pnp"
-    )
+    values = dict(Sigma1=SIGMA1, Sigma2=SIGMA2, outlier_log_density=None, pnp=PNP, covariance="pnp")
     values.update(fields)
     return MeasurementModel(**values)
 
