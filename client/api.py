@@ -111,10 +111,11 @@ class LocalizeAnswer:
             ).reshape(-1, 3)
             e_vlad = np.array([h["e_vlad"] for h in hyps], dtype=np.float64)
             quality = _quality_features(hyps)
+            covariance = _pose_covariances(hyps)
         except (KeyError, TypeError, ValueError) as exc:
             raise ServerError(f"malformed localize answer: missing {exc}") from exc
         return cls(
-            hypotheses=Hypotheses(pose, entry, e_vlad, *quality),
+            hypotheses=Hypotheses(pose, entry, e_vlad, *quality, pose_covariance=covariance),
             map_version=data.get("map_version"),
             timings_ms=dict(data.get("timings_ms") or {}),
             raw=data,
@@ -130,6 +131,18 @@ def _quality_features(hyps: list[dict]) -> tuple[np.ndarray | None, ...]:
     error_px = np.array([h["reprojection_error_px"] for h in hyps], dtype=np.float64)
     joint = np.array([bool(h.get("joint", False)) for h in hyps], dtype=bool)
     return n_inliers, error_px, joint
+
+
+def _pose_covariances(hyps: list[dict]) -> np.ndarray | None:
+    """(H, 3, 3) planar pose covariances at 1 px of the answer's hypotheses, NaN for one
+    without (joint, pooled); None when no hypothesis has one (a server older than them)."""
+    if not any(h.get("pose_covariance") is not None for h in hyps):
+        return None
+    out = np.full((len(hyps), 3, 3), np.nan)
+    for i, h in enumerate(hyps):
+        if h.get("pose_covariance") is not None:
+            out[i] = np.asarray(h["pose_covariance"], dtype=np.float64).reshape(3, 3)
+    return out
 
 
 def wait_until_ready(base_url: str, timeout_s: float, process=None, poll_s: float = 0.2) -> None:

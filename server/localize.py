@@ -144,7 +144,8 @@ class LocalizeConfig:
     ``refine_by_projection``: the window of the refit of every pose on matches by
     projection (``PnpStrategy.refine``; None: no refit; the paper's preset has none).
     ``pose_covariance``: each per-entry hypothesis's covariance from its inliers
-    (``PnpStrategy.covariance``)."""
+    (``PnpStrategy.covariance``; the "pnp" measurement model's input; not in the paper's
+    preset)."""
 
     orb: OrbConfig = field(default_factory=OrbConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -159,7 +160,7 @@ class LocalizeConfig:
     refine_by_projection: ProjectionMatchConfig | None = field(
         default_factory=ProjectionMatchConfig
     )
-    pose_covariance: bool = False
+    pose_covariance: bool = True
 
     @property
     def preset(self) -> Preset:
@@ -176,7 +177,7 @@ class LocalizeConfig:
             fallback_until_confirmed=self.fallback_until_confirmed,
             pooled=self.pooled if preset.pooled else None,
             refine=self.refine_by_projection if preset.guided else None,
-            covariance=self.pose_covariance,
+            covariance=self.pose_covariance and preset.guided,
         )
 
 
@@ -211,7 +212,8 @@ class PnpStrategy:
     covariance: give each per-entry hypothesis the Gauss-Newton covariance of its planar
     pose from its own inliers at 1 px (``PoseHypothesis.covariance_px1``,
     ``vision.pose_covariance``: where the inliers lie, which their count does not say).
-    Off by default: no measurement model uses it yet, and it costs ~20 us a hypothesis.
+    Off by default here (``LocalizeConfig.pose_covariance`` turns it on for the
+    localizer): it costs ~20 us a hypothesis.
     """
 
     guided: bool = True

@@ -37,9 +37,13 @@ class InProcessAnswer(LocalizeAnswer):
         return np.full(3, np.nan) if best is None else best.pose_world
 
 
+_NO_COVARIANCE = np.full((3, 3), np.nan)
+
+
 def hypotheses_of(result: LocalizationResult) -> Hypotheses:
     """The filter's view of a result: planar poses, entry poses, VLAD distances and the
-    quality features (inliers, reprojection error, joint or not)."""
+    quality features (inliers, reprojection error, joint or not, the pose covariance at
+    1 px; NaN where a hypothesis has none)."""
     if not result.hypotheses:
         return Hypotheses.empty()
     hyps = result.hypotheses
@@ -50,6 +54,12 @@ def hypotheses_of(result: LocalizationResult) -> Hypotheses:
         n_inliers=np.array([h.n_inliers for h in hyps], dtype=np.float64),
         reprojection_error_px=np.array([h.reprojection_error_px for h in hyps]),
         joint=np.array([h.joint for h in hyps], dtype=bool),
+        pose_covariance=np.array(
+            [
+                np.full((3, 3), np.nan) if h.covariance_px1 is None else h.covariance_px1
+                for h in hyps
+            ]
+        ),
     )
 
 

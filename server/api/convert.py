@@ -144,6 +144,9 @@ def hypothesis(h: PoseHypothesis, geopose: GeoPose | None = None) -> HypothesisP
         joint=h.joint,
         entry_ids=list(h.entry_ids),
         method=h.method,
+        pose_covariance=None
+        if h.covariance_px1 is None
+        else np.asarray(h.covariance_px1, float).ravel().tolist(),
     )
 
 

@@ -263,6 +263,15 @@ class HypothesisPublic(BaseModel):
         "joint, or pooled (one RANSAC on the matches of several entries, for a frame none of "
         "whose entries gave a pose of its own; entry_ids lists them).",
     )
+    pose_covariance: list[float] | None = Field(
+        default=None,
+        min_length=9,
+        max_length=9,
+        description="Covariance (3x3 row-major) of the planar pose (x_m, y_m, yaw_rad) from "
+        "the hypothesis's own inliers at 1 px of pixel noise: how well its geometry pins the "
+        "pose down (where the inliers lie, how many, how deep). Multiply by the squared pixel "
+        "noise of the map's calibration (its pnp model). Null for joint and pooled poses.",
+    )
 
 
 class RetrievedPublic(BaseModel):

@@ -157,3 +157,51 @@ def test_invalid_models_are_refused():
         PnpCovarianceModel(floor=np.diag([1.0, -1.0, 1.0]))
     with pytest.raises(InvalidInputError):
         _hypotheses([[0.0, 0.0, 0.0]], np.zeros((2, 3, 3)))
+
+
+def _synthetic_samples(rng, n, sigma_px, floor, mu1, tail_weight=0.0, tail_scale=1.0):
+    """Errors drawn from the model itself, with covariances C_i of varied size, shape and
+    orientation (as hypotheses from near and far, spread and clustered inliers give)."""
+    C = np.stack(
+        [
+            _covariance(
+                rng.uniform(0.005, 0.2), rng.uniform(0.003, 0.05), rng.uniform(5e-4, 5e-3),
+                rng.uniform(-math.pi, math.pi),
+            )
+            for _ in range(n)
+        ]
+    )  # fmt: skip
+    S = sigma_px**2 * C + floor
+    scale = np.where(rng.random(n) < tail_weight, tail_scale, 1.0)
+    e = mu1 + scale[:, None] * np.einsum(
+        "nij,nj->ni", np.linalg.cholesky(S), rng.normal(size=(n, 3))
+    )
+    return e, C
+
+
+@pytest.mark.parametrize("tail", [(0.0, 1.0), (0.3, 10.0)])
+def test_the_fit_recovers_the_pixel_noise_and_the_floor(tail):
+    from monoloc.core.calibration import fit_pnp_covariance_model
+
+    rng = np.random.default_rng(5)
+    floor = np.diag([0.02**2, 0.015**2, 0.0015**2])
+    mu1 = np.array([0.01, -0.02, 0.001])
+    e, C = _synthetic_samples(rng, 3000, 1.7, floor, mu1, *tail)
+    C[:5] = np.nan  # hypotheses without a covariance are left out
+    fitted = fit_pnp_covariance_model(e, C, *tail)
+    assert fitted.pixel_std_px == pytest.approx(1.7, rel=0.08)
+    np.testing.assert_allclose(np.sqrt(np.diag(fitted.floor)), np.sqrt(np.diag(floor)), rtol=0.15)
+    np.testing.assert_allclose(fitted.mu1, mu1, atol=0.004)
+    assert (fitted.tail_weight, fitted.tail_scale) == tail
+
+
+def test_the_fit_refuses_too_few_or_malformed_samples():
+    from monoloc.core.calibration import fit_pnp_covariance_model
+
+    rng = np.random.default_rng(6)
+    e, C = _synthetic_samples(rng, 12, 1.0, np.diag([1e-4, 1e-4, 1e-6]), np.zeros(3))
+    C[:5] = np.nan
+    with pytest.raises(InvalidInputError, match="at least 10"):
+        fit_pnp_covariance_model(e, C)
+    with pytest.raises(InvalidInputError):
+        fit_pnp_covariance_model(e, C[:, :2])

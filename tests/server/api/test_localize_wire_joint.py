@@ -28,7 +28,16 @@ def _hypothesis(entry_id, x_m, n_inliers, error_px, joint=False, members=()):
         joint=joint,
         entry_ids=members,
         method="joint" if joint else "guided",
+        covariance_px1=None if joint else _covariance(entry_id),
     )
+
+
+def _covariance(entry_id):
+    """A planar pose covariance at 1 px, different for each entry."""
+    along, across = 0.01 * entry_id, 0.004 * entry_id
+    C = np.diag([along**2, across**2, (1e-4 * entry_id) ** 2])
+    C[0, 1] = C[1, 0] = 0.3 * along * across
+    return C
 
 
 def _body() -> dict:
@@ -63,14 +72,25 @@ def test_joint_hypothesis_and_quality_features_round_trip():
     assert np.allclose(answer.best_pose_world[:2], [10.0, 2.0])
 
 
+def test_each_entry_pose_covariance_reaches_the_client():
+    body = _body()
+    assert body["hypotheses"][0]["pose_covariance"] is None  # the joint pose has none
+    assert len(body["hypotheses"][1]["pose_covariance"]) == 9
+    C = LocalizeAnswer.from_json(body).hypotheses.pose_covariance
+    assert C.shape == (3, 3, 3) and np.isnan(C[0]).all()
+    np.testing.assert_allclose(C[1], _covariance(3))
+    np.testing.assert_allclose(C[2], _covariance(5))
+
+
 def test_an_answer_of_an_older_server_still_parses():
     body = _body()
     for h in body["hypotheses"]:
-        for key in ("joint", "entry_ids", "method", "n_inliers"):
+        for key in ("joint", "entry_ids", "method", "n_inliers", "pose_covariance"):
             h.pop(key)
     body["hypotheses"] = body["hypotheses"][1:]
     hyps = LocalizeAnswer.from_json(body).hypotheses
     assert len(hyps) == 2 and not hyps.has_quality and hyps.joint is None
+    assert hyps.pose_covariance is None
 
 
 def test_a_calibration_stored_before_the_quality_model_is_still_served():
