@@ -35,6 +35,7 @@ from monoloc.core.calibration import (
     PAPER_TAIL_SCALE,
     PAPER_TAIL_WEIGHT,
     fit_measurement_model,
+    fit_pnp_covariance_model,
     fit_quality_model,
     pose_errors,
     retrieval_vectors,
@@ -59,6 +60,7 @@ from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
 MIN_GOOD_HYPOTHESES = 10
+_NO_COVARIANCE = np.full((3, 3), np.nan)
 ERROR_CONVENTION = "e = truth - hypothesis, (X m, Y m, psi rad), psi wrapped to (-pi, pi]"
 
 
@@ -68,8 +70,9 @@ class CalibrationConfig:
     the temporary map, the others query it; gates: hypotheses farther from the truth are
     counted as outliers and left out of the fit; unbiased: covariance about the mean with
     N - 1 (monoloc) instead of the paper's mean(e e^T); strategy: PnP as the localizer
-    runs it (guided, joint pose); covariance: the model the stored calibration selects
-    ("paper" or "quality"; both are fitted and stored)."""
+    runs it (guided, joint pose, each pose's covariance); covariance: the model the stored
+    calibration selects ("paper", "quality" or "pnp"; all are fitted and stored, "pnp"
+    when the strategy gives the poses' covariances)."""
 
     k: int = 10
     map_every: int = 2
@@ -80,7 +83,9 @@ class CalibrationConfig:
     build: BuildConfig = field(default_factory=lambda: BuildConfig(image_max_side_px=0))
     match: MatchConfig = field(default_factory=MatchConfig)
     pnp: PnpConfig = field(default_factory=PnpConfig)
-    strategy: PnpStrategy = field(default_factory=lambda: PnpStrategy(guess_from_prior=False))
+    strategy: PnpStrategy = field(
+        default_factory=lambda: PnpStrategy(guess_from_prior=False, covariance=True)
+    )
     covariance: CovarianceModel = "paper"
     # the frame of the retrieval vector's offset: "world" (the paper's) or "vehicle"
     # (along / across the heading; see monoloc.core.measurement)
@@ -109,7 +114,9 @@ def server_calibration_config(k: int, refine_by_projection: bool) -> Calibration
     """The calibration matching a server's localizer: its PnP strategy with the refit by
     projection on or off (``Settings.localize_refine``), ``k`` entries per query."""
     refine = ProjectionMatchConfig() if refine_by_projection else None
-    return CalibrationConfig(k=k, strategy=PnpStrategy(guess_from_prior=False, refine=refine))
+    return CalibrationConfig(
+        k=k, strategy=PnpStrategy(guess_from_prior=False, refine=refine, covariance=True)
+    )
 
 
 def check_run_length(n_frames: int, config: CalibrationConfig, what: str) -> None:
@@ -164,6 +171,8 @@ class CalibrationSamples:
     n_inliers: list = field(default_factory=list)
     error_px: list = field(default_factory=list)
     joint: list = field(default_factory=list)
+    # (3, 3) planar pose covariance at 1 px of each sample (NaN: none, e.g. a joint pose)
+    pose_covariance: list = field(default_factory=list)
     query_index: list = field(default_factory=list)
     entry_index: list = field(default_factory=list)
     n_hypotheses: int = 0
@@ -258,6 +267,9 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         samples.n_inliers.append(h.n_inliers)
         samples.error_px.append(h.reprojection_error_px)
         samples.joint.append(h.joint)
+        samples.pose_covariance.append(
+            _NO_COVARIANCE if h.covariance_px1 is None else h.covariance_px1
+        )
         samples.query_index.append(samples.n_queries)
         samples.entry_index.append(-1 if h.joint else int(h.entry_id))
     samples.n_queries_with_hypotheses += int(bool(hypotheses))
@@ -341,12 +353,28 @@ def calibrate_runs(
     quality = fit_quality_model(
         errors, np.array(samples.n_inliers), np.array(samples.error_px), joint
     )
-    model = dataclasses.replace(paper, quality=quality, covariance=config.covariance)
+    pnp = _fit_pnp(errors[~joint], np.array(samples.pose_covariance)[~joint], config)
+    if config.covariance == "pnp" and pnp is None:
+        raise InvalidInputError(
+            f"calibration of {what} cannot fit the pnp covariance model: fewer than "
+            f"{MIN_GOOD_HYPOTHESES} hypotheses with a pose covariance (the PnP strategy must "
+            "give them: PnpStrategy.covariance)"
+        )
+    model = dataclasses.replace(paper, quality=quality, pnp=pnp, covariance=config.covariance)
     counts = {key: sum(c[key] for c in per_run) for key in per_run[0] if key != "used"}
     provenance = _provenance(" + ".join(names), counts, samples, config, vocabulary)
     if len(runs) > 1:
         provenance["runs"] = [{"source": n, **c} for n, c in zip(names, per_run, strict=True)]
     return CalibrationResult(model, provenance)
+
+
+def _fit_pnp(errors: np.ndarray, covariances: np.ndarray, config: CalibrationConfig):
+    """The PnP covariance model fitted on the per-entry samples with a covariance (the
+    paper tail's settings), or None with fewer than ``MIN_GOOD_HYPOTHESES`` of them."""
+    covariances = covariances.reshape(-1, 3, 3)
+    if int(np.isfinite(covariances).all(axis=(1, 2)).sum()) < MIN_GOOD_HYPOTHESES:
+        return None
+    return fit_pnp_covariance_model(errors, covariances, config.tail_weight, config.tail_scale)
 
 
 def collect_samples(
@@ -436,6 +464,11 @@ def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabu
         "pnp": "guided" if config.strategy.guided else "independent RANSAC per entry",
         "quality_model": "ML: (1 - eps) N(mu1, s Sigma1) + eps N(mu1, kappa^2 s Sigma1), "
         "log s = beta . [log(n_inliers / n_ref), log(reprojection_error / error_ref), joint]",
+        "pnp_model": "ML: (1 - eps) N(mu1, S) + eps N(mu1, k^2 S), S = sigma_px^2 C + "
+        "diag(floor), C the pose's covariance from its own inliers at 1 px; eps, k the paper "
+        "tail's"
+        if config.strategy.covariance
+        else "none (the PnP strategy gives no pose covariances)",
         "k": config.k,
         "map_every": config.map_every,
         "gate_position_m": config.gate_position_m,

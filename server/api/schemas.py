@@ -450,10 +450,17 @@ class CalibrationUpdate(BaseModel):
         "log_scale_bounds, tail_weight, tail_scale: a share tail_weight of hypotheses has "
         "tail_scale times the spread; monoloc.core.measurement.QualityModel); null: none.",
     )
-    covariance: Literal["paper", "quality"] = Field(
+    pnp: dict[str, Any] | None = Field(
+        default=None,
+        description="PnP-covariance pose-error model (mu1, pixel_std_px, floor 3x3, "
+        "tail_weight, tail_scale: each hypothesis's error ~ N(mu1, pixel_std_px^2 C + floor) "
+        "with C its pose_covariance from the localize answer; "
+        "monoloc.core.measurement.PnpCovarianceModel); null: none.",
+    )
+    covariance: Literal["paper", "quality", "pnp"] = Field(
         default="paper",
         description="Which pose-error model the vehicle uses: paper (mu1, Sigma1 for every "
-        "hypothesis) or quality (needs quality).",
+        "hypothesis), quality (needs quality) or pnp (needs pnp).",
     )
     tail_weight: float = Field(
         default=0.0,

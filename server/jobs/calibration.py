@@ -128,6 +128,7 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
         f"psi {deg(std2[3]):.2f} deg",
         f"outlier log density: {calibration.get('outlier_log_density')}",
         *_describe_quality(calibration),
+        *_describe_pnp(calibration),
         "provenance:",
     ]
     for key, value in (calibration.get("provenance") or {}).items():
@@ -153,6 +154,22 @@ def _describe_quality(calibration: dict[str, Any]) -> list[str]:
         f"  log-variance slopes: log inliers {beta[0]:+.2f}, log reprojection error "
         f"{beta[1]:+.2f}, joint {beta[2]:+.2f}",
     ] + _describe_tail(quality)
+
+
+def _describe_pnp(calibration: dict[str, Any]) -> list[str]:
+    """The PnP covariance model's lines (none for a calibration stored before it)."""
+    pnp = calibration.get("pnp")
+    if not pnp:
+        return []
+    mu, floor = np.asarray(pnp["mu1"]), np.sqrt(np.diag(np.asarray(pnp["floor"])))
+    return [
+        "pnp covariance: sigma^2 C + floor, C from each pose's own inliers at 1 px:",
+        f"  mu1    X {100 * mu[0]:+.1f} cm, Y {100 * mu[1]:+.1f} cm, "
+        f"psi {math.degrees(mu[2]):+.2f} deg",
+        f"  sigma  {float(pnp['pixel_std_px']):.2f} px",
+        f"  floor  X {100 * floor[0]:.1f} cm, Y {100 * floor[1]:.1f} cm, "
+        f"psi {math.degrees(floor[2]):.2f} deg",
+    ] + _describe_tail(pnp)
 
 
 def _describe_tail(model: dict[str, Any]) -> list[str]:
@@ -223,6 +240,7 @@ def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
         "Sigma2",
         "outlier_log_density",
         "quality",
+        "pnp",
         "covariance",
         "retrieval_frame",
         "tail_weight",

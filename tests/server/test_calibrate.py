@@ -130,6 +130,14 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     # times as spread as the core) and the core is tighter than the paper's one Gaussian.
     assert 0.0 < model.quality.tail_weight < 0.5 and model.quality.tail_scale > 1.5
     assert np.trace(model.quality.Sigma1[:2, :2]) < np.trace(model.Sigma1[:2, :2])
+    # The PnP covariance model: a pixel noise of the order of a pixel, a floor under the
+    # paper's spread, the paper tail's settings; the strategy gave every per-entry
+    # hypothesis its covariance.
+    pnp = model.pnp
+    assert pnp is not None and 0.2 < pnp.pixel_std_px < 10.0, pnp
+    assert np.all(np.sqrt(np.diag(pnp.floor))[:2] < std_m), pnp.floor
+    assert (pnp.tail_weight, pnp.tail_scale) == (model.tail_weight, model.tail_scale)
+    assert "sigma_px^2 C" in prov["pnp_model"]
     done = [d for d, _ in calls]
     assert done == sorted(done) and calls[-1][0] == calls[-1][1] == N_FRAMES + N_FRAMES // 2
 
@@ -138,6 +146,18 @@ def test_exact_geometry_gives_a_small_sigma1(exact_run):
     model = _calibrate(exact_run, CalibrationConfig(k=3)).model
     assert np.all(_position_std_m(model.Sigma1) < 0.05), model.Sigma1
     assert np.hypot(*model.mu1[:2]) < 0.02 and abs(model.mu1[2]) < math.radians(0.1)
+
+
+def test_the_pnp_covariance_model_can_be_selected_and_needs_the_covariances(exact_run):
+    from monoloc.server.localize import PnpStrategy
+
+    model = _calibrate(exact_run, CalibrationConfig(k=3, covariance="pnp")).model
+    assert model.covariance == "pnp" and model.pnp is not None
+    without = PnpStrategy(guess_from_prior=False, covariance=False)
+    config = CalibrationConfig(k=3, strategy=without)
+    assert _calibrate(exact_run, config).model.pnp is None
+    with pytest.raises(InvalidInputError, match="pnp covariance model"):
+        _calibrate(exact_run, CalibrationConfig(k=3, covariance="pnp", strategy=without))
 
 
 def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
@@ -234,9 +254,12 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert "job 1 done: map 1 calibrated" in out
     assert "std1   X" in out and " cm" in out and " deg" in out
     assert "entry offset (X_i - X, Y_i - Y)" in out
-    paper_tail, quality_tail = calibration_tail_lines(out)
-    assert paper_tail == "tail   30 % of hypotheses, 10.0x the spread"
+    paper_tail, quality_tail, pnp_tail = calibration_tail_lines(out)
+    assert paper_tail == pnp_tail == "tail   30 % of hypotheses, 10.0x the spread"
     assert quality_tail.endswith("x the spread") and "% of hypotheses" in quality_tail
+    # the PnP covariance model: fitted pixel noise and floor
+    assert "pnp covariance: sigma^2 C + floor" in out
+    assert "sigma " in out and " px" in out and "floor  X" in out
     assert "used:" in out and "gated_outliers:" in out and "vocabulary_hash:" in out
 
     short = runner.invoke(cli.app, [*args, "--frames", "0:10"], env=env)
@@ -275,8 +298,8 @@ def test_the_calibration_description_names_the_offsets_frame():
 
 
 def calibration_tail_lines(output: str) -> list[str]:
-    """The tail lines of ``monoloc map calibrate``'s output: the paper covariance's, then
-    the quality model's."""
+    """The tail lines of ``monoloc map calibrate``'s output: the paper covariance's, the
+    quality model's, then the PnP covariance model's."""
     lines = [line.strip() for line in output.splitlines() if line.strip().startswith("tail ")]
-    assert len(lines) == 2, output
+    assert len(lines) == 3, output
     return lines

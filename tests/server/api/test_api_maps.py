@@ -99,6 +99,26 @@ def test_calibration_defaults_put_and_delete(fresh):
         refused = client.put(url, headers=w, json=dict(CALIBRATION, **bad))
         assert refused.status_code == 422 and next(iter(bad)) in refused.text
     assert client.get(url, headers=w).json()["tail_weight"] == 0.3
+    # The PnP covariance model: stored, served, and read back by the vehicle's model;
+    # selected without its parameters, or with a non-positive floor, refused.
+    pnp = {
+        "mu1": [0.01, 0.0, 0.0],
+        "pixel_std_px": 1.4,
+        "floor": [[4e-4, 0.0, 0.0], [0.0, 2e-4, 0.0], [0.0, 0.0, 1e-6]],
+        "tail_weight": 0.3,
+        "tail_scale": 10.0,
+    }
+    stored = client.put(url, headers=w, json=dict(CALIBRATION, pnp=pnp, covariance="pnp"))
+    assert stored.status_code == 200, stored.text
+    served = client.get(url, headers=keys.header("localize")).json()
+    assert served["covariance"] == "pnp" and served["pnp"]["pixel_std_px"] == 1.4
+    assert MeasurementModel.from_dict(served).pnp.floor[1, 1] == 2e-4
+    no_params = client.put(url, headers=w, json=dict(CALIBRATION, covariance="pnp"))
+    assert no_params.status_code == 422 and "pnp" in no_params.text
+    bad_floor = dict(pnp, floor=[[-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    refused = client.put(url, headers=w, json=dict(CALIBRATION, pnp=bad_floor))
+    assert refused.status_code == 422
+    assert client.get(url, headers=w).json()["covariance"] == "pnp"
 
     not_pd = dict(CALIBRATION, Sigma1=[[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     asymmetric = dict(CALIBRATION, Sigma1=[[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
