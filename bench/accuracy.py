@@ -326,6 +326,7 @@ def print_floor(name: str, f: dict) -> None:
 
 
 NO_TAIL = "paper model without the tail"
+PNP = "PnP covariance model"
 
 
 def urban_city(
@@ -394,6 +395,14 @@ def urban_city(
     untailed = dataclasses.replace(model, tail_weight=0.0)
     plain = evaluate_run(memory, query, signals, untailed, lever_arm_m=lever, variants=("full",))
     rows.append((f"full, {NO_TAIL}", metrics_row(plain.metrics["full"])))
+    # each hypothesis weighed with its own PnP covariance (MeasurementModel covariance "pnp")
+    pnp_model = model.with_covariance("pnp") if model.pnp is not None else None
+    pnp_run = None
+    if pnp_model is not None:
+        pnp_run = evaluate_run(
+            memory, query, signals, pnp_model, lever_arm_m=lever, variants=("full",)
+        )
+        rows.append((f"full, {PNP}", metrics_row(pnp_run.metrics["full"])))
     if compare is not None:
         other = evaluate_run(
             memory, query, signals, compare[1], lever_arm_m=lever, variants=("full",)
@@ -428,6 +437,10 @@ def urban_city(
         map_true, map_written = true_world["map"], written_poses(root, map_id)
         placed = truth_in_map_frame(true_world["query"], map_true, map_written)
         out["recording_floor"] = recording_floor(result, "full", placed, true_world["query"])
+        if pnp_run is not None:
+            out["recording_floor_pnp"] = recording_floor(
+                pnp_run, "full", placed, true_world["query"]
+            )
     night_rows = []
     night_id, nightmap_id = sequence_of(meta, "night"), sequence_of(meta, "nightmap")
     if night and night_id:
@@ -453,6 +466,13 @@ def urban_city(
             night_rows.append(
                 (f"night, + night entries, {NO_TAIL}", metrics_row(plain.metrics["full"]))
             )
+            if pnp_model is not None:
+                pnp_night = evaluate_run(
+                    memory, night_seq, nsig, pnp_model, lever_arm_m=lever, variants=("full",)
+                )
+                night_rows.append(
+                    (f"night, + night entries, {PNP}", metrics_row(pnp_night.metrics["full"]))
+                )
             if compare is not None:
                 other = evaluate_run(
                     memory, night_seq, nsig, compare[1], lever_arm_m=lever, variants=("full",)
@@ -493,6 +513,8 @@ def urban_city(
     if "recording_floor" in out:
         print()
         print_floor("query", out["recording_floor"])
+    if "recording_floor_pnp" in out:
+        print_floor(f"query, {PNP}", out["recording_floor_pnp"])
     if "night_recording_floor" in out:
         print_floor(
             "night, + night entries (day and night entries: approximate)",

@@ -102,6 +102,7 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
         ]
     floors = (
         ("recording_floor", "query"),
+        ("recording_floor_pnp", "query, PnP covariance model"),
         ("night_recording_floor", "night + night entries; approximate: two maps"),
     )
     for key, what in floors:

@@ -353,7 +353,7 @@ def calibrate_runs(
     quality = fit_quality_model(
         errors, np.array(samples.n_inliers), np.array(samples.error_px), joint
     )
-    pnp = _fit_pnp(errors[~joint], np.array(samples.pose_covariance)[~joint], config)
+    pnp = _fit_pnp(errors[~joint], np.array(samples.pose_covariance)[~joint], paper, config)
     if config.covariance == "pnp" and pnp is None:
         raise InvalidInputError(
             f"calibration of {what} cannot fit the pnp covariance model: fewer than "
@@ -368,13 +368,14 @@ def calibrate_runs(
     return CalibrationResult(model, provenance)
 
 
-def _fit_pnp(errors: np.ndarray, covariances: np.ndarray, config: CalibrationConfig):
-    """The PnP covariance model fitted on the per-entry samples with a covariance (the
-    paper tail's settings), or None with fewer than ``MIN_GOOD_HYPOTHESES`` of them."""
+def _fit_pnp(errors: np.ndarray, covariances: np.ndarray, paper, config: CalibrationConfig):
+    """The PnP covariance model fitted on the per-entry samples with a covariance, the
+    ``paper`` model (fitted on the same samples) its outliers' density with the paper
+    tail's weight; None with fewer than ``MIN_GOOD_HYPOTHESES`` such samples."""
     covariances = covariances.reshape(-1, 3, 3)
     if int(np.isfinite(covariances).all(axis=(1, 2)).sum()) < MIN_GOOD_HYPOTHESES:
         return None
-    return fit_pnp_covariance_model(errors, covariances, config.tail_weight, config.tail_scale)
+    return fit_pnp_covariance_model(errors, covariances, paper, config.tail_weight)
 
 
 def collect_samples(
@@ -464,9 +465,9 @@ def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabu
         "pnp": "guided" if config.strategy.guided else "independent RANSAC per entry",
         "quality_model": "ML: (1 - eps) N(mu1, s Sigma1) + eps N(mu1, kappa^2 s Sigma1), "
         "log s = beta . [log(n_inliers / n_ref), log(reprojection_error / error_ref), joint]",
-        "pnp_model": "ML: (1 - eps) N(mu1, S) + eps N(mu1, k^2 S), S = sigma_px^2 C + "
-        "diag(floor), C the pose's covariance from its own inliers at 1 px; eps, k the paper "
-        "tail's"
+        "pnp_model": "ML: (1 - w) N(mu1, sigma_px^2 C + diag(floor)) + w paper, C the "
+        "pose's covariance from its own inliers at 1 px, paper the paper covariance's "
+        "density (outliers), w the paper tail's weight"
         if config.strategy.covariance
         else "none (the PnP strategy gives no pose covariances)",
         "k": config.k,

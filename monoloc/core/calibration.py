@@ -335,18 +335,19 @@ PNP_FLOOR_STD_BOUNDS = ((1e-4, 1.0), (1e-4, 1.0), (1e-5, 0.1))
 def fit_pnp_covariance_model(
     pose_error_samples: np.ndarray,
     pose_covariances: np.ndarray,
-    tail_weight: float = PAPER_TAIL_WEIGHT,
-    tail_scale: float = PAPER_TAIL_SCALE,
+    outliers: MeasurementModel | None = None,
+    outlier_weight: float = PAPER_TAIL_WEIGHT,
 ) -> PnpCovarianceModel:
     """Maximum-likelihood fit of the PnP covariance model (monoloc.core.measurement) to
     pose errors e_i (N, 3) = truth - hypothesis with their planar covariances at 1 px
     C_i (N, 3, 3): mu1, the pixel noise sigma and the diagonal floor D of
-    e_i ~ (1 - eps) N(mu1, S_i) + eps N(mu1, k^2 S_i), S_i = sigma^2 C_i + D. The tail
-    (eps, k) is set, as the paper covariance's is (``PAPER_TAIL_WEIGHT``: a training run
-    shows too few of the errors it stands for to fit it); eps = 0 is the single Gaussian.
-    Samples whose covariance is unknown (NaN) are left out. Quasi-Newton (L-BFGS-B, scipy)
-    on log sigma and the log floor standard deviations within ``PNP_*_BOUNDS``, mu1 the
-    mean error and then refined with them."""
+    e_i ~ (1 - w) N(mu1, sigma^2 C_i + D) + w paper(e_i), paper the pose-error density
+    of ``outliers`` (the paper covariance's model fitted on the same samples: its mu1,
+    Sigma1 and tail). The outlier weight w is set, as the paper covariance's tail is
+    (``PAPER_TAIL_WEIGHT``: a training run shows too few of the errors it stands for to
+    fit it); w = 0 or no ``outliers`` is the single Gaussian. Samples whose covariance is
+    unknown (NaN) are left out. Quasi-Newton (L-BFGS-B, scipy) on mu1, log sigma and the
+    log floor standard deviations within ``PNP_*_BOUNDS``."""
     from scipy.optimize import minimize
 
     e = np.asarray(pose_error_samples, dtype=np.float64)
@@ -355,32 +356,39 @@ def fit_pnp_covariance_model(
         raise InvalidInputError(
             f"need pose errors (N, 3) and covariances (N, 3, 3), got {e.shape} and {C.shape}"
         )
+    if not 0.0 <= outlier_weight < 1.0:
+        raise InvalidInputError(f"outlier_weight must be in [0, 1), got {outlier_weight}")
     known = np.isfinite(C).all(axis=(1, 2)) & np.isfinite(e).all(axis=1)
     e, C = e[known], C[known]
     if len(e) < 10:
         raise InvalidInputError(
             f"need at least 10 samples with a PnP covariance to fit the model, got {len(e)}"
         )
-    log_eps = np.log(tail_weight) if tail_weight > 0 else None
-    log_core = np.log1p(-tail_weight)
-    k2 = tail_scale**2
+    if outliers is None or outlier_weight <= 0.0:
+        outlier_weight, outlier_term = 0.0, None
+    else:
+        r = e - outliers.mu1
+        r[:, 2] = wrap_angle(r[:, 2])
+        maha = np.einsum("ij,ij->i", r @ np.linalg.inv(outliers.Sigma1), r)
+        outlier_term = outliers.paper_log_density(maha) + np.log(outlier_weight)
+    log_core = np.log1p(-outlier_weight)
 
     def unpack(theta):
         return theta[:3], np.exp(theta[3]), np.exp(2.0 * theta[4:7])
 
     def nll(theta):
         mu1, sigma, floor_var = unpack(theta)
-        S = sigma**2 * C + np.diag(floor_var)
-        L = np.linalg.cholesky(S)
+        L = np.linalg.cholesky(sigma**2 * C + np.diag(floor_var))
         r = e - mu1
         y = np.linalg.solve(L, r[:, :, None])[:, :, 0]
-        maha = np.einsum("ij,ij->i", y, y)
-        log_norm = -np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1) - 1.5 * np.log(2.0 * np.pi)
-        core = log_norm - 0.5 * maha
-        if log_eps is None:
-            return -float(core.sum())
-        tail = log_norm - 1.5 * np.log(k2) - 0.5 * maha / k2
-        return -float(np.logaddexp(core + log_core, tail + log_eps).sum())
+        own = (
+            -np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
+            - 1.5 * np.log(2.0 * np.pi)
+            - 0.5 * np.einsum("ij,ij->i", y, y)
+        )
+        if outlier_term is None:
+            return -float(own.sum())
+        return -float(np.logaddexp(own + log_core, outlier_term).sum())
 
     floor0 = np.log(
         [np.clip(0.5 * np.std(e[:, j]), lo, hi) for j, (lo, hi) in enumerate(PNP_FLOOR_STD_BOUNDS)]
@@ -391,9 +399,5 @@ def fit_pnp_covariance_model(
     result = minimize(nll, theta0, method="L-BFGS-B", bounds=bounds)
     mu1, sigma, floor_var = unpack(result.x)
     return PnpCovarianceModel(
-        mu1=mu1,
-        pixel_std_px=float(sigma),
-        floor=np.diag(floor_var),
-        tail_weight=tail_weight,
-        tail_scale=tail_scale,
+        mu1=mu1, pixel_std_px=float(sigma), floor=np.diag(floor_var), outlier_weight=outlier_weight
     )

@@ -245,12 +245,18 @@ class QualityModel:
 @dataclass(frozen=True)
 class PnpCovarianceModel:
     """Pose-error model from each hypothesis's own PnP geometry: hypothesis i has error
-    (truth - z_i) ~ N(mu1, pixel_std_px^2 C_i + floor), C_i its planar pose covariance
-    at 1 px (``Hypotheses.pose_covariance``: where its inliers lie, how many, how deep),
-    ``pixel_std_px`` the effective pixel noise and ``floor`` (3, 3) what the geometry
-    does not see (the map points' own errors). A hypothesis without C_i (joint or pooled
-    poses, an old server) falls back to the paper's Sigma1. Heavy tail as the paper
-    covariance's: (1 - eps) N(mu1, S_i) + eps N(mu1, k^2 S_i). Fitted by maximum
+    (truth - z_i) ~ N(mu1, S_i), S_i = pixel_std_px^2 C_i + floor, C_i its planar pose
+    covariance at 1 px (``Hypotheses.pose_covariance``: where its inliers lie, how many,
+    how deep), ``pixel_std_px`` the effective pixel noise and ``floor`` (3, 3) what the
+    geometry does not see (the map points' own errors).
+
+    Outliers: with probability ``outlier_weight`` a hypothesis's error does not follow its
+    geometry at all (a moved car that carries most inliers, a lone pose at the map's end,
+    an aliased facade: precise-looking and wrong) and is drawn from the paper covariance's
+    model instead (the MeasurementModel's mu1, Sigma1 and tail, fitted on every
+    hypothesis). A tail scaled from S_i would not do: a precise-looking wrong pose would
+    then pull the particles as hard as a right one. A hypothesis without C_i (joint or
+    pooled poses, an old server) follows the paper's model alone. Fitted by maximum
     likelihood (``core.calibration.fit_pnp_covariance_model``).
     """
 
@@ -259,40 +265,35 @@ class PnpCovarianceModel:
     floor: np.ndarray = field(
         default_factory=lambda: np.diag([0.02**2, 0.02**2, math.radians(0.1) ** 2])
     )
-    tail_weight: float = 0.0
-    tail_scale: float = 1.0
+    outlier_weight: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mu1", np.asarray(self.mu1, dtype=np.float64).reshape(3))
         object.__setattr__(self, "floor", _as_cov(self.floor, 3, "PnP covariance floor"))
         object.__setattr__(self, "pixel_std_px", float(self.pixel_std_px))
-        object.__setattr__(self, "tail_weight", float(self.tail_weight))
-        object.__setattr__(self, "tail_scale", float(self.tail_scale))
+        object.__setattr__(self, "outlier_weight", float(self.outlier_weight))
         if not (
             np.all(np.isfinite(self.mu1))
             and 0.0 < self.pixel_std_px < 1e3
-            and 0.0 <= self.tail_weight < 1.0
-            and 1.0 <= self.tail_scale < 1e3
+            and 0.0 <= self.outlier_weight < 1.0
         ):
             raise InvalidInputError(f"invalid PnP covariance model {self}")
 
-    def covariances(self, pose_covariance: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-        """(H, 3, 3) S_i of hypotheses with planar covariances (H, 3, 3) at 1 px (NaN where
-        unknown: ``fallback`` (3, 3) there)."""
+    def covariances(self, pose_covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """S_i (H, 3, 3) of hypotheses with planar covariances (H, 3, 3) at 1 px, and
+        which of them have one (H,) bool (where not, S_i is the identity: unused)."""
         C = np.asarray(pose_covariance, dtype=np.float64)
         known = np.isfinite(C).all(axis=(1, 2))
-        out = np.empty_like(C)
+        out = np.broadcast_to(np.eye(3), C.shape).copy()
         out[known] = self.pixel_std_px**2 * C[known] + self.floor
-        out[~known] = fallback
-        return out
+        return out, known
 
     def to_dict(self) -> dict:
         return {
             "mu1": self.mu1.tolist(),
             "pixel_std_px": self.pixel_std_px,
             "floor": self.floor.tolist(),
-            "tail_weight": self.tail_weight,
-            "tail_scale": self.tail_scale,
+            "outlier_weight": self.outlier_weight,
         }
 
     @classmethod
@@ -301,8 +302,7 @@ class PnpCovarianceModel:
             mu1=data["mu1"],
             pixel_std_px=float(data["pixel_std_px"]),
             floor=data["floor"],
-            tail_weight=float(data.get("tail_weight", 0.0)),
-            tail_scale=float(data.get("tail_scale", 1.0)),
+            outlier_weight=float(data.get("outlier_weight", 0.0)),
         )
 
 
@@ -501,15 +501,10 @@ def log_likelihood_and_distance(
     X, Y, psi = (particles[:, k : k + 1] for k in range(3))
     # Component: N(x; z_i + mu1, s_i Sigma1), residual x - (z_i + mu1), wrapped heading.
     mu1 = model.mu1 if quality is None else quality.mu1
-    if pnp is not None:
-        mu1 = pnp.mu1
     centres = hypotheses.pose_world + mu1  # (H, 3)
     r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
     if pnp is not None:
-        S = pnp.covariances(hypotheses.pose_covariance, model.Sigma1)
-        maha1 = _mahalanobis_each(r1, np.linalg.inv(np.linalg.cholesky(S)))
-        log_norm = -0.5 * (np.linalg.slogdet(S)[1] + 3.0 * math.log(2.0 * math.pi))
-        terms = _scale_mixture_log_density(log_norm, maha1, pnp.tail_weight, pnp.tail_scale)
+        terms, maha1 = _pnp_terms(X, Y, psi, hypotheses, r1, model, pnp)
     elif quality is None:
         maha1 = _mahalanobis(r1, model._whiten1)
         terms = model.paper_log_density(maha1)
@@ -546,6 +541,27 @@ def log_likelihood_and_distance(
     if model.outlier_log_density is not None:
         total += np.exp(model.outlier_log_density - peak)
     return peak + np.log(total), closest
+
+
+def _pnp_terms(X, Y, psi, hypotheses, r1_paper, model, pnp):
+    """The PnP covariance model's pose terms (P, H) and the squared Mahalanobis distances
+    (P, H) of the "lost" signal: (1 - w) N(x; z_i + mu1, S_i) + w paper(x) where the
+    hypothesis has a covariance, the paper's density alone where not."""
+    maha_paper = _mahalanobis(r1_paper, model._whiten1)
+    paper = model.paper_log_density(maha_paper)
+    S, known = pnp.covariances(hypotheses.pose_covariance)
+    if not known.any():
+        return paper, maha_paper
+    centres = hypotheses.pose_world + pnp.mu1
+    r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
+    maha = _mahalanobis_each(r1, np.linalg.inv(np.linalg.cholesky(S)))
+    log_norm = -0.5 * (np.linalg.slogdet(S)[1] + 3.0 * math.log(2.0 * math.pi))
+    own = log_norm - 0.5 * maha
+    if pnp.outlier_weight > 0.0:
+        own = np.logaddexp(
+            own + math.log1p(-pnp.outlier_weight), paper + math.log(pnp.outlier_weight)
+        )
+    return np.where(known, own, paper), np.where(known, maha, maha_paper)
 
 
 def _mahalanobis_each(residuals: list[np.ndarray], whiten: np.ndarray) -> np.ndarray:

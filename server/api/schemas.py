@@ -453,9 +453,9 @@ class CalibrationUpdate(BaseModel):
     pnp: dict[str, Any] | None = Field(
         default=None,
         description="PnP-covariance pose-error model (mu1, pixel_std_px, floor 3x3, "
-        "tail_weight, tail_scale: each hypothesis's error ~ N(mu1, pixel_std_px^2 C + floor) "
-        "with C its pose_covariance from the localize answer; "
-        "monoloc.core.measurement.PnpCovarianceModel); null: none.",
+        "outlier_weight w: each hypothesis's error ~ (1 - w) N(mu1, pixel_std_px^2 C + floor) "
+        "+ w times the paper covariance's density, C its pose_covariance from the localize "
+        "answer; monoloc.core.measurement.PnpCovarianceModel); null: none.",
     )
     covariance: Literal["paper", "quality", "pnp"] = Field(
         default="paper",

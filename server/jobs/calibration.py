@@ -169,7 +169,9 @@ def _describe_pnp(calibration: dict[str, Any]) -> list[str]:
         f"  sigma  {float(pnp['pixel_std_px']):.2f} px",
         f"  floor  X {100 * floor[0]:.1f} cm, Y {100 * floor[1]:.1f} cm, "
         f"psi {math.degrees(floor[2]):.2f} deg",
-    ] + _describe_tail(pnp)
+        f"  outliers {100 * float(pnp.get('outlier_weight') or 0.0):.0f} % of hypotheses, "
+        "as the paper covariance's",
+    ]
 
 
 def _describe_tail(model: dict[str, Any]) -> list[str]:

@@ -1,7 +1,8 @@
 """The PnP-covariance measurement model (MeasurementModel covariance "pnp"): each
 hypothesis weighs the particles with its own covariance, pixel_std^2 C_i + floor, from
-its PnP geometry; hypotheses without one fall back to Sigma1; an old server's answers
-(no covariances) are weighed as the paper's model weighs them."""
+its PnP geometry, mixed with the paper covariance's density for outliers; hypotheses
+without a covariance follow the paper's density; an old server's answers (no
+covariances) are weighed as the paper's model weighs them."""
 
 from __future__ import annotations
 
@@ -60,20 +61,26 @@ def _hypotheses(poses, covariances, joint=None) -> Hypotheses:
 
 
 def _expected(particles, hyps, model, S):
-    """The mixture written out with scipy: sum over hypotheses of N(pose residual; S_i)
-    times N(retrieval vector; mu2, Sigma2)."""
+    """The mixture written out with scipy: sum over hypotheses of the pose term times
+    N(retrieval vector; mu2, Sigma2); the pose term (1 - w) N(residual; S_i) + w paper,
+    paper = N(x - z_i - mu1_paper; Sigma1) (no paper tail here), or paper alone where
+    S_i is None."""
+    w = model.pnp.outlier_weight
     out = []
     for x in particles:
         terms = []
         for i in range(len(hyps)):
-            r1 = x - (hyps.pose_world[i] + model.pnp.mu1)
-            r1[2] = (r1[2] + math.pi) % (2 * math.pi) - math.pi
+            paper_r = x - (hyps.pose_world[i] + model.mu1)
+            paper = multivariate_normal(np.zeros(3), model.Sigma1).logpdf(paper_r)
+            if S[i] is None:
+                pose = paper
+            else:
+                r1 = x - (hyps.pose_world[i] + model.pnp.mu1)
+                own = multivariate_normal(np.zeros(3), S[i]).logpdf(r1)
+                pose = own if w == 0 else np.logaddexp(np.log1p(-w) + own, np.log(w) + paper)
             e = hyps.entry_pose_world[i]
             r2 = np.array([hyps.e_vlad[i], e[0] - x[0], e[1] - x[1], e[2] - x[2]]) - model.mu2
-            terms.append(
-                multivariate_normal(np.zeros(3), S[i]).logpdf(r1)
-                + multivariate_normal(np.zeros(4), model.Sigma2).logpdf(r2)
-            )
+            terms.append(pose + multivariate_normal(np.zeros(4), model.Sigma2).logpdf(r2))
         out.append(logsumexp(terms))
     return np.array(out)
 
@@ -97,10 +104,32 @@ def test_a_hypothesis_without_covariance_falls_back_to_sigma1_and_joint_ones_are
     hyps = _hypotheses(poses, C, joint=np.array([False, False, True]))
     particles = rng.normal(size=(15, 3)) * [0.1, 0.1, 0.01]
     per_entry = _hypotheses(poses[:2], C[:2])
-    S = [PNP.pixel_std_px**2 * C[0] + PNP.floor, SIGMA1]
+    S = [PNP.pixel_std_px**2 * C[0] + PNP.floor, None]
     np.testing.assert_allclose(
         log_likelihood(particles, hyps, _model()), _expected(particles, per_entry, _model(), S)
     )
+
+
+def test_outliers_follow_the_paper_density():
+    """With an outlier weight w, each hypothesis's pose term is (1 - w) N(S_i) + w times
+    the paper covariance's density: a precise-looking hypothesis far from a particle
+    still gives it the paper model's share instead of nothing."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(7)
+    model = _model(pnp=replace(PNP, outlier_weight=0.3), mu1=np.array([0.0, 0.01, 0.0]))
+    poses = [[5.0, 1.0, 0.0], [5.3, 1.0, 0.0]]
+    C = [_covariance(0.004, 0.003, 3e-4, 0.0), _covariance(0.01, 0.01, 5e-4, 0.0)]
+    hyps = _hypotheses(poses, C)
+    particles = np.array(poses[0]) + rng.normal(size=(12, 3)) * [0.2, 0.1, 0.01]
+    S = [PNP.pixel_std_px**2 * c + PNP.floor for c in C]
+    np.testing.assert_allclose(
+        log_likelihood(particles, hyps, model), _expected(particles, hyps, model, S)
+    )
+    # 0.3 m from a 4 mm hypothesis: without outliers the particle is all but excluded
+    far = np.array([[5.0, 1.3, 0.0]])
+    alone = _hypotheses(poses[:1], C[:1])
+    assert log_likelihood(far, alone, model) - log_likelihood(far, alone, _model()) > 50.0
 
 
 def test_answers_without_covariances_are_weighed_as_the_paper_model_does():
@@ -159,9 +188,10 @@ def test_invalid_models_are_refused():
         _hypotheses([[0.0, 0.0, 0.0]], np.zeros((2, 3, 3)))
 
 
-def _synthetic_samples(rng, n, sigma_px, floor, mu1, tail_weight=0.0, tail_scale=1.0):
+def _synthetic_samples(rng, n, sigma_px, floor, mu1, outliers=None, outlier_weight=0.0):
     """Errors drawn from the model itself, with covariances C_i of varied size, shape and
-    orientation (as hypotheses from near and far, spread and clustered inliers give)."""
+    orientation (as hypotheses from near and far, spread and clustered inliers give); a
+    share ``outlier_weight`` drawn from N(mu1, Sigma1) of ``outliers`` instead."""
     C = np.stack(
         [
             _covariance(
@@ -172,27 +202,34 @@ def _synthetic_samples(rng, n, sigma_px, floor, mu1, tail_weight=0.0, tail_scale
         ]
     )  # fmt: skip
     S = sigma_px**2 * C + floor
-    scale = np.where(rng.random(n) < tail_weight, tail_scale, 1.0)
-    e = mu1 + scale[:, None] * np.einsum(
-        "nij,nj->ni", np.linalg.cholesky(S), rng.normal(size=(n, 3))
-    )
+    e = mu1 + np.einsum("nij,nj->ni", np.linalg.cholesky(S), rng.normal(size=(n, 3)))
+    if outliers is not None:
+        out = rng.random(n) < outlier_weight
+        e[out] = rng.multivariate_normal(outliers.mu1, outliers.Sigma1, out.sum())
     return e, C
 
 
-@pytest.mark.parametrize("tail", [(0.0, 1.0), (0.3, 10.0)])
-def test_the_fit_recovers_the_pixel_noise_and_the_floor(tail):
+OUTLIERS = MeasurementModel(mu1=np.zeros(3), Sigma1=np.diag([0.3**2, 0.2**2, 0.01**2]))
+
+
+@pytest.mark.parametrize("outliers, weight", [(None, 0.0), (OUTLIERS, 0.3)])
+def test_the_fit_recovers_the_pixel_noise_and_the_floor(outliers, weight):
     from monoloc.core.calibration import fit_pnp_covariance_model
 
     rng = np.random.default_rng(5)
     floor = np.diag([0.02**2, 0.015**2, 0.0015**2])
     mu1 = np.array([0.01, -0.02, 0.001])
-    e, C = _synthetic_samples(rng, 3000, 1.7, floor, mu1, *tail)
+    e, C = _synthetic_samples(rng, 3000, 1.7, floor, mu1, outliers, weight)
     C[:5] = np.nan  # hypotheses without a covariance are left out
-    fitted = fit_pnp_covariance_model(e, C, *tail)
+    fitted = fit_pnp_covariance_model(e, C, outliers, weight)
     assert fitted.pixel_std_px == pytest.approx(1.7, rel=0.08)
     np.testing.assert_allclose(np.sqrt(np.diag(fitted.floor)), np.sqrt(np.diag(floor)), rtol=0.15)
     np.testing.assert_allclose(fitted.mu1, mu1, atol=0.004)
-    assert (fitted.tail_weight, fitted.tail_scale) == tail
+    assert fitted.outlier_weight == weight
+    if outliers is not None:
+        # a Gaussian-only fit of the same samples is dragged wide by the outliers
+        plain = fit_pnp_covariance_model(e, C, None, 0.0)
+        assert np.all(np.diag(plain.floor)[:2] > 9.0 * np.diag(fitted.floor)[:2])
 
 
 def test_the_fit_refuses_too_few_or_malformed_samples():
@@ -205,3 +242,5 @@ def test_the_fit_refuses_too_few_or_malformed_samples():
         fit_pnp_covariance_model(e, C)
     with pytest.raises(InvalidInputError):
         fit_pnp_covariance_model(e, C[:, :2])
+    with pytest.raises(InvalidInputError):
+        fit_pnp_covariance_model(e, C, OUTLIERS, 1.0)

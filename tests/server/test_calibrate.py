@@ -136,7 +136,7 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     pnp = model.pnp
     assert pnp is not None and 0.2 < pnp.pixel_std_px < 10.0, pnp
     assert np.all(np.sqrt(np.diag(pnp.floor))[:2] < std_m), pnp.floor
-    assert (pnp.tail_weight, pnp.tail_scale) == (model.tail_weight, model.tail_scale)
+    assert pnp.outlier_weight == model.tail_weight
     assert "sigma_px^2 C" in prov["pnp_model"]
     done = [d for d, _ in calls]
     assert done == sorted(done) and calls[-1][0] == calls[-1][1] == N_FRAMES + N_FRAMES // 2
@@ -254,12 +254,13 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert "job 1 done: map 1 calibrated" in out
     assert "std1   X" in out and " cm" in out and " deg" in out
     assert "entry offset (X_i - X, Y_i - Y)" in out
-    paper_tail, quality_tail, pnp_tail = calibration_tail_lines(out)
-    assert paper_tail == pnp_tail == "tail   30 % of hypotheses, 10.0x the spread"
+    paper_tail, quality_tail = calibration_tail_lines(out)
+    assert paper_tail == "tail   30 % of hypotheses, 10.0x the spread"
     assert quality_tail.endswith("x the spread") and "% of hypotheses" in quality_tail
     # the PnP covariance model: fitted pixel noise and floor
     assert "pnp covariance: sigma^2 C + floor" in out
     assert "sigma " in out and " px" in out and "floor  X" in out
+    assert "outliers 30 % of hypotheses, as the paper covariance's" in out
     assert "used:" in out and "gated_outliers:" in out and "vocabulary_hash:" in out
 
     short = runner.invoke(cli.app, [*args, "--frames", "0:10"], env=env)
@@ -298,8 +299,8 @@ def test_the_calibration_description_names_the_offsets_frame():
 
 
 def calibration_tail_lines(output: str) -> list[str]:
-    """The tail lines of ``monoloc map calibrate``'s output: the paper covariance's, the
-    quality model's, then the PnP covariance model's."""
+    """The tail lines of ``monoloc map calibrate``'s output: the paper covariance's, then
+    the quality model's."""
     lines = [line.strip() for line in output.splitlines() if line.strip().startswith("tail ")]
-    assert len(lines) == 3, output
+    assert len(lines) == 2, output
     return lines

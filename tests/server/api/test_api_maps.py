@@ -105,8 +105,7 @@ def test_calibration_defaults_put_and_delete(fresh):
         "mu1": [0.01, 0.0, 0.0],
         "pixel_std_px": 1.4,
         "floor": [[4e-4, 0.0, 0.0], [0.0, 2e-4, 0.0], [0.0, 0.0, 1e-6]],
-        "tail_weight": 0.3,
-        "tail_scale": 10.0,
+        "outlier_weight": 0.3,
     }
     stored = client.put(url, headers=w, json=dict(CALIBRATION, pnp=pnp, covariance="pnp"))
     assert stored.status_code == 200, stored.text
