@@ -142,6 +142,17 @@ def test_vehicle_client_reads_calibration_and_localizes(sim_dataset, map_copy, c
     answer = vehicle.localize(m.map_id, frame_png(sim_dataset, "01", 9), k=5)
     assert len(answer.hypotheses) >= 1 and answer.map_version == m.job["result"]["map_version"]
     assert all(math.isfinite(v) for v in answer.timings_ms.values())
+    # every per-entry hypothesis comes with its PnP pose covariance (at 1 px), positive
+    # definite, and the vehicle's pnp model can weigh with it
+    hyps = answer.hypotheses
+    per_entry = ~hyps.joint & np.array([m != "pooled" for m in _methods(answer)])
+    assert per_entry.any()
+    for C in hyps.pose_covariance[per_entry]:
+        assert np.all(np.isfinite(C)) and np.linalg.eigvalsh(C).min() > 0.0
+
+
+def _methods(answer) -> list[str]:
+    return [h.get("method", "ransac") for h in answer.raw["hypotheses"]]
 
 
 def _has_example(node) -> bool:
