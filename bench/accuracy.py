@@ -54,6 +54,23 @@ def limit_threads() -> None:
     threadpool_limits(1)
 
 
+def add_city_arguments(parser) -> None:
+    """--size, --frames, --seed (the held-out one by default), --data and --root: the urban
+    city a measuring bench runs on (:func:`city_root`)."""
+    parser.add_argument("--size", default="medium")
+    parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED)
+    parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
+    parser.add_argument(
+        "--root", type=Path, default=None, help="an existing dataset (its size, frames, seed given)"
+    )
+
+
+def city_root(args) -> Path:
+    """The dataset folder of :func:`add_city_arguments`' arguments."""
+    return args.root or args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
+
+
 def ensure_dataset(
     root: Path,
     size: str,

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from accuracy import HELD_OUT_SEED, ensure_dataset, limit_threads  # noqa: E402
+from accuracy import add_city_arguments, city_root, ensure_dataset, limit_threads  # noqa: E402
 
 RIGHT_POSE_M = 2.0
 RIGHT_MATCH_PX = 3.0
@@ -187,17 +187,11 @@ def summary(errors: np.ndarray) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--size", default="medium")
-    parser.add_argument("--frames", type=int, default=300)
-    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED)
+    add_city_arguments(parser)
     parser.add_argument("--step", type=int, default=5, help="every step-th query frame")
-    parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
-    parser.add_argument(
-        "--root", type=Path, default=None, help="an existing dataset (its size, frames, seed given)"
-    )
     args = parser.parse_args()
     limit_threads()
-    root = args.root or args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
+    root = city_root(args)
     runs = ("map", "query", "train", "night", "offcenter", "nightmap")
     meta = ensure_dataset(root, args.size, args.frames, args.seed, runs)
     ids = {seq["run"]: seq["id"] for seq in meta["sequences"]}

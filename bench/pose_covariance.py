@@ -31,7 +31,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from accuracy import (  # noqa: E402
-    HELD_OUT_SEED,
+    add_city_arguments,
+    city_root,
     ensure_dataset,
     limit_threads,
     sequence_of,
@@ -98,20 +99,14 @@ def summary(rows: np.ndarray) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--size", default="medium")
-    parser.add_argument("--frames", type=int, default=300)
-    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED)
-    parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
-    parser.add_argument(
-        "--root", type=Path, default=None, help="an existing dataset (its size, frames, seed given)"
-    )
+    add_city_arguments(parser)
     args = parser.parse_args()
     limit_threads()
     from monoloc.evaluation import MemoryMap
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
-    root = args.root or args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
+    root = city_root(args)
     runs = ("map", "query", "train", "night", "nightmap", "trainnight")
     meta = ensure_dataset(root, args.size, args.frames, args.seed, runs)
     truth = true_poses(meta, args)
