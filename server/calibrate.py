@@ -110,12 +110,17 @@ class CalibrationConfig:
         return self.map_every * (self.k - 1) + 2
 
 
-def server_calibration_config(k: int, refine_by_projection: bool) -> CalibrationConfig:
+def server_calibration_config(
+    k: int, refine_by_projection: bool, covariance: CovarianceModel = "paper"
+) -> CalibrationConfig:
     """The calibration matching a server's localizer: its PnP strategy with the refit by
-    projection on or off (``Settings.localize_refine``), ``k`` entries per query."""
+    projection on or off (``Settings.localize_refine``), ``k`` entries per query, the
+    stored calibration selecting ``covariance`` (every model is fitted either way)."""
     refine = ProjectionMatchConfig() if refine_by_projection else None
     return CalibrationConfig(
-        k=k, strategy=PnpStrategy(guess_from_prior=False, refine=refine, covariance=True)
+        k=k,
+        strategy=PnpStrategy(guess_from_prior=False, refine=refine, covariance=True),
+        covariance=covariance,
     )
 
 

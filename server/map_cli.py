@@ -273,6 +273,13 @@ def map_calibrate(
     depth_from: Annotated[
         str, typer.Option(help="KITTI: keypoint depth from lidar or stereo.")
     ] = "lidar",
+    covariance: Annotated[
+        str,
+        typer.Option(
+            help="Pose-error model the calibration selects: paper | quality | pnp (every "
+            "model is fitted and stored)."
+        ),
+    ] = "paper",
 ) -> None:
     """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
     store it with its provenance (a recorded job; the run is not added to the map)."""
@@ -283,7 +290,11 @@ def map_calibrate(
     from monoloc.server.jobs.calibration import describe_calibration, run_calibration_job
 
     settings, factory = open_database(ctx)
-    config = server_calibration_config(k, settings.localize_refine)
+    if covariance not in ("paper", "quality", "pnp"):
+        raise typer.BadParameter(
+            f"{covariance!r}: expected paper, quality or pnp", param_hint="--covariance"
+        )
+    config = server_calibration_config(k, settings.localize_refine, covariance)
     source = open_source(
         fmt,
         run,
@@ -293,6 +304,8 @@ def map_calibrate(
         depth_from=depth_from,
     )
     params = {"format": fmt, "path": str(run), "sequence": sequence, "frames": frames}
+    if covariance != "paper":
+        params["covariance"] = covariance
     if depth_from != "lidar":
         params["depth_from"] = depth_from
     with progress_bar(f"calibrating on {source.name}") as update:

@@ -283,7 +283,9 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
         job.map_id,
         source,
         config=server_calibration_config(
-            int(params.get("k", CalibrationConfig.k)), ctx.settings.localize_refine
+            int(params.get("k", CalibrationConfig.k)),
+            ctx.settings.localize_refine,
+            params.get("covariance") or "paper",
         ),
         seed=int(params.get("seed", 0)),
         job_id=job.id,

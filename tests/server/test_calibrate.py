@@ -281,6 +281,18 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert jobs[1].result["provenance"] == calibration["provenance"]
     assert jobs[2].state == "failed" and "too short" in jobs[2].error
 
+    # the model the calibration selects: a wrong name is refused before any job, "pnp"
+    # is stored selected (the API's job form takes the same choice)
+    wrong = runner.invoke(cli.app, [*args, "--covariance", "kalman"], env=env)
+    assert wrong.exit_code == 2 and "expected paper, quality or pnp" in wrong.output
+    pnp = runner.invoke(cli.app, [*args, "--covariance", "pnp"], env=env, catch_exceptions=False)
+    assert pnp.exit_code == 0, pnp.output
+    assert "job 3 done" in pnp.output and "covariance model: pnp" in pnp.output
+    with session_scope(make_session_factory(engine)) as session:
+        stored = maps_repo.find_map(session, "street").calibration
+    engine.dispose()
+    assert stored["covariance"] == "pnp" and stored["pnp"]["pixel_std_px"] > 0
+
 
 def test_the_calibration_description_names_the_offsets_frame():
     from monoloc.core.measurement import MeasurementModel

@@ -11,7 +11,7 @@ defaults with ``"calibrated": false`` and ``"source": "defaults"``.
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import anyio
 from fastapi import APIRouter, Form, UploadFile, status
@@ -162,6 +162,7 @@ def _store_job(
             "sequence": up.sequence,
             "frames": up.frames,
             "k": config.k,
+            "covariance": config.covariance,
             "seed": seed,
             "upload": True,
             "source_name": up.source_name,
@@ -195,6 +196,14 @@ async def calibration_job(
         int, Form(ge=1, le=100, description="Map entries per query, closest by pose.")
     ] = CalibrationConfig.k,
     seed: Annotated[int, Form(ge=0, description="RANSAC seed (a re-run repeats it).")] = 0,
+    covariance: Annotated[
+        Literal["paper", "quality", "pnp"],
+        Form(
+            description="The pose-error model the stored calibration selects (every model "
+            "is fitted and stored): paper, quality or pnp (each hypothesis's own PnP "
+            "covariance)."
+        ),
+    ] = "paper",
 ) -> CalibrationJobAccepted:
     """Maximum-likelihood mu1, Sigma1, mu2, Sigma2 from a training run that is not the
     test run (METHOD.md s. 7): a temporary map of every other frame, queried by the
@@ -203,7 +212,7 @@ async def calibration_job(
     GET /v1/maps/{map_id}/calibration returns the parameters with ``calibrated: true``
     and their provenance. A run shorter than 2 (k - 1) + 2 frames is refused (422)."""
     check_upload_parts(archive, files)
-    config = CalibrationConfig(k=k)
+    config = CalibrationConfig(k=k, covariance=covariance)
     up = RunUpload(map_id, format, sequence, frames, upload_name(archive))
     job, n_frames, unpacked = await anyio.to_thread.run_sync(
         _store_job, state, up, config, seed, archive, files
