@@ -43,11 +43,12 @@ from accuracy import (  # noqa: E402
 OFF_M = 0.3
 
 
-def measure(memory, query, intrinsics, query_true, map_written, map_true, seed: int):
+def measure(memory, query, intrinsics, query_true, map_written, map_true, seed: int, scales: bool):
     """(H, 4): per per-entry hypothesis, position error (m) against the query's true pose
     ``query_true`` (N, 3) moved by the recording error of the entry's own map frame (the
     frame of ``map_written`` (M, 3) at the entry's pose; ``map_true`` (M, 3) its true
-    pose), position spread at 1 px (m), inliers, mean reprojection error (px)."""
+    pose), position spread at 1 px (m; the inliers weighed by their keypoints' pyramid
+    scales with ``scales``), inliers, mean reprojection error (px)."""
     from monoloc.server.localize import LocalizeConfig
     from monoloc.server.localizer import InProcessLocalizer
     from monoloc.server.vision.pose_covariance import position_spread_m
@@ -58,7 +59,7 @@ def measure(memory, query, intrinsics, query_true, map_written, map_true, seed: 
         memory.vocabulary,
         intrinsics,
         np.random.default_rng(seed),
-        LocalizeConfig(pose_covariance=True),
+        LocalizeConfig(pose_covariance=True, pose_covariance_scales=scales),
     )
     recording_error = map_written[:, :2] - map_true[:, :2]
     rows = []
@@ -97,6 +98,26 @@ def summary(rows: np.ndarray) -> dict:
     }
 
 
+VARIANTS = {False: "every inlier at 1 px", True: "inliers at their pyramid scale"}
+
+
+def print_summary(name: str, s: dict) -> None:
+    q_e, q_s = s["error_quartiles_m"], s["spread_quartiles_m"]
+    print(
+        f"{name}: {s['hypotheses']} hypotheses; Spearman of the position error with the "
+        f"spread {s['spearman_error_vs_spread']:.2f}, with 1/sqrt(inliers) "
+        f"{s['spearman_error_vs_inv_sqrt_inliers']:.2f}, with the reprojection error "
+        f"{s['spearman_error_vs_reprojection']:.2f}; error quartiles "
+        + " / ".join(f"{v:.3f}" for v in q_e)
+        + " m, spread "
+        + " / ".join(f"{v:.3f}" for v in q_s)
+        + f" m; > {OFF_M} m: {100 * s['off_share_small_spread']:.1f} % of the smaller-spread"
+        f" half, {100 * s['off_share_large_spread']:.1f} % of the larger; error / spread "
+        f"median {s['pixel_noise_px']:.2f} px",
+        flush=True,
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_city_arguments(parser)
@@ -116,6 +137,7 @@ def main() -> None:
     map_written = written_poses(root, map_id)
     report = {"dataset": root.name, "off_m": OFF_M}
     t0 = time.time()
+    rows_by = {}
     for run in ("query", "night"):
         query = read_kitti_sequence(root, sequence_of(meta, run))
         map_true, written = truth["map"], map_written
@@ -124,23 +146,27 @@ def main() -> None:
             memory.add_run(read_kitti_sequence(root, nightmap_id), tags=("night",))
             map_true = np.concatenate([map_true, truth["nightmap"]])
             written = np.concatenate([written, written_poses(root, nightmap_id)])
-        rows = measure(memory, query, query.intrinsics, truth[run], written, map_true, seed=0)
-        s = summary(rows)
-        report[run] = s
-        q_e, q_s = s["error_quartiles_m"], s["spread_quartiles_m"]
-        print(
-            f"{run}: {s['hypotheses']} hypotheses; Spearman of the position error with the "
-            f"spread {s['spearman_error_vs_spread']:.2f}, with 1/sqrt(inliers) "
-            f"{s['spearman_error_vs_inv_sqrt_inliers']:.2f}, with the reprojection error "
-            f"{s['spearman_error_vs_reprojection']:.2f}; error quartiles "
-            + " / ".join(f"{v:.3f}" for v in q_e)
-            + " m, spread (1 px) "
-            + " / ".join(f"{v:.3f}" for v in q_s)
-            + f" m; > {OFF_M} m: {100 * s['off_share_small_spread']:.1f} % of the smaller-spread"
-            f" half, {100 * s['off_share_large_spread']:.1f} % of the larger; error / spread "
-            f"median {s['pixel_noise_px']:.2f} px",
-            flush=True,
+        for scales in (False, True):
+            rows = measure(
+                memory, query, query.intrinsics, truth[run], written, map_true, 0, scales
+            )
+            rows_by[run, scales] = rows
+            s = summary(rows)
+            name = f"{run}, {VARIANTS[scales]}"
+            report[name] = s
+            print_summary(name, s)
+    for scales in (False, True):
+        both = np.concatenate([rows_by["query", scales], rows_by["night", scales]])
+        s = summary(both)
+        ratio = (
+            report[f"night, {VARIANTS[scales]}"]["pixel_noise_px"]
+            / (report[f"query, {VARIANTS[scales]}"]["pixel_noise_px"])
         )
+        s["night_over_day_pixel_noise"] = ratio
+        name = f"query + night, {VARIANTS[scales]}"
+        report[name] = s
+        print_summary(name, s)
+        print(f"  night / day error-to-spread ratio: {ratio:.2f}", flush=True)
     print(f"done in {time.time() - t0:.0f} s")
     out = Path(__file__).parent / "results" / "pose_covariance.json"
     out.write_text(json.dumps(report, indent=2) + "\n")

@@ -529,10 +529,10 @@ def pose_covariance_section(data: dict | None) -> list[str]:
     if not data:
         return lines + ["not run"]
     rows = []
-    for run in ("query", "night"):
-        r = data.get(run)
-        if not r:
-            continue
+    # "query" / "night" (one covariance), or "<run>, <variant>" rows (both covariances)
+    names = [k for k, v in data.items() if isinstance(v, dict) and "hypotheses" in v]
+    for run in names:
+        r = data[run]
         rows.append(
             [
                 run,
@@ -569,8 +569,22 @@ def pose_covariance_section(data: dict | None) -> list[str]:
         f"Dataset {data.get('dataset')}, every frame, one search of the whole map; per-entry "
         "hypotheses; error against the entry's own map frame (the recording errors between "
         "runs left out); rho: Spearman rank correlation; spread: sqrt(var X + var Y) of the "
-        "planar pose covariance from the hypothesis's own inliers at 1 px.",
+        "planar pose covariance from the hypothesis's own inliers at 1 px (every inlier at "
+        "1 px, or each at 1 px times its keypoint's pyramid scale); error / spread: the "
+        "pixel noise that would make the spread the error's size (median).",
     ]
+    ratios = [
+        f"{name.split(', ', 1)[1]} {data[name]['night_over_day_pixel_noise']:.2f}"
+        for name in names
+        if "night_over_day_pixel_noise" in data[name]
+    ]
+    if ratios:
+        lines += [
+            "",
+            "Night / day error-to-spread ratio (1: one pixel noise fits day and night): "
+            + "; ".join(ratios)
+            + ".",
+        ]
     return lines
 
 

@@ -50,7 +50,12 @@ from monoloc.server.entry_builder import (
     TooFewPointsError,
     build_entry,
 )
-from monoloc.server.localize import PnpStrategy, ReferenceEntry, pose_hypotheses
+from monoloc.server.localize import (
+    PnpStrategy,
+    ReferenceEntry,
+    needs_keypoint_scales,
+    pose_hypotheses,
+)
 from monoloc.server.storage.records import NewEntry
 from monoloc.server.vision.features import extract_features
 from monoloc.server.vision.matching import MatchConfig, match_against_references
@@ -156,7 +161,7 @@ class CalibrationResult:
 @dataclass(frozen=True)
 class _Query:
     keypoints_px: np.ndarray  # (N, 2) float32
-    keypoint_scales: np.ndarray | None  # (N,) float32 pyramid scale, if PnP weighs by it
+    keypoint_scales: np.ndarray | None  # (N,) float32 pyramid scales, if PnP or covariance use them
     descriptors: np.ndarray  # (N, 32) uint8
     vlad: np.ndarray  # (2048,) float32
     truth_world: np.ndarray  # (3,) planar (X, Y, psi)
@@ -213,7 +218,9 @@ def _split_run(frames, intrinsics, vocabulary, config, tick):
                 n_skipped += 1
         else:
             features = extract_features(
-                frame.image_gray, config.build.orb, scales=config.pnp.scale_weighting
+                frame.image_gray,
+                config.build.orb,
+                scales=needs_keypoint_scales(config.pnp, config.strategy),
             )
             queries.append(
                 _Query(

@@ -145,7 +145,8 @@ class LocalizeConfig:
     projection (``PnpStrategy.refine``; None: no refit; the paper's preset has none).
     ``pose_covariance``: each per-entry hypothesis's covariance from its inliers
     (``PnpStrategy.covariance``; the "pnp" measurement model's input; not in the paper's
-    preset)."""
+    preset); ``pose_covariance_scales``: each inlier weighed by its keypoint's pyramid
+    scale (``PnpStrategy.covariance_scales``)."""
 
     orb: OrbConfig = field(default_factory=OrbConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -161,6 +162,7 @@ class LocalizeConfig:
         default_factory=ProjectionMatchConfig
     )
     pose_covariance: bool = True
+    pose_covariance_scales: bool = True
 
     @property
     def preset(self) -> Preset:
@@ -178,6 +180,7 @@ class LocalizeConfig:
             pooled=self.pooled if preset.pooled else None,
             refine=self.refine_by_projection if preset.guided else None,
             covariance=self.pose_covariance and preset.guided,
+            covariance_scales=self.pose_covariance_scales,
         )
 
 
@@ -213,7 +216,9 @@ class PnpStrategy:
     pose from its own inliers at 1 px (``PoseHypothesis.covariance_px1``,
     ``vision.pose_covariance``: where the inliers lie, which their count does not say).
     Off by default here (``LocalizeConfig.pose_covariance`` turns it on for the
-    localizer): it costs ~20 us a hypothesis.
+    localizer): it costs ~20 us a hypothesis. covariance_scales: each inlier counts with
+    1 px times its query keypoint's pyramid scale (a keypoint found on a coarser ORB level
+    is located that much less precisely; ``pose_hypotheses`` then needs the scales).
     """
 
     guided: bool = True
@@ -223,10 +228,18 @@ class PnpStrategy:
     pooled: PooledConfig | None = field(default_factory=PooledConfig)
     refine: ProjectionMatchConfig | None = field(default_factory=ProjectionMatchConfig)
     covariance: bool = False
+    covariance_scales: bool = True
 
     def __post_init__(self) -> None:
         if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
             raise InvalidInputError(f"PnpStrategy.fallback_until_confirmed must be >= 1: {self}")
+
+
+def needs_keypoint_scales(pnp: PnpConfig, strategy: PnpStrategy) -> bool:
+    """Whether :func:`pose_hypotheses` uses the query keypoints' pyramid scales: to weigh
+    PnP's errors (``PnpConfig.scale_weighting``) or the pose covariance's points
+    (``PnpStrategy.covariance_scales``)."""
+    return pnp.scale_weighting or (strategy.covariance and strategy.covariance_scales)
 
 
 @dataclass(frozen=True)
@@ -337,7 +350,10 @@ def localize_frame(
 ) -> LocalizationResult:
     """Hypotheses for one grayscale frame (H, W) uint8 taken with ``intrinsics``."""
     laps, preset = _Laps(), config.preset
-    features = extract_features(image_gray, config.orb, scales=config.pnp.scale_weighting)
+    strategy = config.pnp_strategy
+    features = extract_features(
+        image_gray, config.orb, scales=needs_keypoint_scales(config.pnp, strategy)
+    )
     laps.lap("features")
     vlad = compute_vlad(features.descriptors, vocabulary)
     code = vlad_binary_code(vlad)
@@ -358,7 +374,7 @@ def localize_frame(
         intrinsics,
         config.pnp,
         rng,
-        config.pnp_strategy,
+        strategy,
         prior,
         features.scales,
         features.descriptors,
@@ -438,8 +454,12 @@ def pose_hypotheses(
         if strategy.covariance:
             T_world_from_ref = np.asarray(ref.T_world_from_cam, dtype=np.float64)
             points_world = ref.points_cam[kept[:, 1]] @ T_world_from_ref[:3, :3].T
+            weigh = strategy.covariance_scales and scales is not None
             covariance = planar_pose_covariance(
-                T_world_from_query, points_world + T_world_from_ref[:3, 3], intrinsics
+                T_world_from_query,
+                points_world + T_world_from_ref[:3, 3],
+                intrinsics,
+                keypoint_scales=scales[kept[:, 0]] if weigh else None,
             )
         hypotheses.append(
             PoseHypothesis(

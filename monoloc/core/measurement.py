@@ -247,8 +247,9 @@ class PnpCovarianceModel:
     """Pose-error model from each hypothesis's own PnP geometry: hypothesis i has error
     (truth - z_i) ~ N(mu1, S_i), S_i = pixel_std_px^2 C_i + floor, C_i its planar pose
     covariance at 1 px (``Hypotheses.pose_covariance``: where its inliers lie, how many,
-    how deep), ``pixel_std_px`` the effective pixel noise and ``floor`` (3, 3) what the
-    geometry does not see (the map points' own errors).
+    how deep, from which pyramid level), ``pixel_std_px`` the effective pixel noise of a
+    full-resolution keypoint and ``floor`` (3, 3) what the geometry does not see (the map
+    points' own errors).
 
     Outliers: with probability ``outlier_weight`` a hypothesis's error does not follow its
     geometry at all (a moved car that carries most inliers, a lone pose at the map's end,

@@ -16,10 +16,12 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def pose_information(R, centre, points_world, fx, fy, min_depth_m, info):
-    """Fill info (6, 6) with J^T J at 1 px for the camera R (3, 3) world_from_cam at
-    ``centre`` (3,); returns the number of points used (those deeper than
-    ``min_depth_m`` in front of the camera)."""
+def pose_information(R, centre, points_world, weights, fx, fy, min_depth_m, info):
+    """Fill info (6, 6) with J^T W J for the camera R (3, 3) world_from_cam at ``centre``
+    (3,), W the points' ``weights`` (M,) (the inverse variance of each pixel coordinate,
+    1 / px^2; an empty array: all 1); returns the number of points used (those deeper
+    than ``min_depth_m`` in front of the camera)."""
+    weighted = weights.shape[0] > 0
     for i in range(6):
         for j in range(6):
             info[i, j] = 0.0
@@ -36,6 +38,7 @@ def pose_information(R, centre, points_world, fx, fy, min_depth_m, info):
         if z <= min_depth_m:
             continue
         used += 1
+        w = weights[k] if weighted else 1.0
         for coordinate in range(2):
             if coordinate == 0:
                 a0, a1, a2 = fx / z, 0.0, -fx * x / (z * z)
@@ -49,7 +52,7 @@ def pose_information(R, centre, points_world, fx, fy, min_depth_m, info):
             row[4] = g2 * dx - g0 * dz
             row[5] = g0 * dy - g1 * dx
             for i in range(6):
-                ri = row[i]
+                ri = w * row[i]
                 for j in range(i, 6):
                     info[i, j] += ri * row[j]
     for i in range(6):
@@ -62,11 +65,14 @@ _PLANAR = (0, 1, 5)
 
 
 @njit(cache=True, nogil=True)
-def planar_covariance(R_world_from_cam, centre, points_world, fx, fy, min_depth_m, out):
-    """Fill out (3, 3) with the (dX, dY, rotation about world z) block of (J^T J)^-1 at
-    1 px; returns the number of points used, or -1 when J^T J is not positive definite."""
+def planar_covariance(R_world_from_cam, centre, points_world, weights, fx, fy, min_depth_m, out):
+    """Fill out (3, 3) with the (dX, dY, rotation about world z) block of (J^T W J)^-1
+    (``weights`` as for :func:`pose_information`); returns the number of points used, or
+    -1 when J^T W J is not positive definite."""
     info = np.empty((6, 6))
-    used = pose_information(R_world_from_cam, centre, points_world, fx, fy, min_depth_m, info)
+    used = pose_information(
+        R_world_from_cam, centre, points_world, weights, fx, fy, min_depth_m, info
+    )
     if used < 4:
         return used
     # Cholesky of J^T J (positive definite unless the points are degenerate)

@@ -17,6 +17,14 @@ with 1 / sqrt(inliers) 0.23-0.51, with the mean reprojection error 0.15 or less;
 1 px the spread is close to the error's own size (its quartiles 0.013-0.054 m against
 the error's 0.012-0.128 m). Scaled by the real pixel noise (the inliers' spread, or a
 calibrated factor) it is a per-hypothesis covariance.
+
+Not every inlier is located as well: ORB finds a keypoint on one level of its pyramid,
+and one found on level L (scale s = 1.2^L) is placed to within about s px of the
+full-resolution image. Given the keypoints' scales, each point's rows are weighed by
+1 / s^2 (J^T W J), so that pixel_std_px is the noise of a full-resolution keypoint.
+Night frames take more of their matches from the coarse levels (35 % from levels 5-7
+against 17 % by day on the held-out city, ``bench/pnp_scale.py``), which this puts into
+their covariance instead of leaving it to a larger pixel noise fitted for all.
 """
 
 from __future__ import annotations
@@ -38,12 +46,16 @@ def planar_pose_covariance(
     points_world: np.ndarray,
     intrinsics: CameraIntrinsics,
     pixel_std_px: float = 1.0,
+    keypoint_scales: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """(3, 3) covariance of the planar pose (X m, Y m, psi rad) of a camera at
     ``T_world_from_cam`` (4, 4) located from ``points_world`` (M, 3) (its inliers' 3D
     points, in the world frame) with ``pixel_std_px`` of independent noise on each pixel
-    coordinate; None when the points cannot determine the pose (fewer than
-    ``MIN_POINTS`` in front of the camera, or J^T J singular)."""
+    coordinate of a keypoint found at full resolution; ``keypoint_scales`` (M,): the
+    query keypoints' ORB pyramid scales (``Features.scales``), a keypoint of scale s
+    located s times less precisely (None: all at full resolution). None when the points
+    cannot determine the pose (fewer than ``MIN_POINTS`` in front of the camera, or
+    J^T W J singular)."""
     T = np.asarray(T_world_from_cam, dtype=np.float64)
     points = np.asarray(points_world, dtype=np.float64)
     if T.shape != (4, 4) or points.ndim != 2 or points.shape[1] != 3:
@@ -52,6 +64,14 @@ def planar_pose_covariance(
         )
     if not pixel_std_px > 0:
         raise InvalidInputError(f"pixel_std_px must be > 0, got {pixel_std_px}")
+    weights = np.empty(0)
+    if keypoint_scales is not None:
+        scales = np.asarray(keypoint_scales, dtype=np.float64).reshape(-1)
+        if len(scales) != len(points) or not (np.isfinite(scales).all() and (scales > 0).all()):
+            raise InvalidInputError(
+                f"need {len(points)} positive finite keypoint scales, got shape {scales.shape}"
+            )
+        weights = 1.0 / (scales * scales)
     from monoloc.server.vision._covariance_kernel import planar_covariance
 
     planar = np.empty((3, 3))
@@ -59,6 +79,7 @@ def planar_pose_covariance(
         np.ascontiguousarray(T[:3, :3]),
         np.ascontiguousarray(T[:3, 3]),
         np.ascontiguousarray(points),
+        weights,
         float(intrinsics.fx),
         float(intrinsics.fy),
         MIN_DEPTH_M,

@@ -587,3 +587,30 @@ def test_each_entry_hypothesis_carries_its_pose_covariance_when_asked():
             distances.append(float(e @ np.linalg.solve(C, e)))
     assert len(distances) >= 20
     assert 0.8 < np.median(distances) < 6.0
+
+
+def test_pose_covariance_weighs_each_inlier_by_its_keypoint_scale():
+    """PnpStrategy.covariance_scales: an inlier from pyramid scale s counts as s px of
+    noise (every keypoint at scale 2: four times the covariance at 1 px); off, the scales
+    leave the covariance alone; either way they leave the poses alone (PnpConfig's
+    scale_weighting is off)."""
+    T_world_from_query, refs, matches, keypoints = _scene(3, noise_px=0.5)
+    scales = np.full(len(keypoints), 2.0)
+
+    def solve(covariance_scales, keypoint_scales):
+        strategy = _no_descriptors(covariance=True, covariance_scales=covariance_scales)
+        e_vlad = {r.entry_id: 0.8 for r in refs}
+        return pose_hypotheses(
+            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(0),
+            strategy, keypoint_scales=keypoint_scales,
+        )  # fmt: skip
+
+    plain, _ = solve(True, None)
+    weighed, _ = solve(True, scales)
+    ignored, _ = solve(False, scales)
+    pairs = [(p, w, i) for p, w, i in zip(plain, weighed, ignored, strict=True) if not p.joint]
+    assert len(pairs) >= 3
+    for p, w, i in pairs:
+        np.testing.assert_allclose(w.pose_world, p.pose_world)
+        np.testing.assert_allclose(w.covariance_px1, 4 * p.covariance_px1, rtol=1e-9)
+        np.testing.assert_allclose(i.covariance_px1, p.covariance_px1, rtol=1e-12)
