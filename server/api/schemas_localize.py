@@ -268,9 +268,11 @@ class HypothesisPublic(BaseModel):
         min_length=9,
         max_length=9,
         description="Covariance (3x3 row-major) of the planar pose (x_m, y_m, yaw_rad) from "
-        "the hypothesis's own inliers at 1 px of pixel noise: how well its geometry pins the "
-        "pose down (where the inliers lie, how many, how deep). Multiply by the squared pixel "
-        "noise of the map's calibration (its pnp model). Null for joint and pooled poses.",
+        "the hypothesis's own inliers at 1 px of pixel noise (times the pyramid scale of the "
+        "ORB level each query keypoint was found on): how well its geometry pins the pose "
+        "down (where the inliers lie, how many, how deep, how coarse). Multiply by the squared "
+        "pixel noise of the map's calibration (its pnp model). Null for joint and pooled "
+        "poses.",
     )
 
 
