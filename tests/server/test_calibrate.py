@@ -160,6 +160,22 @@ def test_the_pnp_covariance_model_can_be_selected_and_needs_the_covariances(exac
         _calibrate(exact_run, CalibrationConfig(k=3, covariance="pnp", strategy=without))
 
 
+def test_the_pnp_model_is_fitted_on_covariances_with_the_keypoints_pyramid_scales(exact_run):
+    """The calibration reads the query keypoints' scales when the covariance weighs by
+    them: each inlier's noise is then at least the 1 px of a full-resolution keypoint, the
+    covariances grow, and the fitted pixel noise (of a full-resolution keypoint) falls;
+    the paper's model does not move."""
+    from monoloc.server.localize import PnpStrategy
+
+    def fitted(scales: bool):
+        strategy = PnpStrategy(guess_from_prior=False, covariance=True, covariance_scales=scales)
+        return _calibrate(exact_run, CalibrationConfig(k=3, strategy=strategy)).model
+
+    weighed, plain = fitted(True), fitted(False)
+    assert weighed.pnp.pixel_std_px < 0.95 * plain.pnp.pixel_std_px, (weighed.pnp, plain.pnp)
+    np.testing.assert_allclose(weighed.Sigma1, plain.Sigma1)
+
+
 def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
     """e = truth - hypothesis: truth moved by +0.5 m in X -> mu1_x = +0.5, and so on."""
     config = CalibrationConfig(k=3)
