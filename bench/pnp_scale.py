@@ -21,7 +21,10 @@ Prints the median, mean and 75th percentile of the translation error of each, da
 night, and the median inliers of the plain and the refined poses. Also what the matches
 are, per ORB pyramid level of the query keypoint: the share of the right matches (within
 ``RIGHT_MATCH_PX`` of the true projection of their 3D point) on that level and their
-median residual under the true pose, plus the share of all matches that are right.
+median residual under the true pose, plus the share of all matches that are right; and
+what the refined poses kept as inliers: the share of them beyond ``RIGHT_MATCH_PX`` of
+their true projection (wrong matches, or map points whose depth is off, that fall within
+PnP's threshold around the found pose) and their median residual under the true pose.
 Writes bench/results/pnp_scale.json.
 """
 
@@ -96,7 +99,7 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     window = config.refine_by_projection
     errors = {"weighted": [], "unweighted": [], "refined": []}
     inliers = {"unweighted": [], "refined": []}
-    residuals_px, scales_of_matches = [], []
+    residuals_px, scales_of_matches, inlier_residuals_px = [], [], []
     for i in range(0, len(query.frames), step):
         image = query.load(query.frames[i]).image_gray
         features = extract_features(image, config.orb, scales=True)
@@ -130,7 +133,16 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
                 found = refine_by_projection(
                     grid, ref.descriptors, ref.points_cam, plain, config.pnp, window
                 )
-                refined = plain if found is None else found[1]
+                kept_pairs, refined = (pairs, plain) if found is None else found
+                kept = kept_pairs[refined.inlier_mask]
+                inlier_residuals_px.append(
+                    true_residuals_px(
+                        ref.points_cam[kept[:, 1]],
+                        features.keypoints_px[kept[:, 0]],
+                        T_ref_from_query_true,
+                        query,
+                    )
+                )
                 got["refined"] = float(
                     np.linalg.norm(refined.T_ref_from_query[:3, 3] - T_ref_from_query_true[:3, 3])
                 )
@@ -142,6 +154,7 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     out["inliers"] = {name: float(np.median(values)) for name, values in inliers.items()}
     out["residuals_px"] = np.concatenate(residuals_px)
     out["scales"] = np.concatenate(scales_of_matches)
+    out["inlier_residuals_px"] = np.concatenate(inlier_residuals_px)
     return out
 
 
@@ -207,7 +220,18 @@ def main() -> None:
         from monoloc.server.vision.features import OrbConfig
 
         matches = by_level(errors["residuals_px"], errors["scales"], OrbConfig().scale_factor)
-        report[label] = {**rows, "inliers_median": errors["inliers"], "matches": matches}
+        kept = errors["inlier_residuals_px"]
+        inliers_true = {
+            "n": int(len(kept)),
+            "wrong_share": float(np.mean(kept > RIGHT_MATCH_PX)),
+            "median_residual_px": float(np.median(kept)),
+        }
+        report[label] = {
+            **rows,
+            "inliers_median": errors["inliers"],
+            "matches": matches,
+            "refined_inliers": inliers_true,
+        }
         w, u = rows["weighted"], rows["unweighted"]
         print(
             f"{label}: {w['n']} entry poses; translation error median {w['median_m']:.4f} m "
@@ -231,6 +255,12 @@ def main() -> None:
             "5-7; median residual per level: "
             + ", ".join(f"{k}: {v['median_residual_px']:.2f}" for k, v in levels.items())
             + " px",
+            flush=True,
+        )
+        print(
+            f"  the refined poses' {inliers_true['n']} inliers: "
+            f"{inliers_true['wrong_share']:.1%} beyond {RIGHT_MATCH_PX:g} px of their true "
+            f"projection, median true residual {inliers_true['median_residual_px']:.2f} px",
             flush=True,
         )
     print(f"done in {time.time() - t0:.0f} s")

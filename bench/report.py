@@ -520,6 +520,18 @@ def pnp_scale_section(data: dict | None) -> list[str]:
         "matches and RANSAC samples for each row; translation error of T_ref_from_query "
         "against the sim's true relative pose (inliers: median; '-' where not recorded).",
     ]
+    kept = [
+        f"{label} {data[label]['refined_inliers']['n']} inliers, "
+        f"{100 * data[label]['refined_inliers']['wrong_share']:.1f} % beyond 3 px, median "
+        f"{data[label]['refined_inliers']['median_residual_px']:.2f} px"
+        for label in ("day", "night")
+        if "refined_inliers" in data.get(label, {})
+    ]
+    if kept:
+        lines += [
+            "",
+            "The refined poses' inliers under the true pose: " + "; ".join(kept) + ".",
+        ]
     return lines
 
 
