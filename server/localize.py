@@ -280,8 +280,9 @@ class PoseHypothesis:
     the matches of several entries, for a frame whose entries gave no pose of their own;
     ``entry_ids`` its members; not ``joint``). ``covariance_px1`` (3, 3): the planar
     pose's (X m, Y m, psi rad) covariance from its own inliers at 1 px of pixel noise
-    (``PnpStrategy.covariance``; None when not asked for, for joint and pooled poses, or
-    when the inliers do not determine it)."""
+    for a full-resolution keypoint (``PnpStrategy.covariance``, ``covariance_scales``;
+    None when not asked for, for joint and pooled poses, or when the inliers do not
+    determine it)."""
 
     entry_id: int
     T_world_from_cam: np.ndarray
