@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -51,6 +51,7 @@ from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam, wr
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
+from monoloc.server.vision.depth import project_points
 from monoloc.server.vision.features import OrbConfig, extract_features
 from monoloc.server.vision.joint import (
     EntryInliers,
@@ -71,7 +72,7 @@ from monoloc.server.vision.pnp import (
     estimate_relative_pose,
     estimate_relative_pose_guided,
 )
-from monoloc.server.vision.pose_covariance import planar_pose_covariance
+from monoloc.server.vision.pose_covariance import planar_pose_covariance, position_spread_m
 from monoloc.server.vision.projection import (
     KeypointGrid,
     ProjectionMatchConfig,
@@ -139,6 +140,26 @@ PRESETS: dict[PresetName, Preset] = {
 
 
 @dataclass(frozen=True)
+class AlternativeConfig:
+    """A second pose for a frame whose hypotheses agree on a poorly pinned pose (a parked
+    car that moved between the runs can carry most of every entry's inliers, and ten
+    entries then agree on a pose a metre off): one pooled RANSAC (``PooledConfig``) on
+    the matches that the most-inlier pose leaves more than ``residual_px`` from their
+    projection. Tried only when the median position spread (1 px) of the frame's
+    per-entry pose covariances exceeds ``min_spread_m`` (ordinary frames: 0.02-0.05 m on
+    dev city 7's street, its moved-car frames 0.07-0.20 m), so an ordinary frame pays
+    nothing; kept when it lies at least ``min_offset_m`` from that pose."""
+
+    min_spread_m: float = 0.06
+    residual_px: float = 3.0
+    min_offset_m: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not (self.min_spread_m >= 0 and self.residual_px > 0 and self.min_offset_m >= 0):
+            raise InvalidInputError(f"invalid AlternativeConfig {self}")
+
+
+@dataclass(frozen=True)
 class LocalizeConfig:
     """Settings of :func:`localize_frame`; ``pipeline`` names its preset in ``PRESETS``.
     ``refine_by_projection``: the window of the refit of every pose on matches by
@@ -163,6 +184,7 @@ class LocalizeConfig:
     )
     pose_covariance: bool = True
     pose_covariance_scales: bool = True
+    alternative: AlternativeConfig | None = None
 
     @property
     def preset(self) -> Preset:
@@ -181,6 +203,7 @@ class LocalizeConfig:
             refine=self.refine_by_projection if preset.guided else None,
             covariance=self.pose_covariance and preset.guided,
             covariance_scales=self.pose_covariance_scales,
+            alternative=self.alternative if preset.pooled else None,
         )
 
 
@@ -229,10 +252,15 @@ class PnpStrategy:
     refine: ProjectionMatchConfig | None = field(default_factory=ProjectionMatchConfig)
     covariance: bool = False
     covariance_scales: bool = True
+    alternative: AlternativeConfig | None = None
 
     def __post_init__(self) -> None:
         if self.fallback_until_confirmed is not None and self.fallback_until_confirmed < 1:
             raise InvalidInputError(f"PnpStrategy.fallback_until_confirmed must be >= 1: {self}")
+        if self.alternative is not None and (self.pooled is None or not self.covariance):
+            raise InvalidInputError(
+                f"PnpStrategy.alternative needs pooled PnP and the pose covariances: {self}"
+            )
 
 
 def needs_keypoint_scales(pnp: PnpConfig, strategy: PnpStrategy) -> bool:
@@ -509,7 +537,59 @@ def pose_hypotheses(
             )  # fmt: skip
         if pooled is not None:
             hypotheses.append(pooled)
+    if strategy.alternative is not None and strategy.pooled is not None:
+        alternative = _alternative_hypothesis(
+            hypotheses, keypoints_px, refs, matches, e_vlad, intrinsics, config, rng,
+            strategy.pooled, strategy.alternative, scales,
+        )  # fmt: skip
+        if alternative is not None:
+            hypotheses.append(alternative)
     return hypotheses, rejected
+
+
+def _alternative_hypothesis(
+    hypotheses: Sequence[PoseHypothesis],
+    keypoints_px: np.ndarray,
+    refs: Sequence[ReferenceEntry],
+    matches: Sequence[np.ndarray],
+    e_vlad: dict[int, float],
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    rng: np.random.Generator,
+    pooled: PooledConfig,
+    alternative: AlternativeConfig,
+    scales: np.ndarray | None,
+) -> PoseHypothesis | None:
+    """The pooled pose of the matches the frame's most-inlier pose does not explain
+    (``AlternativeConfig``), method "alternative"; None when the frame's per-entry poses
+    are pinned down well enough, or nothing else is found."""
+    spreads = [position_spread_m(h.covariance_px1) for h in hypotheses if not h.joint]
+    spreads = [v for v in spreads if np.isfinite(v)]
+    if len(spreads) < 2 or not float(np.median(spreads)) > alternative.min_spread_m:
+        return None
+    consensus = max(hypotheses, key=lambda h: h.n_inliers)
+    T_query_from_world = invert_rigid(consensus.T_world_from_cam)
+    unexplained = []
+    for ref, pairs in zip(refs, matches, strict=True):
+        T_query_from_ref = T_query_from_world @ np.asarray(ref.T_world_from_cam, dtype=np.float64)
+        points_query = ref.points_cam[pairs[:, 1]] @ T_query_from_ref[:3, :3].T
+        points_query = points_query + T_query_from_ref[:3, 3]
+        residual_px = np.full(len(pairs), np.inf)
+        in_front = points_query[:, 2] > 0.1
+        residual_px[in_front] = np.linalg.norm(
+            project_points(points_query[in_front], intrinsics) - keypoints_px[pairs[in_front, 0]],
+            axis=1,
+        )
+        unexplained.append(pairs[residual_px > alternative.residual_px])
+    found = _pooled_hypothesis(
+        keypoints_px, refs, unexplained, e_vlad, intrinsics, config, rng, pooled, scales
+    )
+    if found is None:
+        return None
+    offset_m = float(np.hypot(*(found.pose_world[:2] - consensus.pose_world[:2])))
+    if offset_m < alternative.min_offset_m:
+        return None
+    return replace(found, method="alternative")
 
 
 def _solve_entries(

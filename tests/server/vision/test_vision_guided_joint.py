@@ -614,3 +614,107 @@ def test_pose_covariance_weighs_each_inlier_by_its_keypoint_scale():
         np.testing.assert_allclose(w.pose_world, p.pose_world)
         np.testing.assert_allclose(w.covariance_px1, 4 * p.covariance_px1, rtol=1e-9)
         np.testing.assert_allclose(i.covariance_px1, p.covariance_px1, rtol=1e-12)
+
+
+def _moved_car_scene(seed, n_refs=5, street_per_entry=10, car_per_entry=40, shift_m=1.0):
+    """Every entry's matches dominated by a parked car that moved ``shift_m`` sideways
+    between the mapping run and the query: its map points, seen where the car now is,
+    agree on a query pose ``shift_m`` off; each entry also keeps ``street_per_entry``
+    right matches on the street (fewer than PnP's minimum), and a few outliers."""
+    rng = np.random.default_rng(seed)
+    T_world_from_query = T_world_from_cam_planar(50.0, 20.0, 0.4, 1.65)
+    query = planar_from_T_world_from_cam(T_world_from_query)
+    left = np.array([-math.sin(query[2]), math.cos(query[2]), 0.0])
+    street_world, street_px = _street(rng, T_world_from_query, n=street_per_entry * n_refs)
+    # the car now: a 2 x 1.5 m patch of points 14 m ahead, slightly right of the axis
+    forward = np.array([math.cos(query[2]), math.sin(query[2]), 0.0])
+    car_now = (
+        T_world_from_query[:3, 3]
+        + 14.0 * forward
+        - 1.0 * left
+        + np.stack(
+            [
+                rng.uniform(-0.3, 0.3, car_per_entry),
+                rng.uniform(-1.0, 1.0, car_per_entry),
+                rng.uniform(-1.2, 0.3, car_per_entry),
+            ],
+            1,
+        )
+        @ np.stack([forward, left, [0, 0, 1.0]])
+    )
+    car_map = car_now + shift_m * left
+    T_query_from_world = invert_rigid(T_world_from_query)
+    car_cam = car_now @ T_query_from_world[:3, :3].T + T_query_from_world[:3, 3]
+    car_px = np.stack(
+        [
+            CAM.fx * car_cam[:, 0] / car_cam[:, 2] + CAM.cx,
+            CAM.fy * car_cam[:, 1] / car_cam[:, 2] + CAM.cy,
+        ],
+        1,
+    )
+    refs, matches, keypoints, offset = [], [], [], 0
+    for j in range(n_refs):
+        T_world_from_ref = T_world_from_cam_planar(
+            query[0] - (2.0 + j) * forward[0], query[1] - (2.0 + j) * forward[1], query[2], 1.65
+        )
+        T_ref_from_world = invert_rigid(T_world_from_ref)
+        street = slice(j * street_per_entry, (j + 1) * street_per_entry)
+        points_world = np.concatenate([street_world[street], car_map])
+        pixels = np.concatenate([street_px[street], car_px])
+        pixels = pixels + rng.normal(0.0, 0.5, pixels.shape)
+        bad = rng.random(len(pixels)) < 0.1
+        pixels[bad] = rng.uniform([0, 0], [CAM.width_px - 1, CAM.height_px - 1], (bad.sum(), 2))
+        points_ref = points_world @ T_ref_from_world[:3, :3].T + T_ref_from_world[:3, 3]
+        refs.append(
+            ReferenceEntry(j, T_world_from_ref, np.zeros((len(points_ref), 32)), points_ref)
+        )
+        keypoints.append(pixels)
+        m = len(pixels)
+        matches.append(np.stack([np.arange(offset, offset + m), np.arange(m)], 1))
+        offset += m
+    return T_world_from_query, refs, matches, np.concatenate(keypoints).astype(np.float32)
+
+
+def test_alternative_pose_for_a_frame_whose_entries_agree_on_a_moved_car():
+    """AlternativeConfig: the entries agree on the moved car's pose (1 m off, poorly pinned
+    down: its inliers on one patch); a pooled RANSAC on the matches that pose leaves finds
+    the true pose from the street matches no entry had enough of. Without it, no
+    hypothesis near the truth; on an ordinary frame it adds nothing."""
+    from monoloc.server.localize import AlternativeConfig
+    from monoloc.server.vision.pose_covariance import position_spread_m
+
+    T_world_from_query, refs, matches, keypoints = _moved_car_scene(0)
+    truth = planar_from_T_world_from_cam(T_world_from_query)
+
+    def solve(alternative, scene=(refs, matches, keypoints)):
+        strategy = _no_descriptors(covariance=True, alternative=alternative)
+        return _solve(*scene, strategy)[0]
+
+    def off_m(h):
+        return float(np.hypot(*(h.pose_world[:2] - truth[:2])))
+
+    plain = solve(None)
+    per_entry = [h for h in plain if not h.joint]
+    assert len(per_entry) >= 3 and all(0.7 < off_m(h) < 1.3 for h in plain)
+    assert np.median([position_spread_m(h.covariance_px1) for h in per_entry]) > 0.06
+    found = solve(AlternativeConfig())
+    assert len(found) == len(plain) + 1
+    for before, after in zip(plain, found, strict=False):
+        np.testing.assert_allclose(after.pose_world, before.pose_world)
+    extra = [h for h in found if h.method == "alternative"]
+    assert len(extra) == 1 and off_m(extra[0]) < 0.1 and len(extra[0].entry_ids) >= 2
+    # an ordinary frame: the poses are pinned down, nothing is tried
+    ordinary = _scene(1)[1:]
+    base = solve(None, ordinary)
+    assert [h.method for h in solve(AlternativeConfig(), ordinary)] == [h.method for h in base]
+
+
+def test_alternative_pose_needs_pooled_pnp_and_the_covariances():
+    from monoloc.server.localize import AlternativeConfig
+
+    with pytest.raises(InvalidInputError):
+        PnpStrategy(covariance=False, alternative=AlternativeConfig())
+    with pytest.raises(InvalidInputError):
+        PnpStrategy(covariance=True, pooled=None, alternative=AlternativeConfig())
+    with pytest.raises(InvalidInputError):
+        AlternativeConfig(residual_px=0.0)
