@@ -51,7 +51,6 @@ from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam, wr
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
-from monoloc.server.vision.depth import project_points
 from monoloc.server.vision.features import OrbConfig, extract_features
 from monoloc.server.vision.joint import (
     EntryInliers,
@@ -71,6 +70,7 @@ from monoloc.server.vision.pnp import (
     RelativePose,
     estimate_relative_pose,
     estimate_relative_pose_guided,
+    within_threshold,
 )
 from monoloc.server.vision.pose_covariance import planar_pose_covariance, position_spread_m
 from monoloc.server.vision.projection import (
@@ -537,59 +537,41 @@ def pose_hypotheses(
             )  # fmt: skip
         if pooled is not None:
             hypotheses.append(pooled)
-    if strategy.alternative is not None and strategy.pooled is not None:
-        alternative = _alternative_hypothesis(
-            hypotheses, keypoints_px, refs, matches, e_vlad, intrinsics, config, rng,
-            strategy.pooled, strategy.alternative, scales,
-        )  # fmt: skip
-        if alternative is not None:
-            hypotheses.append(alternative)
+    alternative = strategy.alternative
+    if alternative is not None and strategy.pooled is not None:
+        if _poorly_pinned(hypotheses, alternative.min_spread_m):
+            consensus = max(hypotheses, key=lambda h: h.n_inliers)
+            T_query_from_world = invert_rigid(consensus.T_world_from_cam)
+            unexplained = [
+                pairs[
+                    ~within_threshold(
+                        keypoints_px[pairs[:, 0]],
+                        ref.points_cam[pairs[:, 1]],
+                        T_query_from_world @ ref.T_world_from_cam,
+                        intrinsics,
+                        alternative.residual_px,
+                    )
+                ]
+                for ref, pairs in zip(refs, matches, strict=True)
+            ]
+            found = _pooled_hypothesis(
+                keypoints_px, refs, unexplained, e_vlad, intrinsics, config, rng,
+                strategy.pooled, scales,
+            )  # fmt: skip
+            if found is not None and (
+                np.linalg.norm(found.pose_world[:2] - consensus.pose_world[:2])
+                >= alternative.min_offset_m
+            ):
+                hypotheses.append(replace(found, method="alternative"))
     return hypotheses, rejected
 
 
-def _alternative_hypothesis(
-    hypotheses: Sequence[PoseHypothesis],
-    keypoints_px: np.ndarray,
-    refs: Sequence[ReferenceEntry],
-    matches: Sequence[np.ndarray],
-    e_vlad: dict[int, float],
-    intrinsics: CameraIntrinsics,
-    config: PnpConfig,
-    rng: np.random.Generator,
-    pooled: PooledConfig,
-    alternative: AlternativeConfig,
-    scales: np.ndarray | None,
-) -> PoseHypothesis | None:
-    """The pooled pose of the matches the frame's most-inlier pose does not explain
-    (``AlternativeConfig``), method "alternative"; None when the frame's per-entry poses
-    are pinned down well enough, or nothing else is found."""
+def _poorly_pinned(hypotheses: Sequence[PoseHypothesis], min_spread_m: float) -> bool:
+    """Whether the median position spread (1 px) of the per-entry hypotheses' pose
+    covariances exceeds ``min_spread_m`` (``AlternativeConfig``; at least two with one)."""
     spreads = [position_spread_m(h.covariance_px1) for h in hypotheses if not h.joint]
     spreads = [v for v in spreads if np.isfinite(v)]
-    if len(spreads) < 2 or not float(np.median(spreads)) > alternative.min_spread_m:
-        return None
-    consensus = max(hypotheses, key=lambda h: h.n_inliers)
-    T_query_from_world = invert_rigid(consensus.T_world_from_cam)
-    unexplained = []
-    for ref, pairs in zip(refs, matches, strict=True):
-        T_query_from_ref = T_query_from_world @ np.asarray(ref.T_world_from_cam, dtype=np.float64)
-        points_query = ref.points_cam[pairs[:, 1]] @ T_query_from_ref[:3, :3].T
-        points_query = points_query + T_query_from_ref[:3, 3]
-        residual_px = np.full(len(pairs), np.inf)
-        in_front = points_query[:, 2] > 0.1
-        residual_px[in_front] = np.linalg.norm(
-            project_points(points_query[in_front], intrinsics) - keypoints_px[pairs[in_front, 0]],
-            axis=1,
-        )
-        unexplained.append(pairs[residual_px > alternative.residual_px])
-    found = _pooled_hypothesis(
-        keypoints_px, refs, unexplained, e_vlad, intrinsics, config, rng, pooled, scales
-    )
-    if found is None:
-        return None
-    offset_m = float(np.hypot(*(found.pose_world[:2] - consensus.pose_world[:2])))
-    if offset_m < alternative.min_offset_m:
-        return None
-    return replace(found, method="alternative")
+    return len(spreads) >= 2 and float(np.median(spreads)) > min_spread_m
 
 
 def _solve_entries(

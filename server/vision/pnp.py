@@ -249,6 +249,28 @@ def _inliers(
     return mask, errors_px
 
 
+def within_threshold(
+    pixels_px: np.ndarray,
+    points_ref: np.ndarray,
+    T_query_from_ref: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    threshold_px: float,
+) -> np.ndarray:
+    """(M,) bool: which correspondences (query pixels (M, 2), 3D points (M, 3) in the
+    reference camera frame) the pose ``T_query_from_ref`` (4, 4) puts in front of the
+    camera and within ``threshold_px`` of their pixel (PnP's inlier test)."""
+    T = np.asarray(T_query_from_ref, dtype=np.float64)
+    mask, _ = _inliers(
+        np.ascontiguousarray(points_ref, dtype=np.float64),
+        np.ascontiguousarray(pixels_px, dtype=np.float64),
+        np.ascontiguousarray(T[:3, :3]),
+        np.ascontiguousarray(T[:3, 3]),
+        intrinsics.K,
+        threshold_px,
+    )
+    return mask
+
+
 def _refit(
     points: np.ndarray,
     pixels: np.ndarray,

@@ -71,6 +71,22 @@ def _entry(rng, points_world, pixels, T_world_from_ref, noise_px, outlier_fracti
     return observed, points_ref
 
 
+def _stacked(entries):
+    """refs, matches and the query keypoints (N, 2) float32 of entries given as
+    (T_world_from_ref, points_ref (M, 3), observed query pixels (M, 2)): one query keypoint
+    per correspondence, so each entry's pairs index the stacked keypoints."""
+    refs, matches, offset = [], [], 0
+    for j, (T_world_from_ref, points_ref, observed) in enumerate(entries):
+        refs.append(
+            ReferenceEntry(j, T_world_from_ref, np.zeros((len(points_ref), 32)), points_ref)
+        )
+        m = len(observed)
+        matches.append(np.stack([np.arange(offset, offset + m), np.arange(m)], 1))
+        offset += m
+    keypoints = np.concatenate([observed for _, _, observed in entries]).astype(np.float32)
+    return refs, matches, keypoints
+
+
 def _scene(seed, n_refs=5, noise_px=0.5, outlier_fraction=0.3):
     rng = np.random.default_rng(seed)
     T_world_from_query = T_world_from_cam_planar(
@@ -78,9 +94,8 @@ def _scene(seed, n_refs=5, noise_px=0.5, outlier_fraction=0.3):
     )
     points_world, pixels = _street(rng, T_world_from_query)
     query = planar_from_T_world_from_cam(T_world_from_query)
-    refs, matches, keypoints = [], [], []
-    offset = 0
-    for j in range(n_refs):
+    entries = []
+    for _ in range(n_refs):
         along = rng.uniform(-4.0, 4.0)
         T_world_from_ref = T_world_from_cam_planar(
             query[0] + along * math.cos(query[2]) + rng.uniform(-1, 1) * math.sin(query[2]),
@@ -91,15 +106,8 @@ def _scene(seed, n_refs=5, noise_px=0.5, outlier_fraction=0.3):
         observed, points_ref = _entry(
             rng, points_world, pixels, T_world_from_ref, noise_px, outlier_fraction
         )
-        refs.append(
-            ReferenceEntry(j, T_world_from_ref, np.zeros((len(points_ref), 32)), points_ref)
-        )
-        keypoints.append(observed)
-        m = len(observed)
-        # One query keypoint per correspondence: the pairs index the stacked keypoints.
-        matches.append(np.stack([np.arange(offset, offset + m), np.arange(m)], 1))
-        offset += m
-    return T_world_from_query, refs, matches, np.concatenate(keypoints).astype(np.float32)
+        entries.append((T_world_from_ref, points_ref, observed))
+    return T_world_from_query, *_stacked(entries)
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -652,7 +660,7 @@ def _moved_car_scene(seed, n_refs=5, street_per_entry=10, car_per_entry=40, shif
         ],
         1,
     )
-    refs, matches, keypoints, offset = [], [], [], 0
+    entries = []
     for j in range(n_refs):
         T_world_from_ref = T_world_from_cam_planar(
             query[0] - (2.0 + j) * forward[0], query[1] - (2.0 + j) * forward[1], query[2], 1.65
@@ -665,14 +673,8 @@ def _moved_car_scene(seed, n_refs=5, street_per_entry=10, car_per_entry=40, shif
         bad = rng.random(len(pixels)) < 0.1
         pixels[bad] = rng.uniform([0, 0], [CAM.width_px - 1, CAM.height_px - 1], (bad.sum(), 2))
         points_ref = points_world @ T_ref_from_world[:3, :3].T + T_ref_from_world[:3, 3]
-        refs.append(
-            ReferenceEntry(j, T_world_from_ref, np.zeros((len(points_ref), 32)), points_ref)
-        )
-        keypoints.append(pixels)
-        m = len(pixels)
-        matches.append(np.stack([np.arange(offset, offset + m), np.arange(m)], 1))
-        offset += m
-    return T_world_from_query, refs, matches, np.concatenate(keypoints).astype(np.float32)
+        entries.append((T_world_from_ref, points_ref, pixels))
+    return T_world_from_query, *_stacked(entries)
 
 
 def test_alternative_pose_for_a_frame_whose_entries_agree_on_a_moved_car():

@@ -5,7 +5,7 @@ import pytest
 from monoloc.core.camera import KITTI_CAM0 as CAM
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import invert_rigid, rotation_angle_rad
-from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose
+from monoloc.server.vision.pnp import PnpConfig, estimate_relative_pose, within_threshold
 
 
 def _rotation(axis, angle_rad):
@@ -375,3 +375,20 @@ def test_compiled_refine_rounds_equals_the_step_by_step_refit(seed):
     few[:5] = True
     R, t, mask, _ = refine_from_pose(points, pixels, R0, t0, CAM.K, config, 2, few)
     assert R is None and t is None and mask.sum() <= 5
+
+
+def test_within_threshold_is_pnps_inlier_test_under_a_given_pose():
+    """The true pose keeps the clean correspondences and drops the random pixels (and
+    the points it puts behind the camera); a pose a metre off keeps few of them."""
+    rng = np.random.default_rng(11)
+    pixels, points_ref, T_ref_from_query, outliers = _scene(rng, noise_px=0.3)
+    T_query_from_ref = invert_rigid(T_ref_from_query)
+    inside = within_threshold(pixels, points_ref, T_query_from_ref, CAM, 3.0)
+    assert inside[~outliers].all()
+    assert inside[outliers].mean() < 0.05
+    behind = points_ref.copy()
+    behind[:10] = 2 * T_ref_from_query[:3, 3] - behind[:10]  # mirrored through the centre
+    assert not within_threshold(pixels, behind, T_query_from_ref, CAM, 3.0)[:10].any()
+    moved = T_query_from_ref.copy()
+    moved[0, 3] += 1.0
+    assert within_threshold(pixels, points_ref, moved, CAM, 3.0)[~outliers].mean() < 0.3
