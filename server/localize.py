@@ -309,8 +309,8 @@ class PoseHypothesis:
     ``entry_ids`` its members; not ``joint``). ``covariance_px1`` (3, 3): the planar
     pose's (X m, Y m, psi rad) covariance from its own inliers at 1 px of pixel noise
     for a full-resolution keypoint (``PnpStrategy.covariance``, ``covariance_scales``;
-    None when not asked for, for joint and pooled poses, or when the inliers do not
-    determine it)."""
+    None when not asked for, or when the inliers do not determine it; a joint or pooled
+    pose's from the inliers of all its entries)."""
 
     entry_id: int
     T_world_from_cam: np.ndarray
@@ -483,12 +483,12 @@ def pose_hypotheses(
         if strategy.covariance:
             T_world_from_ref = np.asarray(ref.T_world_from_cam, dtype=np.float64)
             points_world = ref.points_cam[kept[:, 1]] @ T_world_from_ref[:3, :3].T
-            weigh = strategy.covariance_scales and scales is not None
-            covariance = planar_pose_covariance(
+            covariance = _pose_covariance(
+                strategy,
                 T_world_from_query,
                 points_world + T_world_from_ref[:3, 3],
+                None if scales is None else scales[kept[:, 0]],
                 intrinsics,
-                keypoint_scales=scales[kept[:, 0]] if weigh else None,
             )
         hypotheses.append(
             PoseHypothesis(
@@ -513,7 +513,7 @@ def pose_hypotheses(
             )
         )
     if strategy.joint is not None:
-        joint = _joint_hypothesis(hypotheses, inliers, intrinsics, config, strategy.joint)
+        joint = _joint_hypothesis(hypotheses, inliers, intrinsics, config, strategy)
         if joint is not None:
             hypotheses.append(joint)
     if strategy.pooled is not None and not hypotheses and refs:
@@ -525,7 +525,7 @@ def pose_hypotheses(
             intrinsics,
             config,
             rng,
-            strategy.pooled,
+            strategy,
             scales,
             near_misses,
         )
@@ -556,7 +556,7 @@ def pose_hypotheses(
             ]
             found = _pooled_hypothesis(
                 keypoints_px, refs, unexplained, e_vlad, intrinsics, config, rng,
-                strategy.pooled, scales,
+                strategy, scales,
             )  # fmt: skip
             if found is not None and (
                 np.linalg.norm(found.pose_world[:2] - consensus.pose_world[:2])
@@ -564,6 +564,27 @@ def pose_hypotheses(
             ):
                 hypotheses.append(replace(found, method="alternative"))
     return hypotheses, rejected
+
+
+def _pose_covariance(
+    strategy: PnpStrategy,
+    T_world_from_query: np.ndarray,
+    inlier_points_world: np.ndarray,
+    inlier_scales: np.ndarray | None,
+    intrinsics: CameraIntrinsics,
+) -> np.ndarray | None:
+    """A hypothesis's planar pose covariance at 1 px from its inliers' world points (M, 3)
+    and their query keypoints' scales (M,) (``PnpStrategy.covariance``,
+    ``covariance_scales``); None when the strategy does not ask for it."""
+    if not strategy.covariance:
+        return None
+    weigh = strategy.covariance_scales and inlier_scales is not None
+    return planar_pose_covariance(
+        T_world_from_query,
+        inlier_points_world,
+        intrinsics,
+        keypoint_scales=inlier_scales if weigh else None,
+    )
 
 
 def _poorly_pinned(hypotheses: Sequence[PoseHypothesis], min_spread_m: float) -> bool:
@@ -680,15 +701,17 @@ def _pooled_hypothesis(
     intrinsics: CameraIntrinsics,
     pnp: PnpConfig,
     rng: np.random.Generator,
-    config: PooledConfig,
+    strategy: PnpStrategy,
     keypoint_scales: np.ndarray | None = None,
     guesses_T_world_from_cam: Sequence[np.ndarray] = (),
     fallback: bool = True,
 ) -> PoseHypothesis | None:
-    """The pooled pose of the frame's entries, as a hypothesis: not marked ``joint`` (it
-    stands in for the per-entry hypotheses the frame did not get, and the paper's
-    measurement model leaves joint ones out); entry, entry pose and e_vlad are those of
-    the member with the most matches."""
+    """The pooled pose (``strategy.pooled``) of the frame's entries, as a hypothesis: not
+    marked ``joint`` (it stands in for the per-entry hypotheses the frame did not get,
+    and the paper's measurement model leaves joint ones out); entry, entry pose and
+    e_vlad are those of the member with the most matches; its covariance from the
+    pooled inliers (``strategy.covariance``)."""
+    assert strategy.pooled is not None
     pose = estimate_pooled_pose(
         keypoints_px,
         [r.T_world_from_cam for r in refs],
@@ -697,7 +720,7 @@ def _pooled_hypothesis(
         intrinsics,
         pnp,
         rng,
-        config,
+        strategy.pooled,
         keypoint_scales,
         guesses_T_world_from_cam,
         fallback,
@@ -716,6 +739,13 @@ def _pooled_hypothesis(
         reprojection_error_px=pose.reprojection_error_px,
         entry_ids=tuple(refs[m].entry_id for m in pose.members),
         method="pooled",
+        covariance_px1=_pose_covariance(
+            strategy,
+            pose.T_world_from_cam,
+            pose.inlier_points_world,
+            pose.inlier_scales,
+            intrinsics,
+        ),  # fmt: skip
     )
 
 
@@ -787,7 +817,7 @@ def _refined_pooled(
         intrinsics,
         config,
         rng,
-        strategy.pooled,
+        strategy,
         scales,
         [pooled.T_world_from_cam],
         fallback=False,
@@ -802,9 +832,12 @@ def _joint_hypothesis(
     inliers: Sequence[EntryInliers],
     intrinsics: CameraIntrinsics,
     pnp: PnpConfig,
-    config: JointConfig,
+    strategy: PnpStrategy,
 ) -> PoseHypothesis | None:
-    """The joint pose of the largest consistent group of hypotheses, as a hypothesis."""
+    """The joint pose (``strategy.joint``) of the largest consistent group of hypotheses,
+    as a hypothesis, with its covariance from the union's inliers (``strategy.covariance``)."""
+    config = strategy.joint
+    assert config is not None
     if len(hypotheses) < config.min_entries:
         return None
     group = consistent_group(
@@ -833,4 +866,11 @@ def _joint_hypothesis(
         joint=True,
         entry_ids=tuple(h.entry_id for h in members),
         method="joint",
+        covariance_px1=_pose_covariance(
+            strategy,
+            joint.T_world_from_cam,
+            joint.inlier_points_world,
+            joint.inlier_scales,
+            intrinsics,
+        ),  # fmt: skip
     )

@@ -273,8 +273,9 @@ class HypothesisPublic(BaseModel):
         "the hypothesis's own inliers at 1 px of pixel noise (times the pyramid scale of the "
         "ORB level each query keypoint was found on): how well its geometry pins the pose "
         "down (where the inliers lie, how many, how deep, how coarse). Multiply by the squared "
-        "pixel noise of the map's calibration (its pnp model). Null for joint and pooled "
-        "poses.",
+        "pixel noise of the map's calibration (its pnp model). A joint or pooled pose's "
+        "comes from the inliers of all its entries. Null when the inliers do not determine "
+        "the pose.",
     )
 
 

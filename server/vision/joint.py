@@ -73,13 +73,18 @@ class EntryInliers:
 @dataclass(frozen=True)
 class JointPose:
     """The joint pose: T_world_from_cam (4, 4) of the query, the members it used (indices
-    into the hypotheses given), inliers of the union and their mean reprojection error."""
+    into the hypotheses given), inliers of the union and their mean reprojection error;
+    the inliers' 3D points (n_inliers, 3) in the world frame and their query keypoints'
+    pyramid scales (n_inliers,) (None when none were given), for the pose's covariance
+    (``vision.pose_covariance``)."""
 
     T_world_from_cam: np.ndarray
     members: tuple[int, ...]
     n_correspondences: int
     n_inliers: int
     reprojection_error_px: float
+    inlier_points_world: np.ndarray
+    inlier_scales: np.ndarray | None = None
 
 
 def consistent_group(
@@ -114,6 +119,7 @@ def estimate_joint_pose(
     init = np.asarray(T_world_from_cam_init, dtype=np.float64)
     origin_world = init[:3, 3].copy()
     points, pixels, scales = [], [], []
+    scaled = any(e.keypoint_scales is not None for e in entries)
     for e in entries:
         T = np.asarray(e.T_world_from_ref, dtype=np.float64)
         p_ref = np.asarray(e.points_ref, dtype=np.float64).reshape(-1, 3)
@@ -149,12 +155,15 @@ def estimate_joint_pose(
     T_world_from_cam = invert_rigid(T_cam_from_local)
     T_world_from_cam[:3, 3] += origin_world
     n_inliers = int(np.count_nonzero(mask))
+    scales_all = np.concatenate(scales)
     return JointPose(
         T_world_from_cam=T_world_from_cam,
         members=members,
         n_correspondences=len(points_local),
         n_inliers=n_inliers,
         reprojection_error_px=float(errors_px[mask].sum()) / n_inliers,
+        inlier_points_world=points_local[mask] + origin_world,
+        inlier_scales=scales_all[mask] if scaled else None,
     )
 
 
@@ -290,15 +299,17 @@ def estimate_pooled_pose(
         members = _pooled_members(rel, owners_all, config)
     if len(members) < config.min_entries:
         return None
-    T_world_from_cam = (
-        np.asarray(T_world_from_refs[anchor], dtype=np.float64) @ rel.T_ref_from_query
-    )
+    T_world_from_anchor = np.asarray(T_world_from_refs[anchor], dtype=np.float64)
+    kept = rel.inlier_mask
     return JointPose(
-        T_world_from_cam=T_world_from_cam,
+        T_world_from_cam=T_world_from_anchor @ rel.T_ref_from_query,
         members=members,
         n_correspondences=int(sum(len(p) for p in pixels)),
         n_inliers=rel.n_inliers,
         reprojection_error_px=rel.reprojection_error_px,
+        inlier_points_world=points_all[kept] @ T_world_from_anchor[:3, :3].T
+        + T_world_from_anchor[:3, 3],
+        inlier_scales=None if scales_all is None else scales_all[kept],
     )
 
 

@@ -30,6 +30,7 @@ from monoloc.server.vision.pnp import (
     estimate_relative_pose,
     estimate_relative_pose_guided,
 )
+from monoloc.server.vision.pose_covariance import position_spread_m
 
 
 def _no_descriptors(**fields):
@@ -381,6 +382,11 @@ def test_a_frame_whose_entries_are_each_too_sparse_gets_one_pooled_pose(seed):
     assert pooled.n_inliers >= PnpConfig().min_inliers
     position_m, angle_deg = _pose_error(pooled.T_world_from_cam, T_world_from_query)
     assert position_m < 0.15 and angle_deg < 0.5
+    assert pooled.covariance_px1 is None
+    # its covariance, from the inliers of every member entry, describes its error
+    (with_covariance,), _ = _solve(refs, matches, keypoints, _no_descriptors(covariance=True))
+    np.testing.assert_allclose(with_covariance.pose_world, pooled.pose_world)
+    assert _mahalanobis_sq(with_covariance, T_world_from_query, 0.5) < 16.3
 
 
 def test_pooled_pnp_runs_only_for_a_frame_without_any_other_hypothesis():
@@ -572,29 +578,39 @@ def test_pooled_pnp_runs_usac_by_default_and_the_classic_ransac_finds_the_same_p
         PooledConfig(ransac="magic")
 
 
-def test_each_entry_hypothesis_carries_its_pose_covariance_when_asked():
+def _mahalanobis_sq(hypothesis, T_world_from_query, noise_px):
+    """Squared Mahalanobis distance of a hypothesis's planar error under its covariance
+    at the scene's pixel noise."""
+    C = hypothesis.covariance_px1 * noise_px**2
+    assert C.shape == (3, 3) and np.all(np.linalg.eigvalsh(C) > 0)
+    e = planar_from_T_world_from_cam(T_world_from_query) - hypothesis.pose_world
+    e[2] = wrap_angle(e[2])
+    return float(e @ np.linalg.solve(C, e))
+
+
+def test_each_hypothesis_carries_its_pose_covariance_when_asked():
     """PnpStrategy.covariance: every per-entry hypothesis gets the planar covariance of
-    its own inliers (at 1 px), and with the scene's 0.5 px noise it describes the
-    hypotheses' actual errors (squared Mahalanobis distances around chi-square, 3 dof:
-    median 2.4); without the flag, none."""
-    distances = []
+    its own inliers (at 1 px), the joint pose that of the union's inliers, and with the
+    scene's 0.5 px noise both describe the hypotheses' actual errors (squared Mahalanobis
+    distances around chi-square, 3 dof: median 2.4); the joint pose, on more inliers, is
+    pinned down better than any of its members; without the flag, no covariance."""
+    per_entry, joint = [], []
     for seed in range(6):
         T_world_from_query, refs, matches, keypoints = _scene(seed, noise_px=0.5)
         plain, _ = _solve(refs, matches, keypoints, _no_descriptors())
         assert all(h.covariance_px1 is None for h in plain)
         hyps, _ = _solve(refs, matches, keypoints, _no_descriptors(covariance=True))
-        truth = planar_from_T_world_from_cam(T_world_from_query)
         for h in hyps:
-            if h.joint:
-                assert h.covariance_px1 is None
-                continue
-            C = h.covariance_px1 * 0.5**2
-            assert C.shape == (3, 3) and np.all(np.linalg.eigvalsh(C) > 0)
-            e = truth - h.pose_world
-            e[2] = wrap_angle(e[2])
-            distances.append(float(e @ np.linalg.solve(C, e)))
-    assert len(distances) >= 20
-    assert 0.8 < np.median(distances) < 6.0
+            distance = _mahalanobis_sq(h, T_world_from_query, 0.5)
+            (joint if h.joint else per_entry).append(distance)
+        (together,) = [h for h in hyps if h.joint]
+        members = [h for h in hyps if h.entry_id in together.entry_ids and not h.joint]
+        assert position_spread_m(together.covariance_px1) < min(
+            position_spread_m(h.covariance_px1) for h in members
+        )
+    assert len(per_entry) >= 20 and len(joint) == 6
+    assert 0.8 < np.median(per_entry) < 6.0
+    assert 0.3 < np.median(joint) < 8.0 and max(joint) < 16.3  # chi-square 3 dof: p 0.001
 
 
 def test_pose_covariance_weighs_each_inlier_by_its_keypoint_scale():
@@ -616,8 +632,8 @@ def test_pose_covariance_weighs_each_inlier_by_its_keypoint_scale():
     plain, _ = solve(True, None)
     weighed, _ = solve(True, scales)
     ignored, _ = solve(False, scales)
-    pairs = [(p, w, i) for p, w, i in zip(plain, weighed, ignored, strict=True) if not p.joint]
-    assert len(pairs) >= 3
+    pairs = list(zip(plain, weighed, ignored, strict=True))
+    assert len(pairs) >= 4 and any(p.joint for p, _, _ in pairs)
     for p, w, i in pairs:
         np.testing.assert_allclose(w.pose_world, p.pose_world)
         np.testing.assert_allclose(w.covariance_px1, 4 * p.covariance_px1, rtol=1e-9)
@@ -683,7 +699,6 @@ def test_alternative_pose_for_a_frame_whose_entries_agree_on_a_moved_car():
     the true pose from the street matches no entry had enough of. Without it, no
     hypothesis near the truth; on an ordinary frame it adds nothing."""
     from monoloc.server.localize import AlternativeConfig
-    from monoloc.server.vision.pose_covariance import position_spread_m
 
     T_world_from_query, refs, matches, keypoints = _moved_car_scene(0)
     truth = planar_from_T_world_from_cam(T_world_from_query)
