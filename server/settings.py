@@ -132,6 +132,14 @@ class Settings(BaseSettings):
         "as PnP RANSAC found them, e.g. to compare both on a fleet's own data. Calibration "
         "jobs follow it, so a map's measurement model is fitted on the hypotheses sent.",
     )
+    localize_alternative: bool = Field(
+        default=False,
+        description="Add an alternative pose to a frame whose per-entry poses are poorly "
+        "pinned down (a moved car carrying most inliers): one pooled RANSAC on the matches "
+        "the most-inlier pose leaves unexplained (LocalizeConfig.alternative, hypothesis "
+        "method 'alternative'). Off by default: it helps filters on the 'pnp' measurement "
+        "model, mixed on the paper's (README, 'Where the frames beyond 0.25 m come from').",
+    )
     localize_seed: int | None = Field(
         default=None,
         description="Seed of the server's RNG seed sequence (RANSAC); None draws OS entropy. "

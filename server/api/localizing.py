@@ -22,8 +22,18 @@ from monoloc.server.api.convert import localize_response
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
-from monoloc.server.localize import LocalizeConfig
+from monoloc.server.localize import AlternativeConfig, LocalizeConfig
+from monoloc.server.settings import Settings
 from monoloc.server.vision.projection import ProjectionMatchConfig
+
+
+def localize_config(settings: Settings) -> LocalizeConfig:
+    """The pipeline a server runs on every query frame, from its deployment knobs."""
+    return LocalizeConfig(
+        pipeline=settings.localize_pipeline,
+        refine_by_projection=ProjectionMatchConfig() if settings.localize_refine else None,
+        alternative=AlternativeConfig() if settings.localize_alternative else None,
+    )
 
 
 def _intrinsics(
@@ -50,14 +60,10 @@ def localize_encoded(
     image = decode_gray(data, info, "image")
     decode_ms = (time.perf_counter() - start) * 1e3
     seed = options.seed if options.seed is not None else state.next_seed()
-    refine = ProjectionMatchConfig() if state.settings.localize_refine else None
     result, version = state.registry.localize(
         map_id,
         image,
-        LocalizeConfig(
-            pipeline=state.settings.localize_pipeline,
-            refine_by_projection=refine,
-        ),
+        localize_config(state.settings),
         np.random.default_rng(seed),
         intrinsics,
         options.prior,
