@@ -160,3 +160,19 @@ def mapped_loop_server(world, root: Path, map_frames: int, name: str, timeout_s:
             job = upload(client, map_id, world, run_dir, "/v1/maps/{map_id}/runs", kind="map")
             assert job["state"] == "done"
             yield client, map_id, run_dir, lap
+
+
+def localize_frames(url: str, key: str, map_id: int, images: list[bytes], seed: int) -> list:
+    """Each image localized over HTTP with the same seed (the answers of one server)."""
+    from monoloc.client.api import MonolocClient
+
+    with MonolocClient(url, key) as client:
+        return [client.localize(map_id, image, seed=seed) for image in images]
+
+
+def localize_frames_on_copy(live_map, data_dir: Path, images, seed: int, **overrides) -> list:
+    """The same frames localized by a second server on a copy of ``live_map``'s database
+    with these settings overridden (to compare a setting against the default)."""
+    copy_database(live_map.data_dir, data_dir)
+    with live_server(make_settings(data_dir, **overrides)) as (url, _):
+        return localize_frames(url, live_map.keys.localize, live_map.map_id, images, seed)

@@ -5,9 +5,8 @@ ordinary frames get exactly the answer of a server without it (the same seed).""
 from __future__ import annotations
 
 import numpy as np
-from e2e_helpers import QUERY_SEQ, copy_database, live_server, make_settings
+from e2e_helpers import QUERY_SEQ, localize_frames, localize_frames_on_copy
 
-from monoloc.client.api import MonolocClient
 from monoloc.client.replay import read_run
 
 FRAMES = (4, 8, 12, 16, 20)
@@ -41,13 +40,9 @@ def _by_entry(answer) -> dict[tuple[int, str], list[float]]:
 def test_ordinary_frames_are_answered_as_without_it(live_map, tmp_path):
     run = read_run(live_map.dataset, QUERY_SEQ)
     images = [run.image_paths[f].read_bytes() for f in FRAMES]
-    with MonolocClient(live_map.url, live_map.keys.localize) as client:
-        plain = [client.localize(live_map.map_id, image, seed=5) for image in images]
-    copy_database(live_map.data_dir, tmp_path / "data")
-    settings = make_settings(tmp_path / "data", localize_alternative=True)
-    with live_server(settings) as (url, _):
-        with MonolocClient(url, live_map.keys.localize) as client:
-            tried = [client.localize(live_map.map_id, image, seed=5) for image in images]
+    plain = localize_frames(live_map.url, live_map.keys.localize, live_map.map_id, images, 5)
+    data_dir = tmp_path / "data"
+    tried = localize_frames_on_copy(live_map, data_dir, images, 5, localize_alternative=True)
     assert sum(bool(p.raw["hypotheses"]) for p in plain) >= 3
     for p, t in zip(plain, tried, strict=True):
         ours, theirs = _by_entry(p), _by_entry(t)

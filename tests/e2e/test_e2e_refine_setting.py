@@ -4,9 +4,8 @@ refit (the default) each keeps at least as many inliers."""
 
 from __future__ import annotations
 
-from e2e_helpers import QUERY_SEQ, copy_database, live_server, make_settings
+from e2e_helpers import QUERY_SEQ, localize_frames, localize_frames_on_copy
 
-from monoloc.client.api import MonolocClient
 from monoloc.client.replay import read_run
 
 FRAMES = (4, 8, 12, 16, 20)
@@ -32,12 +31,8 @@ def _inliers(answer) -> dict[int, int]:
 def test_the_refit_keeps_the_entries_and_adds_inliers(live_map, tmp_path):
     run = read_run(live_map.dataset, QUERY_SEQ)
     images = [run.image_paths[f].read_bytes() for f in FRAMES]
-    with MonolocClient(live_map.url, live_map.keys.localize) as client:
-        refined = [client.localize(live_map.map_id, image, seed=5) for image in images]
-    copy_database(live_map.data_dir, tmp_path / "data")
-    with live_server(make_settings(tmp_path / "data", localize_refine=False)) as (url, _):
-        with MonolocClient(url, live_map.keys.localize) as client:
-            plain = [client.localize(live_map.map_id, image, seed=5) for image in images]
+    refined = localize_frames(live_map.url, live_map.keys.localize, live_map.map_id, images, 5)
+    plain = localize_frames_on_copy(live_map, tmp_path / "data", images, 5, localize_refine=False)
     gained = 0
     for r, p in zip(refined, plain, strict=True):
         with_refit, without = _inliers(r), _inliers(p)
