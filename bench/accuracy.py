@@ -4,7 +4,8 @@ Generates (or reuses) a sim dataset, builds the map in memory with the server's 
 code, calibrates the measurement model on the `train` run (a district the map and the
 query never see; with a `trainnight` run, the quality-aware model also on both together,
 run beside the paper's), and localizes the `query` run with each variant of
-monoloc.evaluation (and with the paper's single Gaussian, without monoloc's tail). With a
+monoloc.evaluation (and with the paper's single Gaussian, without monoloc's tail; with the
+PnP covariance model, without and with the server's opt-in alternative poses). With a
 `nightmap` run in the dataset, the `night` query is run twice:
 against the day map, and after adding the night entries. Prints the table next to the
 paper's numbers and the goals; writes bench/results/accuracy_<scenario>.json.
@@ -344,6 +345,7 @@ def print_floor(name: str, f: dict) -> None:
 
 NO_TAIL = "paper model without the tail"
 PNP = "PnP covariance model"
+PNP_ALT = "PnP covariance model, alternative poses"
 
 
 def urban_city(
@@ -379,9 +381,12 @@ def urban_city(
         stage_percentiles,
     )
     from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.localize import AlternativeConfig, LocalizeConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     vocab = load_default_vocabulary()
+    # the server's opt-in alternative pose (MONOLOC_LOCALIZE_ALTERNATIVE), with "pnp"
+    with_alternative = EvalConfig(localize=LocalizeConfig(alternative=AlternativeConfig()))
     train_id = sequence_of(meta, "train")
     lever = fitted_lever_arm_m(read_kitti_run(root, train_id), rig_lever_arm_m(root))
     t0 = time.time()
@@ -420,6 +425,10 @@ def urban_city(
             memory, query, signals, pnp_model, lever_arm_m=lever, variants=("full",)
         )
         rows.append((f"full, {PNP}", metrics_row(pnp_run.metrics["full"])))
+        pnp_alt = evaluate_run(
+            memory, query, signals, pnp_model, with_alternative, lever, variants=("full",)
+        )
+        rows.append((f"full, {PNP_ALT}", metrics_row(pnp_alt.metrics["full"])))
     if compare is not None:
         other = evaluate_run(
             memory, query, signals, compare[1], lever_arm_m=lever, variants=("full",)
@@ -489,6 +498,15 @@ def urban_city(
                 )
                 night_rows.append(
                     (f"night, + night entries, {PNP}", metrics_row(pnp_night.metrics["full"]))
+                )
+                pnp_alt_night = evaluate_run(
+                    memory, night_seq, nsig, pnp_model, with_alternative, lever, ("full",)
+                )
+                night_rows.append(
+                    (
+                        f"night, + night entries, {PNP_ALT}",
+                        metrics_row(pnp_alt_night.metrics["full"]),
+                    )
                 )
             if compare is not None:
                 other = evaluate_run(
