@@ -4,8 +4,9 @@ Generates (or reuses) a sim dataset, builds the map in memory with the server's 
 code, calibrates the measurement model on the `train` run (a district the map and the
 query never see; with a `trainnight` run, the quality-aware model also on both together,
 run beside the paper's), and localizes the `query` run with each variant of
-monoloc.evaluation (and with the paper's single Gaussian, without monoloc's tail; with the
-PnP covariance model, without and with the server's opt-in alternative poses). With a
+monoloc.evaluation: the default (the PnP covariance model, the server's alternative poses),
+and beside it the paper's covariance (with and without monoloc's tail) and the PnP
+covariance model without the alternative poses. With a
 `nightmap` run in the dataset, the `night` query is run twice:
 against the day map, and after adding the night entries. Prints the table next to the
 paper's numbers and the goals; writes bench/results/accuracy_<scenario>.json.
@@ -120,11 +121,12 @@ def _sibling(name: str):
     return module
 
 
-def calibrate_on(train, vocabulary, trainnight=None, covariance: str = "paper"):
+def calibrate_on(train, vocabulary, trainnight=None, covariance: str = "pnp"):
     """The measurement model fitted on a training run (KittiSequence / TumRun), each frame
     read once, exactly as the server's calibration job does; with ``trainnight``, on the
     pooled samples of both runs (each against its own temporary map). ``covariance``
-    selects the model the result uses ("paper" or "quality"; both are fitted)."""
+    selects the model the result uses ("pnp", the server's default, "paper" or "quality";
+    all are fitted)."""
     from monoloc.server.calibrate import CalibrationConfig, TrainingRun, calibrate_runs
     from monoloc.server.jobs.calibration import training_frames
 
@@ -343,9 +345,9 @@ def print_floor(name: str, f: dict) -> None:
     )
 
 
+PAPER_MODEL = "paper model"
 NO_TAIL = "paper model without the tail"
-PNP = "PnP covariance model"
-PNP_ALT = "PnP covariance model, alternative poses"
+NO_ALT = "PnP covariance model without the alternative poses"
 
 
 def urban_city(
@@ -360,7 +362,9 @@ def urban_city(
     """Calibrate on `train`, map the `map` run, evaluate the `query` run with each variant
     (and the night runs); print the tables; the figures as a dict.
 
-    The model is the paper's, calibrated on `train`. With ``night_train`` (root, sequence
+    The model is the server's default ("pnp", with the alternative poses), calibrated on
+    `train`; the paper's covariance and "pnp" without the alternative poses run beside
+    it on the day query and the night with night entries. With ``night_train`` (root, sequence
     of the `trainnight` run), the quality-aware model calibrated on `train` + `trainnight`
     together runs beside it in the same run, on the query and on the night query with
     night entries. (It was the selected model for the held-out run; it made night better
@@ -381,12 +385,12 @@ def urban_city(
         stage_percentiles,
     )
     from monoloc.server.ingest.kitti import read_kitti_sequence
-    from monoloc.server.localize import AlternativeConfig, LocalizeConfig
+    from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     vocab = load_default_vocabulary()
-    # the server's opt-in alternative pose (MONOLOC_LOCALIZE_ALTERNATIVE), with "pnp"
-    with_alternative = EvalConfig(localize=LocalizeConfig(alternative=AlternativeConfig()))
+    # the pipeline before the alternative pose (MONOLOC_LOCALIZE_ALTERNATIVE=false)
+    without_alternative = EvalConfig(localize=LocalizeConfig(alternative=None))
     train_id = sequence_of(meta, "train")
     lever = fitted_lever_arm_m(read_kitti_run(root, train_id), rig_lever_arm_m(root))
     t0 = time.time()
@@ -413,27 +417,23 @@ def urban_city(
     signals = read_kitti_run(root, query_id).signals
     result = evaluate_run(memory, query, signals, model, lever_arm_m=lever, variants=variants)
     rows = [(v, metrics_row(m)) for v, m in result.metrics.items()]
-    # the paper's single Gaussian, without monoloc's tail (MeasurementModel.tail_weight)
-    untailed = dataclasses.replace(model, tail_weight=0.0)
-    plain = evaluate_run(memory, query, signals, untailed, lever_arm_m=lever, variants=("full",))
-    rows.append((f"full, {NO_TAIL}", metrics_row(plain.metrics["full"])))
-    # each hypothesis weighed with its own PnP covariance (MeasurementModel covariance "pnp")
-    pnp_model = model.with_covariance("pnp") if model.pnp is not None else None
-    pnp_run = None
-    if pnp_model is not None:
-        pnp_run = evaluate_run(
-            memory, query, signals, pnp_model, lever_arm_m=lever, variants=("full",)
-        )
-        rows.append((f"full, {PNP}", metrics_row(pnp_run.metrics["full"])))
-        pnp_alt = evaluate_run(
-            memory, query, signals, pnp_model, with_alternative, lever, variants=("full",)
-        )
-        rows.append((f"full, {PNP_ALT}", metrics_row(pnp_alt.metrics["full"])))
+    # beside the default (the "pnp" model, alternative poses): the paper's covariance
+    # (Sigma1 for every hypothesis, with and without monoloc's tail) and "pnp" without the
+    # alternative poses, each on the pipeline without them; the quality-aware model
+    paper_model = model.with_covariance("paper")
+    arms = [
+        (PAPER_MODEL, paper_model, without_alternative),
+        (NO_TAIL, dataclasses.replace(paper_model, tail_weight=0.0), without_alternative),
+        (NO_ALT, model, without_alternative),
+    ]
     if compare is not None:
-        other = evaluate_run(
-            memory, query, signals, compare[1], lever_arm_m=lever, variants=("full",)
+        arms.append((compare[0], compare[1], EvalConfig()))
+    arm_runs = {}
+    for label, arm_model, arm_config in arms:
+        arm_runs[label] = evaluate_run(
+            memory, query, signals, arm_model, arm_config, lever, variants=("full",)
         )
-        rows.append((f"full, {compare[0]}", metrics_row(other.metrics["full"])))
+        rows.append((f"full, {label}", metrics_row(arm_runs[label].metrics["full"])))
     out = {
         "calibration": {"model": model.to_dict(), "provenance": calib.provenance},
         "calibration_compared": None
@@ -463,10 +463,9 @@ def urban_city(
         map_true, map_written = true_world["map"], written_poses(root, map_id)
         placed = truth_in_map_frame(true_world["query"], map_true, map_written)
         out["recording_floor"] = recording_floor(result, "full", placed, true_world["query"])
-        if pnp_run is not None:
-            out["recording_floor_pnp"] = recording_floor(
-                pnp_run, "full", placed, true_world["query"]
-            )
+        out["recording_floor_paper"] = recording_floor(
+            arm_runs[PAPER_MODEL], "full", placed, true_world["query"]
+        )
     night_rows = []
     night_id, nightmap_id = sequence_of(meta, "night"), sequence_of(meta, "nightmap")
     if night and night_id:
@@ -486,34 +485,12 @@ def urban_city(
                     memory, night_seq, nsig, model, EvalConfig(seed=seed), lever, ("full",)
                 )
                 by_seed["night_rmse_m"].append(again.metrics["full"].position_rmse_m)
-            plain = evaluate_run(
-                memory, night_seq, nsig, untailed, lever_arm_m=lever, variants=("full",)
-            )
-            night_rows.append(
-                (f"night, + night entries, {NO_TAIL}", metrics_row(plain.metrics["full"]))
-            )
-            if pnp_model is not None:
-                pnp_night = evaluate_run(
-                    memory, night_seq, nsig, pnp_model, lever_arm_m=lever, variants=("full",)
+            for label, arm_model, arm_config in arms:
+                arm = evaluate_run(
+                    memory, night_seq, nsig, arm_model, arm_config, lever, variants=("full",)
                 )
                 night_rows.append(
-                    (f"night, + night entries, {PNP}", metrics_row(pnp_night.metrics["full"]))
-                )
-                pnp_alt_night = evaluate_run(
-                    memory, night_seq, nsig, pnp_model, with_alternative, lever, ("full",)
-                )
-                night_rows.append(
-                    (
-                        f"night, + night entries, {PNP_ALT}",
-                        metrics_row(pnp_alt_night.metrics["full"]),
-                    )
-                )
-            if compare is not None:
-                other = evaluate_run(
-                    memory, night_seq, nsig, compare[1], lever_arm_m=lever, variants=("full",)
-                )
-                night_rows.append(
-                    (f"night, + night entries, {compare[0]}", metrics_row(other.metrics["full"]))
+                    (f"night, + night entries, {label}", metrics_row(arm.metrics["full"]))
                 )
             registered, correction = registered_night(
                 root, meta, vocab, night_seq, nsig, model, lever
@@ -548,8 +525,8 @@ def urban_city(
     if "recording_floor" in out:
         print()
         print_floor("query", out["recording_floor"])
-    if "recording_floor_pnp" in out:
-        print_floor(f"query, {PNP}", out["recording_floor_pnp"])
+    if "recording_floor_paper" in out:
+        print_floor(f"query, {PAPER_MODEL}", out["recording_floor_paper"])
     if "night_recording_floor" in out:
         print_floor(
             "night, + night entries (day and night entries: approximate)",
@@ -735,8 +712,15 @@ PAPER_INDOOR = {"open_loop_within_0_1m": 1.0, "open_loop_within_0_06m": 0.92}
 def main_indoor(args) -> None:
     from monoloc.client.replay import read_tum_run as read_tum_replay
     from monoloc.client.replay import rig_lever_arm_m
-    from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row, stage_percentiles
+    from monoloc.evaluation import (
+        EvalConfig,
+        MemoryMap,
+        evaluate_run,
+        metrics_row,
+        stage_percentiles,
+    )
     from monoloc.server.ingest.tum import read_tum_run
+    from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     root = args.data / f"indoor_{args.size}_{args.frames}_s{args.seed}"
@@ -768,6 +752,16 @@ def main_indoor(args) -> None:
         variants=("full",),
     )
     rows.append(("full, quality-aware model", metrics_row(quality.metrics["full"])))
+    paper = evaluate_run(
+        memory,
+        query,
+        signals,
+        calib.model.with_covariance("paper"),
+        EvalConfig(localize=LocalizeConfig(alternative=None)),
+        lever,
+        variants=("full",),
+    )
+    rows.append((f"full, {PAPER_MODEL}", metrics_row(paper.metrics["full"])))
     memory.add_run(read_tum_run(root / "offcenter"), tags=("off-center",))
     aug = evaluate_run(memory, query, signals, calib.model, lever_arm_m=lever, variants=("full",))
     rows.append(("full, map + off-center lap", metrics_row(aug.metrics["full"])))

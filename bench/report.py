@@ -102,7 +102,8 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
         ]
     floors = (
         ("recording_floor", "query"),
-        ("recording_floor_pnp", "query, PnP covariance model"),
+        ("recording_floor_pnp", "query, PnP covariance model"),  # results before 2026-11-28
+        ("recording_floor_paper", "query, paper model"),
         ("night_recording_floor", "night + night entries; approximate: two maps"),
     )
     for key, what in floors:

@@ -76,8 +76,8 @@ class CalibrationConfig:
     counted as outliers and left out of the fit; unbiased: covariance about the mean with
     N - 1 (monoloc) instead of the paper's mean(e e^T); strategy: PnP as the localizer
     runs it (guided, joint pose, each pose's covariance); covariance: the model the stored
-    calibration selects ("paper", "quality" or "pnp"; all are fitted and stored, "pnp"
-    when the strategy gives the poses' covariances)."""
+    calibration selects ("pnp" by default since 2026-11-28, "paper" or "quality"; all are
+    fitted and stored, "pnp" when the strategy gives the poses' covariances)."""
 
     k: int = 10
     map_every: int = 2
@@ -91,7 +91,7 @@ class CalibrationConfig:
     strategy: PnpStrategy = field(
         default_factory=lambda: PnpStrategy(guess_from_prior=False, covariance=True)
     )
-    covariance: CovarianceModel = "paper"
+    covariance: CovarianceModel = "pnp"
     # the frame of the retrieval vector's offset: "world" (the paper's) or "vehicle"
     # (along / across the heading; see monoloc.core.measurement)
     retrieval_frame: RetrievalFrame = "world"
@@ -108,6 +108,11 @@ class CalibrationConfig:
             )
         if not (self.gate_position_m > 0 and self.gate_yaw_rad > 0):
             raise InvalidInputError(f"calibration gates must be positive, got {self}")
+        if self.covariance == "pnp" and not self.strategy.covariance:
+            raise InvalidInputError(
+                "the pnp covariance model needs the poses' covariances: a PnP strategy with "
+                "covariance=True, or covariance='paper' or 'quality'"
+            )
 
     @property
     def min_frames(self) -> int:
@@ -116,7 +121,7 @@ class CalibrationConfig:
 
 
 def server_calibration_config(
-    k: int, refine_by_projection: bool, covariance: CovarianceModel = "paper"
+    k: int, refine_by_projection: bool, covariance: CovarianceModel = "pnp"
 ) -> CalibrationConfig:
     """The calibration matching a server's localizer: its PnP strategy with the refit by
     projection on or off (``Settings.localize_refine``), ``k`` entries per query, the

@@ -167,7 +167,10 @@ class LocalizeConfig:
     ``pose_covariance``: each per-entry hypothesis's covariance from its inliers
     (``PnpStrategy.covariance``; the "pnp" measurement model's input; not in the paper's
     preset); ``pose_covariance_scales``: each inlier weighed by its keypoint's pyramid
-    scale (``PnpStrategy.covariance_scales``)."""
+    scale (``PnpStrategy.covariance_scales``). ``alternative``: a second pose for a frame
+    whose per-entry poses are poorly pinned down (``AlternativeConfig``; on by default
+    since 2026-11-28, with the "pnp" measurement model; none without the pose covariances
+    or in a preset without pooled PnP)."""
 
     orb: OrbConfig = field(default_factory=OrbConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -184,7 +187,7 @@ class LocalizeConfig:
     )
     pose_covariance: bool = True
     pose_covariance_scales: bool = True
-    alternative: AlternativeConfig | None = None
+    alternative: AlternativeConfig | None = field(default_factory=AlternativeConfig)
 
     @property
     def preset(self) -> Preset:
@@ -203,7 +206,7 @@ class LocalizeConfig:
             refine=self.refine_by_projection if preset.guided else None,
             covariance=self.pose_covariance and preset.guided,
             covariance_scales=self.pose_covariance_scales,
-            alternative=self.alternative if preset.pooled else None,
+            alternative=self.alternative if preset.pooled and self.pose_covariance else None,
         )
 
 

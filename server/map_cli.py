@@ -276,10 +276,10 @@ def map_calibrate(
     covariance: Annotated[
         str,
         typer.Option(
-            help="Pose-error model the calibration selects: paper | quality | pnp (every "
-            "model is fitted and stored)."
+            help="Pose-error model the calibration selects: pnp (each hypothesis's own PnP "
+            "covariance; the default) | paper | quality (every model is fitted and stored)."
         ),
-    ] = "paper",
+    ] = "pnp",
 ) -> None:
     """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
     store it with its provenance (a recorded job; the run is not added to the map)."""
@@ -303,9 +303,13 @@ def map_calibrate(
         tum_camera=camera,
         depth_from=depth_from,
     )
-    params = {"format": fmt, "path": str(run), "sequence": sequence, "frames": frames}
-    if covariance != "paper":
-        params["covariance"] = covariance
+    params = {
+        "format": fmt,
+        "path": str(run),
+        "sequence": sequence,
+        "frames": frames,
+        "covariance": covariance,
+    }
     if depth_from != "lidar":
         params["depth_from"] = depth_from
     with progress_bar(f"calibrating on {source.name}") as update:

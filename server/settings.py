@@ -133,12 +133,12 @@ class Settings(BaseSettings):
         "jobs follow it, so a map's measurement model is fitted on the hypotheses sent.",
     )
     localize_alternative: bool = Field(
-        default=False,
+        default=True,
         description="Add an alternative pose to a frame whose per-entry poses are poorly "
         "pinned down (a moved car carrying most inliers): one pooled RANSAC on the matches "
         "the most-inlier pose leaves unexplained (LocalizeConfig.alternative, hypothesis "
-        "method 'alternative'). Off by default: it helps filters on the 'pnp' measurement "
-        "model, mixed on the paper's (README, 'Where the frames beyond 0.25 m come from').",
+        "method 'alternative'). On by default with the 'pnp' measurement model; on the "
+        "paper's it is mixed (README, 'Where the frames beyond 0.25 m come from').",
     )
     localize_seed: int | None = Field(
         default=None,

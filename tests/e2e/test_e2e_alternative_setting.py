@@ -1,5 +1,5 @@
-"""MONOLOC_LOCALIZE_ALTERNATIVE=true makes a server add the alternative pose
-(``LocalizeConfig.alternative``) to frames whose per-entry poses are poorly pinned down;
+"""A server adds the alternative pose (``LocalizeConfig.alternative``) to frames whose
+per-entry poses are poorly pinned down, unless MONOLOC_LOCALIZE_ALTERNATIVE=false;
 ordinary frames get exactly the answer of a server without it (the same seed)."""
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ def test_setting_reads_the_environment_and_reaches_the_pipeline(monkeypatch, tmp
     from monoloc.server.localize import AlternativeConfig
     from monoloc.server.settings import Settings
 
-    assert Settings(data_dir=tmp_path).localize_alternative is False
-    assert localize_config(Settings(data_dir=tmp_path)).pnp_strategy.alternative is None
-    monkeypatch.setenv("MONOLOC_LOCALIZE_ALTERNATIVE", "true")
     settings = Settings(data_dir=tmp_path)
     assert settings.localize_alternative is True
     strategy = localize_config(settings).pnp_strategy
     assert strategy.alternative == AlternativeConfig() and strategy.covariance
+    monkeypatch.setenv("MONOLOC_LOCALIZE_ALTERNATIVE", "false")
+    assert Settings(data_dir=tmp_path).localize_alternative is False
+    assert localize_config(Settings(data_dir=tmp_path)).pnp_strategy.alternative is None
     # the paper's preset has no pooled PnP, hence no alternative pose
     paper = Settings(data_dir=tmp_path, localize_pipeline="paper")
     assert localize_config(paper).pnp_strategy.alternative is None
@@ -40,9 +40,9 @@ def _by_entry(answer) -> dict[tuple[int, str], list[float]]:
 def test_ordinary_frames_are_answered_as_without_it(live_map, tmp_path):
     run = read_run(live_map.dataset, QUERY_SEQ)
     images = [run.image_paths[f].read_bytes() for f in FRAMES]
-    plain = localize_frames(live_map.url, live_map.keys.localize, live_map.map_id, images, 5)
+    tried = localize_frames(live_map.url, live_map.keys.localize, live_map.map_id, images, 5)
     data_dir = tmp_path / "data"
-    tried = localize_frames_on_copy(live_map, data_dir, images, 5, localize_alternative=True)
+    plain = localize_frames_on_copy(live_map, data_dir, images, 5, localize_alternative=False)
     assert sum(bool(p.raw["hypotheses"]) for p in plain) >= 3
     for p, t in zip(plain, tried, strict=True):
         ours, theirs = _by_entry(p), _by_entry(t)

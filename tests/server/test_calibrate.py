@@ -115,9 +115,9 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     assert prov["map_frames"] + prov["map_frames_skipped"] == N_FRAMES // 2
     assert prov["used"] == prov["hypotheses"] - prov["gated_outliers"] >= 10
     assert prov["k"] == 10 and prov["source"] == "sim train" and "unbiased" in prov["covariance"]
-    # The quality-aware model is fitted beside the paper's, on the joint poses too; the
-    # paper's stays selected. More inliers must not widen a hypothesis.
-    assert model.covariance == "paper" and model.quality is not None
+    # The quality-aware and paper models are fitted beside the PnP covariance model, the
+    # one selected. More inliers must not widen a hypothesis.
+    assert model.covariance == "pnp" and model.pnp is not None and model.quality is not None
     assert model.retrieval_frame == "world"
     assert (
         np.sqrt(model.Sigma2[3, 3]) >= 0.05
@@ -154,10 +154,12 @@ def test_the_pnp_covariance_model_can_be_selected_and_needs_the_covariances(exac
     model = _calibrate(exact_run, CalibrationConfig(k=3, covariance="pnp")).model
     assert model.covariance == "pnp" and model.pnp is not None
     without = PnpStrategy(guess_from_prior=False, covariance=False)
-    config = CalibrationConfig(k=3, strategy=without)
+    config = CalibrationConfig(k=3, strategy=without, covariance="paper")
     assert _calibrate(exact_run, config).model.pnp is None
     with pytest.raises(InvalidInputError, match="pnp covariance model"):
-        _calibrate(exact_run, CalibrationConfig(k=3, covariance="pnp", strategy=without))
+        CalibrationConfig(k=3, covariance="pnp", strategy=without)
+    with pytest.raises(InvalidInputError, match="pnp covariance model"):
+        CalibrationConfig(k=3, strategy=without)  # "pnp" is the default
 
 
 def test_the_pnp_model_is_fitted_on_covariances_with_the_keypoints_pyramid_scales(exact_run):

@@ -200,10 +200,10 @@ async def calibration_job(
         Literal["paper", "quality", "pnp"],
         Form(
             description="The pose-error model the stored calibration selects (every model "
-            "is fitted and stored): paper, quality or pnp (each hypothesis's own PnP "
-            "covariance)."
+            "is fitted and stored): pnp (each hypothesis's own PnP covariance; the default), "
+            "paper (the paper's one Sigma1) or quality."
         ),
-    ] = "paper",
+    ] = "pnp",
 ) -> CalibrationJobAccepted:
     """Maximum-likelihood mu1, Sigma1, mu2, Sigma2 from a training run that is not the
     test run (METHOD.md s. 7): a temporary map of every other frame, queried by the

@@ -103,14 +103,17 @@ def test_uploaded_training_run_calibrates_the_map(app, sim_dataset):
     model, calibrated = vehicle.measurement_model(map_id)
     assert calibrated and np.allclose(model.Sigma1, Sigma1)
     assert (model.tail_weight, model.tail_scale) == (0.3, 10.0)
-    # every model is fitted and stored; the paper's is selected unless the form says so
-    assert model.covariance == "paper" and model.pnp is not None and model.quality is not None
-    assert job["result"]["pnp"] == got["pnp"]
-    r = _post(client, keys, map_id, {**TRAIN, "covariance": "pnp"}, tar_sequence(sim_dataset, "00"))
-    assert r.status_code == 202 and r.json()["job"]["params"]["covariance"] == "pnp"
+    # every model is fitted and stored; the PnP covariance model is selected unless the
+    # form says otherwise (the paper's stays one field away)
+    assert model.covariance == "pnp" and model.pnp.pixel_std_px > 0
+    assert model.quality is not None and job["result"]["pnp"] == got["pnp"]
+    r = _post(
+        client, keys, map_id, {**TRAIN, "covariance": "paper"}, tar_sequence(sim_dataset, "00")
+    )
+    assert r.status_code == 202 and r.json()["job"]["params"]["covariance"] == "paper"
     assert wait_job(client, r.json()["job"]["id"], keys.header("write"))["state"] == "done"
     model, _ = vehicle.measurement_model(map_id)
-    assert model.covariance == "pnp" and model.pnp.pixel_std_px > 0
+    assert model.covariance == "paper" and model.pnp is not None
 
 
 def test_too_short_a_run_is_refused_and_leaves_nothing(app, sim_dataset):
