@@ -3,7 +3,7 @@
 Generates (or reuses) a sim dataset, builds the map in memory with the server's own
 code, calibrates the measurement model on the `train` run (a district the map and the
 query never see; with a `trainnight` run, the quality-aware model also on both together,
-run beside the paper's), and localizes the `query` run with each variant of
+run beside the default), and localizes the `query` run with each variant of
 monoloc.evaluation: the default (the PnP covariance model, the server's alternative poses),
 and beside it the paper's covariance (with and without monoloc's tail) and the PnP
 covariance model without the alternative poses. With a
@@ -405,7 +405,7 @@ def urban_city(
         compare = ("quality-aware model, day + night training", pooled.model)
         print(
             f"calibrated on train + trainnight: {pooled.provenance['used']} hypotheses in "
-            f"{time.time() - t0:.0f} s (the quality-aware model, run beside the paper's)"
+            f"{time.time() - t0:.0f} s (the quality-aware model, run beside the default)"
         )
     model = calib.model
     memory = MemoryMap.empty(vocab)
