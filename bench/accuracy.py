@@ -47,6 +47,8 @@ GOALS = {
 # the defaults changed; results/accuracy_urban_s1013.json). 4099: first run on
 # 2026-11-28 on the code of 57a9e95, untouched before; its night was diagnosed after
 # that run, so a change made from now on is confirmed on another fresh seed, never on it.
+# 7331: also run once that day on the same code (its day query failed: an aliased
+# start; results/accuracy_urban_s7331.json), diagnosed after it: spent too.
 HELD_OUT_SEED = 4099
 URBAN_VARIANTS = ("full", "full_euler", "kidnapped", "no_prior", "top1", "topk_mean", "best_pnp")
 
