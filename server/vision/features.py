@@ -2,6 +2,16 @@
 
 Query frames and mapping images go through exactly the same function, so a map entry and
 a query are always described the same way.
+
+ORB keeps the ``max_features`` corners with the highest Harris response over the whole
+image (METHOD.md's rule, ``OrbConfig(grid_cells=None)``). monoloc's default spreads them
+over the image instead, as ORB-SLAM's extractor does: ORB is asked for
+``candidates_factor`` times as many corners, and the kept ones are taken cell by cell over
+a ``grid_cells`` grid (each cell's strongest first, then each cell's second, ...), so a
+facade in the shade keeps its corners beside one in the sun. Why (README, "Decisions
+worth knowing"): with the whole-image rule the corners follow the light, and a query
+driven under a sun opposite to the map's (one side of the street bright in one run, the
+other side in the other) shared too few of them with the map to find its street.
 """
 
 from __future__ import annotations
@@ -30,6 +40,11 @@ class OrbConfig:
     n_levels: int = 8
     edge_threshold: int = 31
     fast_threshold: int = 20
+    # Spread over the image (module doc): (columns, rows) of the grid the kept corners are
+    # taken from in turns, and how many times ``max_features`` candidates ORB is asked for;
+    # None: ORB's own strongest ``max_features`` (the paper's).
+    grid_cells: tuple[int, int] | None = (8, 5)
+    candidates_factor: float = 2.0
 
     def __post_init__(self) -> None:
         if self.max_features < 1:
@@ -48,6 +63,21 @@ class OrbConfig:
                 f"OrbConfig thresholds must be >= 1, got edge {self.edge_threshold}, "
                 f"fast {self.fast_threshold}"
             )
+        if self.grid_cells is not None and (len(self.grid_cells) != 2 or min(self.grid_cells) < 1):
+            raise InvalidInputError(
+                f"OrbConfig.grid_cells must be two counts >= 1 or None, got {self.grid_cells}"
+            )
+        if not self.candidates_factor >= 1.0:
+            raise InvalidInputError(
+                f"OrbConfig.candidates_factor must be >= 1, got {self.candidates_factor}"
+            )
+
+    @property
+    def n_candidates(self) -> int:
+        """Corners asked of ORB: ``max_features``, times ``candidates_factor`` on a grid."""
+        if self.grid_cells is None:
+            return self.max_features
+        return max(self.max_features, round(self.candidates_factor * self.max_features))
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,11 +128,11 @@ def as_gray_uint8(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def _create_orb(config: OrbConfig) -> cv2.ORB:
+def _create_orb(config: OrbConfig, n_features: int | None = None) -> cv2.ORB:
     # A fresh detector per call is negligible next to detectAndCompute, and a shared
     # cv2.ORB is not documented as thread-safe, so there is no cache to get wrong.
     return cv2.ORB_create(
-        nfeatures=config.max_features,
+        nfeatures=n_features or config.max_features,
         scaleFactor=config.scale_factor,
         nlevels=config.n_levels,
         edgeThreshold=config.edge_threshold,
@@ -129,20 +159,50 @@ def extract_features(
         return empty_features()
     if config.blur_ksize > 1:
         gray = cv2.GaussianBlur(gray, (config.blur_ksize, config.blur_ksize), 0)
-    keypoints, descriptors = _create_orb(config).detectAndCompute(gray, None)
+    keypoints, descriptors = _create_orb(config, config.n_candidates).detectAndCompute(gray, None)
     if descriptors is None or len(keypoints) == 0:
         return empty_features()
     points_px = cv2.KeyPoint_convert(keypoints).astype(np.float32, copy=False).reshape(-1, 2)
-    octaves = (
-        np.fromiter((k.octave for k in keypoints), dtype=np.float32, count=len(keypoints))
-        if scales
-        else None
-    )
+    descriptors = descriptors.reshape(-1, DESCRIPTOR_BYTES)
+    keep = None
+    if config.grid_cells is not None and len(keypoints) > config.max_features:
+        response = np.fromiter((k.response for k in keypoints), np.float64, len(keypoints))
+        keep = spread_over_grid(
+            points_px, response, gray.shape, config.grid_cells, config.max_features
+        )
+        points_px, descriptors = points_px[keep], descriptors[keep]
+    octaves = None
+    if scales:
+        octaves = np.fromiter((k.octave for k in keypoints), np.float32, len(keypoints))
+        octaves = octaves if keep is None else octaves[keep]
     return Features(
-        keypoints_px=points_px,
-        descriptors=np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(-1, DESCRIPTOR_BYTES),
+        keypoints_px=np.ascontiguousarray(points_px),
+        descriptors=np.ascontiguousarray(descriptors, dtype=np.uint8),
         scales=None if octaves is None else np.float32(config.scale_factor) ** octaves,
     )
+
+
+def spread_over_grid(
+    points_px: np.ndarray,
+    response: np.ndarray,
+    image_shape: tuple[int, int],
+    grid_cells: tuple[int, int],
+    n: int,
+) -> np.ndarray:
+    """Indices of at most n of the keypoints (N, 2) pixel (x, y), taken in turns over a
+    ``grid_cells`` (columns, rows) grid of an image of ``image_shape`` (H, W): every
+    cell's strongest (``response`` (N,)) first, then every cell's second, and so on, the
+    stronger first within a turn; sorted, so the kept keypoints keep ORB's order."""
+    height, width = image_shape
+    columns, rows = grid_cells
+    col = np.clip((points_px[:, 0] * (columns / width)).astype(np.int64), 0, columns - 1)
+    row = np.clip((points_px[:, 1] * (rows / height)).astype(np.int64), 0, rows - 1)
+    cell = row * columns + col
+    by_cell = np.lexsort((-response, cell))  # cell by cell, strongest first
+    cell_sorted = cell[by_cell]
+    turn = np.empty(len(cell), dtype=np.int64)
+    turn[by_cell] = np.arange(len(cell)) - np.searchsorted(cell_sorted, cell_sorted)
+    return np.sort(np.lexsort((-response, turn))[:n])
 
 
 def _intensity_centroid_angles_deg(gray: np.ndarray, centres: np.ndarray, radius: int):

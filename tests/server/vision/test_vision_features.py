@@ -63,6 +63,15 @@ def test_wrong_dtype_or_shape_raises(image):
         extract_features(image)
 
 
+def test_invalid_config_raises_on_the_grid_too():
+    with pytest.raises(InvalidInputError):
+        OrbConfig(grid_cells=(0, 4))
+    with pytest.raises(InvalidInputError):
+        OrbConfig(candidates_factor=0.5)
+    assert OrbConfig(grid_cells=None).n_candidates == 1000
+    assert OrbConfig().n_candidates == 2000
+
+
 def test_invalid_config_raises():
     with pytest.raises(InvalidInputError):
         OrbConfig(blur_ksize=4)
@@ -104,7 +113,7 @@ def test_describe_keypoints_reproduces_orb_at_its_own_full_resolution_detections
 def test_scales_are_the_pyramid_scale_opencv_detected_each_keypoint_at():
     import cv2
 
-    config = OrbConfig()
+    config = OrbConfig(grid_cells=None)  # ORB's own keypoints, one to one
     image = data.camera()
     assert extract_features(image, config).scales is None  # only when asked for
     features = extract_features(image, config, scales=True)
@@ -118,3 +127,77 @@ def test_scales_are_the_pyramid_scale_opencv_detected_each_keypoint_at():
     levels = np.round(np.log(features.scales) / np.log(config.scale_factor))
     assert levels.min() == 0 and levels.max() >= 4  # a photograph has corners at every scale
     assert extract_features(np.full((64, 64), 9, dtype=np.uint8)).scales.shape == (0,)
+    # spread over the grid: the kept keypoints are ORB's candidates picked by the grid,
+    # each with its own scale
+    spread = extract_features(image, OrbConfig(), scales=True)
+    candidates, _ = _create_orb(OrbConfig(), OrbConfig().n_candidates).detectAndCompute(
+        blurred, None
+    )
+    picked = _picked(candidates, image.shape)
+    assert np.array_equal(cv2.KeyPoint_convert(candidates)[picked], spread.keypoints_px)
+    sizes = np.array([candidates[i].size for i in picked])
+    assert np.allclose(spread.scales * config.edge_threshold, sizes, rtol=1e-5)
+
+
+def _picked(keypoints, image_shape) -> np.ndarray:
+    import cv2
+
+    from monoloc.server.vision.features import spread_over_grid
+
+    response = np.array([k.response for k in keypoints])
+    config = OrbConfig()
+    points = cv2.KeyPoint_convert(keypoints)
+    return spread_over_grid(points, response, image_shape, config.grid_cells, config.max_features)
+
+
+def _shaded_half(image: np.ndarray) -> np.ndarray:
+    """The photograph with its left half in the shade: a third of the contrast, darker."""
+    shaded = image.astype(np.float64)
+    half = image.shape[1] // 2
+    shaded[:, :half] = 20.0 + shaded[:, :half] / 3.0
+    return shaded.astype(np.uint8)
+
+
+def test_the_grid_keeps_corners_in_the_shade_that_the_strongest_rule_drops():
+    """A real photograph with one half in the shade: ORB's strongest 1000 (the paper's
+    rule) sit nearly all in the sunlit half, the grid keeps several times as many in the
+    shade, and every kept feature is one of ORB's own candidates with its descriptor."""
+    import cv2
+
+    image = _shaded_half(data.astronaut()[:, :, 1])
+    half = image.shape[1] // 2
+    strongest = extract_features(image, OrbConfig(grid_cells=None))
+    spread = extract_features(image)
+    assert len(strongest) == len(spread) == 1000
+    shade_strongest = np.mean(strongest.keypoints_px[:, 0] < half)
+    shade_spread = np.mean(spread.keypoints_px[:, 0] < half)
+    # 4 % and 23 % here: the candidates are ORB's strongest 2000, few of them in the shade
+    assert shade_strongest < 0.1 and shade_spread > max(0.15, 3 * shade_strongest)
+    config = OrbConfig()
+    blurred = cv2.GaussianBlur(image, (config.blur_ksize, config.blur_ksize), 0)
+    keypoints, descriptors = _create_orb(config, config.n_candidates).detectAndCompute(
+        blurred, None
+    )
+    picked = _picked(keypoints, image.shape)
+    assert np.array_equal(cv2.KeyPoint_convert(keypoints)[picked], spread.keypoints_px)
+    assert np.array_equal(descriptors[picked], spread.descriptors)
+
+
+def test_spread_over_grid_takes_every_cells_strongest_first():
+    from monoloc.server.vision.features import spread_over_grid
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform([0, 0], [400, 200], size=(500, 2)).astype(np.float32)
+    points[:300] = rng.uniform([0, 0], [100, 100], size=(300, 2))  # a crowded corner cell
+    response = rng.uniform(size=500)
+    response[:300] += 10.0  # ... that is also the brightest
+    kept = spread_over_grid(points, response, (200, 400), (4, 2), 8)
+    cells = (points[kept, 1] // 100).astype(int) * 4 + (points[kept, 0] // 100).astype(int)
+    assert sorted(cells.tolist()) == list(range(8))  # one per cell, not eight in the corner
+    for i, c in zip(kept, cells, strict=True):
+        in_cell = ((points[:, 1] // 100) * 4 + points[:, 0] // 100) == c
+        assert response[i] == response[in_cell].max()
+    assert np.all(np.diff(kept) > 0)  # in ORB's order
+    # more than the cells hold in one turn: the second turn, then all there are
+    assert len(spread_over_grid(points, response, (200, 400), (4, 2), 16)) == 16
+    assert len(spread_over_grid(points, response, (200, 400), (4, 2), 900)) == 500
