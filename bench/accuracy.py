@@ -51,7 +51,8 @@ GOALS = {
 # start; results/accuracy_urban_s7331.json), diagnosed after it: spent too; 4099's
 # results are in results/accuracy_urban_s4099.json. The ORB grid (ad96155) was chosen on
 # 4099 and 7331, then 5501 was run once on that commit (results/accuracy_urban.json,
-# --no-stereo), untouched before; changes from then on need another fresh seed.
+# --no-stereo), untouched before; then 6607 the same way on the same product code
+# (results/accuracy_urban_s6607.json). Changes from then on need another fresh seed.
 HELD_OUT_SEED = 5501
 URBAN_VARIANTS = ("full", "full_euler", "kidnapped", "no_prior", "top1", "topk_mean", "best_pnp")
 
