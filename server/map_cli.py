@@ -88,9 +88,16 @@ def map_list(ctx: typer.Context) -> None:
     from monoloc.server.ingest.manage import list_maps
 
     _, factory = open_database(ctx)
-    table = Table("id", "name", "entries", "version", "vocabulary", "camera", "calibrated")
+    from monoloc.server.vision.features import rule_is_current, rule_text
+
+    table = Table(
+        "id", "name", "entries", "version", "vocabulary", "camera", "calibrated", "corners"
+    )
+    stale = []
     for m in list_maps(factory):
         c = m.camera
+        current = rule_is_current(m.features)
+        stale += [] if current else [m.name]
         table.add_row(
             str(m.id),
             m.name,
@@ -99,8 +106,14 @@ def map_list(ctx: typer.Context) -> None:
             m.vocabulary_hash,
             f"{c.width_px}x{c.height_px} f={c.fx:.1f}",
             "yes" if m.calibration else "no",
+            rule_text(m.features) + ("" if current else " (not this server's)"),
         )
     Console().print(table)
+    if stale:
+        typer.echo(
+            f"{', '.join(stale)}: entries picked their ORB corners another way than this "
+            "server picks a query's; upload the runs again into a new map to rebuild it"
+        )
 
 
 @map_app.command("stats")

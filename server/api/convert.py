@@ -24,6 +24,7 @@ from monoloc.server.storage.records import (
     MapRecord,
     VocabularyRecord,
 )
+from monoloc.server.vision.features import rule_is_current
 
 # Internal job parameters that clients do not need to see.
 _PRIVATE_PARAMS = ("upload",)
@@ -78,6 +79,8 @@ def map_public(m: MapRecord, vocab: VocabularyRecord) -> s.MapPublic:
         n_entries=m.n_entries,
         calibrated=bool(m.calibration),
         geo_reference=geo_reference_public(m.geo_reference),
+        features=m.features,
+        features_current=rule_is_current(m.features),
         created_at=m.created_at,
         updated_at=m.updated_at,
     )

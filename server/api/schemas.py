@@ -233,6 +233,18 @@ class MapPublic(BaseModel):
     geo_reference: GeoReferencePublic | None = Field(
         default=None, description="The map's geographic reference; null: not geo-referenced."
     )
+    features: dict[str, Any] | None = Field(
+        default=None,
+        description='How the map\'s entries picked their ORB corners: {"rule": "grid", '
+        '"grid_cells": [8, 5], "candidates_factor": 2.0} or {"rule": "strongest"} (ORB\'s '
+        "own, every map built before the grid).",
+    )
+    features_current: bool = Field(
+        default=True,
+        description="Whether this server picks a query's corners the way the map's entries "
+        "were picked. False: queries share fewer corners with the entries (worse than "
+        "either rule alone); upload the map's runs again into a new map to rebuild it.",
+    )
     created_at: datetime
     updated_at: datetime
 

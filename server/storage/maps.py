@@ -115,13 +115,24 @@ def _map_record(row: Map, vocab_hash: str, n_entries: int) -> MapRecord:
         created_at=row.created_at,
         updated_at=row.updated_at,
         geo_reference=row.geo_reference,
+        features=row.features,
     )
 
 
 def create_map(
-    session: Session, name: str, camera: CameraIntrinsics, vocabulary_id: int
+    session: Session,
+    name: str,
+    camera: CameraIntrinsics,
+    vocabulary_id: int,
+    features: Mapping[str, Any] | None = None,
 ) -> MapRecord:
-    """Create an empty map; ConflictError if the name is taken (the session stays usable)."""
+    """Create an empty map; ConflictError if the name is taken (the session stays usable).
+    ``features``: how its entries will pick their ORB corners; None: the way this server's
+    entry builder does (``vision.features.selection_rule`` of the default ``OrbConfig``)."""
+    if features is None:
+        from monoloc.server.vision.features import selection_rule
+
+        features = selection_rule()
     if not isinstance(name, str) or not MAP_NAME_RE.match(name):
         raise InvalidInputError(
             f"invalid map name {name!r}: 1-64 letters, digits, '.', '_' or '-', "
@@ -139,6 +150,7 @@ def create_map(
         "height_px": int(camera.height_px),
         "vocabulary_id": vocabulary_id,
         "version": 0,
+        "features": dict(features),
         "created_at": now,
         "updated_at": now,
     }

@@ -112,6 +112,9 @@ class Map(Base):
     calibration: Mapped[dict[str, Any] | None]
     # WGS84 reference of the map's world (monoloc/core/geo.py GeoReference.to_dict), or NULL.
     geo_reference: Mapped[dict[str, Any] | None]
+    # How the map's entries picked their ORB corners (vision.features.selection_rule), set
+    # when the map is created; maps from before revision 0007 say {"rule": "strongest"}.
+    features: Mapped[dict[str, Any] | None]
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
 

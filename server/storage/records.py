@@ -57,6 +57,8 @@ class MapRecord:
     updated_at: datetime
     # monoloc/core/geo.py GeoReference.to_dict(), or None: the map is not geo-referenced
     geo_reference: dict[str, Any] | None = None
+    # how the map's entries picked their ORB corners (vision.features.selection_rule)
+    features: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)

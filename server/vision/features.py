@@ -182,6 +182,36 @@ def extract_features(
     )
 
 
+def selection_rule(config: OrbConfig = OrbConfig()) -> dict:
+    """How ``config`` picks the corners it keeps, as a map records it for its entries:
+    ``{"rule": "strongest"}`` (ORB's own, the whole image) or ``{"rule": "grid",
+    "grid_cells": [columns, rows], "candidates_factor": f}``. Entries and queries picked
+    by different rules share fewer corners (README, "ORB features spread over the image")."""
+    if config.grid_cells is None:
+        return {"rule": "strongest"}
+    return {
+        "rule": "grid",
+        "grid_cells": [int(c) for c in config.grid_cells],
+        "candidates_factor": float(config.candidates_factor),
+    }
+
+
+def rule_is_current(recorded: dict | None, config: OrbConfig = OrbConfig()) -> bool:
+    """Whether corners picked by ``config`` are picked the way a map recorded for its
+    entries (:func:`selection_rule`; None, nothing recorded, counts as current)."""
+    return recorded is None or dict(recorded) == selection_rule(config)
+
+
+def rule_text(recorded: dict | None) -> str:
+    """A map's recorded rule for people: "grid 8x5", "strongest" or "-"."""
+    if not recorded:
+        return "-"
+    if recorded.get("rule") == "grid":
+        columns, rows = recorded.get("grid_cells", ("?", "?"))
+        return f"grid {columns}x{rows}"
+    return str(recorded.get("rule", "?"))
+
+
 def spread_over_grid(
     points_px: np.ndarray,
     response: np.ndarray,

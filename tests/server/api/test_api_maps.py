@@ -63,6 +63,39 @@ def test_map_lifecycle(fresh):
     assert client.get("/v1/maps/99", headers=admin).json()["error"]["code"] == "not_found"
 
 
+def test_a_map_says_how_its_entries_picked_their_corners(tmp_path):
+    """A new map records the server's ORB rule and says it is current; a map whose entries
+    were picked by ORB's own rule (every map from before the grid) says it is not."""
+    from api_helpers import ADMIN_KEY, make_settings, open_client
+    from sqlalchemy import update
+
+    from monoloc.server.storage.db import create_engine_for
+    from monoloc.server.storage.models import Map
+
+    settings = make_settings(tmp_path / "data")
+    admin = {"X-API-Key": ADMIN_KEY}
+    with open_client(settings) as client:
+        r = client.post("/v1/maps", json={"name": "grid", "camera": CAMERA}, headers=admin)
+        assert r.status_code == 201, r.text
+        created = r.json()
+        assert created["features"] == {
+            "rule": "grid",
+            "grid_cells": [8, 5],
+            "candidates_factor": 2.0,
+        }
+        assert created["features_current"] is True
+        engine = create_engine_for(settings)
+        with engine.begin() as conn:
+            conn.execute(
+                update(Map).where(Map.id == created["id"]).values(features={"rule": "strongest"})
+            )
+        engine.dispose()
+        old = client.get(f"/v1/maps/{created['id']}", headers=admin).json()
+        assert old["features"] == {"rule": "strongest"} and old["features_current"] is False
+        listed = client.get("/v1/maps", headers=admin).json()
+        assert [m["features_current"] for m in listed["items"]] == [False]
+
+
 def test_calibration_defaults_put_and_delete(fresh):
     client, keys = fresh
     map_id = client.post(

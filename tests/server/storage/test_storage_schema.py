@@ -26,7 +26,7 @@ def test_upgrade_creates_exactly_the_models_schema(tmp_path):
     assert current_revision(url) is None
     upgrade_database(url)
     upgrade_database(url)  # idempotent
-    assert current_revision(url) == head_revision() == "0006"
+    assert current_revision(url) == head_revision() == "0007"
     engine = create_engine(url)
     with engine.connect() as conn:
         assert set(inspect(conn).get_table_names()) == TABLES | {"alembic_version"}
@@ -82,3 +82,33 @@ def test_settings_from_environment_not_cached(tmp_path, monkeypatch):
 def test_migrations_are_found_in_the_source_tree():
     # The wheel ships them as monoloc.migrations (tests/test_packaging.py).
     assert migrations_dir() == REPO / "migrations"
+
+
+def test_maps_record_how_their_entries_picked_their_corners(settings, factory, map_id):
+    """A new map records the server's ORB rule (the grid); a map from before revision 0007
+    is stamped with ORB's own rule by the upgrade, the only rule there was."""
+    from alembic import command
+
+    from monoloc.server.storage.db import session_scope
+    from monoloc.server.storage.maps import get_map
+    from monoloc.server.storage.migrate import alembic_config
+    from monoloc.server.vision.features import OrbConfig, selection_rule
+
+    with session_scope(factory) as session:
+        recorded = get_map(session, map_id).features
+    assert (
+        recorded
+        == selection_rule()
+        == {
+            "rule": "grid",
+            "grid_cells": [8, 5],
+            "candidates_factor": 2.0,
+        }
+    )
+    assert selection_rule(OrbConfig(grid_cells=None)) == {"rule": "strongest"}
+    factory.kw["bind"].dispose()
+    command.downgrade(alembic_config(settings.database_url), "0006")
+    upgrade_database(settings.database_url)
+    with session_scope(factory) as session:
+        record = get_map(session, map_id)
+    assert record.features == {"rule": "strongest"} and record.name == "m"
