@@ -106,13 +106,14 @@ def map_list(ctx: typer.Context) -> None:
             m.vocabulary_hash,
             f"{c.width_px}x{c.height_px} f={c.fx:.1f}",
             "yes" if m.calibration else "no",
-            rule_text(m.features) + ("" if current else " (not this server's)"),
+            rule_text(m.features) + ("" if current else " (not the default)"),
         )
     Console().print(table)
     if stale:
         typer.echo(
-            f"{', '.join(stale)}: entries picked their ORB corners another way than this "
-            "server picks a query's; upload the runs again into a new map to rebuild it"
+            f"{', '.join(stale)}: entries picked their ORB corners by another rule than the "
+            "default; served by their own rule, upload the runs again into a new map to "
+            "rebuild with the default"
         )
 
 

@@ -22,7 +22,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import MapChangeRecord, MapRecord
+from monoloc.server.vision.features import orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -421,6 +422,9 @@ class MapRegistry:
         """Hypotheses for one frame and the map version they were computed against."""
         runtime = self.get(map_id)
         camera = intrinsics or runtime.record.camera
+        if runtime.record.features:
+            # the query described as the map's entries were (maps.features)
+            config = replace(config, orb=orb_for_rule(runtime.record.features, config.orb))
         result = localize_frame(
             image_gray,
             camera,

@@ -241,9 +241,10 @@ class MapPublic(BaseModel):
     )
     features_current: bool = Field(
         default=True,
-        description="Whether this server picks a query's corners the way the map's entries "
-        "were picked. False: queries share fewer corners with the entries (worse than "
-        "either rule alone); upload the map's runs again into a new map to rebuild it.",
+        description="Whether the map's entries picked their corners by this server's default "
+        "rule. False: the map is served by its own rule (its new entries and its queries "
+        "are described as its first entries were), without the default's gain; upload its "
+        "runs again into a new map to rebuild it with the default.",
     )
     created_at: datetime
     updated_at: datetime

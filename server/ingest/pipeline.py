@@ -34,7 +34,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
@@ -46,12 +46,13 @@ from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_e
 from monoloc.server.index.retrieval import RetrievalIndex
 from monoloc.server.ingest.common import bytes_hash, content_hash, decode_gray, read_bytes
 from monoloc.server.ingest.register import RegistrationTarget, register_source
-from monoloc.server.localize import ReferenceEntry
+from monoloc.server.localize import LocalizeConfig, ReferenceEntry
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import NewEntry
+from monoloc.server.vision.features import orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -229,7 +230,7 @@ class _Writer:
             )
 
 
-def _load_vocabulary(factory, map_id: int, source) -> tuple[Vocabulary, int]:
+def _load_vocabulary(factory, map_id: int, source) -> tuple[Vocabulary, int, dict | None]:
     with session_scope(factory) as session:
         record = maps_repo.get_map(session, map_id)
         vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
@@ -243,7 +244,8 @@ def _load_vocabulary(factory, map_id: int, source) -> tuple[Vocabulary, int]:
             record.name,
             record.camera,
         )
-    return Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description), vocab.id
+    vocabulary = Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
+    return vocabulary, vocab.id, record.features
 
 
 _ABSENT = object()
@@ -298,7 +300,10 @@ def ingest_run(
     from threadpoolctl import threadpool_limits
 
     start = time.perf_counter()
-    vocabulary, vocabulary_id = _load_vocabulary(session_factory, map_id, source)
+    vocabulary, vocabulary_id, features = _load_vocabulary(session_factory, map_id, source)
+    # entries described as the map's first ones were (maps.features)
+    build = replace(config.build, orb=orb_for_rule(features, config.build.orb))
+    config = replace(config, build=build)
     registration = None
     if config.register is not None:
         with threadpool_limits(1):
@@ -395,7 +400,13 @@ def _register(session_factory, map_id, run_id, source, vocabulary, config, shoul
     rng = np.random.default_rng([map_id, run_id])
     target = RegistrationTarget(vocabulary, index, lookup)
     return register_source(
-        source, target, rng, config=config.register, should_stop=should_stop, workers=config.workers
+        source,
+        target,
+        rng,
+        config=config.register,
+        localize=LocalizeConfig(orb=config.build.orb),  # the map's rule (maps.features)
+        should_stop=should_stop,
+        workers=config.workers,
     )
 
 

@@ -7,6 +7,7 @@ depth PNG, extrinsics).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import EntrySummary
+from monoloc.server.vision.features import orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary
 
 UPLOAD = Path("<uploaded image>")
@@ -62,6 +64,8 @@ def add_single_image(
         record = maps_repo.get_map(session, map_id)
         vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
     camera = intrinsics or record.camera
+    # described as the map's other entries (maps.features)
+    config = replace(config, orb=orb_for_rule(record.features, config.orb))
     # The declared size is checked before decoding: a small file may declare a huge image.
     declared = read_image_header(image_bytes, "image")
     if (declared.width_px, declared.height_px) != (camera.width_px, camera.height_px):

@@ -16,7 +16,7 @@ other side in the other) shared too few of them with the map to find its street.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -196,9 +196,31 @@ def selection_rule(config: OrbConfig = OrbConfig()) -> dict:
     }
 
 
+def orb_for_rule(recorded: dict | None, config: OrbConfig = OrbConfig()) -> OrbConfig:
+    """``config`` picking its corners the way a map recorded for its entries
+    (:func:`selection_rule`), so that the entries added to a map later and the queries
+    against it are described as its first entries were; None (nothing recorded):
+    ``config`` as it is. InvalidInputError on a rule this code does not know."""
+    if not recorded:
+        return config
+    rule = recorded.get("rule")
+    if rule == "strongest":
+        return replace(config, grid_cells=None)
+    if rule == "grid":
+        try:
+            columns, rows = (int(c) for c in recorded["grid_cells"])
+            factor = float(recorded["candidates_factor"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvalidInputError(f"a map's ORB rule is malformed: {recorded!r}") from exc
+        return replace(config, grid_cells=(columns, rows), candidates_factor=factor)
+    raise InvalidInputError(f"unknown ORB corner rule {rule!r} (strongest or grid)")
+
+
 def rule_is_current(recorded: dict | None, config: OrbConfig = OrbConfig()) -> bool:
-    """Whether corners picked by ``config`` are picked the way a map recorded for its
-    entries (:func:`selection_rule`; None, nothing recorded, counts as current)."""
+    """Whether a map recorded the rule ``config`` (the server's default) picks corners by
+    (:func:`selection_rule`; None, nothing recorded, counts as current). A map of another
+    rule is served by its own rule (:func:`orb_for_rule`): it works as it did, without the
+    default's gain."""
     return recorded is None or dict(recorded) == selection_rule(config)
 
 
