@@ -33,7 +33,7 @@ from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import VocabularyRecord
-from monoloc.server.vision.features import OrbConfig, extract_features
+from monoloc.server.vision.features import OrbConfig, extract_features, orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary, VocabularyConfig, train_vocabulary
 
 log = logging.getLogger(__name__)
@@ -206,6 +206,7 @@ def change_map_vocabulary_detailed(
         if record.vocabulary_id != vocabulary_id:
             maps_repo.set_map_vocabulary(session, map_id, vocabulary_id)
     vocabulary = Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
+    orb = orb_for_rule(record.features, orb)  # described as its entries were (maps.features)
     todo = _pending_ids(session_factory, map_id, vocabulary_id)
     paths = _image_paths_by_hash(session_factory, map_id) if todo else {}
     exact = approximate = 0

@@ -35,6 +35,7 @@ from monoloc.server.jobs.uploads import dataset_root, open_source
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import JobRecord
+from monoloc.server.vision.features import orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary
 
 JOB_KIND = "calibrate"
@@ -47,11 +48,15 @@ def training_frames(source) -> Iterator[TrainingFrame]:
         yield TrainingFrame(loaded.image_gray, frame.T_world_from_cam, loaded.source)
 
 
-def _map_vocabulary(session_factory: sessionmaker[Session], map_id: int) -> Vocabulary:
+def _map_vocabulary(
+    session_factory: sessionmaker[Session], map_id: int
+) -> tuple[Vocabulary, dict[str, Any] | None]:
+    """The map's vocabulary and its ORB rule (``maps.features``)."""
     with session_scope(session_factory) as session:
         record = maps_repo.get_map(session, map_id)
         vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
-    return Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
+    vocabulary = Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
+    return vocabulary, record.features
 
 
 def calibrate_map(
@@ -75,7 +80,10 @@ def calibrate_map(
     """
     name = source_name or source.name
     check_run_length(len(source.frames), config, name)
-    vocabulary = _map_vocabulary(session_factory, map_id)
+    vocabulary, features = _map_vocabulary(session_factory, map_id)
+    # the training run described as the map's entries and its queries are (maps.features)
+    build = dataclasses.replace(config.build, orb=orb_for_rule(features, config.build.orb))
+    config = dataclasses.replace(config, build=build)
     result = calibrate(
         training_frames(source),
         source.intrinsics,

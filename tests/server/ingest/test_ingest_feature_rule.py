@@ -128,3 +128,38 @@ def test_orb_for_rule_reads_back_what_selection_rule_records():
     for bad in ({"rule": "sift"}, {"rule": "grid", "grid_cells": "8x5"}, {"rule": "grid"}):
         with pytest.raises(InvalidInputError):
             orb_for_rule(bad)
+
+
+def test_a_vocabulary_change_recomputes_vlads_by_the_maps_rule(
+    kitti_root, factory, make_map, make_run
+):
+    """Switching a map of ORB's rule to another vocabulary recomputes each entry's VLAD
+    from its image described by that rule, as its queries are."""
+    from monoloc.server.ingest.vocab import change_map_vocabulary_detailed
+    from monoloc.server.storage.maps import get_or_create_vocabulary
+    from monoloc.server.vision.vlad import compute_vlad
+    from monoloc.server.vision.vocabulary import Vocabulary
+
+    seq = read_kitti_sequence(kitti_root.root)
+    map_id = make_map(name="vocab-strongest")
+    _as_strongest(factory, map_id)
+    ingest_run(factory, map_id, seq, run_id=make_run(map_id, seq))
+    centres = np.random.default_rng(5).uniform(0, 255, (64, 32)).astype(np.float32)
+    with session_scope(factory) as session:
+        vocab, _ = get_or_create_vocabulary(session, centres, "another vocabulary")
+    change = change_map_vocabulary_detailed(factory, map_id, vocab.id)
+    assert change.exact == len(seq.frames)
+    image = seq.load(seq.frames[3]).image_gray
+    with session_scope(factory) as session:
+        ids = [e.id for e in entries_repo.list_entries(session, map_id)]
+        by_hash = {
+            d.summary.source_image_hash: d.vlad for d in entries_repo.get_entry_data(session, ids)
+        }
+    stored = by_hash[content_hash(image)]
+    vocabulary = Vocabulary.from_centres(centres)
+    strongest = compute_vlad(
+        extract_features(image, OrbConfig(grid_cells=None)).descriptors, vocabulary
+    )
+    grid = compute_vlad(extract_features(image).descriptors, vocabulary)
+    np.testing.assert_allclose(stored, strongest, atol=1e-6)
+    assert not np.allclose(stored, grid, atol=1e-6)
