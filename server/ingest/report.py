@@ -103,6 +103,18 @@ def print_stats(stats, console: Console | None = None) -> None:
         "calibration",
         "calibrated" if m.calibration else "not calibrated (default measurement model)",
     )
+    from monoloc.server.vision.features import rule_is_current, rule_text
+
+    table.add_row(
+        "ORB corners",
+        rule_text(m.features)
+        + (
+            " (the default)"
+            if rule_is_current(m.features)
+            else " (not the default: served by its own rule; upload its runs into a new map "
+            "to rebuild it with the default)"
+        ),
+    )
     table.add_row(
         "3D keypoints per entry",
         f"mean {stats.points_mean:.0f}, min {stats.points_min}, max {stats.points_max}"

@@ -52,6 +52,7 @@ def test_map_commands(app, kitti_root, tmp_path):
     out = _ok(app, "map", "stats", "wall", env=env)
     assert "entries" in out and "night: 3" in out and "day: 5" in out
     assert "not calibrated" in out
+    assert "ORB corners" in out and "(the default)" in out
     listed = _ok(app, "map", "list", env=env)
     assert "wall" in listed and "grid" in listed and "upload the runs again" not in listed
 
