@@ -27,7 +27,11 @@ class RecordingErrors:
     along the route, they are not white): ``pose_error_m`` horizontal RMS (0.05 m; RT3000
     RTK 0.02 m 1 sigma in open sky, worse between buildings), ``pose_vertical_error_m``
     (0.03 m), ``pose_yaw_error_rad`` (0.1 deg 1 sigma, dual-antenna heading),
-    ``pose_tilt_error_rad`` roll and pitch each (0.03 deg 1 sigma).
+    ``pose_tilt_error_rad`` roll and pitch each (0.03 deg 1 sigma). The INS smooths them
+    (``pose_error_smoothing_s``, 1 s: a first-order low-pass): from one frame to the next
+    the error moves by about a millimetre, not by the 5 mm a first-order process of that
+    size and time constant moves in 0.1 s, which would be a 0.05 m/s rate error against
+    the RT3000's 0.05 km/h (0.014 m/s) RMS velocity accuracy.
 
     LiDAR: ``lidar_motion_distortion``: columns fire over the 0.1 s sweep while the car
     moves, points not compensated. ``lidar_sync_offset_s``: the camera is not triggered
@@ -55,6 +59,7 @@ class RecordingErrors:
     pose_yaw_error_rad: float = math.radians(0.1)
     pose_tilt_error_rad: float = math.radians(0.03)
     pose_error_time_s: float = 20.0
+    pose_error_smoothing_s: float = 1.0
     speed_scale_error: float = 0.01
     speed_bias_mps: float = 0.02
     speed_noise_mps: float = 0.05
@@ -110,10 +115,18 @@ def perturb_calibration(
 
 
 def smooth_random(
-    times_s: np.ndarray, sigma: float, time_constant_s: float, rng: np.random.Generator
+    times_s: np.ndarray,
+    sigma: float,
+    time_constant_s: float,
+    rng: np.random.Generator,
+    smoothing_s: float = 0.0,
 ) -> np.ndarray:
     """(n,) zero-mean Gauss-Markov process of standard deviation ``sigma`` sampled at
-    ``times_s`` (first-order, correlation time ``time_constant_s``)."""
+    ``times_s`` (first-order, correlation time ``time_constant_s``), passed through a
+    first-order low-pass of time constant ``smoothing_s`` (0: none) and scaled back to
+    ``sigma``. The first-order process alone moves by sigma sqrt(2 dt / tau) between
+    samples however close they are (it has no rate); the low-pass gives it a finite rate
+    of about sigma / sqrt(tau * smoothing_s) RMS, as an INS's error has."""
     n = len(times_s)
     out = np.zeros(n)
     if sigma <= 0 or n == 0:
@@ -122,7 +135,15 @@ def smooth_random(
     for k in range(1, n):
         a = math.exp(-(times_s[k] - times_s[k - 1]) / time_constant_s)
         out[k] = a * out[k - 1] + sigma * math.sqrt(1 - a * a) * rng.standard_normal()
-    return out
+    if smoothing_s <= 0:
+        return out
+    smooth = np.empty(n)
+    smooth[0] = out[0]
+    for k in range(1, n):
+        b = math.exp(-(times_s[k] - times_s[k - 1]) / smoothing_s)
+        smooth[k] = b * smooth[k - 1] + (1.0 - b) * out[k]
+    # the stationary variance of the low-passed process is sigma^2 tau / (tau + smoothing)
+    return smooth * math.sqrt((time_constant_s + smoothing_s) / time_constant_s)
 
 
 def apply_pose_errors(
@@ -134,13 +155,13 @@ def apply_pose_errors(
     """(n, 4, 4) written poses: the true ones (n, 4, 4) with slowly varying horizontal and
     vertical position offsets and small heading, roll and pitch errors (about the
     camera's own centre)."""
-    tau = errors.pose_error_time_s
-    ex = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng)
-    ey = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng)
-    ez = smooth_random(times_s, errors.pose_vertical_error_m, tau, rng)
-    eyaw = smooth_random(times_s, errors.pose_yaw_error_rad, tau, rng)
-    eroll = smooth_random(times_s, errors.pose_tilt_error_rad, tau, rng)
-    epitch = smooth_random(times_s, errors.pose_tilt_error_rad, tau, rng)
+    tau, lp = errors.pose_error_time_s, errors.pose_error_smoothing_s
+    ex = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng, lp)
+    ey = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng, lp)
+    ez = smooth_random(times_s, errors.pose_vertical_error_m, tau, rng, lp)
+    eyaw = smooth_random(times_s, errors.pose_yaw_error_rad, tau, rng, lp)
+    eroll = smooth_random(times_s, errors.pose_tilt_error_rad, tau, rng, lp)
+    epitch = smooth_random(times_s, errors.pose_tilt_error_rad, tau, rng, lp)
     out = np.array(T_world_from_cam, dtype=np.float64, copy=True)
     out[:, :3, :3] = _rpy(eroll, epitch, eyaw) @ out[:, :3, :3]
     out[:, 0, 3] += ex

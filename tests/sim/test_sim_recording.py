@@ -71,6 +71,25 @@ def test_pose_errors_have_the_stated_size_and_vary_slowly(tmp_path, city_and_pla
     assert not np.allclose(errs[0][:50, :2], errs[1][:50, :2], atol=0.01)
 
 
+def test_pose_errors_move_little_between_frames_like_an_ins(tmp_path, city_and_plans):
+    """The written pose error is smooth at the frame rate: its rate (the error's change
+    from one frame to the next over dt) stays within the RT3000's 0.05 km/h RMS velocity
+    accuracy, while the first-order process alone (no smoothing) jumps 5 mm per frame."""
+    config, _, plans = city_and_plans
+
+    def rate_rms_mps(errors: RecordingErrors) -> float:
+        rates = []
+        for plan in plans:
+            err, _ = _pose_errors(plan, config, errors, tmp_path)
+            dt = np.diff(plan.frame_times_s)
+            rates.append(np.hypot(*np.diff(err[:, :2], axis=0).T) / dt)
+        return float(np.sqrt(np.mean(np.concatenate(rates) ** 2)))
+
+    smooth = RecordingErrors()
+    assert rate_rms_mps(smooth) < 0.05 / 3.6
+    assert rate_rms_mps(replace(smooth, pose_error_smoothing_s=0.0)) > 0.03
+
+
 def test_pose_and_calibration_errors_are_seeded_and_off_in_none(tmp_path, city_and_plans):
     config, _, plans = city_and_plans
     plan = plans[0]
