@@ -103,6 +103,7 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
     floors = (
         ("recording_floor", "query"),
         ("recording_floor_pnp", "query, PnP covariance model"),  # results before 2026-11-28
+        ("recording_floor_mode", "query, the particles' mode (no refinement)"),
         ("recording_floor_paper", "query, paper model"),
         ("night_recording_floor", "night + night entries; approximate: two maps"),
     )

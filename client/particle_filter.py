@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from monoloc.client.motion import MotionConfig, advance, predict
+from monoloc.client.refine import ModeRefiner, RefineConfig
 from monoloc.client.resampling import (
     effective_sample_size,
     normalise_log_weights,
@@ -96,6 +97,10 @@ class FilterConfig:
     # Roughening after resampling: Gaussian jitter (m, m, rad) so that a cloud that
     # collapsed onto a few particles can still move to where the measurements are.
     roughening_std: tuple[float, float, float] = (0.02, 0.02, math.radians(0.1))
+    # The reported pose: a Gaussian filter riding on the main mode (client/refine.py)
+    # averages the hypotheses over time with the measured motion and the speed signal's
+    # scale; None reports the particles' mode itself (METHOD.md's filter).
+    refine: RefineConfig | None = field(default_factory=RefineConfig)
 
 
 @dataclass(frozen=True)
@@ -108,6 +113,8 @@ class FilterEstimate:
     n_hypotheses: int
     lost: bool
     frames_since_support: int = 0
+    # the particles' main mode (3,): pose_world when the refinement is off
+    mode_world: np.ndarray | None = None
 
     @property
     def position_std_m(self) -> float:
@@ -192,6 +199,7 @@ class ParticleFilter:
         self._track_log: deque[tuple[int, bool]] = deque(maxlen=config.reseed_window_frames)
         # Every likely frame of the last ``track_memory_frames`` since the last (re-)seed.
         self._likely_frames: deque[int] = deque(maxlen=max(1, config.track_memory_frames))
+        self.refiner = ModeRefiner(config.refine) if config.refine is not None else None
 
     @property
     def initialised(self) -> bool:
@@ -208,6 +216,8 @@ class ParticleFilter:
         self.frames_since_support = 0
         self._track_log.clear()
         self._likely_frames.clear()
+        if self.refiner is not None:
+            self.refiner.stop()  # it starts again from the new particles' mode
 
     def initialise_from_hypotheses(self, hypotheses: Hypotheses) -> None:
         """Start around the (bias-corrected) hypotheses of one frame."""
@@ -222,11 +232,15 @@ class ParticleFilter:
     def predict(self, dt_s: float, speed_mps: float, yaw_rate_radps: float) -> None:
         """Move the particles (and the remembered hypotheses, kept before initialisation
         too) by one step of the measured speed and yaw rate."""
+        motion = self.config.motion
         if self.particles is not None:
             self.particles = predict(
-                self.particles, speed_mps, yaw_rate_radps, dt_s, self.config.motion, self.rng
+                self.particles, speed_mps, yaw_rate_radps, dt_s, motion, self.rng
             )
-        motion = self.config.motion
+            if self.refiner is not None:
+                self.refiner.predict(
+                    dt_s, speed_mps, yaw_rate_radps, motion.lever_arm_m, motion.integration
+                )
         if len(self._recent_world):
             self._recent_world = advance(
                 self._recent_world,
@@ -391,7 +405,22 @@ class ParticleFilter:
         else:
             self.predict(dt_s, speed_mps, yaw_rate_radps)
             self.update(hypotheses)
+        self._refine(hypotheses)
         return self.estimate(n_hypotheses=len(hypotheses))
+
+    def _refine(self, hypotheses: Hypotheses) -> None:
+        """Correct the mode's Gaussian filter with this frame's hypotheses; (re)start it
+        from the particles' mode and spread when it is not running or no longer agrees
+        with that mode (a restarting frame is already in the particles)."""
+        if self.refiner is None:
+            return
+        mode = self._mode()
+        if self.refiner.active and self.refiner.agrees_with(mode):
+            self.refiner.correct(hypotheses, self.model)
+            if self.refiner.agrees_with(mode):
+                return
+        _, cov = weighted_estimate(self.particles, normalise_log_weights(self.log_weights))
+        self.refiner.start(mode, cov)
 
     def _start(self, hypotheses: Hypotheses) -> bool:
         """Initialise on this frame if its hypotheses may start the filter (see
@@ -420,17 +449,22 @@ class ParticleFilter:
         return self._unlikely_frames > 0
 
     def estimate(self, n_hypotheses: int = 0) -> FilterEstimate:
+        """The reported pose (the refinement's, else the particles' mode) with the
+        particles' covariance (the retrieval prior's spread) and the filter's health."""
         if self.particles is None:
             raise InvalidInputError("the filter is not initialised")
         weights = normalise_log_weights(self.log_weights)
         _, cov = weighted_estimate(self.particles, weights)
+        mode = self._mode()
+        refined = self.refiner is not None and self.refiner.active
         return FilterEstimate(
-            pose_world=self._mode(),
+            pose_world=self.refiner.pose_world if refined else mode,
             covariance=cov,
             effective_sample_size=effective_sample_size(weights),
             n_hypotheses=n_hypotheses,
             lost=self.lost,
             frames_since_support=self.frames_since_support,
+            mode_world=mode,
         )
 
 

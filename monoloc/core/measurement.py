@@ -408,6 +408,25 @@ class MeasurementModel:
         distances ``maha`` under Sigma1: the Gaussian, or with the tail mixed in."""
         return _scale_mixture_log_density(self._log_norm1, maha, self.tail_weight, self.tail_scale)
 
+    def hypothesis_gaussians(self, hypotheses: Hypotheses) -> tuple[np.ndarray, np.ndarray]:
+        """Each hypothesis's pose as this model sees it: the bias-corrected pose (H, 3)
+        z_i + mu1 and the covariance (H, 3, 3) of its error's core Gaussian (tails
+        aside): "pnp": pixel_std^2 C_i + floor where the hypothesis has its C_i (joint
+        poses included), "quality": s_i Sigma1 where the quality features are known, the
+        paper's Sigma1 otherwise."""
+        n = len(hypotheses)
+        centres = hypotheses.pose_world + self.mu1
+        covs = np.broadcast_to(self.Sigma1, (n, 3, 3)).copy()
+        if self.covariance == "pnp" and hypotheses.pose_covariance is not None:
+            S, known = self.pnp.covariances(hypotheses.pose_covariance)
+            covs[known] = S[known]
+            centres[known] = hypotheses.pose_world[known] + self.pnp.mu1
+        elif self.covariance == "quality" and hypotheses.has_quality:
+            scale = np.exp(self.quality.log_scale(hypotheses))
+            covs = scale[:, None, None] * self.quality.Sigma1
+            centres = hypotheses.pose_world + self.quality.mu1
+        return centres, covs
+
     def with_covariance(self, covariance: CovarianceModel) -> MeasurementModel:
         """The same parameters with the other covariance model selected."""
         return dataclasses.replace(self, covariance=covariance)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import httpx
 import numpy as np
@@ -65,10 +66,10 @@ class FakeLocalizer:
         return LocalizeAnswer(self.hypotheses(image), None, {"total": 1.0}, {})
 
 
-def _tracker(n: int, seed: int = 7, **kwargs) -> Tracker:
+def _tracker(n: int, seed: int = 7, config: FilterConfig = CONFIG, **kwargs) -> Tracker:
     times, signals = _signals(n)
     rng = np.random.default_rng(seed)
-    return Tracker(CONFIG, MeasurementModel(), rng, times, signals, **kwargs)
+    return Tracker(config, MeasurementModel(), rng, times, signals, **kwargs)
 
 
 def test_the_prior_is_the_last_estimate_moved_to_the_frame_time():
@@ -93,11 +94,13 @@ def test_the_loop_is_the_filter_stepped_frame_by_frame():
     n = 20
     truth = _truth(n)
     missing = {0, 1, 7, 8, 9, 15}  # before initialisation, and in the middle
-    tracker = _tracker(n)
+    # the particles alone (the refinement of the reported pose: tests/client/test_refine.py)
+    config = replace(CONFIG, refine=None)
+    tracker = _tracker(n, config=config)
     estimates = track(tracker, FakeLocalizer(truth, missing), range(n))
     # By hand, with the same seeds: predict with the previous frame's signals, then
     # initialise or update; frames without hypotheses only predict.
-    pf = ParticleFilter(CONFIG, MeasurementModel(), np.random.default_rng(7))
+    pf = ParticleFilter(config, MeasurementModel(), np.random.default_rng(7))
     fake = FakeLocalizer(truth, missing)
     times, signals = _signals(n)
     expected = np.full((n, 3), np.nan)

@@ -1,0 +1,259 @@
+"""A Gaussian filter riding on the particle filter's main mode: the reported pose.
+
+The particle filter (METHOD.md sections 7-8) finds the right place and keeps it: a
+mixture over the frame's hypotheses, heavy motion noise and roughening make it robust to
+wrong hypotheses and to a start tens of metres off. The same choices make it imprecise
+at the centimetre scale: each frame's likelihood is a sum of sharp components, one per
+hypothesis, and the broad motion noise forgets the previous frames, so its mode follows
+the current frame's hypotheses instead of averaging them over time.
+
+This filter is an extended Kalman filter on (X m, Y m, psi rad, k), k the speed signal's
+scale factor (true speed = k x measured: a wheel's radius is known to a percent or two,
+and a 1 % scale error is 9 mm per 0.1 s step at 9 m/s, as large as a hypothesis's
+error). It predicts with the measured speed and yaw rate (white noise of the stated
+size, propagated through the motion model's Jacobian) and corrects with the frame's
+hypotheses under the measurement model's own per-hypothesis Gaussians (bias-corrected
+pose and covariance), each gated by its Mahalanobis distance. It does not decide where
+the vehicle is: it starts from the particles' mode and covariance, and starts over from
+them whenever the two disagree beyond ``reset_position_m`` / ``reset_yaw_rad`` (a
+re-seed, a jump the particles made on evidence this filter gated out). The speed scale
+belongs to the vehicle, not to the place: it survives a restart.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from monoloc.client.motion import advance
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.geometry import wrap_angle
+from monoloc.core.measurement import Hypotheses, MeasurementModel
+
+RefineMeasurement = Literal["joint", "all"]
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Settings of the mode's Gaussian filter.
+
+    speed_noise_mps / yaw_rate_noise_radps: 1 sigma white noise of the measured signals
+    per step (twice the sim's recording errors, which also have a yaw-rate bias).
+    position_noise_m: 1 sigma per step of what the motion model does not say (tyre slip,
+    the lever arm's error). speed_scale_std: prior 1 sigma of k around 1;
+    speed_scale_walk: its random walk per step; speed_scale_bounds: k is clipped to them.
+    heading_offset_std_rad: prior 1 sigma of b, the heading the map's hypotheses give minus
+    the direction the car drives in (a map whose LiDAR-camera calibration is off by 0.2
+    deg gives headings off by about that; 0 keeps b at 0); heading_offset_walk_rad: its
+    random walk per step.
+    measurement: "joint" corrects with the frame's joint pose (the union of its entries'
+    inliers), or without one its per-entry hypothesis with the most inliers; "all" with
+    every hypothesis in turn, as if their errors were independent (they are not: the
+    entries share the query's keypoints). gate_mahalanobis_sq: a hypothesis further than
+    this (squared, 3 dof; 16: P = 0.1 %) from the prediction is not used.
+    """
+
+    speed_noise_mps: float = 0.1
+    yaw_rate_noise_radps: float = 0.01
+    position_noise_m: float = 0.002
+    speed_scale_std: float = 0.02
+    speed_scale_walk: float = 1e-4
+    speed_scale_bounds: tuple[float, float] = (0.9, 1.1)
+    heading_offset_std_rad: float = math.radians(0.5)
+    heading_offset_walk_rad: float = math.radians(0.002)
+    measurement: RefineMeasurement = "joint"
+    gate_mahalanobis_sq: float = 16.0
+    reset_position_m: float = 0.5
+    reset_yaw_rad: float = math.radians(2.0)
+
+    def __post_init__(self) -> None:
+        lo, hi = self.speed_scale_bounds
+        positive = (
+            self.speed_noise_mps,
+            self.yaw_rate_noise_radps,
+            self.speed_scale_std,
+            self.gate_mahalanobis_sq,
+            self.reset_position_m,
+            self.reset_yaw_rad,
+        )
+        non_negative = (
+            self.position_noise_m,
+            self.speed_scale_walk,
+            self.heading_offset_std_rad,
+            self.heading_offset_walk_rad,
+        )
+        if min(positive) <= 0 or min(non_negative) < 0:
+            raise InvalidInputError(f"refinement noises and gates must be positive: {self}")
+        if not 0 < lo <= 1 <= hi:
+            raise InvalidInputError(f"speed_scale_bounds must hold 1, got {(lo, hi)}")
+        if self.measurement not in ("joint", "all"):
+            raise InvalidInputError(
+                f"refinement measurement must be 'joint' or 'all', got {self.measurement!r}"
+            )
+
+
+class ModeRefiner:
+    """The Gaussian filter's state: mean (5,) (X m, Y m, psi rad, k, b rad) and covariance
+    (5, 5). psi is the direction the camera drives in; the pose it reports and that the
+    hypotheses measure has heading psi + b."""
+
+    def __init__(self, config: RefineConfig) -> None:
+        self.config = config
+        self.state: np.ndarray | None = None
+        self.covariance = np.zeros((5, 5))
+        # the vehicle's own terms (k, b) and their covariance, kept across restarts
+        self._vehicle = np.array([1.0, 0.0])
+        self._vehicle_cov = np.diag([config.speed_scale_std**2, config.heading_offset_std_rad**2])
+        self.n_restarts = 0
+
+    @property
+    def active(self) -> bool:
+        return self.state is not None
+
+    @property
+    def pose_world(self) -> np.ndarray:
+        """(3,) planar pose (X, Y, heading): the heading is the hypotheses', psi + b."""
+        if self.state is None:
+            raise InvalidInputError("the refinement has not started")
+        x, y, psi, _, b = self.state
+        return np.array([x, y, float(wrap_angle(psi + b))])
+
+    @property
+    def speed_scale(self) -> float:
+        """The speed signal's scale factor k as estimated so far."""
+        return float(self.state[3] if self.state is not None else self._vehicle[0])
+
+    @property
+    def heading_offset_rad(self) -> float:
+        """b as estimated so far."""
+        return float(self.state[4] if self.state is not None else self._vehicle[1])
+
+    def stop(self) -> None:
+        """Forget the pose (keep k and b): the next start takes the particles'."""
+        if self.state is not None:
+            self._vehicle = self.state[3:].copy()
+            self._vehicle_cov = self.covariance[3:, 3:].copy()
+        self.state = None
+
+    def start(self, pose_world: np.ndarray, covariance: np.ndarray) -> None:
+        """Start at the pose (3,) with its covariance (3, 3) (the particles' mode and
+        spread), keeping k and b learnt so far."""
+        self.stop()
+        pose = np.asarray(pose_world, dtype=np.float64)[:3]
+        b = self._vehicle[1]
+        self.state = np.array([pose[0], pose[1], float(wrap_angle(pose[2] - b)), *self._vehicle])
+        # psi = heading - b: its variance is the heading's plus b's
+        J = np.zeros((5, 5))
+        J[:3, :3] = np.eye(3)
+        J[3:, 3:] = np.eye(2)
+        J[2, 4] = -1.0
+        full = np.zeros((5, 5))
+        full[:3, :3] = 0.5 * (covariance + covariance.T)
+        full[3:, 3:] = self._vehicle_cov
+        self.covariance = J @ full @ J.T
+        self.n_restarts += 1
+
+    def agrees_with(self, pose_world: np.ndarray) -> bool:
+        """Whether the pose (3,) is within the restart tolerances of this filter's."""
+        mine = self.pose_world
+        yaw = abs(float(wrap_angle(mine[2] - pose_world[2])))
+        return (
+            math.hypot(*(mine[:2] - pose_world[:2])) <= self.config.reset_position_m
+            and yaw <= self.config.reset_yaw_rad
+        )
+
+    def predict(
+        self,
+        dt_s: float,
+        speed_mps: float,
+        yaw_rate_radps: float,
+        lever_arm_m: float = 0.0,
+        integration: str = "exact",
+    ) -> None:
+        """One step of the measured signals; the covariance through the Jacobians of the
+        motion model in the state and in the two signals (forward differences)."""
+        if self.state is None or dt_s <= 0:
+            return
+        cfg = self.config
+        eps = np.array([1e-6, 1e-6, 1e-7, 1e-7, 1e-6, 1e-7])  # X, Y, psi, k, speed, yaw rate
+        poses = np.repeat(self.state[None, :3], 7, axis=0)
+        scale = np.full(7, self.state[3])
+        speed = np.full(7, speed_mps, dtype=np.float64)
+        yaw_rate = np.full(7, yaw_rate_radps, dtype=np.float64)
+        for col in range(3):
+            poses[1 + col, col] += eps[col]
+        scale[4] += eps[3]
+        speed[5] += eps[4]
+        yaw_rate[6] += eps[5]
+        moved = advance(poses, scale * speed, yaw_rate, dt_s, lever_arm_m, integration)
+        diff = moved[1:] - moved[0]
+        diff[:, 2] = wrap_angle(diff[:, 2])
+        jac = (diff / eps[:, None]).T  # (3, 6): d pose / d (X, Y, psi, k, speed, yaw rate)
+        F = np.eye(5)
+        F[:3, :4] = jac[:, :4]
+        G = np.zeros((5, 2))
+        G[:3] = jac[:, 4:]
+        Q = G @ np.diag([cfg.speed_noise_mps**2, cfg.yaw_rate_noise_radps**2]) @ G.T
+        Q += np.diag(
+            [
+                cfg.position_noise_m**2,
+                cfg.position_noise_m**2,
+                0.0,
+                cfg.speed_scale_walk**2,
+                cfg.heading_offset_walk_rad**2,
+            ]
+        )
+        self.state = np.array([*moved[0], *self.state[3:]])
+        self.state[2] = wrap_angle(self.state[2])
+        self.covariance = F @ self.covariance @ F.T + Q
+
+    def correct(self, hypotheses: Hypotheses, model: MeasurementModel) -> int:
+        """Correct with the frame's hypotheses (see ``RefineConfig.measurement``); the
+        number used (those within the gate)."""
+        if self.state is None or len(hypotheses) == 0:
+            return 0
+        centres, covs = model.hypothesis_gaussians(hypotheses)
+        used = 0
+        for i in self._order(hypotheses):
+            if self._correct_one(centres[i], covs[i]):
+                used += 1
+                if self.config.measurement == "joint":
+                    break
+        lo, hi = self.config.speed_scale_bounds
+        self.state[3] = float(np.clip(self.state[3], lo, hi))
+        return used
+
+    def _order(self, hypotheses: Hypotheses) -> np.ndarray:
+        """Indices to try: the joint pose first, then by PnP inliers (most first)."""
+        n = len(hypotheses)
+        inliers = np.zeros(n) if hypotheses.n_inliers is None else hypotheses.n_inliers
+        joint = np.zeros(n, dtype=bool) if hypotheses.joint is None else hypotheses.joint
+        return np.lexsort((-np.asarray(inliers, dtype=np.float64), ~joint))
+
+    def _correct_one(self, centre_world: np.ndarray, cov: np.ndarray) -> bool:
+        """Kalman update with one bias-corrected pose (3,) and covariance (3, 3) (it
+        measures X, Y and psi + b), unless it is outside the gate."""
+        H = np.zeros((3, 5))
+        H[:, :3] = np.eye(3)
+        H[2, 4] = 1.0
+        residual = centre_world - self.pose_world
+        residual[2] = wrap_angle(residual[2])
+        P = self.covariance
+        PHt = P @ H.T
+        S = H @ PHt + cov
+        try:
+            solved = np.linalg.solve(S, residual)
+        except np.linalg.LinAlgError:
+            return False
+        if float(residual @ solved) > self.config.gate_mahalanobis_sq:
+            return False
+        K = np.linalg.solve(S, PHt.T).T  # (5, 3) = P H^T S^-1
+        self.state = self.state + K @ residual
+        self.state[2] = wrap_angle(self.state[2])
+        IKH = np.eye(5) - K @ H
+        # Joseph form: stays symmetric and positive with a nearly singular gain
+        self.covariance = IKH @ P @ IKH.T + K @ cov @ K.T
+        return True

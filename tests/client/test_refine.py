@@ -1,0 +1,188 @@
+"""The Gaussian filter riding on the particles' mode (monoloc.client.refine): its motion
+covariance is what sampling the signals' noise gives, it averages noisy hypotheses over
+time better than the particles' mode, learns the speed signal's scale, ignores
+hypotheses outside its gate, and follows the particles when they move elsewhere."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from monoloc.client.motion import advance
+from monoloc.client.particle_filter import FilterConfig, ParticleFilter
+from monoloc.client.refine import ModeRefiner, RefineConfig
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.measurement import Hypotheses, MeasurementModel, PnpCovarianceModel
+
+DT_S = 0.1
+SIGMA_M = 0.03  # the hypotheses' position noise (1 sigma per axis)
+MODEL = MeasurementModel(Sigma1=np.diag([SIGMA_M**2, SIGMA_M**2, math.radians(0.2) ** 2]))
+
+
+def _drive(n: int, speed_mps: float = 9.0, yaw_rate_radps: float = 0.0) -> np.ndarray:
+    """True camera poses (n, 3) of a drive at constant speed and yaw rate."""
+    poses = [np.array([5.0, -3.0, 0.4])]
+    for _ in range(n - 1):
+        poses.append(advance(poses[-1][None], speed_mps, yaw_rate_radps, DT_S)[0])
+    return np.array(poses)
+
+
+def _hypotheses(pose: np.ndarray, rng: np.random.Generator, offset_m=(0.0, 0.0)) -> Hypotheses:
+    """Three hypotheses around the pose, each with its own noise; the first is the joint."""
+    poses = pose + rng.normal(0, [SIGMA_M, SIGMA_M, math.radians(0.2)], size=(3, 3))
+    poses[:, :2] += offset_m
+    return Hypotheses(
+        poses,
+        poses.copy(),
+        np.full(3, 0.9),
+        n_inliers=np.array([300, 120, 80]),
+        reprojection_error_px=np.ones(3),
+        joint=np.array([True, False, False]),
+    )
+
+
+def _run(config: FilterConfig, truth: np.ndarray, measured_speed_mps: float, seed: int = 0):
+    """Estimates (n, 3) and the filter after driving ``truth`` with the given speed signal
+    and noisy hypotheses every frame."""
+    pf = ParticleFilter(config, MODEL, np.random.default_rng(seed))
+    hyp_rng = np.random.default_rng(100 + seed)
+    out = np.full((len(truth), 3), np.nan)
+    for i, pose in enumerate(truth):
+        dt = DT_S if i else 0.0
+        est = pf.step(dt, measured_speed_mps, 0.0, _hypotheses(pose, hyp_rng))
+        if est is not None:
+            out[i] = est.pose_world
+    return out, pf
+
+
+def test_the_predicted_covariance_is_what_sampling_the_signal_noise_gives():
+    config = RefineConfig(position_noise_m=0.0, speed_scale_walk=0.0, heading_offset_walk_rad=0.0)
+    refiner = ModeRefiner(config)
+    start_world = np.array([1.0, 2.0, 0.3])
+    start_std = np.array([0.01, 0.02, 0.003])
+    refiner.start(start_world, np.diag(start_std**2))
+    speed, yaw_rate, lever = 8.0, 0.4, 1.2
+    refiner.predict(DT_S, speed, yaw_rate, lever)
+    # Monte Carlo: draw the start, k, b and the signals' noise; the car drives along the
+    # reported heading minus b; move each draw exactly
+    rng = np.random.default_rng(3)
+    n = 200_000
+    start = start_world + rng.normal(size=(n, 3)) * start_std
+    scale = 1.0 + config.speed_scale_std * rng.normal(size=n)
+    b = config.heading_offset_std_rad * rng.normal(size=n)
+    start[:, 2] -= b
+    v = (speed + config.speed_noise_mps * rng.normal(size=n)) * scale
+    g = yaw_rate + config.yaw_rate_noise_radps * rng.normal(size=n)
+    moved = advance(start, v, g, DT_S, lever)
+    sampled = np.cov(np.column_stack([moved, scale, b]).T)
+    # entry by entry within 3 % of the scale sqrt(C_ii C_jj) (sampling error ~0.3 %)
+    scale_ij = np.sqrt(np.outer(np.diag(sampled), np.diag(sampled)))
+    assert np.all(np.abs(refiner.covariance - sampled) <= 0.03 * scale_ij)
+    np.testing.assert_allclose(refiner.state[:3], moved.mean(axis=0), atol=2e-4)
+
+
+def test_it_averages_noisy_hypotheses_better_than_the_particles_and_learns_the_speed_scale():
+    """A straight drive whose speed signal reads 3 % low, three hypotheses with 3 cm of
+    noise each frame: the refined pose is much closer to the truth than the particles'
+    mode (which forgets the previous frames under its broad motion noise)."""
+    truth = _drive(150)
+    measured = 9.0 / 1.03
+    late = slice(50, None)
+    rms = {"refined": [], "mode": []}
+    for seed in range(3):
+        refined, pf = _run(FilterConfig(n_particles=500), truth, measured, seed)
+        mode, _ = _run(FilterConfig(n_particles=500, refine=None), truth, measured, seed)
+        for name, est in (("refined", refined), ("mode", mode)):
+            squared = np.sum((est[late, :2] - truth[late, :2]) ** 2, axis=1)
+            rms[name].append(float(np.sqrt(np.mean(squared))))
+        assert pf.refiner.speed_scale == pytest.approx(1.03, abs=0.005)
+    assert np.mean(rms["refined"]) < 0.75 * np.mean(rms["mode"]), rms
+    assert max(rms["refined"]) < 0.02, rms
+
+
+def test_hypotheses_outside_the_gate_do_not_move_it():
+    """Every fifth frame the hypotheses are 1.5 m to the side (an aliased facade): the
+    refined pose does not follow them."""
+    truth = _drive(80)
+    pf = ParticleFilter(FilterConfig(n_particles=500), MODEL, np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    errors = []
+    for i, pose in enumerate(truth):
+        offset = (0.0, 1.5) if i % 5 == 4 and i > 20 else (0.0, 0.0)
+        est = pf.step(DT_S if i else 0.0, 9.0, 0.0, _hypotheses(pose, rng, offset))
+        if i > 20:
+            errors.append(np.linalg.norm(est.pose_world[:2] - pose[:2]))
+    assert max(errors) < 0.08
+
+
+def test_it_restarts_from_the_particles_when_they_move_elsewhere():
+    truth = _drive(40)
+    _, pf = _run(FilterConfig(n_particles=300), truth, 9.0)
+    scale_before = pf.refiner.speed_scale
+    restarts = pf.refiner.n_restarts
+    # kidnapped: the particles are put 30 m away; the next step reports their mode
+    far = truth[-1] + [0.0, 30.0, 0.0]
+    pf.initialise(far, 0.1, 0.01)
+    assert not pf.refiner.active
+    est = pf.step(DT_S, 9.0, 0.0, Hypotheses.empty())
+    assert pf.refiner.active and pf.refiner.n_restarts == restarts + 1
+    np.testing.assert_allclose(est.pose_world, est.mode_world)
+    assert np.linalg.norm(est.pose_world[:2] - far[:2]) < 2.0
+    assert pf.refiner.speed_scale == scale_before  # the vehicle's, not the place's
+
+
+def test_the_joint_pose_is_used_first_and_alone():
+    refiner = ModeRefiner(RefineConfig())
+    refiner.start(np.zeros(3), np.diag([0.1**2, 0.1**2, 0.01**2]))
+    poses = np.array([[0.05, 0.0, 0.0], [-0.05, 0.0, 0.0], [0.0, 0.05, 0.0]])
+    hyps = Hypotheses(
+        poses,
+        poses.copy(),
+        np.ones(3),
+        n_inliers=np.array([50, 400, 100]),
+        reprojection_error_px=np.ones(3),
+        joint=np.array([False, False, True]),
+    )
+    assert refiner.correct(hyps, MODEL) == 1
+    assert refiner.pose_world[1] > 0.02 and abs(refiner.pose_world[0]) < 0.01
+    every = ModeRefiner(RefineConfig(measurement="all"))
+    every.start(np.zeros(3), np.diag([0.1**2, 0.1**2, 0.01**2]))
+    assert every.correct(hyps, MODEL) == 3
+
+
+def test_each_model_gives_its_own_hypothesis_gaussians():
+    pose_cov = np.stack([np.diag([1e-4, 4e-4, 1e-6]), np.full((3, 3), np.nan)])
+    hyps = Hypotheses(
+        np.zeros((2, 3)),
+        np.zeros((2, 3)),
+        np.ones(2),
+        n_inliers=np.array([100, 25]),
+        reprojection_error_px=np.array([1.0, 2.0]),
+        joint=np.array([False, False]),
+        pose_covariance=pose_cov,
+    )
+    pnp = PnpCovarianceModel(
+        mu1=np.array([0.01, 0.0, 0.0]), pixel_std_px=2.0, floor=np.diag([1e-6, 1e-6, 1e-8])
+    )
+    model = replace(MODEL, covariance="pnp", pnp=pnp)
+    centres, covs = model.hypothesis_gaussians(hyps)
+    np.testing.assert_allclose(covs[0], 4.0 * pose_cov[0] + pnp.floor)
+    np.testing.assert_allclose(centres[0], pnp.mu1)
+    np.testing.assert_allclose(covs[1], MODEL.Sigma1)  # no C_i: the paper's
+    np.testing.assert_allclose(centres[1], MODEL.mu1)
+    _, paper = MODEL.hypothesis_gaussians(hyps)
+    np.testing.assert_allclose(paper, np.broadcast_to(MODEL.Sigma1, (2, 3, 3)))
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(InvalidInputError):
+        RefineConfig(speed_noise_mps=0.0)
+    with pytest.raises(InvalidInputError):
+        RefineConfig(speed_scale_bounds=(1.05, 1.2))
+    with pytest.raises(InvalidInputError):
+        RefineConfig(measurement="best")
+    with pytest.raises(InvalidInputError):
+        _ = ModeRefiner(RefineConfig()).pose_world
