@@ -706,9 +706,13 @@ def print_goals(out: dict) -> None:
                     GOALS["night_rmse_over_day"],
                 )
             )
-        before = night.get("night, day map", {}).get("position_rmse_m")
-        if before is not None and n_rmse is not None:
-            rows.append(("night +night / day map RMSE", n_rmse / before, "<=", 1.0))
+        # Better with the night images than without: the share of all frames within
+        # 0.25 m / 2 deg (a frame without an estimate is not within). An RMSE ratio would
+        # compare different frames: the day map alone often localizes a few frames only.
+        before = night.get("night, day map", {}).get("within_0_25m_2deg")
+        after = night["night, + night entries"].get("within_0_25m_2deg")
+        if before is not None and after is not None:
+            rows.append(("night +night - day map, within share", after - before, ">=", 0.0))
     print(f"\nseed {out['seed']}: goals of issue 13 item 5 (medium city, recording errors on)")
     print(f"{'figure':<38}{'measured':>10}{'goal':>12}  met")
     for name, value, op, goal in rows:

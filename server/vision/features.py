@@ -12,6 +12,11 @@ facade in the shade keeps its corners beside one in the sun. Why (README, "Decis
 worth knowing"): with the whole-image rule the corners follow the light, and a query
 driven under a sun opposite to the map's (one side of the street bright in one run, the
 other side in the other) shared too few of them with the map to find its street.
+
+On the grid, FAST's contrast threshold is also two-level, as ORB-SLAM's (20 and 7): an
+image that gives fewer than ``max_features`` corners at ``fast_threshold`` (a run under
+flat light, plain facades) is detected again at ``min_fast_threshold``. With one fixed
+threshold a whole query run of such frames found no street (README).
 """
 
 from __future__ import annotations
@@ -45,6 +50,9 @@ class OrbConfig:
     # None: ORB's own strongest ``max_features`` (the paper's).
     grid_cells: tuple[int, int] | None = (8, 5)
     candidates_factor: float = 2.0
+    # On the grid: an image with fewer than ``max_features`` corners at
+    # ``fast_threshold`` is detected again at this threshold; None: one pass.
+    min_fast_threshold: int | None = 7
 
     def __post_init__(self) -> None:
         if self.max_features < 1:
@@ -66,6 +74,13 @@ class OrbConfig:
         if self.grid_cells is not None and (len(self.grid_cells) != 2 or min(self.grid_cells) < 1):
             raise InvalidInputError(
                 f"OrbConfig.grid_cells must be two counts >= 1 or None, got {self.grid_cells}"
+            )
+        if self.min_fast_threshold is not None and not (
+            1 <= self.min_fast_threshold <= self.fast_threshold
+        ):
+            raise InvalidInputError(
+                f"OrbConfig.min_fast_threshold must be in [1, fast_threshold], got "
+                f"{self.min_fast_threshold}"
             )
         if not self.candidates_factor >= 1.0:
             raise InvalidInputError(
@@ -160,6 +175,14 @@ def extract_features(
     if config.blur_ksize > 1:
         gray = cv2.GaussianBlur(gray, (config.blur_ksize, config.blur_ksize), 0)
     keypoints, descriptors = _create_orb(config, config.n_candidates).detectAndCompute(gray, None)
+    if (
+        config.grid_cells is not None
+        and config.min_fast_threshold is not None
+        and config.min_fast_threshold < config.fast_threshold
+        and len(keypoints) < config.max_features
+    ):
+        low = replace(config, fast_threshold=config.min_fast_threshold)
+        keypoints, descriptors = _create_orb(low, config.n_candidates).detectAndCompute(gray, None)
     if descriptors is None or len(keypoints) == 0:
         return empty_features()
     points_px = cv2.KeyPoint_convert(keypoints).astype(np.float32, copy=False).reshape(-1, 2)
@@ -185,15 +208,20 @@ def extract_features(
 def selection_rule(config: OrbConfig = OrbConfig()) -> dict:
     """How ``config`` picks the corners it keeps, as a map records it for its entries:
     ``{"rule": "strongest"}`` (ORB's own, the whole image) or ``{"rule": "grid",
-    "grid_cells": [columns, rows], "candidates_factor": f}``. Entries and queries picked
-    by different rules share fewer corners (README, "ORB features spread over the image")."""
+    "grid_cells": [columns, rows], "candidates_factor": f, "fast_thresholds": [t, t_min]}``
+    (a grid map recorded before the second threshold has no ``fast_thresholds``: one pass
+    at 20). Entries and queries picked by different rules share fewer corners (README, "ORB
+    features spread over the image")."""
     if config.grid_cells is None:
         return {"rule": "strongest"}
-    return {
+    rule = {
         "rule": "grid",
         "grid_cells": [int(c) for c in config.grid_cells],
         "candidates_factor": float(config.candidates_factor),
     }
+    if config.min_fast_threshold is not None:
+        rule["fast_thresholds"] = [int(config.fast_threshold), int(config.min_fast_threshold)]
+    return rule
 
 
 def orb_for_rule(recorded: dict | None, config: OrbConfig = OrbConfig()) -> OrbConfig:
@@ -210,9 +238,17 @@ def orb_for_rule(recorded: dict | None, config: OrbConfig = OrbConfig()) -> OrbC
         try:
             columns, rows = (int(c) for c in recorded["grid_cells"])
             factor = float(recorded["candidates_factor"])
-        except (KeyError, TypeError, ValueError) as exc:
+            # before the second threshold: one pass at ORB's 20
+            fast, low = (int(t) for t in recorded.get("fast_thresholds", (20, 0)))
+            return replace(
+                config,
+                grid_cells=(columns, rows),
+                candidates_factor=factor,
+                fast_threshold=fast,
+                min_fast_threshold=low or None,
+            )
+        except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
             raise InvalidInputError(f"a map's ORB rule is malformed: {recorded!r}") from exc
-        return replace(config, grid_cells=(columns, rows), candidates_factor=factor)
     raise InvalidInputError(f"unknown ORB corner rule {rule!r} (strongest or grid)")
 
 
@@ -225,12 +261,14 @@ def rule_is_current(recorded: dict | None, config: OrbConfig = OrbConfig()) -> b
 
 
 def rule_text(recorded: dict | None) -> str:
-    """A map's recorded rule for people: "grid 8x5", "strongest" or "-"."""
+    """A map's recorded rule for people: "grid 8x5, FAST 20/7", "strongest" or "-"."""
     if not recorded:
         return "-"
     if recorded.get("rule") == "grid":
         columns, rows = recorded.get("grid_cells", ("?", "?"))
-        return f"grid {columns}x{rows}"
+        thresholds = recorded.get("fast_thresholds")
+        fast = "/".join(str(t) for t in thresholds) if thresholds else "20"
+        return f"grid {columns}x{rows}, FAST {fast}"
     return str(recorded.get("rule", "?"))
 
 

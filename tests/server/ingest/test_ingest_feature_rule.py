@@ -120,12 +120,29 @@ def test_orb_for_rule_reads_back_what_selection_rule_records():
     from monoloc.core.errors import InvalidInputError
     from monoloc.server.vision.features import orb_for_rule, rule_is_current, selection_rule
 
-    for config in (OrbConfig(), OrbConfig(grid_cells=None), OrbConfig(grid_cells=(4, 3))):
+    configs = (
+        OrbConfig(),
+        OrbConfig(grid_cells=None),
+        OrbConfig(grid_cells=(4, 3)),
+        OrbConfig(min_fast_threshold=None),
+        OrbConfig(fast_threshold=25, min_fast_threshold=10),
+    )
+    for config in configs:
         assert orb_for_rule(selection_rule(config)) == config
     assert orb_for_rule(None) == OrbConfig()
     assert rule_is_current(None) and rule_is_current(selection_rule())
     assert not rule_is_current({"rule": "strongest"})
-    for bad in ({"rule": "sift"}, {"rule": "grid", "grid_cells": "8x5"}, {"rule": "grid"}):
+    # a grid map recorded before the second FAST threshold: one pass at 20, not current
+    before = {"rule": "grid", "grid_cells": [8, 5], "candidates_factor": 2.0}
+    assert orb_for_rule(before) == OrbConfig(min_fast_threshold=None)
+    assert not rule_is_current(before)
+    bad_thresholds = {**before, "fast_thresholds": [7, 20]}
+    for bad in (
+        {"rule": "sift"},
+        {"rule": "grid", "grid_cells": "8x5"},
+        {"rule": "grid"},
+        bad_thresholds,
+    ):
         with pytest.raises(InvalidInputError):
             orb_for_rule(bad)
 

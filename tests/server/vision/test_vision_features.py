@@ -70,6 +70,9 @@ def test_invalid_config_raises_on_the_grid_too():
         OrbConfig(candidates_factor=0.5)
     assert OrbConfig(grid_cells=None).n_candidates == 1000
     assert OrbConfig().n_candidates == 2000
+    for low in (0, 21):
+        with pytest.raises(InvalidInputError):
+            OrbConfig(min_fast_threshold=low)
 
 
 def test_invalid_config_raises():
@@ -181,6 +184,33 @@ def test_the_grid_keeps_corners_in_the_shade_that_the_strongest_rule_drops():
     picked = _picked(keypoints, image.shape)
     assert np.array_equal(cv2.KeyPoint_convert(keypoints)[picked], spread.keypoints_px)
     assert np.array_equal(descriptors[picked], spread.descriptors)
+
+
+def test_a_flat_lit_image_is_detected_again_at_the_low_fast_threshold():
+    """A real photograph at a third of its contrast (flat light) gives ORB fewer than
+    1000 corners at FAST 20: the grid detects it again at 7 and keeps 1000 of those, ORB's
+    own candidates at 7 with their descriptors; a photograph with enough corners at 20 is
+    described exactly as with one pass."""
+    import cv2
+
+    image = (85 + data.camera().astype(np.float64) / 3).astype(np.uint8)  # 263 at 20
+    config = OrbConfig()
+    blurred = cv2.GaussianBlur(image, (config.blur_ksize, config.blur_ksize), 0)
+    at_20 = _create_orb(config, config.n_candidates).detect(blurred, None)
+    assert len(at_20) < config.max_features
+    one_pass = extract_features(image, OrbConfig(min_fast_threshold=None))
+    two_pass = extract_features(image)
+    assert len(one_pass) == len(at_20) and len(two_pass) == config.max_features
+    low = OrbConfig(fast_threshold=config.min_fast_threshold)
+    keypoints, descriptors = _create_orb(low, config.n_candidates).detectAndCompute(blurred, None)
+    picked = _picked(keypoints, image.shape)
+    assert np.array_equal(cv2.KeyPoint_convert(keypoints)[picked], two_pass.keypoints_px)
+    assert np.array_equal(descriptors[picked], two_pass.descriptors)
+    textured = data.camera()
+    a = extract_features(textured)
+    b = extract_features(textured, OrbConfig(min_fast_threshold=None))
+    assert np.array_equal(a.keypoints_px, b.keypoints_px)
+    assert np.array_equal(a.descriptors, b.descriptors)
 
 
 def test_spread_over_grid_takes_every_cells_strongest_first():
