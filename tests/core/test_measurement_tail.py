@@ -90,9 +90,12 @@ def _drive(model: MeasurementModel, wrong_frames: range, seed: int) -> np.ndarra
     ``wrong_frames``, which get one hypothesis 0.35 m ahead and 0.1 m further each frame
     (as on the sim's nights). Returns the filter's position error (m) per frame."""
     rng = np.random.default_rng(seed)
+    # the particles' own mode: the Gaussian filter riding on it (FilterConfig.refine) gates
+    # such hypotheses out whatever the mixture does (tests/client/test_refine.py)
     config = FilterConfig(
         n_particles=1000,
         motion=MotionConfig(speed_noise_mps=(-0.1, 0.1), yaw_rate_noise_radps=(-0.005, 0.005)),
+        refine=None,
     )
     pf = ParticleFilter(config, model, rng)
     truth = np.array([0.0, 0.0, 0.0])
