@@ -14,9 +14,10 @@ driven under a sun opposite to the map's (one side of the street bright in one r
 other side in the other) shared too few of them with the map to find its street.
 
 On the grid, FAST's contrast threshold is also two-level, as ORB-SLAM's (20 and 7): an
-image that gives fewer than ``max_features`` corners at ``fast_threshold`` (a run under
-flat light, plain facades) is detected again at ``min_fast_threshold``. With one fixed
-threshold a whole query run of such frames found no street (README).
+image with fewer than ``flat_fast_corners`` FAST corners at ``fast_threshold`` at full
+resolution (a run under flat light, plain facades; counting them costs 0.3 ms) is
+described by ORB at ``min_fast_threshold``. With one fixed threshold a whole query run of
+such frames found no street (README).
 """
 
 from __future__ import annotations
@@ -50,9 +51,13 @@ class OrbConfig:
     # None: ORB's own strongest ``max_features`` (the paper's).
     grid_cells: tuple[int, int] | None = (8, 5)
     candidates_factor: float = 2.0
-    # On the grid: an image with fewer than ``max_features`` corners at
-    # ``fast_threshold`` is detected again at this threshold; None: one pass.
+    # On the grid, a flat image is described at ``min_fast_threshold`` (None: always at
+    # ``fast_threshold``): one with fewer than ``flat_fast_corners`` FAST corners at
+    # ``fast_threshold`` at full resolution, or (``flat_fast_corners`` None: a grid map
+    # recorded on 2026-11-28 before the count) one whose ORB gives fewer than
+    # ``max_features`` corners at ``fast_threshold``, detected again.
     min_fast_threshold: int | None = 7
+    flat_fast_corners: int | None = 150
 
     def __post_init__(self) -> None:
         if self.max_features < 1:
@@ -81,6 +86,10 @@ class OrbConfig:
             raise InvalidInputError(
                 f"OrbConfig.min_fast_threshold must be in [1, fast_threshold], got "
                 f"{self.min_fast_threshold}"
+            )
+        if self.flat_fast_corners is not None and self.flat_fast_corners < 1:
+            raise InvalidInputError(
+                f"OrbConfig.flat_fast_corners must be >= 1, got {self.flat_fast_corners}"
             )
         if not self.candidates_factor >= 1.0:
             raise InvalidInputError(
@@ -174,15 +183,7 @@ def extract_features(
         return empty_features()
     if config.blur_ksize > 1:
         gray = cv2.GaussianBlur(gray, (config.blur_ksize, config.blur_ksize), 0)
-    keypoints, descriptors = _create_orb(config, config.n_candidates).detectAndCompute(gray, None)
-    if (
-        config.grid_cells is not None
-        and config.min_fast_threshold is not None
-        and config.min_fast_threshold < config.fast_threshold
-        and len(keypoints) < config.max_features
-    ):
-        low = replace(config, fast_threshold=config.min_fast_threshold)
-        keypoints, descriptors = _create_orb(low, config.n_candidates).detectAndCompute(gray, None)
+    keypoints, descriptors = _detect_and_compute(gray, config)
     if descriptors is None or len(keypoints) == 0:
         return empty_features()
     points_px = cv2.KeyPoint_convert(keypoints).astype(np.float32, copy=False).reshape(-1, 2)
@@ -205,13 +206,34 @@ def extract_features(
     )
 
 
+def _detect_and_compute(gray: np.ndarray, config: OrbConfig):
+    """ORB's keypoints and descriptors of the blurred image at ``fast_threshold``, or at
+    ``min_fast_threshold`` when the image is flat (see ``OrbConfig``)."""
+    two_level = (
+        config.grid_cells is not None
+        and config.min_fast_threshold is not None
+        and config.min_fast_threshold < config.fast_threshold
+    )
+    low = replace(config, fast_threshold=config.min_fast_threshold) if two_level else config
+    if two_level and config.flat_fast_corners is not None:
+        fast = cv2.FastFeatureDetector_create(threshold=config.fast_threshold)
+        flat = len(fast.detect(gray, None)) < config.flat_fast_corners
+        return _create_orb(low if flat else config, config.n_candidates).detectAndCompute(
+            gray, None
+        )
+    keypoints, descriptors = _create_orb(config, config.n_candidates).detectAndCompute(gray, None)
+    if two_level and len(keypoints) < config.max_features:
+        keypoints, descriptors = _create_orb(low, config.n_candidates).detectAndCompute(gray, None)
+    return keypoints, descriptors
+
+
 def selection_rule(config: OrbConfig = OrbConfig()) -> dict:
     """How ``config`` picks the corners it keeps, as a map records it for its entries:
     ``{"rule": "strongest"}`` (ORB's own, the whole image) or ``{"rule": "grid",
-    "grid_cells": [columns, rows], "candidates_factor": f, "fast_thresholds": [t, t_min]}``
-    (a grid map recorded before the second threshold has no ``fast_thresholds``: one pass
-    at 20). Entries and queries picked by different rules share fewer corners (README, "ORB
-    features spread over the image")."""
+    "grid_cells": [columns, rows], "candidates_factor": f, "fast_thresholds": [t, t_min],
+    "flat_fast_corners": n}`` (a grid map recorded before the second threshold has no
+    ``fast_thresholds``: one pass at 20). Entries and queries picked by different rules
+    share fewer corners (README, "ORB features spread over the image")."""
     if config.grid_cells is None:
         return {"rule": "strongest"}
     rule = {
@@ -221,6 +243,8 @@ def selection_rule(config: OrbConfig = OrbConfig()) -> dict:
     }
     if config.min_fast_threshold is not None:
         rule["fast_thresholds"] = [int(config.fast_threshold), int(config.min_fast_threshold)]
+        if config.flat_fast_corners is not None:
+            rule["flat_fast_corners"] = int(config.flat_fast_corners)
     return rule
 
 
@@ -240,12 +264,16 @@ def orb_for_rule(recorded: dict | None, config: OrbConfig = OrbConfig()) -> OrbC
             factor = float(recorded["candidates_factor"])
             # before the second threshold: one pass at ORB's 20
             fast, low = (int(t) for t in recorded.get("fast_thresholds", (20, 0)))
+            flat = recorded.get("flat_fast_corners")
+            if flat is None and not low:
+                flat = config.flat_fast_corners  # unused with one threshold
             return replace(
                 config,
                 grid_cells=(columns, rows),
                 candidates_factor=factor,
                 fast_threshold=fast,
                 min_fast_threshold=low or None,
+                flat_fast_corners=None if flat is None else int(flat),
             )
         except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
             raise InvalidInputError(f"a map's ORB rule is malformed: {recorded!r}") from exc

@@ -125,6 +125,7 @@ def test_orb_for_rule_reads_back_what_selection_rule_records():
         OrbConfig(grid_cells=None),
         OrbConfig(grid_cells=(4, 3)),
         OrbConfig(min_fast_threshold=None),
+        OrbConfig(flat_fast_corners=None),
         OrbConfig(fast_threshold=25, min_fast_threshold=10),
     )
     for config in configs:

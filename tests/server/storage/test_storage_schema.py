@@ -104,6 +104,7 @@ def test_maps_record_how_their_entries_picked_their_corners(settings, factory, m
             "grid_cells": [8, 5],
             "candidates_factor": 2.0,
             "fast_thresholds": [20, 7],
+            "flat_fast_corners": 150,
         }
     )
     assert selection_rule(OrbConfig(grid_cells=None)) == {"rule": "strongest"}
