@@ -50,10 +50,13 @@ GOALS = {
 # 7331: also run once that day on the same code (its day query failed: an aliased
 # start; results/accuracy_urban_s7331.json), diagnosed after it: spent too; 4099's
 # results are in results/accuracy_urban_s4099.json. The ORB grid (ad96155) was chosen on
-# 4099 and 7331, then 5501 was run once on that commit (results/accuracy_urban.json,
+# 4099 and 7331, then 5501 was run once on that commit (results/accuracy_urban_s5501.json,
 # --no-stereo), untouched before; then 6607 the same way on the same product code
-# (results/accuracy_urban_s6607.json). Changes from then on need another fresh seed.
-HELD_OUT_SEED = 5501
+# (results/accuracy_urban_s6607.json). The mode's Gaussian filter (2d056ef): 8123, run
+# once (results/accuracy_urban_s8123.json; its late start led to the two FAST
+# thresholds); 9377 on 3852c48 (results/accuracy_urban_s9377.json); 2719 on the FAST
+# count rule (results/accuracy_urban.json). Changes from then on need another fresh seed.
+HELD_OUT_SEED = 2719
 URBAN_VARIANTS = (
     "full",
     "full_euler",
