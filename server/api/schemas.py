@@ -236,7 +236,7 @@ class MapPublic(BaseModel):
     features: dict[str, Any] | None = Field(
         default=None,
         description='How the map\'s entries picked their ORB corners: {"rule": "grid", '
-        '"grid_cells": [8, 5], "candidates_factor": 2.0, "fast_thresholds": [20, 7]} (a '
+        '"grid_cells": [8, 5], "candidates_factor": 2.0, "fast_thresholds": [20, 12]} (a '
         "grid map built before the second FAST threshold has none: one pass at 20) or "
         '{"rule": "strongest"} (ORB\'s own, every map built before the grid).',
     )

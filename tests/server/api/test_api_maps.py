@@ -82,7 +82,7 @@ def test_a_map_says_how_its_entries_picked_their_corners(tmp_path):
             "rule": "grid",
             "grid_cells": [8, 5],
             "candidates_factor": 2.0,
-            "fast_thresholds": [20, 7],
+            "fast_thresholds": [20, 12],
             "flat_fast_corners": 150,
         }
         assert created["features_current"] is True

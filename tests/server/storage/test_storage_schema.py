@@ -103,7 +103,7 @@ def test_maps_record_how_their_entries_picked_their_corners(settings, factory, m
             "rule": "grid",
             "grid_cells": [8, 5],
             "candidates_factor": 2.0,
-            "fast_thresholds": [20, 7],
+            "fast_thresholds": [20, 12],
             "flat_fast_corners": 150,
         }
     )

@@ -189,14 +189,14 @@ def test_the_grid_keeps_corners_in_the_shade_that_the_strongest_rule_drops():
 
 
 def test_a_flat_lit_image_is_described_at_the_low_fast_threshold():
-    """A real photograph at a third of its contrast (flat light) has fewer than 150 FAST
-    corners at 20 (ORB finds under 300 over its pyramid): it is described at FAST 7, 1000 of
-    ORB's own candidates there with their descriptors (with the older rule too: fewer
-    than 1000 ORB corners at 20, detected again at 7); a photograph with enough corners
+    """A real photograph at half its contrast (flat light) has fewer than 150 FAST corners
+    at 20 (ORB finds about 600 over its pyramid): it is described at the low threshold,
+    1000 of ORB's own candidates there with their descriptors (with the older rule too:
+    fewer than 1000 ORB corners at 20, detected again); a photograph with enough corners
     is described exactly as with one threshold."""
     import cv2
 
-    image = (85 + data.camera().astype(np.float64) / 3).astype(np.uint8)
+    image = (64 + data.camera().astype(np.float64) / 2).astype(np.uint8)
     config = OrbConfig()
     blurred = cv2.GaussianBlur(image, (config.blur_ksize, config.blur_ksize), 0)
     assert len(cv2.FastFeatureDetector_create(20).detect(blurred)) < config.flat_fast_corners
@@ -206,7 +206,7 @@ def test_a_flat_lit_image_is_described_at_the_low_fast_threshold():
     picked = _picked(keypoints, image.shape)
     for rule in (config, OrbConfig(flat_fast_corners=None)):
         two_level = extract_features(image, rule)
-        assert len(one_threshold) < 300 and len(two_level) == config.max_features
+        assert len(one_threshold) < 700 and len(two_level) == config.max_features
         assert np.array_equal(cv2.KeyPoint_convert(keypoints)[picked], two_level.keypoints_px)
         assert np.array_equal(descriptors[picked], two_level.descriptors)
     textured = data.camera()
