@@ -14,6 +14,10 @@ tells the vehicle's loop to widen the retrieval prior and then to search the who
 A candidate whose heading contradicts the filter's (``FilterConfig.reseed_turn_rad``)
 must also outweigh every likely frame of the last ``track_memory_frames``. All
 randomness comes from the injected ``np.random.Generator``.
+
+The reported pose (``estimate().pose_world``) is that of a Gaussian filter riding on the
+particles' main mode (``client/refine.py``, ``FilterConfig.refine``); the mode itself is
+``estimate().mode_world``, and the reported pose with ``refine=None``.
 """
 
 from __future__ import annotations
