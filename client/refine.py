@@ -7,17 +7,24 @@ at the centimetre scale: each frame's likelihood is a sum of sharp components, o
 hypothesis, and the broad motion noise forgets the previous frames, so its mode follows
 the current frame's hypotheses instead of averaging them over time.
 
-This filter is an extended Kalman filter on (X m, Y m, psi rad, k), k the speed signal's
-scale factor (true speed = k x measured: a wheel's radius is known to a percent or two,
-and a 1 % scale error is 9 mm per 0.1 s step at 9 m/s, as large as a hypothesis's
-error). It predicts with the measured speed and yaw rate (white noise of the stated
-size, propagated through the motion model's Jacobian) and corrects with the frame's
-hypotheses under the measurement model's own per-hypothesis Gaussians (bias-corrected
-pose and covariance), each gated by its Mahalanobis distance. It does not decide where
+This filter is an extended Kalman filter on (X m, Y m, psi rad, k, b rad, g rad/s): k the
+speed signal's scale factor (true speed = k x measured: a wheel's radius is known to a
+percent or two, and a 1 % scale error is 9 mm per 0.1 s step at 9 m/s, as large as a
+hypothesis's error), b the heading the map's hypotheses give minus the direction the car
+drives in, g the yaw-rate signal's bias (true yaw rate = measured - g: an automotive MEMS
+gyro's offset of a tenth of a degree per second, the sim's 0.002 rad/s, turns the heading
+by 0.3 deg in a 3 s stretch without hypotheses, and a 0.3 deg heading error drifts 5 cm
+sideways per second at 9 m/s). It predicts with the measured speed and yaw rate (white
+noise of the stated size, propagated through the motion model's Jacobian) and corrects
+with the frame's hypotheses under the measurement model's own per-hypothesis Gaussians
+(bias-corrected pose and covariance), each gated by its Mahalanobis distance and by the
+restart tolerances (a hypothesis metres off with a covariance of metres passes a
+Mahalanobis gate, and turns the heading by the tenths of a degree its own heading error
+carries through the correlations). It does not decide where
 the vehicle is: it starts from the particles' mode and covariance, and starts over from
 them whenever the two disagree beyond ``reset_position_m`` / ``reset_yaw_rad`` (a
-re-seed, a jump the particles made on evidence this filter gated out). The speed scale
-belongs to the vehicle, not to the place: it survives a restart.
+re-seed, a jump the particles made on evidence this filter gated out). k, b and g belong
+to the vehicle and its map, not to the place: they survive a restart.
 """
 
 from __future__ import annotations
@@ -48,12 +55,14 @@ class RefineConfig:
     heading_offset_std_rad: prior 1 sigma of b, the heading the map's hypotheses give minus
     the direction the car drives in (a map whose LiDAR-camera calibration is off by 0.2
     deg gives headings off by about that; 0 keeps b at 0); heading_offset_walk_rad: its
-    random walk per step.
+    random walk per step. yaw_rate_bias_std_radps: prior 1 sigma of g, the yaw-rate
+    signal's bias (0 keeps g at 0); yaw_rate_bias_walk_radps: its random walk per step.
     measurement: "joint" corrects with the frame's joint pose (the union of its entries'
     inliers), or without one its per-entry hypothesis with the most inliers; "all" with
     every hypothesis in turn, as if their errors were independent (they are not: the
     entries share the query's keypoints). gate_mahalanobis_sq: a hypothesis further than
-    this (squared, 3 dof; 16: P = 0.1 %) from the prediction is not used.
+    this (squared, 3 dof; 16: P = 0.1 %) from the prediction is not used, nor one further
+    than the restart tolerances ``reset_position_m`` / ``reset_yaw_rad``.
     """
 
     speed_noise_mps: float = 0.1
@@ -64,6 +73,8 @@ class RefineConfig:
     speed_scale_bounds: tuple[float, float] = (0.9, 1.1)
     heading_offset_std_rad: float = math.radians(0.5)
     heading_offset_walk_rad: float = math.radians(0.002)
+    yaw_rate_bias_std_radps: float = 0.005
+    yaw_rate_bias_walk_radps: float = 1e-5
     measurement: RefineMeasurement = "joint"
     gate_mahalanobis_sq: float = 16.0
     reset_position_m: float = 0.5
@@ -84,6 +95,8 @@ class RefineConfig:
             self.speed_scale_walk,
             self.heading_offset_std_rad,
             self.heading_offset_walk_rad,
+            self.yaw_rate_bias_std_radps,
+            self.yaw_rate_bias_walk_radps,
         )
         if min(positive) <= 0 or min(non_negative) < 0:
             raise InvalidInputError(f"refinement noises and gates must be positive: {self}")
@@ -96,17 +109,26 @@ class RefineConfig:
 
 
 class ModeRefiner:
-    """The Gaussian filter's state: mean (5,) (X m, Y m, psi rad, k, b rad) and covariance
-    (5, 5). psi is the direction the camera drives in; the pose it reports and that the
-    hypotheses measure has heading psi + b."""
+    """The Gaussian filter's state: mean (6,) (X m, Y m, psi rad, k, b rad, g rad/s) and
+    covariance (6, 6). psi is the direction the camera drives in; the pose it reports and
+    that the hypotheses measure has heading psi + b; the yaw rate it integrates is the
+    measured one minus g."""
+
+    N_STATE = 6
 
     def __init__(self, config: RefineConfig) -> None:
         self.config = config
         self.state: np.ndarray | None = None
-        self.covariance = np.zeros((5, 5))
-        # the vehicle's own terms (k, b) and their covariance, kept across restarts
-        self._vehicle = np.array([1.0, 0.0])
-        self._vehicle_cov = np.diag([config.speed_scale_std**2, config.heading_offset_std_rad**2])
+        self.covariance = np.zeros((self.N_STATE, self.N_STATE))
+        # the vehicle's own terms (k, b, g) and their covariance, kept across restarts
+        self._vehicle = np.array([1.0, 0.0, 0.0])
+        self._vehicle_cov = np.diag(
+            [
+                config.speed_scale_std**2,
+                config.heading_offset_std_rad**2,
+                config.yaw_rate_bias_std_radps**2,
+            ]
+        )
         self.n_restarts = 0
 
     @property
@@ -118,21 +140,29 @@ class ModeRefiner:
         """(3,) planar pose (X, Y, heading): the heading is the hypotheses', psi + b."""
         if self.state is None:
             raise InvalidInputError("the refinement has not started")
-        x, y, psi, _, b = self.state
+        x, y, psi, _, b, _ = self.state
         return np.array([x, y, float(wrap_angle(psi + b))])
+
+    def _vehicle_term(self, index: int) -> float:
+        return float(self.state[3 + index] if self.state is not None else self._vehicle[index])
 
     @property
     def speed_scale(self) -> float:
         """The speed signal's scale factor k as estimated so far."""
-        return float(self.state[3] if self.state is not None else self._vehicle[0])
+        return self._vehicle_term(0)
 
     @property
     def heading_offset_rad(self) -> float:
         """b as estimated so far."""
-        return float(self.state[4] if self.state is not None else self._vehicle[1])
+        return self._vehicle_term(1)
+
+    @property
+    def yaw_rate_bias_radps(self) -> float:
+        """g, the yaw-rate signal's bias, as estimated so far."""
+        return self._vehicle_term(2)
 
     def stop(self) -> None:
-        """Forget the pose (keep k and b): the next start takes the particles'."""
+        """Forget the pose (keep k, b and g): the next start takes the particles'."""
         if self.state is not None:
             self._vehicle = self.state[3:].copy()
             self._vehicle_cov = self.covariance[3:, 3:].copy()
@@ -140,17 +170,16 @@ class ModeRefiner:
 
     def start(self, pose_world: np.ndarray, covariance: np.ndarray) -> None:
         """Start at the pose (3,) with its covariance (3, 3) (the particles' mode and
-        spread), keeping k and b learnt so far."""
+        spread), keeping k, b and g learnt so far."""
         self.stop()
         pose = np.asarray(pose_world, dtype=np.float64)[:3]
         b = self._vehicle[1]
         self.state = np.array([pose[0], pose[1], float(wrap_angle(pose[2] - b)), *self._vehicle])
         # psi = heading - b: its variance is the heading's plus b's
-        J = np.zeros((5, 5))
-        J[:3, :3] = np.eye(3)
-        J[3:, 3:] = np.eye(2)
+        n = self.N_STATE
+        J = np.eye(n)
         J[2, 4] = -1.0
-        full = np.zeros((5, 5))
+        full = np.zeros((n, n))
         full[:3, :3] = 0.5 * (covariance + covariance.T)
         full[3:, 3:] = self._vehicle_cov
         self.covariance = J @ full @ J.T
@@ -182,7 +211,7 @@ class ModeRefiner:
         poses = np.repeat(self.state[None, :3], 7, axis=0)
         scale = np.full(7, self.state[3])
         speed = np.full(7, speed_mps, dtype=np.float64)
-        yaw_rate = np.full(7, yaw_rate_radps, dtype=np.float64)
+        yaw_rate = np.full(7, yaw_rate_radps - self.state[5], dtype=np.float64)
         for col in range(3):
             poses[1 + col, col] += eps[col]
         scale[4] += eps[3]
@@ -192,9 +221,11 @@ class ModeRefiner:
         diff = moved[1:] - moved[0]
         diff[:, 2] = wrap_angle(diff[:, 2])
         jac = (diff / eps[:, None]).T  # (3, 6): d pose / d (X, Y, psi, k, speed, yaw rate)
-        F = np.eye(5)
+        n = self.N_STATE
+        F = np.eye(n)
         F[:3, :4] = jac[:, :4]
-        G = np.zeros((5, 2))
+        F[:3, 5] = -jac[:, 5]  # the bias is taken off the measured yaw rate
+        G = np.zeros((n, 2))
         G[:3] = jac[:, 4:]
         Q = G @ np.diag([cfg.speed_noise_mps**2, cfg.yaw_rate_noise_radps**2]) @ G.T
         Q += np.diag(
@@ -204,6 +235,7 @@ class ModeRefiner:
                 0.0,
                 cfg.speed_scale_walk**2,
                 cfg.heading_offset_walk_rad**2,
+                cfg.yaw_rate_bias_walk_radps**2,
             ]
         )
         self.state = np.array([*moved[0], *self.state[3:]])
@@ -235,12 +267,19 @@ class ModeRefiner:
 
     def _correct_one(self, centre_world: np.ndarray, cov: np.ndarray) -> bool:
         """Kalman update with one bias-corrected pose (3,) and covariance (3, 3) (it
-        measures X, Y and psi + b), unless it is outside the gate."""
-        H = np.zeros((3, 5))
+        measures X, Y and psi + b), unless it is outside the gate or the restart
+        tolerances."""
+        n = self.N_STATE
+        H = np.zeros((3, n))
         H[:, :3] = np.eye(3)
         H[2, 4] = 1.0
         residual = centre_world - self.pose_world
         residual[2] = wrap_angle(residual[2])
+        if (
+            math.hypot(residual[0], residual[1]) > self.config.reset_position_m
+            or abs(residual[2]) > self.config.reset_yaw_rad
+        ):
+            return False
         P = self.covariance
         PHt = P @ H.T
         S = H @ PHt + cov
@@ -250,10 +289,10 @@ class ModeRefiner:
             return False
         if float(residual @ solved) > self.config.gate_mahalanobis_sq:
             return False
-        K = np.linalg.solve(S, PHt.T).T  # (5, 3) = P H^T S^-1
+        K = np.linalg.solve(S, PHt.T).T  # (6, 3) = P H^T S^-1
         self.state = self.state + K @ residual
         self.state[2] = wrap_angle(self.state[2])
-        IKH = np.eye(5) - K @ H
+        IKH = np.eye(n) - K @ H
         # Joseph form: stays symmetric and positive with a nearly singular gain
         self.covariance = IKH @ P @ IKH.T + K @ cov @ K.T
         return True
