@@ -415,15 +415,16 @@ class ParticleFilter:
     def _refine(self, hypotheses: Hypotheses) -> None:
         """Correct the mode's Gaussian filter with this frame's hypotheses; (re)start it
         from the particles' mode and spread when it is not running or no longer agrees
-        with that mode (a restarting frame is already in the particles)."""
+        with that mode (``RefineConfig``: the tolerances, and the Mahalanobis distance
+        under both spreads; a restarting frame is already in the particles)."""
         if self.refiner is None:
             return
         mode = self._mode()
-        if self.refiner.active and self.refiner.agrees_with(mode):
-            self.refiner.correct(hypotheses, self.model)
-            if self.refiner.agrees_with(mode):
-                return
         _, cov = weighted_estimate(self.particles, normalise_log_weights(self.log_weights))
+        if self.refiner.active and self.refiner.agrees_with(mode, cov):
+            self.refiner.correct(hypotheses, self.model)
+            if self.refiner.agrees_with(mode, cov):
+                return
         self.refiner.start(mode, cov)
 
     def _start(self, hypotheses: Hypotheses) -> bool:

@@ -63,6 +63,12 @@ class RefineConfig:
     entries share the query's keypoints). gate_mahalanobis_sq: a hypothesis further than
     this (squared, 3 dof; 16: P = 0.1 %) from the prediction is not used, nor one further
     than the restart tolerances ``reset_position_m`` / ``reset_yaw_rad``.
+    restart_mahalanobis_sq: the filter also starts over from the particles' mode when the
+    two are further apart than this (squared, 3 dof) under the sum of this filter's pose
+    covariance and the particles' spread: started from a mode on a wrong hypothesis with
+    the particles' tight spread there, it gates out the right hypotheses that move the
+    particles, and when it takes one at last, the heading jump goes into b and g (None:
+    the tolerances alone).
     """
 
     speed_noise_mps: float = 0.1
@@ -79,6 +85,7 @@ class RefineConfig:
     gate_mahalanobis_sq: float = 16.0
     reset_position_m: float = 0.5
     reset_yaw_rad: float = math.radians(2.0)
+    restart_mahalanobis_sq: float | None = 16.0
 
     def __post_init__(self) -> None:
         lo, hi = self.speed_scale_bounds
@@ -87,6 +94,7 @@ class RefineConfig:
             self.yaw_rate_noise_radps,
             self.speed_scale_std,
             self.gate_mahalanobis_sq,
+            self.restart_mahalanobis_sq or 1.0,
             self.reset_position_m,
             self.reset_yaw_rad,
         )
@@ -185,14 +193,34 @@ class ModeRefiner:
         self.covariance = J @ full @ J.T
         self.n_restarts += 1
 
-    def agrees_with(self, pose_world: np.ndarray) -> bool:
-        """Whether the pose (3,) is within the restart tolerances of this filter's."""
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """(3, 3) covariance of :attr:`pose_world` (X, Y, psi + b)."""
+        H = np.zeros((3, self.N_STATE))
+        H[:, :3] = np.eye(3)
+        H[2, 4] = 1.0
+        return H @ self.covariance @ H.T
+
+    def agrees_with(self, pose_world: np.ndarray, covariance: np.ndarray | None = None) -> bool:
+        """Whether the pose (3,) is within the restart tolerances of this filter's and,
+        with its covariance (3, 3) and ``restart_mahalanobis_sq`` set, within that
+        Mahalanobis distance under the sum of the two covariances."""
         mine = self.pose_world
-        yaw = abs(float(wrap_angle(mine[2] - pose_world[2])))
-        return (
-            math.hypot(*(mine[:2] - pose_world[:2])) <= self.config.reset_position_m
-            and yaw <= self.config.reset_yaw_rad
-        )
+        diff = np.asarray(pose_world, dtype=np.float64)[:3] - mine
+        diff[2] = wrap_angle(diff[2])
+        if (
+            math.hypot(diff[0], diff[1]) > self.config.reset_position_m
+            or abs(diff[2]) > self.config.reset_yaw_rad
+        ):
+            return False
+        if covariance is None or self.config.restart_mahalanobis_sq is None:
+            return True
+        S = self.pose_covariance + 0.5 * (covariance + covariance.T)
+        try:
+            squared = float(diff @ np.linalg.solve(S, diff))
+        except np.linalg.LinAlgError:
+            return True
+        return squared <= self.config.restart_mahalanobis_sq
 
     def predict(
         self,

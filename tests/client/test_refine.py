@@ -192,6 +192,36 @@ def test_it_restarts_from_the_particles_when_they_move_elsewhere():
     assert pf.refiner.speed_scale == scale_before  # the vehicle's, not the place's
 
 
+def _refiner_started_off(config: FilterConfig, offset_m: float):
+    """A filter tracking a straight drive whose refinement is then put ``offset_m`` to the
+    side with a tight covariance (as when it starts from a mode on a wrong hypothesis,
+    within the restart tolerance); the refined errors (m) of the 5 frames after."""
+    truth = _drive(40)
+    pf = ParticleFilter(config, MODEL, np.random.default_rng(0))
+    rng = np.random.default_rng(7)
+    for i, pose in enumerate(truth[:30]):
+        pf.step(DT_S if i else 0.0, 9.0, 0.0, _hypotheses(pose, rng))
+    left = np.array([-math.sin(truth[29, 2]), math.cos(truth[29, 2])])
+    pf.refiner.state[:2] += offset_m * left
+    pf.refiner.covariance[:3, :3] = np.diag([0.02**2, 0.02**2, 0.002**2])
+    errors = []
+    for pose in truth[30:35]:
+        est = pf.step(DT_S, 9.0, 0.0, _hypotheses(pose, rng))
+        errors.append(float(np.linalg.norm(est.pose_world[:2] - pose[:2])))
+    return errors
+
+
+def test_it_restarts_when_it_disagrees_with_the_particles_beyond_both_spreads():
+    """0.35 m off with a 2 cm spread, within the 0.5 m tolerance, the refinement gates out
+    every right hypothesis; the Mahalanobis test against the particles' mode and spread
+    restarts it at once."""
+    config = FilterConfig(n_particles=500)
+    errors = _refiner_started_off(config, 0.35)
+    assert errors[0] < 0.08, errors
+    tolerance_only = replace(config, refine=RefineConfig(restart_mahalanobis_sq=None))
+    assert min(_refiner_started_off(tolerance_only, 0.35)) > 0.2
+
+
 def test_the_joint_pose_is_used_first_and_alone():
     refiner = ModeRefiner(RefineConfig())
     refiner.start(np.zeros(3), np.diag([0.1**2, 0.1**2, 0.01**2]))
