@@ -56,6 +56,7 @@ from monoloc.server.vision.joint import (
     EntryInliers,
     JointConfig,
     PooledConfig,
+    best_start,
     consistent_group,
     estimate_joint_pose,
     estimate_pooled_pose,
@@ -838,7 +839,8 @@ def _joint_hypothesis(
     strategy: PnpStrategy,
 ) -> PoseHypothesis | None:
     """The joint pose (``strategy.joint``) of the largest consistent group of hypotheses,
-    as a hypothesis, with its covariance from the union's inliers (``strategy.covariance``)."""
+    refined from the member pose under which the union keeps the most inliers, as a
+    hypothesis, with its covariance from the union's inliers (``strategy.covariance``)."""
     config = strategy.joint
     assert config is not None
     if len(hypotheses) < config.min_entries:
@@ -850,6 +852,11 @@ def _joint_hypothesis(
     )
     if len(group) < config.min_entries:
         return None
+    # LM keeps its start's basin: start from the member pose the union agrees with most
+    members = [inliers[g] for g in group]
+    starts = [hypotheses[g].T_world_from_cam for g in group]
+    start = best_start(members, starts, intrinsics, pnp)
+    group = [group[start], *group[:start], *group[start + 1 :]]
     anchor = hypotheses[group[0]]
     joint = estimate_joint_pose(
         [inliers[g] for g in group], anchor.T_world_from_cam, intrinsics, pnp, config

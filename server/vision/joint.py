@@ -10,7 +10,11 @@ same). Here:
 2. each member's inlier 3D points are brought into the world frame (T_world_from_ref);
 3. the union is scored against the anchor's pose and refined by Levenberg-Marquardt
    (``pnp.refine_from_pose``: inlier selection, LM, re-selection), only a member's own
-   inliers being candidates.
+   inliers being candidates. LM keeps the basin it starts in, so the anchor is the
+   member whose own pose the union agrees with most (:func:`best_start`), not the first
+   of a tie: distant facades leave a lateral / yaw ambiguity (0.45 m and 1.2 deg on a
+   held-out city) whose two poses are both within the gates and both fit their own
+   entry's inliers.
 
 World coordinates can be kilometres: the union is expressed in a frame translated to the
 anchor's camera position (a pure translation of the world frame) so LM works on numbers
@@ -104,6 +108,55 @@ def consistent_group(
     return [anchor, *others]
 
 
+def _union_local(entries: Sequence[EntryInliers], origin_world: np.ndarray):
+    """The entries' inlier points in the world frame translated to ``origin_world`` (M, 3),
+    their pixels (M, 2), scales (M,) and the entries' bounds in the union."""
+    points, pixels, scales = [], [], []
+    for e in entries:
+        T = np.asarray(e.T_world_from_ref, dtype=np.float64)
+        p_ref = np.asarray(e.points_ref, dtype=np.float64).reshape(-1, 3)
+        points.append(p_ref @ T[:3, :3].T + (T[:3, 3] - origin_world))
+        pixels.append(np.asarray(e.pixels_px, dtype=np.float64).reshape(-1, 2))
+        scales.append(
+            np.ones(len(p_ref))
+            if e.keypoint_scales is None
+            else np.asarray(e.keypoint_scales, dtype=np.float64).reshape(-1)
+        )
+    bounds = np.cumsum([0] + [len(p) for p in points]).tolist()
+    return np.concatenate(points), np.concatenate(pixels), np.concatenate(scales), bounds
+
+
+def best_start(
+    entries: Sequence[EntryInliers],
+    starts_T_world_from_cam: Sequence[np.ndarray],
+    intrinsics: CameraIntrinsics,
+    pnp: PnpConfig,
+) -> int:
+    """Index of the pose (4, 4 each) under which the most of the union's correspondences
+    reproject within ``pnp.reprojection_error_px`` (ties: the first)."""
+    from monoloc.server.vision._pnp_kernel import count_inliers
+
+    starts = [np.asarray(T, dtype=np.float64) for T in starts_T_world_from_cam]
+    if len(starts) <= 1:
+        return 0
+    origin_world = starts[0][:3, 3].copy()
+    points_local, pixels, _, _ = _union_local(entries, origin_world)
+    R = np.empty((len(starts), 3, 3))
+    t = np.empty((len(starts), 3))
+    for g, T in enumerate(starts):
+        T_local_from_cam = T.copy()
+        T_local_from_cam[:3, 3] -= origin_world
+        T_cam_from_local = invert_rigid(T_local_from_cam)
+        R[g], t[g] = T_cam_from_local[:3, :3], T_cam_from_local[:3, 3]
+    counts = np.zeros(len(starts), dtype=np.int64)
+    K = intrinsics.K
+    count_inliers(
+        np.ascontiguousarray(points_local), np.ascontiguousarray(pixels), R, t,
+        K[0, 0], K[1, 1], K[0, 2], K[1, 2], pnp.reprojection_error_px, counts,
+    )  # fmt: skip
+    return int(np.argmax(counts))
+
+
 def estimate_joint_pose(
     entries: Sequence[EntryInliers],
     T_world_from_cam_init: np.ndarray,
@@ -118,20 +171,7 @@ def estimate_joint_pose(
         return None
     init = np.asarray(T_world_from_cam_init, dtype=np.float64)
     origin_world = init[:3, 3].copy()
-    points, pixels, scales = [], [], []
-    scaled = any(e.keypoint_scales is not None for e in entries)
-    for e in entries:
-        T = np.asarray(e.T_world_from_ref, dtype=np.float64)
-        p_ref = np.asarray(e.points_ref, dtype=np.float64).reshape(-1, 3)
-        points.append(p_ref @ T[:3, :3].T + (T[:3, 3] - origin_world))
-        pixels.append(np.asarray(e.pixels_px, dtype=np.float64).reshape(-1, 2))
-        scales.append(
-            np.ones(len(p_ref))
-            if e.keypoint_scales is None
-            else np.asarray(e.keypoint_scales, dtype=np.float64).reshape(-1)
-        )
-    points_local, pixels_all = np.concatenate(points), np.concatenate(pixels)
-    bounds = np.cumsum([0] + [len(p) for p in points]).tolist()
+    points_local, pixels_all, scales_all, bounds = _union_local(entries, origin_world)
     T_local_from_cam = init.copy()
     T_local_from_cam[:3, 3] -= origin_world
     T_cam_from_local = invert_rigid(T_local_from_cam)
@@ -143,11 +183,11 @@ def estimate_joint_pose(
         intrinsics.K,
         pnp,
         config.rounds,
-        keypoint_scales=np.concatenate(scales),
+        keypoint_scales=scales_all,
     )
     if R is None or np.count_nonzero(mask) < pnp.min_inliers:
         return None
-    members = tuple(j for j in range(len(points)) if mask[bounds[j] : bounds[j + 1]].any())
+    members = tuple(j for j in range(len(entries)) if mask[bounds[j] : bounds[j + 1]].any())
     if len(members) < config.min_entries:
         return None
     T_cam_from_local = np.eye(4)
@@ -155,7 +195,7 @@ def estimate_joint_pose(
     T_world_from_cam = invert_rigid(T_cam_from_local)
     T_world_from_cam[:3, 3] += origin_world
     n_inliers = int(np.count_nonzero(mask))
-    scales_all = np.concatenate(scales)
+    scaled = any(e.keypoint_scales is not None for e in entries)
     return JointPose(
         T_world_from_cam=T_world_from_cam,
         members=members,

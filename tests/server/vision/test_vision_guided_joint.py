@@ -21,6 +21,7 @@ from monoloc.server.vision.joint import (
     EntryInliers,
     JointConfig,
     PooledConfig,
+    best_start,
     consistent_group,
     estimate_joint_pose,
     estimate_pooled_pose,
@@ -221,6 +222,25 @@ def test_joint_pose_leaves_out_an_inconsistent_entry():
     assert wrap_angle(poses[group, 2] - poses[group[0], 2]).max() < JointConfig().yaw_gate_rad
     # The group is the one with the most inliers in total, not the most members.
     assert consistent_group(poses, np.array([100, 80, 300, 50]), JointConfig()) == [2]
+
+
+def test_the_joint_pose_starts_from_the_member_pose_the_union_agrees_with_most():
+    """Two member poses within the gates: the true one and one 0.45 m to the side and
+    1.2 deg turned (distant facades' lateral / yaw ambiguity), listed first. The start is
+    the pose under which more of the union reprojects within the threshold, whatever the
+    order."""
+    T_world_from_query, refs, matches, keypoints = _scene(3, noise_px=0.5, outlier_fraction=0.2)
+    union = [
+        EntryInliers(r.T_world_from_cam, keypoints[m[:, 0]], r.points_cam[m[:, 1]])
+        for r, m in zip(refs, matches, strict=True)
+    ]
+    x, y, yaw = planar_from_T_world_from_cam(T_world_from_query)
+    aside = T_world_from_cam_planar(
+        x - 0.45 * math.sin(yaw), y + 0.45 * math.cos(yaw), yaw + math.radians(1.2), 1.65
+    )
+    assert best_start(union, [aside, T_world_from_query], CAM, PnpConfig()) == 1
+    assert best_start(union, [T_world_from_query, aside], CAM, PnpConfig()) == 0
+    assert best_start(union, [aside], CAM, PnpConfig()) == 0
 
 
 def test_joint_pose_needs_two_entries():
