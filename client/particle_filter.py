@@ -49,16 +49,6 @@ class FilterConfig:
     resample_ess_fraction: float = 0.5
     init_position_std_m: float = 0.5
     init_yaw_std_rad: float = math.radians(2.0)
-    # Started from a frame's hypotheses, this share of the particles is drawn from the
-    # hypotheses' own Gaussians (the measurement model's bias-corrected pose and covariance,
-    # equally many per hypothesis), the rest around them with the broad spread above. A
-    # hypothesis is centimetres and a twentieth of a degree sharp: drawn only with the broad
-    # spread, hardly a particle lands within a sigma of any of them, and which one the
-    # cloud collapses onto after the frame's weights is chance, not how many hypotheses
-    # agree (on a held-out city, four of a first frame's five hypotheses right and the
-    # filter started on the fifth, 0.43 m off, in one filter seed of four). 0: the broad
-    # spread alone.
-    init_hypothesis_share: float = 0.5
     # A frame with hypotheses is "unlikely" when the smallest squared Mahalanobis distance
     # (under Sigma1) between any particle and any bias-corrected hypothesis exceeds this
     # (chi-square, 3 dof: P(> 25) = 1.5e-5). An unlikely frame still updates the weights
@@ -116,12 +106,6 @@ class FilterConfig:
     # scale; None reports the particles' mode itself (METHOD.md's filter).
     refine: RefineConfig | None = field(default_factory=RefineConfig)
 
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.init_hypothesis_share <= 1.0:
-            raise InvalidInputError(
-                f"init_hypothesis_share must be within [0, 1], got {self.init_hypothesis_share}"
-            )
-
 
 @dataclass(frozen=True)
 class FilterEstimate:
@@ -173,18 +157,6 @@ def mode_estimate(particles: np.ndarray, weights: np.ndarray, radius_m: float) -
     w = weights[near] / weights[near].sum()
     mean, _ = weighted_estimate(particles[near], w)
     return mean
-
-
-def sample_gaussians(
-    centres: np.ndarray, covariances: np.ndarray, rng: np.random.Generator
-) -> np.ndarray:
-    """One draw (n, 3) from each Gaussian: centres (n, 3), covariances (n, 3, 3) (a
-    covariance that is not positive definite is taken by its non-negative eigenvalues)."""
-    values, vectors = np.linalg.eigh(0.5 * (covariances + np.swapaxes(covariances, 1, 2)))
-    roots = vectors * np.sqrt(np.clip(values, 0.0, None))[:, None, :]
-    draws = centres + np.einsum("nij,nj->ni", roots, rng.normal(size=centres.shape))
-    draws[:, 2] = wrap_angle(draws[:, 2])
-    return draws
 
 
 def sample_around(
@@ -257,13 +229,6 @@ class ParticleFilter:
             raise InvalidInputError("cannot initialise from an empty set of hypotheses")
         centres = hypotheses.pose_world + self.model.mu1
         self.initialise(centres, self.config.init_position_std_m, self.config.init_yaw_std_rad)
-        n_sharp = int(round(self.config.init_hypothesis_share * self.config.n_particles))
-        if n_sharp:
-            gaussian_centres, covariances = self.model.hypothesis_gaussians(hypotheses)
-            picks = np.arange(n_sharp) % len(gaussian_centres)
-            self.particles[:n_sharp] = sample_gaussians(
-                gaussian_centres[picks], covariances[picks], self.rng
-            )
         # Weigh the seeded particles by the same frame: where several hypotheses agree the
         # mixture is denser, so a lone wrong hypothesis loses its share at once.
         self.update(hypotheses)

@@ -853,14 +853,12 @@ def _joint_hypothesis(
     if len(group) < config.min_entries:
         return None
     # LM keeps its start's basin: start from the member pose the union agrees with most
+    # (the anchor, whose entry the hypothesis names, stays the group's)
+    anchor = hypotheses[group[0]]
     members = [inliers[g] for g in group]
     starts = [hypotheses[g].T_world_from_cam for g in group]
     start = best_start(members, starts, intrinsics, pnp)
-    group = [group[start], *group[:start], *group[start + 1 :]]
-    anchor = hypotheses[group[0]]
-    joint = estimate_joint_pose(
-        [inliers[g] for g in group], anchor.T_world_from_cam, intrinsics, pnp, config
-    )
+    joint = estimate_joint_pose(members, starts[start], intrinsics, pnp, config)
     if joint is None:
         return None
     members = [hypotheses[group[m]] for m in joint.members]

@@ -7,7 +7,6 @@ from monoloc.client.motion import MotionConfig, predict
 from monoloc.client.particle_filter import FilterConfig, ParticleFilter
 from monoloc.client.resampling import effective_sample_size, systematic_resample
 from monoloc.core.calibration import fit_measurement_model, pose_errors, retrieval_vectors
-from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
 from monoloc.core.measurement import Hypotheses, MeasurementModel, log_likelihood
 
@@ -203,35 +202,6 @@ def test_first_estimate_ignores_a_lone_wrong_hypothesis():
 def _lone(pose):
     pose = np.atleast_2d(pose)
     return Hypotheses(pose, pose + [1.0, 0.0, 0.0], np.full(len(pose), 0.9))
-
-
-def _first_frame_error_m(share: float, seed: int) -> float:
-    """The first estimate's position error (m) from a frame with four sharp hypotheses
-    on the truth and one 0.45 m to the side and 1.2 deg turned, listed first (within the
-    agreement tolerances: one place at the metre scale)."""
-    model = MeasurementModel(Sigma1=np.diag([0.02**2, 0.02**2, math.radians(0.06) ** 2]))
-    truth = np.array([5.0, -3.0, 0.4])
-    rng = np.random.default_rng(100 + seed)
-    right = truth + rng.normal(0, [0.02, 0.02, math.radians(0.06)], size=(4, 3))
-    aside = truth + [-0.45 * math.sin(0.4), 0.45 * math.cos(0.4), math.radians(-1.2)]
-    poses = np.vstack([aside, right])
-    config = FilterConfig(init_hypothesis_share=share)
-    pf = ParticleFilter(config, model, np.random.default_rng(seed))
-    est = pf.step(0.0, 0.0, 0.0, Hypotheses(poses, poses.copy(), np.full(5, 0.9)))
-    return float(np.linalg.norm(est.pose_world[:2] - truth[:2]))
-
-
-def test_the_start_follows_the_agreeing_hypotheses_not_the_draw():
-    """Drawn only with the broad spread, the particles rarely land within a sigma of
-    such sharp hypotheses and the start follows whichever one a particle came closest to
-    (6 of 20 filter seeds started on the odd one out); with half of them drawn from the
-    hypotheses' own Gaussians, every seed starts where the four agree."""
-    sharp = [_first_frame_error_m(0.5, seed) for seed in range(20)]
-    broad = [_first_frame_error_m(0.0, seed) for seed in range(20)]
-    assert max(sharp) < 0.15, sharp
-    assert sum(e > 0.3 for e in broad) >= 3, broad
-    with pytest.raises(InvalidInputError):
-        FilterConfig(init_hypothesis_share=1.5)
 
 
 def test_a_lone_hypothesis_does_not_start_the_filter_agreeing_ones_do():
