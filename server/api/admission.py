@@ -304,18 +304,22 @@ class Lane:
     def _work(self) -> None:
         while (job := self._next_job()) is not None:
             start = time.perf_counter()
+            error: BaseException | None = None
             try:
                 result = job.context.run(job.fn, *job.args)
             except BaseException as exc:  # noqa: BLE001 - handed to the waiting request
-                job.future.set_exception(exc)
+                error, result = exc, None
+            # the lane's state counts this computation before its request is answered, so
+            # what the lane says next (Retry-After) includes it
+            elapsed = time.perf_counter() - start
+            with self._lock:
+                self._running -= 1
+                self._service_s = 0.9 * self._service_s + 0.1 * elapsed
+            if error is not None:
+                job.future.set_exception(error)
             else:
                 job.future.set_result(result)
-            finally:
-                elapsed = time.perf_counter() - start
-                with self._lock:
-                    self._running -= 1
-                    self._service_s = 0.9 * self._service_s + 0.1 * elapsed
-            del job  # drop the request's data before waiting for the next one
+            del job, result, error  # drop the request's data before waiting for the next one
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Let the workers finish the queued jobs and end; the lane can start again."""
