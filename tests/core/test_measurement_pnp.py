@@ -6,6 +6,7 @@ covariances) are weighed as the paper's model weighs them."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -163,6 +164,24 @@ def test_the_lost_signal_uses_each_hypothesis_covariance():
     S = PNP.pixel_std_px**2 * C[0] + PNP.floor
     r = np.array([0.05, 0.0, 0.0]) - PNP.mu1
     assert closest == pytest.approx(r @ np.linalg.solve(S, r))
+
+
+def test_with_the_paper_component_a_heading_half_a_degree_off_is_not_lost():
+    """With the paper's density in the mixture (outlier_weight > 0) the lost signal is the
+    smaller of the two components' distances: a particle on a hypothesis's position with
+    its heading 0.5 deg off is far under the hypothesis's own sharp heading covariance
+    (lost, beyond 25) but within the paper's Sigma1; without the paper component it is
+    lost as before."""
+    C = [_covariance(0.01, 0.01, 0.0005, 0.0)]
+    hyps = _hypotheses([[0.0, 0.0, 0.0]], C)
+    particle = np.array([[PNP.mu1[0], PNP.mu1[1], math.radians(0.5)]])
+    mixed = dataclasses.replace(PNP, outlier_weight=0.3)
+    _, closest = log_likelihood_and_distance(particle, hyps, _model(pnp=mixed))
+    _, own_only = log_likelihood_and_distance(particle, hyps, _model())
+    assert own_only > 25.0
+    r = particle[0] - _model().mu1
+    assert closest == pytest.approx(r @ np.linalg.solve(SIGMA1, r))
+    assert closest < 25.0
 
 
 def test_round_trip_and_older_calibrations():
