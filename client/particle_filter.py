@@ -50,7 +50,8 @@ class FilterConfig:
     init_position_std_m: float = 0.5
     init_yaw_std_rad: float = math.radians(2.0)
     # A frame with hypotheses is "unlikely" when the smallest squared Mahalanobis distance
-    # (under Sigma1) between any particle and any bias-corrected hypothesis exceeds this
+    # (under Sigma1; with the "pnp" model under the hypothesis's own covariance or Sigma1,
+    # whichever is nearer) between any particle and any bias-corrected hypothesis exceeds this
     # (chi-square, 3 dof: P(> 25) = 1.5e-5). An unlikely frame still updates the weights
     # (the mixture's outlier floor keeps them nearly flat), unless it re-seeds. ``lost``
     # holds from the first unlikely frame until a likely one or a re-seed; frames without
