@@ -112,10 +112,13 @@ class LocalizeAnswer:
             e_vlad = np.array([h["e_vlad"] for h in hyps], dtype=np.float64)
             quality = _quality_features(hyps)
             covariance = _pose_covariances(hyps)
+            tags = tuple(tuple(str(t) for t in h.get("entry_tags") or ()) for h in hyps)
         except (KeyError, TypeError, ValueError) as exc:
             raise ServerError(f"malformed localize answer: missing {exc}") from exc
         return cls(
-            hypotheses=Hypotheses(pose, entry, e_vlad, *quality, pose_covariance=covariance),
+            hypotheses=Hypotheses(
+                pose, entry, e_vlad, *quality, pose_covariance=covariance, entry_tags=tags
+            ),
             map_version=data.get("map_version"),
             timings_ms=dict(data.get("timings_ms") or {}),
             raw=data,

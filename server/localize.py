@@ -314,7 +314,8 @@ class PoseHypothesis:
     pose's (X m, Y m, psi rad) covariance from its own inliers at 1 px of pixel noise
     for a full-resolution keypoint (``PnpStrategy.covariance``, ``covariance_scales``;
     None when not asked for, or when the inliers do not determine it; a joint or pooled
-    pose's from the inliers of all its entries)."""
+    pose's from the inliers of all its entries). ``entry_tags``: the tags of the entry it
+    names (a condition's calibration weighs it, ``MeasurementModel.conditions``)."""
 
     entry_id: int
     T_world_from_cam: np.ndarray
@@ -328,6 +329,7 @@ class PoseHypothesis:
     entry_ids: tuple[int, ...] = ()
     method: str = "ransac"
     covariance_px1: np.ndarray | None = None
+    entry_tags: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -506,6 +508,7 @@ def pose_hypotheses(
                 reprojection_error_px=rel.reprojection_error_px,
                 method=rel.method,
                 covariance_px1=covariance,
+                entry_tags=ref.tags,
             )
         )
         inliers.append(
@@ -743,6 +746,7 @@ def _pooled_hypothesis(
         reprojection_error_px=pose.reprojection_error_px,
         entry_ids=tuple(refs[m].entry_id for m in pose.members),
         method="pooled",
+        entry_tags=anchor.tags,
         covariance_px1=_pose_covariance(
             strategy,
             pose.T_world_from_cam,
@@ -874,6 +878,7 @@ def _joint_hypothesis(
         joint=True,
         entry_ids=tuple(h.entry_id for h in members),
         method="joint",
+        entry_tags=anchor.entry_tags,
         covariance_px1=_pose_covariance(
             strategy,
             joint.T_world_from_cam,

@@ -41,7 +41,9 @@ class Hypotheses:
     planar pose's (X m, Y m, psi rad) covariance from the hypothesis's own inliers at 1 px
     of pixel noise (the server's ``vision.pose_covariance``; a joint or pooled pose's from
     the inliers of all its entries), NaN for a hypothesis without one (an older server's
-    joint or pooled pose).
+    joint or pooled pose). entry_tags (H,) tuples of str, optional: the tags of the entry
+    behind each hypothesis (a joint pose's: its anchor's), e.g. ("night",); they select a
+    condition's calibration (``MeasurementModel.conditions``).
     """
 
     pose_world: np.ndarray
@@ -51,6 +53,7 @@ class Hypotheses:
     reprojection_error_px: np.ndarray | None = None
     joint: np.ndarray | None = None
     pose_covariance: np.ndarray | None = None
+    entry_tags: tuple[tuple[str, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.pose_world)
@@ -78,6 +81,13 @@ class Hypotheses:
                     f"hypotheses' pose_covariance must be ({n}, 3, 3), got {cov.shape}"
                 )
             object.__setattr__(self, "pose_covariance", cov)
+        if self.entry_tags is not None:
+            tags = tuple(tuple(str(t) for t in entry) for entry in self.entry_tags)
+            if len(tags) != n:
+                raise InvalidInputError(
+                    f"hypotheses' entry_tags must hold {n} tuples, got {len(tags)}"
+                )
+            object.__setattr__(self, "entry_tags", tags)
 
     @property
     def has_quality(self) -> bool:
@@ -88,15 +98,26 @@ class Hypotheses:
         """The per-entry hypotheses only (the paper's model has no joint pose)."""
         if self.joint is None or not self.joint.any():
             return self
-        keep = ~self.joint
+        return self.subset(~self.joint)
+
+    def subset(self, keep: np.ndarray) -> Hypotheses:
+        """The hypotheses selected by ``keep`` (a boolean mask or indices), every field
+        kept."""
+        keep = np.asarray(keep)
+        index = np.flatnonzero(keep) if keep.dtype == bool else keep.astype(np.intp)
+
+        def pick(values):
+            return None if values is None else values[index]
+
         return Hypotheses(
-            self.pose_world[keep],
-            self.entry_pose_world[keep],
-            self.e_vlad[keep],
-            None if self.n_inliers is None else self.n_inliers[keep],
-            None if self.reprojection_error_px is None else self.reprojection_error_px[keep],
-            self.joint[keep],
-            None if self.pose_covariance is None else self.pose_covariance[keep],
+            self.pose_world[index],
+            self.entry_pose_world[index],
+            self.e_vlad[index],
+            pick(self.n_inliers),
+            pick(self.reprojection_error_px),
+            pick(self.joint),
+            pick(self.pose_covariance),
+            None if self.entry_tags is None else tuple(self.entry_tags[i] for i in index),
         )
 
     @classmethod
@@ -337,6 +358,13 @@ class MeasurementModel:
     ``retrieval_frame``: the frame of the retrieval vector's offset, "world" (the paper's;
     calibrations stored before the choice existed) or "vehicle" (along and across the
     particle's heading).
+    ``conditions``: models calibrated on a training run of one condition, by the entry tag
+    that names it (e.g. "night": a night training run against its own night map). A
+    hypothesis whose entry carries that tag (``Hypotheses.entry_tags``) is weighed by that
+    model's mixture terms (pose error and retrieval vector) instead of this one's; the
+    outlier floor stays this model's. A night query matched to night entries has errors
+    of its own (fewer, noisier features on the lit road, more aliasing); a day-calibrated
+    model is too sure of them. Empty: one model for every hypothesis.
     """
 
     mu1: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -355,10 +383,20 @@ class MeasurementModel:
     retrieval_frame: RetrievalFrame = "world"
     tail_weight: float = 0.0
     tail_scale: float = 1.0
+    conditions: dict[str, MeasurementModel] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tail_weight", float(self.tail_weight))
         object.__setattr__(self, "tail_scale", float(self.tail_scale))
+        conditions = dict(self.conditions or {})
+        for name, model in conditions.items():
+            if not isinstance(name, str) or not name.strip():
+                raise InvalidInputError(f"a condition needs a non-empty tag name, got {name!r}")
+            if not isinstance(model, MeasurementModel) or model.conditions:
+                raise InvalidInputError(
+                    f"condition {name!r} must be a measurement model without conditions"
+                )
+        object.__setattr__(self, "conditions", dict(sorted(conditions.items())))
         if not (0.0 <= self.tail_weight < 1.0 and 1.0 <= self.tail_scale < 1e3):
             raise InvalidInputError(
                 "tail_weight must be in [0, 1) and tail_scale in [1, 1000), got "
@@ -401,6 +439,7 @@ class MeasurementModel:
             "retrieval_frame": self.retrieval_frame,
             "tail_weight": self.tail_weight,
             "tail_scale": self.tail_scale,
+            "conditions": {name: model.to_dict() for name, model in self.conditions.items()},
         }
 
     def paper_log_density(self, maha: np.ndarray) -> np.ndarray:
@@ -413,7 +452,17 @@ class MeasurementModel:
         z_i + mu1 and the covariance (H, 3, 3) of its error's core Gaussian (tails
         aside): "pnp": pixel_std^2 C_i + floor where the hypothesis has its C_i (joint
         poses included), "quality": s_i Sigma1 where the quality features are known, the
-        paper's Sigma1 otherwise."""
+        paper's Sigma1 otherwise; each under its condition's model (``conditions``)."""
+        groups = self.by_condition(hypotheses)
+        if len(groups) == 1:
+            return groups[0][0]._own_gaussians(hypotheses)
+        centres = np.empty((len(hypotheses), 3))
+        covs = np.empty((len(hypotheses), 3, 3))
+        for model, index in groups:
+            centres[index], covs[index] = model._own_gaussians(hypotheses.subset(index))
+        return centres, covs
+
+    def _own_gaussians(self, hypotheses: Hypotheses) -> tuple[np.ndarray, np.ndarray]:
         n = len(hypotheses)
         centres = hypotheses.pose_world + self.mu1
         covs = np.broadcast_to(self.Sigma1, (n, 3, 3)).copy()
@@ -427,9 +476,44 @@ class MeasurementModel:
             centres = hypotheses.pose_world + self.quality.mu1
         return centres, covs
 
+    def by_condition(self, hypotheses: Hypotheses) -> list[tuple[MeasurementModel, np.ndarray]]:
+        """The hypotheses grouped by the model that weighs them: (model, indices) pairs,
+        this model's group first when it has one. A hypothesis goes to the first condition
+        (by name) among its entry's tags, to this model when none has a calibration."""
+        n = len(hypotheses)
+        if not self.conditions or hypotheses.entry_tags is None:
+            return [(self, np.arange(n))]
+        names = list(self.conditions)
+        which = np.array(
+            [
+                next((k + 1 for k, c in enumerate(names) if c in tags), 0)
+                for tags in hypotheses.entry_tags
+            ],
+            dtype=np.intp,
+        )
+        models = [self, *self.conditions.values()]
+        return [
+            (models[k], np.flatnonzero(which == k))
+            for k in range(len(models))
+            if (which == k).any()
+        ]
+
+    def with_condition(self, name: str, model: MeasurementModel) -> MeasurementModel:
+        """This model with ``model`` (its own conditions dropped) as condition ``name``'s."""
+        own = dataclasses.replace(model, conditions={})
+        return dataclasses.replace(self, conditions={**self.conditions, name: own})
+
     def with_covariance(self, covariance: CovarianceModel) -> MeasurementModel:
-        """The same parameters with the other covariance model selected."""
-        return dataclasses.replace(self, covariance=covariance)
+        """The same parameters with the other covariance model selected (in every
+        condition's model too)."""
+        return dataclasses.replace(
+            self,
+            covariance=covariance,
+            conditions={
+                name: dataclasses.replace(model, covariance=covariance)
+                for name, model in self.conditions.items()
+            },
+        )
 
     @classmethod
     def from_dict(cls, data: dict) -> MeasurementModel:
@@ -451,8 +535,12 @@ class MeasurementModel:
                 retrieval_frame=data.get("retrieval_frame") or "world",
                 tail_weight=float(data.get("tail_weight") or 0.0),
                 tail_scale=float(data.get("tail_scale") or 1.0),
+                conditions={
+                    str(name): cls.from_dict(values)
+                    for name, values in (data.get("conditions") or {}).items()
+                },
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InvalidInputError(f"malformed measurement model parameters: {exc}") from exc
 
 
@@ -509,9 +597,32 @@ def log_likelihood_and_distance(
 ) -> tuple[np.ndarray, float]:
     """log p(z | x) per particle (P,), and the smallest squared Mahalanobis distance
     (under its covariance) between any particle and any bias-corrected hypothesis: how far the
-    whole particle set is from what this frame says (the filter's "lost" signal)."""
+    whole particle set is from what this frame says (the filter's "lost" signal). Each
+    hypothesis's terms come from its condition's model (``MeasurementModel.by_condition``)."""
     if len(hypotheses) == 0:
         raise InvalidInputError("log_likelihood needs at least one hypothesis")
+    groups = model.by_condition(hypotheses)
+    if len(groups) == 1:
+        terms, closest = _mixture_terms(particles, hypotheses, groups[0][0])
+    else:
+        parts = [_mixture_terms(particles, hypotheses.subset(i), m) for m, i in groups]
+        terms = np.concatenate([t for t, _ in parts], axis=1)
+        closest = min(c for _, c in parts)
+    peak = terms.max(axis=1)
+    if model.outlier_log_density is not None:
+        peak = np.maximum(peak, model.outlier_log_density)
+    total = np.exp(terms - peak[:, None]).sum(axis=1)
+    if model.outlier_log_density is not None:
+        total += np.exp(model.outlier_log_density - peak)
+    return peak + np.log(total), closest
+
+
+def _mixture_terms(
+    particles: np.ndarray, hypotheses: Hypotheses, model: MeasurementModel
+) -> tuple[np.ndarray, float]:
+    """The mixture's log terms (P, H') of ``model`` (pose error plus retrieval vector; H'
+    leaves the joint poses out unless the model weighs them), and the smallest squared
+    Mahalanobis distance of the "lost" signal."""
     quality = model.quality if model.covariance == "quality" else None
     if quality is None or not hypotheses.has_quality:
         quality = None
@@ -558,13 +669,7 @@ def log_likelihood_and_distance(
         _wrap_residual(entries[:, 2] - model.mu2[3] - psi),
     ]
     terms += model._log_norm2 - 0.5 * _mahalanobis(r2, model._whiten2)
-    peak = terms.max(axis=1)
-    if model.outlier_log_density is not None:
-        peak = np.maximum(peak, model.outlier_log_density)
-    total = np.exp(terms - peak[:, None]).sum(axis=1)
-    if model.outlier_log_density is not None:
-        total += np.exp(model.outlier_log_density - peak)
-    return peak + np.log(total), closest
+    return terms, closest
 
 
 def _pnp_terms(X, Y, psi, hypotheses, r1_paper, model, pnp):

@@ -147,6 +147,7 @@ def hypothesis(h: PoseHypothesis, geopose: GeoPose | None = None) -> HypothesisP
         joint=h.joint,
         entry_ids=list(h.entry_ids),
         method=h.method,
+        entry_tags=list(h.entry_tags),
         pose_covariance=None
         if h.covariance_px1 is None
         else np.asarray(h.covariance_px1, float).ravel().tolist(),

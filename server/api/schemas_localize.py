@@ -277,6 +277,12 @@ class HypothesisPublic(BaseModel):
         "comes from the inliers of all its entries. Null when the inliers do not determine "
         "the pose.",
     )
+    entry_tags: list[str] = Field(
+        default_factory=list,
+        description="The tags of the entry the hypothesis names (e.g. night): a map calibrated "
+        "for that condition (the calibration's conditions) weighs the hypothesis by that "
+        "condition's model.",
+    )
 
 
 class RetrievedPublic(BaseModel):

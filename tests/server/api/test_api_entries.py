@@ -9,6 +9,8 @@ import json
 import numpy as np
 from api_helpers import frame_png, ground_truth
 
+from monoloc.client.api import LocalizeAnswer
+
 QUERY = 12
 
 
@@ -74,6 +76,12 @@ def test_added_entry_answers_the_next_query_and_deleted_one_is_gone(
     assert after_add["retrieved"][0]["entry_id"] == entry_id  # the very image: closest VLAD
     best = after_add["hypotheses"][0]
     assert best["entry_id"] == entry_id
+    # each hypothesis names its entry's tags (a condition's calibration weighs it), and the
+    # vehicle's library reads them
+    assert best["entry_tags"] == ["night"]
+    assert all(h["entry_tags"] == [] for h in after_add["hypotheses"] if h["entry_id"] != entry_id)
+    parsed = LocalizeAnswer.from_json(after_add).hypotheses
+    assert parsed.entry_tags[0] == ("night",) and len(parsed.entry_tags) == len(parsed)
     truth = ground_truth(sim_dataset, "01", QUERY)
     assert np.hypot(best["pose"]["x_m"] - truth[0, 3], best["pose"]["y_m"] - truth[1, 3]) < 0.05
 
@@ -126,6 +134,10 @@ def test_list_filters_get_and_retag(sim_dataset, map_copy, client_on_copy):
     assert r.status_code == 200 and sorted(r.json()["tags"]) == ["dusk", "rain"]
     got = client.get(f"{url}/{entry_id}", headers=h).json()
     assert sorted(got["tags"]) == ["dusk", "rain"] and got["timestamp_s"] == 1.2
+    # the next localize answer names the new tags (the entry cache follows the re-tag)
+    answer = _localize(client, m, frame_png(sim_dataset, "01", 3))
+    named = [h["entry_tags"] for h in answer["hypotheses"] if h["entry_id"] == entry_id]
+    assert named and all(sorted(t) == ["dusk", "rain"] for t in named)
     assert np.allclose(got["T_world_from_cam"], truth.ravel())
     assert client.get(f"{url}/999999", headers=h).status_code == 404
     detail = client.get(f"/v1/maps/{m.map_id}", headers=m.keys.header("admin")).json()
