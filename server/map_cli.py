@@ -294,10 +294,24 @@ def map_calibrate(
             "covariance; the default) | paper | quality (every model is fitted and stored)."
         ),
     ] = "pnp",
+    condition: Annotated[
+        str | None,
+        typer.Option(
+            "--condition",
+            metavar="NAME",
+            help="Calibrate this condition's model (an entry tag, e.g. night) from a run "
+            "recorded in it; the map's base calibration (needed) is left untouched. "
+            "Hypotheses from entries with the tag are weighed by it.",
+        ),
+    ] = None,
 ) -> None:
     """Fit the map's measurement model (mu1, Sigma1, mu2, Sigma2) on a training run and
-    store it with its provenance (a recorded job; the run is not added to the map)."""
+    store it with its provenance (a recorded job; the run is not added to the map).
+    With --condition NAME (e.g. a night run, --condition night) it becomes the model of
+    the entries tagged NAME; calibrating the base again keeps it (same vocabulary)."""
+    from monoloc.core.errors import InvalidInputError
     from monoloc.server.calibrate import server_calibration_config
+    from monoloc.server.calibration_conditions import condition_name
     from monoloc.server.ingest.common import parse_frame_range
     from monoloc.server.ingest.manage import open_source
     from monoloc.server.ingest.report import progress_bar
@@ -308,6 +322,11 @@ def map_calibrate(
         raise typer.BadParameter(
             f"{covariance!r}: expected paper, quality or pnp", param_hint="--covariance"
         )
+    if condition is not None:
+        try:
+            condition = condition_name(condition)
+        except InvalidInputError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--condition") from exc
     config = server_calibration_config(k, settings.localize_refine, covariance)
     source = open_source(
         fmt,
@@ -328,9 +347,20 @@ def map_calibrate(
         params["depth_from"] = depth_from
     with progress_bar(f"calibrating on {source.name}") as update:
         job, calibration = run_calibration_job(
-            factory, map_ref, source, params=params, config=config, seed=seed, progress=update
+            factory,
+            map_ref,
+            source,
+            params=params,
+            config=config,
+            seed=seed,
+            progress=update,
+            condition=condition,
         )
-    typer.echo(f"job {job.id} {job.state}: map {job.map_id} calibrated")
+    if condition is None:
+        typer.echo(f"job {job.id} {job.state}: map {job.map_id} calibrated")
+    else:
+        typer.echo(f"job {job.id} {job.state}: map {job.map_id} condition {condition} calibrated")
+        calibration = calibration["conditions"][condition]
     for line in describe_calibration(calibration):
         typer.echo(line)
 

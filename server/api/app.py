@@ -74,7 +74,11 @@ TAGS = [
     {"name": "entries", "description": "Reference images of a map (operators)."},
     {"name": "localize", "description": "Pose hypotheses for a query frame."},
     {"name": "stream", "description": "WebSocket stream of frames per vehicle."},
-    {"name": "calibration", "description": "Measurement-model parameters per map."},
+    {
+        "name": "calibration",
+        "description": "Measurement-model parameters per map, and per condition (an entry "
+        "tag such as night) calibrated on a run recorded in it.",
+    },
     {"name": "keys", "description": "API keys (admin)."},
     {"name": "health", "description": "Liveness, readiness, Prometheus metrics."},
 ]

@@ -494,6 +494,15 @@ class CalibrationUpdate(BaseModel):
         "the vehicle's heading).",
     )
     provenance: dict[str, Any] = Field(default_factory=dict)
+    conditions: dict[Tag, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="Models calibrated on a training run of one condition, by the entry tag "
+        "that names it (e.g. night: a night run against its own night map): a hypothesis "
+        "whose entry carries the tag is weighed by that condition's model (the same fields "
+        "as this one, no conditions of their own; with their own provenance and "
+        "updated_at) instead of this one. Calibrated by a calibration job with "
+        "condition=<tag>; names are lower-cased.",
+    )
 
 
 class CalibrationPublic(CalibrationUpdate):

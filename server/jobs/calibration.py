@@ -7,6 +7,12 @@ The job runner (:func:`run_calibration`, a training run uploaded over HTTP) and
 CLI's vocabulary job) both end in :func:`calibrate_map`. The training run is never
 added to the map: its temporary map lives in memory only. Calibrating again replaces
 the stored parameters, so an interrupted calibration is resumed by running it again.
+
+With a ``condition`` (an entry tag such as ``night``) the run, recorded in that
+condition (a night run against the map's night entries), calibrates that condition's
+model instead (``monoloc.server.calibration_conditions``): it needs the map's base
+calibration, which it leaves untouched. Calibrating the base again keeps the conditions
+calibrated with the same vocabulary.
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.errors import ConflictError
+from monoloc.core.measurement import MeasurementModel
+from monoloc.server import calibration_conditions as conditions
 from monoloc.server.calibrate import (
     CalibrationConfig,
     TrainingFrame,
@@ -69,10 +77,18 @@ def calibrate_map(
     job_id: int | None = None,
     source_name: str | None = None,
     progress: Callable[[int, int], None] | None = None,
+    condition: str | None = None,
 ) -> dict[str, Any]:
     """Fit the measurement model on ``source`` (a KittiSequence or TumRun, read with its
     own intrinsics) with the map's vocabulary, store it on map ``map_id`` and return the
-    stored calibration (mu1, Sigma1, mu2, Sigma2, outlier floor, source, provenance).
+    stored calibration (mu1, Sigma1, mu2, Sigma2, outlier floor, source, provenance,
+    conditions).
+
+    ``condition`` None: the base calibration, keeping the stored conditions calibrated
+    with the same vocabulary (the others are dropped, and named in the provenance's
+    ``conditions_dropped``). A condition (an entry tag, e.g. "night"): the fitted model,
+    with its provenance and updated_at, becomes ``conditions[condition]`` of the stored
+    calibration; ConflictError if the map has no base calibration.
 
     RANSAC draws from ``np.random.default_rng(seed)``, so a re-run gives the same model.
     ConflictError if the map's vocabulary changed meanwhile (e_vlad statistics depend on
@@ -80,6 +96,11 @@ def calibrate_map(
     """
     name = source_name or source.name
     check_run_length(len(source.frames), config, name)
+    if condition is not None:
+        condition = conditions.condition_name(condition)
+        with session_scope(session_factory) as session:
+            stored = maps_repo.get_map(session, map_id).calibration
+        conditions.require_base(stored, map_id, condition)  # before the long fit
     vocabulary, features = _map_vocabulary(session_factory, map_id)
     # the training run described as the map's entries and its queries are (maps.features)
     build = dataclasses.replace(config.build, orb=orb_for_rule(features, config.build.orb))
@@ -103,15 +124,41 @@ def calibrate_map(
         "job_id": job_id,
         "created_at": now,
     }
-    calibration = {**result.model.to_dict(), "provenance": provenance, "updated_at": now}
+    return _store(session_factory, map_id, vocabulary, result.model, provenance, condition)
+
+
+def _store(
+    session_factory: sessionmaker[Session],
+    map_id: int,
+    vocabulary: Vocabulary,
+    model: MeasurementModel,
+    provenance: dict[str, Any],
+    condition: str | None,
+) -> dict[str, Any]:
+    """Store a fitted model as the map's base calibration or as one condition's (see
+    :func:`calibrate_map`); returns the stored calibration."""
+    now = provenance["created_at"]
+    if condition is None:
+        fitted = {**model.to_dict(), "provenance": provenance, "updated_at": now}
+
+        def change(stored):
+            return conditions.with_new_base(stored, fitted)
+
+    else:
+        entry = conditions.condition_entry(model, {**provenance, "condition": condition}, now)
+
+        def change(stored):
+            return conditions.with_condition(stored, map_id, condition, entry)
+
     with session_scope(session_factory) as session:
-        record = maps_repo.get_map(session, map_id)
+        # checked under the write lock update_calibration takes; raising rolls it back
+        record = maps_repo.update_calibration(session, map_id, change)
         if record.vocabulary_hash != vocabulary.version:
             raise ConflictError(
                 f"map {map_id} switched from vocabulary {vocabulary.version} to "
                 f"{record.vocabulary_hash} during calibration; calibrate again"
             )
-        return maps_repo.set_calibration(session, map_id, calibration).calibration
+        return record.calibration
 
 
 def describe_calibration(calibration: dict[str, Any]) -> list[str]:
@@ -137,6 +184,7 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
         f"outlier log density: {calibration.get('outlier_log_density')}",
         *_describe_quality(calibration),
         *_describe_pnp(calibration),
+        *_describe_conditions(calibration),
         "provenance:",
     ]
     for key, value in (calibration.get("provenance") or {}).items():
@@ -182,6 +230,19 @@ def _describe_pnp(calibration: dict[str, Any]) -> list[str]:
     ]
 
 
+def _describe_conditions(calibration: dict[str, Any]) -> list[str]:
+    """One line per condition's model (none for a calibration without conditions)."""
+    lines = []
+    for name, model in sorted((calibration.get("conditions") or {}).items()):
+        std1 = np.sqrt(np.diag(np.asarray(model["Sigma1"])))
+        lines.append(
+            f"condition {name}: std1 X {100 * std1[0]:.1f} cm, Y {100 * std1[1]:.1f} cm, "
+            f"psi {math.degrees(std1[2]):.2f} deg, covariance model "
+            f"{model.get('covariance') or 'paper'}, updated {model.get('updated_at')}"
+        )
+    return lines
+
+
 def _describe_tail(model: dict[str, Any]) -> list[str]:
     """The pose-error tail of the paper's parameters or the quality model's, one line."""
     weight = float(model.get("tail_weight") or 0.0)
@@ -205,16 +266,23 @@ def run_calibration_job(
     config: CalibrationConfig = CalibrationConfig(),
     seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
+    condition: str | None = None,
 ) -> tuple[JobRecord, dict[str, Any]]:
     """:func:`calibrate_map` recorded as a job (state, progress, error, result) for the
-    CLI. ``params`` describe the run for the job row (format, path, frames, ...)."""
+    CLI. ``params`` describe the run for the job row (format, path, frames, ...). A
+    ``condition`` on a map without a base calibration is refused (ConflictError) before
+    any job is recorded."""
     record = find_map(session_factory, map_ref)
+    if condition is not None:
+        condition = conditions.condition_name(condition)
+        conditions.require_base(record.calibration, record.id, condition)
     job_params = {
         **(params or {}),
         "source_name": source.name,
         "k": config.k,
         "seed": seed,
         "upload": False,
+        "condition": condition,
     }
 
     def work(job: JobRecord, report: Callable[[int, int], None]) -> dict[str, Any]:
@@ -226,6 +294,7 @@ def run_calibration_job(
             seed=seed,
             job_id=job.id,
             progress=report,
+            condition=condition,
         )
 
     return run_recorded_job(
@@ -236,13 +305,14 @@ def run_calibration_job(
         started="calibrating",
         describe_progress=_frame_of,
         work=work,
-        result_of=job_result,
+        result_of=lambda calibration: job_result(calibration, condition),
         progress=progress,
     )
 
 
-def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
-    """What a calibration job records as its result: the model and its provenance."""
+def job_result(calibration: dict[str, Any], condition: str | None = None) -> dict[str, Any]:
+    """What a calibration job records as its result: the model it fitted (the base's, or
+    the condition's) and its provenance; a base job also names the conditions it kept."""
     keys = (
         "mu1",
         "Sigma1",
@@ -257,7 +327,11 @@ def job_result(calibration: dict[str, Any]) -> dict[str, Any]:
         "tail_scale",
         "provenance",
     )
-    return {key: calibration.get(key) for key in keys}
+    fitted = calibration if condition is None else calibration["conditions"][condition]
+    result = {key: fitted.get(key) for key in keys}
+    if condition is not None:
+        return {"condition": condition, **result}
+    return {**result, "conditions": sorted(calibration.get("conditions") or {})}
 
 
 def run_calibration(ctx: JobContext) -> dict[str, Any]:
@@ -299,5 +373,6 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
         job_id=job.id,
         source_name=params.get("source_name") or "upload",
         progress=progress,
+        condition=params.get("condition"),
     )
-    return job_result(calibration)
+    return job_result(calibration, params.get("condition"))

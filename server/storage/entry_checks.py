@@ -28,20 +28,23 @@ def check_source_hash(source_image_hash: str) -> str:
     return value
 
 
+def normalise_tag(tag: str, what: str = "tag") -> str:
+    """One tag lower-cased and stripped (``Night `` -> ``night``); InvalidInputError naming
+    ``what`` (e.g. "condition") if it breaks the tag rule."""
+    value = str(tag).strip().lower()
+    if not TAG_RE.match(value):
+        raise InvalidInputError(
+            f"invalid {what} {tag!r}: 1-64 of a-z, 0-9, '_', '.', ':', '-', "
+            "starting with a letter or digit"
+        )
+    return value
+
+
 def normalise_tags(tags: Iterable[str]) -> list[str]:
     """Lower-cased, stripped, de-duplicated, sorted tags such as ``night``, ``off-center``."""
     if isinstance(tags, str):
         raise InvalidInputError(f"tags must be a list of strings, got the string {tags!r}")
-    clean: set[str] = set()
-    for tag in tags:
-        value = str(tag).strip().lower()
-        if not TAG_RE.match(value):
-            raise InvalidInputError(
-                f"invalid tag {tag!r}: 1-64 of a-z, 0-9, '_', '.', ':', '-', "
-                "starting with a letter or digit"
-            )
-        clean.add(value)
-    return sorted(clean)
+    return sorted({normalise_tag(tag) for tag in tags})
 
 
 def check_area(area: Area) -> tuple[float, float, float]:

@@ -7,7 +7,7 @@ work (``db.session_scope``). Functions return frozen records, not ORM objects.
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -304,6 +304,28 @@ def set_calibration(
     row.calibration = value
     session.flush()
     return get_map(session, map_id)
+
+
+def update_calibration(
+    session: Session,
+    map_id: int,
+    change: Callable[[dict[str, Any] | None], Mapping[str, Any] | None],
+) -> MapRecord:
+    """Store ``change(stored calibration)`` (read, changed and written under the map's
+    write lock), so that two writers (a base and a condition calibration finishing
+    together) do not lose each other's part. NotFoundError if the map does not exist."""
+    # A write first: on SQLite it takes the database's write lock before the read (a
+    # plain read would see a snapshot another writer may change meanwhile); on
+    # PostgreSQL it locks the row.
+    locked = session.execute(
+        update(Map)
+        .where(Map.id == map_id)
+        .values(calibration=Map.calibration)
+        .execution_options(synchronize_session=False)
+    )
+    if locked.rowcount == 0:
+        raise NotFoundError(f"map {map_id} does not exist")
+    return set_calibration(session, map_id, change(get_map(session, map_id).calibration))
 
 
 def set_geo_reference(

@@ -312,6 +312,55 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert stored["covariance"] == "pnp" and stored["pnp"]["pixel_std_px"] > 0
 
 
+def test_map_calibrate_cli_condition(noisy_run, tmp_path):
+    """--condition: a bad name and a map without a base calibration are refused before
+    any job; after the base, the night run's model is stored as conditions.night."""
+    from typer.testing import CliRunner
+
+    from monoloc import cli
+    from monoloc.core.errors import ConflictError
+    from monoloc.server.jobs import store as jobs_repo
+    from monoloc.server.settings import Settings
+    from monoloc.server.storage import maps as maps_repo
+    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+
+    cli._register()
+    env = {"MONOLOC_DATA_DIR": str(tmp_path / "data")}
+    runner = CliRunner()
+    assert (
+        runner.invoke(cli.app, ["map", "create", "street", "--camera", "kitti"], env=env).exit_code
+        == 0
+    )
+    args = ["map", "calibrate", "--map", "street", "--run", str(noisy_run), "--k", "3"]
+    args += ["--frames", "0:16"]
+
+    bad = runner.invoke(cli.app, [*args, "--condition", "no good"], env=env)
+    assert bad.exit_code == 2 and "invalid condition name 'no good'" in bad.output
+    early = runner.invoke(cli.app, [*args, "--condition", "night"], env=env)
+    assert isinstance(early.exception, ConflictError)
+    assert "calibrate the map without a condition first" in str(early.exception)
+
+    base = runner.invoke(cli.app, args, env=env, catch_exceptions=False)
+    assert base.exit_code == 0 and "job 1 done: map 1 calibrated" in base.output
+    night = runner.invoke(cli.app, [*args, "--condition", "Night"], env=env, catch_exceptions=False)
+    assert night.exit_code == 0, night.output
+    assert "job 2 done: map 1 condition night calibrated" in night.output
+    assert "std1   X" in night.output and "condition: night" in night.output
+
+    engine = create_engine_for(Settings(data_dir=tmp_path / "data"))
+    with session_scope(make_session_factory(engine)) as session:
+        record = maps_repo.find_map(session, "street")
+        jobs = jobs_repo.list_jobs(session, map_id=record.id)
+    engine.dispose()
+    assert [(j.id, j.state, j.params["condition"]) for j in sorted(jobs, key=lambda j: j.id)] == [
+        (1, "done", None),
+        (2, "done", "night"),
+    ]
+    stored = record.calibration
+    assert stored["provenance"]["job_id"] == 1 and list(stored["conditions"]) == ["night"]
+    assert stored["conditions"]["night"]["provenance"]["job_id"] == 2
+
+
 def test_the_calibration_description_names_the_offsets_frame():
     from monoloc.core.measurement import MeasurementModel
     from monoloc.server.jobs.calibration import describe_calibration

@@ -6,6 +6,13 @@ parameters with their provenance. The training run is not added to the map.
 
 An uncalibrated map answers ``monoloc.core.measurement.MeasurementModel``'s documented
 defaults with ``"calibrated": false`` and ``"source": "defaults"``.
+
+Conditions (``monoloc.server.calibration_conditions``): a calibration job with
+``condition=night`` fits its training run, recorded in that condition (e.g. a night run
+against the map's night entries), as the model of the ``night`` condition; hypotheses
+from entries tagged ``night`` are then weighed by it. It needs the base calibration
+(409 otherwise) and leaves it untouched; ``DELETE .../calibration/conditions/{name}``
+removes one.
 """
 
 from __future__ import annotations
@@ -14,18 +21,24 @@ from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
 import anyio
-from fastapi import APIRouter, Form, UploadFile, status
+from fastapi import APIRouter, Form, Path, UploadFile, status
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy.orm import Session
 
 from monoloc.core.measurement import MeasurementModel
+from monoloc.server import calibration_conditions as conditions
 from monoloc.server.api import convert
 from monoloc.server.api.archives import Unpacked
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AppState, MapWriteKey, ReadKey, SessionDep, StateDep
 from monoloc.server.api.guard import GuardedRoute, body_limit
 from monoloc.server.api.params import MapId
-from monoloc.server.api.schemas import CalibrationPublic, CalibrationUpdate, JobPublic
+from monoloc.server.api.schemas import (
+    TAG_PATTERN,
+    CalibrationPublic,
+    CalibrationUpdate,
+    JobPublic,
+)
 from monoloc.server.api.uploads import (
     RunArchive,
     RunFiles,
@@ -41,8 +54,12 @@ from monoloc.server.calibrate import CalibrationConfig, check_run_length
 from monoloc.server.jobs import store as jobs_repo
 from monoloc.server.jobs.calibration import JOB_KIND
 from monoloc.server.storage import maps as maps_repo
+from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import JobRecord
 
+ConditionName = Annotated[
+    str, Path(pattern=TAG_PATTERN, description="The condition: an entry tag, e.g. night.")
+]
 router = APIRouter(
     prefix="/v1/maps/{map_id}/calibration", tags=["calibration"], route_class=GuardedRoute
 )
@@ -92,9 +109,10 @@ def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
             calibrated=False,
             source="defaults",
         )
-    model = MeasurementModel.from_dict(calibration)
+    values = MeasurementModel.from_dict(calibration).to_dict()
+    del values["source"]
     return CalibrationPublic(
-        **{k: v for k, v in model.to_dict().items() if k != "source"},
+        **{**values, "conditions": conditions.public_conditions(calibration)},
         provenance=dict(calibration.get("provenance") or {}),
         calibrated=True,
         source=str(calibration.get("source", "calibrated")),
@@ -123,11 +141,14 @@ def put_calibration(
     map_id: MapId, body: CalibrationUpdate, session: SessionDep, _key: MapWriteKey
 ) -> CalibrationPublic:
     """Store parameters computed elsewhere. Covariances must be symmetric positive
-    definite (422 otherwise)."""
+    definite (422 otherwise); so must each condition's, which cannot have conditions of
+    its own."""
     values = body.model_dump()
-    MeasurementModel.from_dict(values)  # the client must be able to use them
-    values.update(source="put", updated_at=datetime.now(UTC).isoformat())
-    record = maps_repo.set_calibration(session, map_id, values)
+    now = datetime.now(UTC).isoformat()
+    values.update(
+        source="put", updated_at=now, conditions=conditions.put_conditions(body.conditions, now)
+    )
+    record = maps_repo.set_calibration(session, map_id, conditions.checked(values))
     session.commit()
     return _public(record.calibration)
 
@@ -144,6 +165,25 @@ def delete_calibration(map_id: MapId, session: SessionDep, _key: MapWriteKey) ->
     return _public(record.calibration)
 
 
+@router.delete(
+    "/conditions/{name}",
+    response_model=CalibrationPublic,
+    responses={**AUTH_ERRORS, **error_responses(404, 422)},
+    summary="Forget one condition's calibration",
+)
+def delete_condition(
+    map_id: MapId, name: ConditionName, session: SessionDep, _key: MapWriteKey
+) -> CalibrationPublic:
+    """Hypotheses from entries tagged ``name`` are weighed by the base calibration again
+    (404 if the map has no calibration for that condition)."""
+    name = conditions.condition_name(name)
+    record = maps_repo.update_calibration(
+        session, map_id, lambda stored: conditions.without_condition(stored, map_id, name)
+    )
+    session.commit()
+    return _public(record.calibration)
+
+
 def _store_job(
     state: AppState,
     up: RunUpload,
@@ -151,8 +191,14 @@ def _store_job(
     seed: int,
     archive: UploadFile | None,
     files: list[UploadFile] | None,
+    condition: str | None,
 ) -> tuple[JobRecord, int, Unpacked]:
-    """Unpack and validate the training run, refuse a too short one, record the job."""
+    """Refuse a condition without a base calibration (before the upload is unpacked),
+    unpack and validate the training run, refuse a too short one, record the job."""
+    if condition is not None:
+        with session_scope(state.sessions) as session:
+            stored = maps_repo.get_map(session, up.map_id).calibration
+        conditions.require_base(stored, up.map_id, condition)
 
     def record(session: Session, source) -> tuple[JobRecord, int]:
         n_frames = len(source.frames)
@@ -166,6 +212,7 @@ def _store_job(
             "seed": seed,
             "upload": True,
             "source_name": up.source_name,
+            "condition": condition,
         }
         job = jobs_repo.create_job(
             session, JOB_KIND, map_id=up.map_id, params=params, message="queued"
@@ -204,18 +251,33 @@ async def calibration_job(
             "paper (the paper's one Sigma1) or quality."
         ),
     ] = "pnp",
+    condition: Annotated[
+        str | None,
+        Form(
+            pattern=TAG_PATTERN,
+            description="Calibrate this condition's model (an entry tag, e.g. night) from a "
+            "run recorded in it, instead of the base calibration, which the map must have "
+            "(409 otherwise) and which is left untouched. Hypotheses from entries with the "
+            "tag are weighed by it.",
+        ),
+    ] = None,
 ) -> CalibrationJobAccepted:
     """Maximum-likelihood mu1, Sigma1, mu2, Sigma2 from a training run that is not the
     test run (METHOD.md s. 7): a temporary map of every other frame, queried by the
     others against their k closest entries by pose, with the run's own camera and the
     map's vocabulary. Follow the job at /v1/jobs/{id}; when it is done,
     GET /v1/maps/{map_id}/calibration returns the parameters with ``calibrated: true``
-    and their provenance. A run shorter than 2 (k - 1) + 2 frames is refused (422)."""
+    and their provenance. A run shorter than 2 (k - 1) + 2 frames is refused (422).
+    With ``condition``, the parameters become ``conditions[condition]`` of the stored
+    calibration; calibrating the base again keeps the conditions calibrated with the same
+    vocabulary."""
     check_upload_parts(archive, files)
     config = CalibrationConfig(k=k, covariance=covariance)
+    if condition is not None:
+        condition = conditions.condition_name(condition)
     up = RunUpload(map_id, format, sequence, frames, upload_name(archive))
     job, n_frames, unpacked = await anyio.to_thread.run_sync(
-        _store_job, state, up, config, seed, archive, files
+        _store_job, state, up, config, seed, archive, files, condition
     )
     state.jobs.submit(job.id)
     return CalibrationJobAccepted(
