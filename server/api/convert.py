@@ -78,6 +78,7 @@ def map_public(m: MapRecord, vocab: VocabularyRecord) -> s.MapPublic:
         version=m.version,
         n_entries=m.n_entries,
         calibrated=bool(m.calibration),
+        calibrated_conditions=sorted((m.calibration or {}).get("conditions") or {}),
         geo_reference=geo_reference_public(m.geo_reference),
         features=m.features,
         features_current=rule_is_current(m.features),

@@ -230,6 +230,11 @@ class MapPublic(BaseModel):
     version: int = Field(description="Bumped by every entry add/remove and vocabulary change.")
     n_entries: int
     calibrated: bool = Field(description="Whether the measurement model was calibrated.")
+    calibrated_conditions: list[str] = Field(
+        default_factory=list,
+        description="The conditions (entry tags, e.g. night) with a model of their own in the "
+        "calibration.",
+    )
     geo_reference: GeoReferencePublic | None = Field(
         default=None, description="The map's geographic reference; null: not geo-referenced."
     )

@@ -438,3 +438,33 @@ def test_live_page_follows_a_vehicle(offline, server, city):
         stream.close()
     steps = np.linalg.norm(np.diff(np.asarray(seen), axis=0), axis=1)
     assert (steps > 0.5).all(), seen  # it moved on the page, frame after frame
+
+
+def test_maps_page_names_the_calibrated_conditions(offline, server):
+    """A map whose calibration has a night condition reads "calibrated (+night)" on the
+    maps page and its own page; back to "defaults" once the calibration is deleted."""
+    page, url, map_id = offline.page, server["url"], server["map_id"]
+    model = dict(
+        mu1=[0.0, 0.0, 0.0],
+        Sigma1=np.diag([0.04, 0.04, 0.0007]).tolist(),
+        mu2=[0.9, 0.0, 0.0, 0.0],
+        Sigma2=np.diag([0.06, 64.0, 64.0, 0.27]).tolist(),
+    )
+    put = server["admin"].request(
+        "PUT", f"/v1/maps/{map_id}/calibration", json=dict(model, conditions={"night": model})
+    )
+    assert put.status_code == 200, put.text
+    try:
+        offline.sign_in(ADMIN_KEY)
+        cell = page.locator(f'#maps tr[data-map-id="{map_id}"] td').nth(5)
+        cell.wait_for()
+        assert cell.inner_text() == "calibrated (+night)"
+        page.goto(f"{url}/ui#/maps/{map_id}")
+        page.get_by_text("calibrated (+night)").wait_for()
+    finally:
+        server["admin"].request("DELETE", f"/v1/maps/{map_id}/calibration")
+    page.goto(f"{url}/ui#/maps")
+    page.reload()
+    cell = page.locator(f'#maps tr[data-map-id="{map_id}"] td').nth(5)
+    cell.wait_for()
+    assert cell.inner_text() == "defaults"

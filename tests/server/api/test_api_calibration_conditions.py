@@ -114,6 +114,8 @@ def test_a_night_condition_is_calibrated_beside_the_base_and_survives_it(app, si
     assert cond["Sigma1"] != base["Sigma1"]  # fitted on the night run, not copied
     assert job["result"]["condition"] == "night" and job["result"]["provenance"] == prov
     assert job["result"]["Sigma1"] == cond["Sigma1"]
+    listed = client.get(f"/v1/maps/{map_id}", headers=keys.header("admin")).json()
+    assert listed["calibrated"] and listed["calibrated_conditions"] == ["night"]
     model = MeasurementModel.from_dict(got)  # what a vehicle loads
     assert np.allclose(model.conditions["night"].Sigma1, cond["Sigma1"])
 

@@ -112,13 +112,20 @@ async function mapsPage() {
     h("td", {}, h("a", { href: `#/maps/${m.id}` }, m.name)), h("td", {}, m.id),
     h("td", { class: "n-entries" }, m.n_entries), h("td", {}, m.version),
     h("td", {}, `${m.vocabulary.hash.slice(0, 10)} (${m.vocabulary.n_words} words)`),
-    h("td", {}, m.calibrated ? "calibrated" : "defaults"),
+    h("td", {}, calibration(m)),
     h("td", {}, h("a", { href: `#/maps/${m.id}/live` }, "live"))));
   show(h("h1", {}, "Maps"),
     h("table", { id: "maps" },
       h("thead", {}, h("tr", {}, ["name", "id", "entries", "version", "vocabulary",
         "measurement model", ""].map((t) => h("th", {}, t)))),
       h("tbody", {}, rows.length ? rows : h("tr", {}, h("td", { colspan: 7 }, "no map yet")))));
+}
+
+// "calibrated", with the conditions that have a model of their own ("+night")
+function calibration(m) {
+  if (!m.calibrated) return "defaults";
+  const conditions = m.calibrated_conditions || [];
+  return conditions.length ? `calibrated (+${conditions.join(", +")})` : "calibrated";
 }
 
 function category(tags) {
@@ -196,7 +203,7 @@ async function mapPage(mapId) {
   show(h("h1", {}, `Map ${detail.name}`),
     h("p", { class: "muted" }, `${detail.n_entries} entries · ${detail.n_runs} runs · ` +
       `version ${detail.version} · vocabulary ${detail.vocabulary.hash.slice(0, 10)} · ` +
-      (detail.calibrated ? "calibrated" : "measurement model: defaults")),
+      (detail.calibrated ? calibration(detail) : "measurement model: defaults")),
     h("p", {}, links),
     h("div", { class: "toolbar" }, h("label", {}, "tag", tagSel), h("label", {}, "run", runSel),
       h("label", {}, "gap radius (m)", radius)),
