@@ -113,11 +113,21 @@ class LocalizeAnswer:
             quality = _quality_features(hyps)
             covariance = _pose_covariances(hyps)
             tags = tuple(tuple(str(t) for t in h.get("entry_tags") or ()) for h in hyps)
+            # how each pose was found (a server before the field: unknown)
+            method = (
+                tuple(str(h["method"]) for h in hyps) if all("method" in h for h in hyps) else None
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise ServerError(f"malformed localize answer: missing {exc}") from exc
         return cls(
             hypotheses=Hypotheses(
-                pose, entry, e_vlad, *quality, pose_covariance=covariance, entry_tags=tags
+                pose,
+                entry,
+                e_vlad,
+                *quality,
+                pose_covariance=covariance,
+                entry_tags=tags,
+                method=method,
             ),
             map_version=data.get("map_version"),
             timings_ms=dict(data.get("timings_ms") or {}),

@@ -43,7 +43,7 @@ _NO_COVARIANCE = np.full((3, 3), np.nan)
 def hypotheses_of(result: LocalizationResult) -> Hypotheses:
     """The filter's view of a result: planar poses, entry poses, VLAD distances and the
     quality features (inliers, reprojection error, joint or not, the pose covariance at
-    1 px; NaN where a hypothesis has none) and the entries' tags."""
+    1 px; NaN where a hypothesis has none), the entries' tags and how each pose was found."""
     if not result.hypotheses:
         return Hypotheses.empty()
     hyps = result.hypotheses
@@ -61,6 +61,7 @@ def hypotheses_of(result: LocalizationResult) -> Hypotheses:
             ]
         ),
         entry_tags=tuple(tuple(h.entry_tags) for h in hyps),
+        method=tuple(h.method for h in hyps),
     )
 
 

@@ -43,7 +43,9 @@ class Hypotheses:
     the inliers of all its entries), NaN for a hypothesis without one (an older server's
     joint or pooled pose). entry_tags (H,) tuples of str, optional: the tags of the entry
     behind each hypothesis (a joint pose's: its anchor's), e.g. ("night",); they select a
-    condition's calibration (``MeasurementModel.conditions``).
+    condition's calibration (``MeasurementModel.conditions``). method (H,) str, optional:
+    how the server found each pose ("ransac", "guided", "joint", "pooled",
+    "alternative"; ``PoseHypothesis.method``).
     """
 
     pose_world: np.ndarray
@@ -54,6 +56,7 @@ class Hypotheses:
     joint: np.ndarray | None = None
     pose_covariance: np.ndarray | None = None
     entry_tags: tuple[tuple[str, ...], ...] | None = None
+    method: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.pose_world)
@@ -88,6 +91,13 @@ class Hypotheses:
                     f"hypotheses' entry_tags must hold {n} tuples, got {len(tags)}"
                 )
             object.__setattr__(self, "entry_tags", tags)
+        if self.method is not None:
+            method = tuple(str(m) for m in self.method)
+            if len(method) != n:
+                raise InvalidInputError(
+                    f"hypotheses' method must hold {n} names, got {len(method)}"
+                )
+            object.__setattr__(self, "method", method)
 
     @property
     def has_quality(self) -> bool:
@@ -118,6 +128,7 @@ class Hypotheses:
             pick(self.joint),
             pick(self.pose_covariance),
             None if self.entry_tags is None else tuple(self.entry_tags[i] for i in index),
+            None if self.method is None else tuple(self.method[i] for i in index),
         )
 
     @classmethod

@@ -138,3 +138,17 @@ def test_malformed_conditions_are_refused():
         MeasurementModel.from_dict(bad)
     with pytest.raises(InvalidInputError, match="entry_tags"):
         _hypotheses(POSES, [("night",)])
+
+
+def test_a_subset_keeps_every_field():
+    tags = [("night",), (), ("rain",), ()]
+    hyps = dataclasses.replace(
+        _hypotheses(POSES, tags), method=("ransac", "guided", "pooled", "joint")
+    )
+    sub = hyps.subset(np.array([2, 0]))
+    assert sub.method == ("pooled", "ransac") and sub.entry_tags == (("rain",), ("night",))
+    np.testing.assert_array_equal(sub.pose_world, hyps.pose_world[[2, 0]])
+    np.testing.assert_array_equal(sub.pose_covariance, hyps.pose_covariance[[2, 0]])
+    assert hyps.without_joint().method == ("ransac", "guided", "pooled", "joint")  # none joint
+    with pytest.raises(InvalidInputError, match="method"):
+        dataclasses.replace(hyps, method=("ransac",))

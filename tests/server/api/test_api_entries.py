@@ -82,6 +82,7 @@ def test_added_entry_answers_the_next_query_and_deleted_one_is_gone(
     assert all(h["entry_tags"] == [] for h in after_add["hypotheses"] if h["entry_id"] != entry_id)
     parsed = LocalizeAnswer.from_json(after_add).hypotheses
     assert parsed.entry_tags[0] == ("night",) and len(parsed.entry_tags) == len(parsed)
+    assert parsed.method == tuple(h["method"] for h in after_add["hypotheses"])
     truth = ground_truth(sim_dataset, "01", QUERY)
     assert np.hypot(best["pose"]["x_m"] - truth[0, 3], best["pose"]["y_m"] - truth[1, 3]) < 0.05
 
