@@ -286,18 +286,16 @@ def registered_night(root, meta, vocab, night_seq, nsig, model, lever):
     return metrics_row(result.metrics["full"]), summary
 
 
-def night_training_run(root: Path, meta: dict, args, exact: bool = False) -> tuple[Path, str]:
+def night_training_run(root: Path, meta: dict, args) -> tuple[Path, str]:
     """(dataset root, sequence id) of the `trainnight` run: in the dataset itself, or, for
-    a dataset generated without it (cached before the run existed, or the error floor's),
-    in a sibling dataset of that run alone (the same route through the training district;
-    the cached dataset is left as it is)."""
+    a dataset generated without it (cached before the run existed), in a sibling dataset
+    of that run alone (the same route through the training district; the cached dataset
+    is left as it is)."""
     seq = sequence_of(meta, "trainnight")
     if seq is not None:
         return root, seq
     extra = root.with_name(root.name + "_trainnight")
-    extra_meta = ensure_dataset(
-        extra, args.size, args.frames, args.seed, ("trainnight",), exact=exact
-    )
+    extra_meta = ensure_dataset(extra, args.size, args.frames, args.seed, ("trainnight",))
     return extra, sequence_of(extra_meta, "trainnight")
 
 
