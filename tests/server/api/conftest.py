@@ -96,3 +96,18 @@ def fresh(tmp_path) -> Iterator[tuple[TestClient, Keys]]:
     """An app on an empty data directory, with keys of each scope."""
     with open_client(make_settings(tmp_path / "data")) as client:
         yield client, create_keys(client)
+
+
+@pytest.fixture
+def empty_map_app(sim_dataset, tmp_path):
+    """(client, keys, map id, data dir) of an app with one empty map."""
+    data_dir = tmp_path / "data"
+    with open_client(make_settings(data_dir)) as client:
+        keys = create_keys(client)
+        r = client.post(
+            "/v1/maps",
+            json={"name": "street", "camera": camera_of(sim_dataset)},
+            headers=keys.header("admin"),
+        )
+        assert r.status_code == 201, r.text
+        yield client, keys, r.json()["id"], data_dir

@@ -15,7 +15,7 @@ from datetime import datetime
 
 import numpy as np
 import pytest
-from api_helpers import camera_of, create_keys, make_settings, open_client, tar_sequence, wait_job
+from api_helpers import tar_sequence, wait_job
 
 from monoloc.core.measurement import MeasurementModel
 
@@ -37,18 +37,8 @@ NIGHT = dict(
 
 
 @pytest.fixture
-def app(sim_dataset, tmp_path):
-    """(client, keys, map id, data dir) of an app with one empty map."""
-    data_dir = tmp_path / "data"
-    with open_client(make_settings(data_dir)) as client:
-        keys = create_keys(client)
-        r = client.post(
-            "/v1/maps",
-            json={"name": "street", "camera": camera_of(sim_dataset)},
-            headers=keys.header("admin"),
-        )
-        assert r.status_code == 201, r.text
-        yield client, keys, r.json()["id"], data_dir
+def app(empty_map_app):
+    return empty_map_app
 
 
 def _calibrate(client, keys, map_id, archive: bytes, **form):

@@ -18,24 +18,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from api_helpers import camera_of, create_keys, make_settings, open_client, tar_sequence, wait_job
+from api_helpers import tar_sequence, wait_job
 
 TRAIN = {"format": "kitti", "k": "5"}
 
 
 @pytest.fixture
-def app(sim_dataset, tmp_path):
-    """(client, keys, map id, data dir) of an app with one empty map."""
-    data_dir = tmp_path / "data"
-    with open_client(make_settings(data_dir)) as client:
-        keys = create_keys(client)
-        r = client.post(
-            "/v1/maps",
-            json={"name": "street", "camera": camera_of(sim_dataset)},
-            headers=keys.header("admin"),
-        )
-        assert r.status_code == 201, r.text
-        yield client, keys, r.json()["id"], data_dir
+def app(empty_map_app):
+    return empty_map_app
 
 
 def _post(client, keys, map_id, data=TRAIN, archive: bytes | None = None, files=None):
