@@ -105,3 +105,55 @@ def test_busy_timeout_makes_a_writer_wait_for_the_lock(
         release.join()
         holder.close()
         engine.dispose()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def calibration_map(request, tmp_path):
+    """(session factory, map id) on a SQLite file or a fresh PostgreSQL database."""
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path / 'db' / 'monoloc.db'}"
+    else:
+        url = request.getfixturevalue("postgres_url")
+    settings = Settings(data_dir=tmp_path / "data", database_url=url)
+    upgrade_database(settings.database_url)
+    engine = create_engine_for(settings)
+    factory = make_session_factory(engine)
+    centres = np.random.default_rng(1).uniform(0, 255, (64, 32)).astype(np.float32)
+    with session_scope(factory) as session:
+        vocab, _ = get_or_create_vocabulary(session, centres, "test vocabulary")
+        map_id = create_map(session, "m", KITTI_CAM0, vocab.id).id
+    yield factory, map_id
+    engine.dispose()
+
+
+def test_calibration_read_modify_writes_lose_nothing(calibration_map):
+    """Writers that each add one condition to the stored calibration at once (a base and a
+    condition calibration finishing together) all land: the read happens under the map's
+    write lock, not on a snapshot another writer is about to replace."""
+    import time
+
+    from monoloc.core.measurement import MeasurementModel
+    from monoloc.server.storage.maps import update_calibration
+
+    factory, map_id = calibration_map
+    with session_scope(factory) as session:
+        base = {**MeasurementModel().to_dict(), "conditions": {}}
+        update_calibration(session, map_id, lambda stored: base)
+
+    def writer(name: str):
+        def run():
+            def change(stored):
+                time.sleep(0.05)  # widen the window between the read and the write
+                night = {**base, "conditions": {}}
+                return {**stored, "conditions": {**stored["conditions"], name: night}}
+
+            with session_scope(factory) as session:
+                update_calibration(session, map_id, change)
+
+        return run
+
+    names = [f"c{i}" for i in range(6)]
+    assert _run_threads([writer(n) for n in names]) == []
+    with session_scope(factory) as session:
+        stored = get_map(session, map_id).calibration
+    assert sorted(stored["conditions"]) == names and stored["Sigma1"] == base["Sigma1"]
