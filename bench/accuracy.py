@@ -64,7 +64,8 @@ GOALS = {
 # failed on the start, taken out), 7702 on fe0ccb8 (results/accuracy_urban_s7702.json),
 # 8861 on the lost signal under the broader component (results/accuracy_urban_s8861.json).
 # Then the night condition's calibration (9639299): 9154, run once (results/
-# accuracy_urban.json), and 2468 on the same code (results/accuracy_urban_s2468.json).
+# accuracy_urban.json), 2468 on the same code (results/accuracy_urban_s2468.json) and 5807
+# on f2f78e2 (results/accuracy_urban_s5807.json).
 # Changes from then on need another fresh seed.
 HELD_OUT_SEED = 9154
 URBAN_VARIANTS = (
