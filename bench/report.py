@@ -79,7 +79,15 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
     if met:
         # written by bench/accuracy.py (issue 13 item 5): each goal and whether it was met
         seed = data.get("seed", "?")
-        verdicts = "; ".join(f"{k}: {'met' if v else 'NOT met'}" for k, v in met.items())
+        floors = data.get("goals_floor") or {}
+
+        def verdict(name: str, ok: bool) -> str:
+            if ok:
+                return "met"
+            floor = floors.get(name)
+            return "NOT met" if floor is None else f"NOT met (a pose exact to the map: {floor:.3f})"
+
+        verdicts = "; ".join(f"{k}: {verdict(k, v)}" for k, v in met.items())
         out += ["", f"Goals (city seed {seed}): {verdicts}."]
     seeds = data.get("filter_seeds")
     if seeds:
