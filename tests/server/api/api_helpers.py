@@ -22,6 +22,15 @@ with warnings.catch_warnings():  # starlette's notice about httpx vs httpx2
 
 ADMIN_KEY = "mlk_" + "T" * 43
 MAP_FRAMES = 16
+# A measurement model a calibration PUT accepts (provenance names a vocabulary, as a
+# calibration job's does)
+CALIBRATION = dict(
+    mu1=[0.02, -0.01, 0.001],
+    Sigma1=[[0.04, 0.01, 0.0], [0.01, 0.05, 0.0], [0.0, 0.0, 0.0007]],
+    mu2=[0.8, 0.1, -0.1, 0.0],
+    Sigma2=np.diag([0.05, 49.0, 49.0, 0.3]).tolist(),
+    provenance={"training_run": "sim-train", "method": "ML", "vocabulary_hash": "0123456789abcdef"},
+)
 SIM_SCALE = 1.0
 
 

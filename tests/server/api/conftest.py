@@ -52,19 +52,24 @@ class IngestedMap:
     job: dict
 
 
+def _create_street_map(client, keys: Keys, dataset: Path) -> int:
+    """Create the empty map 'street' with the dataset's camera; its id."""
+    r = client.post(
+        "/v1/maps",
+        json={"name": "street", "camera": camera_of(dataset)},
+        headers=keys.header("admin"),
+    )
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
 @pytest.fixture(scope="session")
 def ingested(sim_dataset, tmp_path_factory) -> IngestedMap:
     """Map 'street' with the map run ingested through the API (upload + job)."""
     data_dir = tmp_path_factory.mktemp("ingested") / "data"
     with open_client(make_settings(data_dir)) as client:
         keys = create_keys(client)
-        r = client.post(
-            "/v1/maps",
-            json={"name": "street", "camera": camera_of(sim_dataset)},
-            headers=keys.header("admin"),
-        )
-        assert r.status_code == 201, r.text
-        map_id = r.json()["id"]
+        map_id = _create_street_map(client, keys, sim_dataset)
         r = client.post(
             f"/v1/maps/{map_id}/runs",
             files={"archive": ("map.tar.gz", tar_sequence(sim_dataset), "application/gzip")},
@@ -104,10 +109,4 @@ def empty_map_app(sim_dataset, tmp_path):
     data_dir = tmp_path / "data"
     with open_client(make_settings(data_dir)) as client:
         keys = create_keys(client)
-        r = client.post(
-            "/v1/maps",
-            json={"name": "street", "camera": camera_of(sim_dataset)},
-            headers=keys.header("admin"),
-        )
-        assert r.status_code == 201, r.text
-        yield client, keys, r.json()["id"], data_dir
+        yield client, keys, _create_street_map(client, keys, sim_dataset), data_dir

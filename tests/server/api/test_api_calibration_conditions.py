@@ -15,18 +15,11 @@ from datetime import datetime
 
 import numpy as np
 import pytest
-from api_helpers import tar_sequence, wait_job
+from api_helpers import CALIBRATION, tar_sequence, wait_job
 
 from monoloc.core.measurement import MeasurementModel
 
 TRAIN = {"format": "kitti", "k": "3"}
-CALIBRATION = dict(
-    mu1=[0.02, -0.01, 0.001],
-    Sigma1=[[0.04, 0.01, 0.0], [0.01, 0.05, 0.0], [0.0, 0.0, 0.0007]],
-    mu2=[0.8, 0.1, -0.1, 0.0],
-    Sigma2=np.diag([0.05, 49.0, 49.0, 0.3]).tolist(),
-    provenance={"training_run": "sim-train", "vocabulary_hash": "0123456789abcdef"},
-)
 NIGHT = dict(
     mu1=[0.1, 0.0, 0.0],
     Sigma1=np.diag([0.3, 0.3, 0.001]).tolist(),

@@ -6,19 +6,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from api_helpers import frame_png
+from api_helpers import CALIBRATION, frame_png
 
 from monoloc.client.api import MonolocClient
 from monoloc.core.measurement import MeasurementModel
 
 CAMERA = dict(fx=300.0, fy=300.0, cx=159.5, cy=119.5, width_px=320, height_px=240)
-CALIBRATION = dict(
-    mu1=[0.02, -0.01, 0.001],
-    Sigma1=[[0.04, 0.01, 0.0], [0.01, 0.05, 0.0], [0.0, 0.0, 0.0007]],
-    mu2=[0.8, 0.1, -0.1, 0.0],
-    Sigma2=np.diag([0.05, 49.0, 49.0, 0.3]).tolist(),
-    provenance={"training_run": "sim-train", "method": "ML"},
-)
 
 
 def test_map_lifecycle(fresh):
