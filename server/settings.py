@@ -138,7 +138,7 @@ class Settings(BaseSettings):
         "pinned down (a moved car carrying most inliers): one pooled RANSAC on the matches "
         "the most-inlier pose leaves unexplained (LocalizeConfig.alternative, hypothesis "
         "method 'alternative'). On by default with the 'pnp' measurement model; on the "
-        "paper's it is mixed (README, 'Where the frames beyond 0.25 m come from').",
+        "paper's it is mixed (docs/measured.md, 'Where the frames beyond 0.25 m come from').",
     )
     localize_seed: int | None = Field(
         default=None,

@@ -112,7 +112,7 @@ def _clamp_retrieval_spread(Sigma2: np.ndarray) -> np.ndarray:
 # as wide (0.4-0.9 m: the spread of those wrong poses) with a 30 % share makes such a
 # hypothesis's pull on particles near the truth 1/100 of the Gaussian's while the right
 # ones, within a few Sigma1, weigh as before. Measured on five development cities, day
-# and night, three filter seeds each (README): mean RMSE down in 4 of 5 cities by night
+# and night, three filter seeds each (docs/decisions.md): mean RMSE down in 4 of 5 cities by night
 # (one even) and by day (one worse: 0.097 -> 0.111 m). Only for lone hypotheses: less
 # (their frames are a minority). 0 switches it off (the paper's single Gaussian).
 PAPER_TAIL_WEIGHT = 0.3

@@ -13,7 +13,7 @@ paper's (X_i - X, Y_i - Y, in the world frame), monoloc's default; "vehicle" is 
 offset turned into the particle's frame, (along, across) its heading. A world-frame
 Sigma2 remembers the compass direction of the training run's streets; in the vehicle
 frame the spread is along and across the road wherever the road runs. On the development
-cities neither was better across the board (bench notes in README), so the paper's stays.
+cities neither was better across the board (docs/measured.md), so the paper's stays.
 """
 
 from __future__ import annotations

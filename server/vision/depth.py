@@ -1,6 +1,6 @@
 """3D points for keypoints, from a LiDAR scan or a registered depth image (METHOD.md s. 5).
 
-The rule (monoloc's, documented here and in the README):
+The rule (monoloc's, documented here and in docs/decisions.md):
 
 - LiDAR: the scan is projected into the image with the calibration (points with camera
   depth >= ``min_depth_m``); where several land on one pixel the nearest is kept. A

@@ -136,7 +136,7 @@ def test_refinement_by_projection_keeps_more_of_each_entrys_points(city):
     assert np.median(inliers["refined"]) >= 1.2 * np.median(inliers["plain"])
     # no worse than a centimetre: the median of these ~100 poses moves by millimetres with
     # the features (0.060 vs 0.065 m when written; 0.067 vs 0.062 m since flat frames are
-    # described at FAST 12, README "Two FAST thresholds")
+    # described at FAST 12, docs/decisions.md, "Two FAST thresholds on the grid")
     assert np.median(refined) <= np.median(plain) + 0.01
     # measured when written: 104 poses either way, inliers median 29 vs 23, error median
     # 0.060 vs 0.065 m, 86.5 vs 88.5 % within 0.3 m (two poses of entries seeing little)
