@@ -8,7 +8,9 @@ recent frames once those are carried forward by the vehicle's own measured motio
 re-seed candidate must be consistent with the dead-reckoned motion), never on a few
 frames that contradict it, and only when more frames agree with it than agreed with the
 filter's own track among the recent frames with hypotheses (``track_support``: support
-from before a silence counts, so a place found elsewhere after it must outweigh it).
+from before a silence counts, so a place found elsewhere after it must outweigh it; for a
+place farther than the dead reckoning since the last support can have drifted, however
+long the silence).
 ``frames_since_support`` (frames since the hypotheses last agreed with the particles)
 tells the vehicle's loop to widen the retrieval prior and then to search the whole map.
 A candidate whose heading contradicts the filter's (``FilterConfig.reseed_turn_rad``)
@@ -88,6 +90,17 @@ class FilterConfig:
     # (~0.9 m at 9 m/s with a 1 % speed scale error). A filter started or re-seeded
     # without support (a kidnapped start) has none to outweigh.
     track_memory_frames: int = 100
+    # ... unless the candidate lies farther from the filter's estimate than the dead
+    # reckoning since the last likely frame can have drifted: ``reseed_position_tol_m``
+    # plus this fraction of the distance driven since (2 %: a 1 % speed scale error and
+    # the gyro's drift). Such a candidate says the track is wrong, not that it drifted,
+    # and the track's support does not age: it must be outweighed by frames that
+    # contradict the track (each pushes one of its frames out of the last
+    # ``reseed_window_frames`` with hypotheses: 11 of them against a fully supported
+    # track). Without this, a car that left the map's streets found no hypothesis for
+    # 10 s, and then 4 frames of a street 157 m away whose facades look like the
+    # unmapped one's took the filter there for good (fresh seed 3197, 2026-11-29).
+    drift_per_m: float = 0.02
     # A candidate whose heading differs from the filter's by more than this contradicts
     # the gyro, not just the position: its frames do not displace the track's support
     # (every likely frame of the last ``track_memory_frames`` counts, up to
@@ -204,6 +217,9 @@ class ParticleFilter:
         self._track_log: deque[tuple[int, bool]] = deque(maxlen=config.reseed_window_frames)
         # Every likely frame of the last ``track_memory_frames`` since the last (re-)seed.
         self._likely_frames: deque[int] = deque(maxlen=max(1, config.track_memory_frames))
+        # Distance driven (m) since the last likely frame or (re-)seed: what the dead
+        # reckoning can have drifted over (``FilterConfig.drift_per_m``).
+        self.driven_since_support_m = 0.0
         self.refiner = ModeRefiner(config.refine) if config.refine is not None else None
 
     @property
@@ -221,6 +237,7 @@ class ParticleFilter:
         self.frames_since_support = 0
         self._track_log.clear()
         self._likely_frames.clear()
+        self.driven_since_support_m = 0.0
         if self.refiner is not None:
             self.refiner.stop()  # it starts again from the new particles' mode
 
@@ -242,6 +259,7 @@ class ParticleFilter:
             self.particles = predict(
                 self.particles, speed_mps, yaw_rate_radps, dt_s, motion, self.rng
             )
+            self.driven_since_support_m += abs(float(speed_mps)) * float(dt_s)
             if self.refiner is not None:
                 self.refiner.predict(
                     dt_s, speed_mps, yaw_rate_radps, motion.lever_arm_m, motion.integration
@@ -279,6 +297,7 @@ class ParticleFilter:
         else:
             self._unlikely_frames = 0
             self.frames_since_support = 0
+            self.driven_since_support_m = 0.0
             self._track_log.append((self._frame, True))
             self._likely_frames.append(self._frame)
             self._remember(centres)
@@ -290,6 +309,23 @@ class ParticleFilter:
         since the last (re-)seed, within ``track_memory_frames`` of this frame."""
         oldest = self._frame - self.config.track_memory_frames
         return sum(1 for frame, likely in self._track_log if likely and frame > oldest)
+
+    @property
+    def drift_bound_m(self) -> float:
+        """How far the dead reckoning since the last likely frame can have taken the
+        filter's estimate from the truth (``FilterConfig.drift_per_m``)."""
+        cfg = self.config
+        return cfg.reseed_position_tol_m + cfg.drift_per_m * self.driven_since_support_m
+
+    def support_against(self, candidate_world: np.ndarray) -> int:
+        """The track's support a re-seed onto ``candidate_world`` (3,) must outweigh:
+        ``track_support``, or, for a candidate beyond ``drift_bound_m`` of the filter's
+        estimate, the likely frames among the last ``reseed_window_frames`` frames with
+        hypotheses however old."""
+        mode = self._mode()
+        if float(np.hypot(*(candidate_world[:2] - mode[:2]))) <= self.drift_bound_m:
+            return self.track_support
+        return sum(1 for _, likely in self._track_log if likely)
 
     @property
     def held_support(self) -> int:
@@ -334,7 +370,7 @@ class ParticleFilter:
             return None
         if self.particles is not None:
             # the track has had more frames agree with it than the candidate has
-            if support[best] <= self.track_support:
+            if support[best] <= self.support_against(centres_world[best]):
                 return None
             turn = abs(float(wrap_angle(centres_world[best, 2] - self._mode()[2])))
             if turn > cfg.reseed_turn_rad and support[best] <= self.held_support:

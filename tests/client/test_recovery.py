@@ -161,6 +161,39 @@ def test_after_a_silence_an_aliased_street_elsewhere_does_not_take_the_filter():
     assert error[5:].max() < 0.5
 
 
+def test_after_a_long_silence_off_the_map_an_aliased_street_does_not_take_the_filter():
+    # Found by fresh seed 3197: the car drove on beyond the map's last street, no
+    # hypothesis for 10 s, then 4 frames of a street 157 m away whose facades look like
+    # the unmapped one's, moving like the car, re-seeded the filter there for good. The
+    # track's support had aged out (FilterConfig.track_memory_frames); a place that far
+    # beyond what the dead reckoning can have drifted must outweigh it all the same.
+    n = 220
+    _, _, truth = _route(n)
+    silent = {i: np.zeros((0, 3)) for i in range(30, 160)}
+    elsewhere = {
+        i: np.repeat((truth[i] + [150.0, 40.0, 0.0])[None], 3, axis=0) for i in range(160, 168)
+    }
+    tracker, error, _ = _drive(n, RepetitiveMap(truth, injected=silent | elsewhere))
+    assert tracker.filter.n_reseeds == 0
+    assert error[5:].max() < 1.0
+
+
+def test_after_a_long_silence_a_wrong_track_is_left_once_contradicted_long_enough():
+    # The other side: a filter locked on a wrong place (supported there, then silent for
+    # 13 s) leaves it once the right place's frames outweigh that support (never lost for
+    # good), however far the right place lies
+    n = 240
+    _, _, truth = _route(n)
+    wrong = {i: np.repeat((truth[i] + [150.0, 40.0, 0.0])[None], 3, axis=0) for i in range(30)}
+    silent = {i: np.zeros((0, 3)) for i in range(30, 160)}
+    localizer = RepetitiveMap(truth, injected=wrong | silent)
+    tracker, error, times = _drive(n, localizer, truth[0] + [150.0, 40.0, 0.0])
+    assert error[5:160].min() > 100.0
+    recover_s = time_to_recover(error, times, since=160, tolerance_m=0.3)
+    assert recover_s < 2.5, recover_s
+    assert error[-50:].max() < 0.3
+
+
 def test_a_lock_on_a_street_turned_the_other_way_ends_once_its_support_has_aged():
     # The other side of the rule above: a filter started on the turned street, supported
     # there for 3 s, leaves it once the right street's frames outweigh what is left of
