@@ -44,7 +44,8 @@ def test_files_follow_the_kitti_layout(exact_dataset, tiny_config):
     for seq in info["sequences"]:
         d = kw.sequence_dir(root, seq["id"])
         n = seq["frames"]
-        assert n == 4
+        # the query stops where the map run's stretch ends (monoloc.sim.urban.runs)
+        assert n == 4 if seq["run"] == "map" else 1 <= n <= 4
         assert len(list((d / "image_0").glob("*.png"))) == n
         assert len(list((d / "velodyne").glob("*.bin"))) == n
         lines = (d / "calib.txt").read_text().splitlines()

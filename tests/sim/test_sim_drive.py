@@ -40,6 +40,22 @@ def test_query_frames_have_a_map_frame_within_2m(city_and_plans):
         assert nearest.mean() > 0.3  # the query really is off the map's line
 
 
+def test_capped_query_and_night_runs_stop_where_their_map_run_ends():
+    # Each run drives at its own speed: capped at 120 frames, seed 5's map run covers
+    # 115 m, its query 140 m and its night 140 m against the night map's 126 m, and the
+    # last frames of both would have had no map at all
+    config = GenerateConfig(seed=5, runs=("map", "query", "night", "nightmap"), max_frames=120)
+    city = build_city(config.city_config(), config.seed)
+    plans = {p.kind: p for p in plan_runs(city, config)}
+    assert len(plans["map"].frame_times_s) == len(plans["nightmap"].frame_times_s) == 120
+    for kind, against in (("query", "map"), ("night", "nightmap")):
+        ref_xy = true_camera_poses(plans[against], config.rig)[:, :2, 3]
+        xy = true_camera_poses(plans[kind], config.rig)[:, :2, 3]
+        nearest = np.linalg.norm(xy[:, None] - ref_xy[None], axis=2).min(axis=1)
+        assert nearest.max() < 2.0, kind
+        assert 80 <= len(xy) < 120, kind  # cut at the end only
+
+
 def test_offcenter_run_oscillates_around_the_lane(city_and_plans):
     _, plans = city_and_plans
     map_xy = true_camera_poses(plans["map"], CONFIG.rig)[:, :2, 3]
