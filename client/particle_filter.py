@@ -348,7 +348,8 @@ class ParticleFilter:
     def reseed_candidate(self, centres_world: np.ndarray) -> np.ndarray | None:
         """Indices of this frame's (bias-corrected) hypotheses (H, 3) to re-seed around,
         or None: the hypothesis agreed with by the most recent frames (moved here by the
-        measured motion), with its neighbours in this frame, if at least
+        measured motion; a past hypothesis nearer the filter's estimate than the candidate
+        does not count), with its neighbours in this frame, if at least
         ``reseed_min_frames`` frames (this one included) agree. Near the filter's own
         estimate (within the re-seed tolerances) only after ``reseed_min_frames``
         unlikely frames in a row: before that the agreeing frames may be ones that agreed
@@ -360,6 +361,15 @@ class ParticleFilter:
         if len(self._recent_world):
             # distinct past frames with a hypothesis that agrees, per hypothesis of this one
             agree = _agrees(centres_world, self._recent_world, cfg)
+            if self.particles is not None:
+                # A past hypothesis nearer the filter's estimate than the candidate is the
+                # track's evidence, not the candidate's: within the tolerance (1 m) the
+                # right frames before a few wrong ones a few decimetres off "agreed" with
+                # them too, and re-seeded the filter there (fresh seed 6121, filter seed 1)
+                mode = self._mode()
+                to_mode = np.hypot(*(self._recent_world[:, :2] - mode[:2]).T)
+                offsets = centres_world[:, None, :2] - self._recent_world[None, :, :2]
+                agree &= np.hypot(offsets[..., 0], offsets[..., 1]) < to_mode[None, :]
             frames = np.where(agree, self._recent_frame[None, :], -1)
             for row, picked in enumerate(frames):
                 support[row] += len(np.unique(picked[picked >= 0]))
