@@ -130,7 +130,7 @@ def serve(
         typer.Option(help="Event loop: uvloop (the server extra's default) or asyncio."),
     ] = EventLoop.auto,
 ) -> None:
-    """Run the map server: ``workers`` replica processes sharing the database."""
+    """Run the map server: one or more replica processes (--workers) sharing the database."""
     import os
 
     import uvicorn
