@@ -221,6 +221,7 @@ class ParticleFilter:
         # reckoning can have drifted over (``FilterConfig.drift_per_m``).
         self.driven_since_support_m = 0.0
         self.refiner = ModeRefiner(config.refine) if config.refine is not None else None
+        self._refiner_disagreeing = 0  # consecutive frames the refiner and the mode disagree
 
     @property
     def initialised(self) -> bool:
@@ -462,16 +463,29 @@ class ParticleFilter:
     def _refine(self, hypotheses: Hypotheses) -> None:
         """Correct the mode's Gaussian filter with this frame's hypotheses; (re)start it
         from the particles' mode and spread when it is not running or no longer agrees
-        with that mode (``RefineConfig``: the tolerances, and the Mahalanobis distance
-        under both spreads; a restarting frame is already in the particles)."""
+        with that mode (``RefineConfig``: at once beyond the tolerances; beyond the
+        Mahalanobis distance under both spreads, once that has lasted
+        ``restart_after_frames`` frames in a row, the frames before corrected as usual; a
+        restarting frame is already in the particles)."""
         if self.refiner is None:
             return
         mode = self._mode()
         _, cov = weighted_estimate(self.particles, normalise_log_weights(self.log_weights))
+        corrected = False
         if self.refiner.active and self.refiner.agrees_with(mode, cov):
             self.refiner.correct(hypotheses, self.model)
+            corrected = True
             if self.refiner.agrees_with(mode, cov):
+                self._refiner_disagreeing = 0
                 return
+        patience = self.refiner.config.restart_after_frames
+        if self.refiner.active and patience > 1 and self.refiner.within_tolerances(mode):
+            self._refiner_disagreeing += 1
+            if self._refiner_disagreeing < patience:
+                if not corrected:
+                    self.refiner.correct(hypotheses, self.model)
+                return
+        self._refiner_disagreeing = 0
         self.refiner.start(mode, cov)
 
     def _start(self, hypotheses: Hypotheses) -> bool:

@@ -23,7 +23,9 @@ Mahalanobis gate, and turns the heading by the tenths of a degree its own headin
 carries through the correlations). It does not decide where
 the vehicle is: it starts from the particles' mode and covariance, and starts over from
 them whenever the two disagree beyond ``reset_position_m`` / ``reset_yaw_rad`` (a
-re-seed, a jump the particles made on evidence this filter gated out). k, b and g belong
+re-seed, a jump the particles made on evidence this filter gated out), or beyond both
+spreads for ``restart_after_frames`` frames in a row (the particles follow a few frames
+that agree on one wrong pose; this filter waits them out). k, b and g belong
 to the vehicle and its map, not to the place: they survive a restart.
 """
 
@@ -68,7 +70,13 @@ class RefineConfig:
     covariance and the particles' spread: started from a mode on a wrong hypothesis with
     the particles' tight spread there, it gates out the right hypotheses that move the
     particles, and when it takes one at last, the heading jump goes into b and g (None:
-    the tolerances alone).
+    the tolerances alone). restart_after_frames: a disagreement within the restart
+    tolerances restarts the filter only once it has lasted this many frames in a row
+    (1: at once); beyond the tolerances it restarts at once. Why: the particles follow
+    a few frames whose every hypothesis agrees on one wrong pose (a parked car moved
+    along the street since the map was made pulls every retrieved entry's pose 0.2-0.4 m
+    the same way), and a restart there took the reported pose with them and then,
+    with the particles' tight spread, gated out the right poses that followed.
     """
 
     speed_noise_mps: float = 0.1
@@ -86,6 +94,7 @@ class RefineConfig:
     reset_position_m: float = 0.5
     reset_yaw_rad: float = math.radians(2.0)
     restart_mahalanobis_sq: float | None = 16.0
+    restart_after_frames: int = 20
 
     def __post_init__(self) -> None:
         lo, hi = self.speed_scale_bounds
@@ -108,6 +117,10 @@ class RefineConfig:
         )
         if min(positive) <= 0 or min(non_negative) < 0:
             raise InvalidInputError(f"refinement noises and gates must be positive: {self}")
+        if self.restart_after_frames < 1:
+            raise InvalidInputError(
+                f"restart_after_frames must be >= 1, got {self.restart_after_frames}"
+            )
         if not 0 < lo <= 1 <= hi:
             raise InvalidInputError(f"speed_scale_bounds must hold 1, got {(lo, hi)}")
         if self.measurement not in ("joint", "all"):
@@ -200,6 +213,15 @@ class ModeRefiner:
         H[:, :3] = np.eye(3)
         H[2, 4] = 1.0
         return H @ self.covariance @ H.T
+
+    def within_tolerances(self, pose_world: np.ndarray) -> bool:
+        """Whether the pose (3,) is within ``reset_position_m`` / ``reset_yaw_rad`` of this
+        filter's."""
+        diff = np.asarray(pose_world, dtype=np.float64)[:3] - self.pose_world
+        return (
+            math.hypot(diff[0], diff[1]) <= self.config.reset_position_m
+            and abs(float(wrap_angle(diff[2]))) <= self.config.reset_yaw_rad
+        )
 
     def agrees_with(self, pose_world: np.ndarray, covariance: np.ndarray | None = None) -> bool:
         """Whether the pose (3,) is within the restart tolerances of this filter's and,

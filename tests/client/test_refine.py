@@ -192,11 +192,11 @@ def test_it_restarts_from_the_particles_when_they_move_elsewhere():
     assert pf.refiner.speed_scale == scale_before  # the vehicle's, not the place's
 
 
-def _refiner_started_off(config: FilterConfig, offset_m: float):
+def _refiner_started_off(config: FilterConfig, offset_m: float, frames: int = 5):
     """A filter tracking a straight drive whose refinement is then put ``offset_m`` to the
     side with a tight covariance (as when it starts from a mode on a wrong hypothesis,
-    within the restart tolerance); the refined errors (m) of the 5 frames after."""
-    truth = _drive(40)
+    within the restart tolerance); the refined errors (m) of the ``frames`` frames after."""
+    truth = _drive(30 + frames)
     pf = ParticleFilter(config, MODEL, np.random.default_rng(0))
     rng = np.random.default_rng(7)
     for i, pose in enumerate(truth[:30]):
@@ -205,7 +205,7 @@ def _refiner_started_off(config: FilterConfig, offset_m: float):
     pf.refiner.state[:2] += offset_m * left
     pf.refiner.covariance[:3, :3] = np.diag([0.02**2, 0.02**2, 0.002**2])
     errors = []
-    for pose in truth[30:35]:
+    for pose in truth[30:]:
         est = pf.step(DT_S, 9.0, 0.0, _hypotheses(pose, rng))
         errors.append(float(np.linalg.norm(est.pose_world[:2] - pose[:2])))
     return errors
@@ -214,12 +214,47 @@ def _refiner_started_off(config: FilterConfig, offset_m: float):
 def test_it_restarts_when_it_disagrees_with_the_particles_beyond_both_spreads():
     """0.35 m off with a 2 cm spread, within the 0.5 m tolerance, the refinement gates out
     every right hypothesis; the Mahalanobis test against the particles' mode and spread
-    restarts it at once."""
+    restarts it: at once with ``restart_after_frames=1``, after that many frames in a row
+    by default."""
     config = FilterConfig(n_particles=500)
-    errors = _refiner_started_off(config, 0.35)
-    assert errors[0] < 0.08, errors
+    at_once = replace(config, refine=RefineConfig(restart_after_frames=1))
+    assert _refiner_started_off(at_once, 0.35)[0] < 0.08
+    patience = config.refine.restart_after_frames
+    errors = _refiner_started_off(config, 0.35, frames=patience + 5)
+    assert min(errors[: patience - 1]) > 0.2, errors  # still its own
+    assert max(errors[patience:]) < 0.08, errors  # restarted on the particles
+    # on the tolerance alone it comes back only once its own spread has grown, later
     tolerance_only = replace(config, refine=RefineConfig(restart_mahalanobis_sq=None))
-    assert min(_refiner_started_off(tolerance_only, 0.35)) > 0.2
+    assert min(_refiner_started_off(tolerance_only, 0.35, frames=patience + 5)[:patience]) > 0.2
+
+
+def _pulled_stretch(config: FilterConfig, seed: int) -> tuple[float, float]:
+    """A straight drive with good hypotheses, then six frames whose every hypothesis agrees
+    on a pose 0.3 m ahead along the road (a moved parked car pulling every entry), then
+    good again: the largest reported error (m) during and after the pulled frames."""
+    truth = _drive(60)
+    pf = ParticleFilter(config, MODEL, np.random.default_rng(seed))
+    rng = np.random.default_rng(50 + seed)
+    pulled = range(30, 36)
+    errors = []
+    for i, pose in enumerate(truth):
+        ahead = 0.3 * np.array([math.cos(pose[2]), math.sin(pose[2])]) if i in pulled else 0.0
+        est = pf.step(DT_S if i else 0.0, 9.0, 0.0, _hypotheses(pose, rng, offset_m=ahead))
+        errors.append(float(np.linalg.norm(est.pose_world[:2] - pose[:2])))
+    return max(errors[30:36]), max(errors[36:])
+
+
+def test_a_few_frames_pulled_the_same_way_do_not_take_the_reported_pose():
+    """The particles follow six frames whose hypotheses all agree 0.3 m ahead; the
+    refinement, within the restart tolerance, waits ``restart_after_frames`` before
+    following them and keeps the pose the motion and the earlier frames give. Restarting
+    at once takes the reported pose with the particles, and there it stays after them."""
+    config = FilterConfig(n_particles=500)
+    at_once = replace(config, refine=RefineConfig(restart_after_frames=1))
+    for seed in range(3):
+        during, after = _pulled_stretch(config, seed)
+        assert during < 0.12 and after < 0.12, (seed, during, after)
+    assert min(min(_pulled_stretch(at_once, seed)) for seed in range(3)) > 0.2
 
 
 def test_the_joint_pose_is_used_first_and_alone():
