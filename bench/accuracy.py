@@ -352,7 +352,8 @@ def recording_floor(
     poses (``query_true_world`` (N, 3)), what even an exact map and an exact localizer
     would score; ``exact_over_best_of_k``: the filter / best-of-k goal's ratio for the
     exact-to-map localizer (median of floor over the median best of k, against the written
-    truth, on the frames with hypotheses). The filter and the best of k against
+    truth, on the frames with hypotheses). The filter, the best of k and the likeliest
+    hypothesis (the per-frame estimator a filter must beat: no oracle) against
     ``placed_world``: their own error, without the map's and the query's recording
     errors."""
     from monoloc.client.trajectory import best_of_k_errors
@@ -364,6 +365,7 @@ def recording_floor(
     own = np.linalg.norm(est[:, :2] - placed_world[:, :2], axis=1)
     best_k = best_of_k_errors(result.hypotheses_world, placed_world)
     best_k_written = best_of_k_errors(result.hypotheses_world, truth)
+    likeliest = np.linalg.norm(result.likeliest_world[:, :2] - placed_world[:, :2], axis=1)
     ok = np.isfinite(best_k) & np.isfinite(own)
 
     def stats(e):
@@ -377,6 +379,7 @@ def recording_floor(
         "filter_vs_map_frame": stats(own),
         "best_of_k_vs_map_frame_median_m": float(np.median(best_k[ok])),
         "filter_vs_map_frame_median_on_frames_with_hypotheses_m": float(np.median(own[ok])),
+        "likeliest_vs_map_frame_median_m": float(np.median(likeliest[ok & np.isfinite(likeliest)])),
     }
 
 
@@ -394,6 +397,11 @@ def print_floor(name: str, f: dict) -> None:
         f"{f['filter_vs_map_frame']['median_m']:.3f} m / RMSE "
         f"{f['filter_vs_map_frame']['rmse_m']:.3f} m, best of k median "
         f"{f['best_of_k_vs_map_frame_median_m']:.3f} m (filter / best of k {ratio:.2f})"
+        + (
+            f", the likeliest hypothesis median {f['likeliest_vs_map_frame_median_m']:.3f} m"
+            if "likeliest_vs_map_frame_median_m" in f  # results before 2026-11-29 lack it
+            else ""
+        )
     )
 
 

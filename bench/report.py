@@ -134,7 +134,13 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
                 "filter has "
                 f"median {rf['filter_vs_map_frame']['median_m']:.3f} m, RMSE "
                 f"{rf['filter_vs_map_frame']['rmse_m']:.3f} m, best of k median "
-                f"{rf['best_of_k_vs_map_frame_median_m']:.3f} m.",
+                f"{rf['best_of_k_vs_map_frame_median_m']:.3f} m"
+                + (
+                    ", the likeliest hypothesis median "
+                    f"{rf['likeliest_vs_map_frame_median_m']:.3f} m."
+                    if "likeliest_vs_map_frame_median_m" in rf
+                    else "."
+                ),
             ]
     for run, causes in data.get("excursions", {}).items():
         out += ["", f"Frames off ({run}): {ExcursionCauses(**causes).text()}."]
