@@ -16,6 +16,7 @@ from monoloc.server.vision.pnp import (
     estimate_relative_pose_guided,
     refit_relative_pose,
 )
+from monoloc.server.vision.pose_covariance import planar_pose_covariance
 from monoloc.server.vision.projection import (
     KeypointGrid,
     ProjectionMatchConfig,
@@ -26,7 +27,8 @@ from monoloc.server.vision.vlad import compute_vlad
 
 def warm_up() -> None:
     """Run the VLAD kernels, the matching kernel, PnP (RANSAC's inlier scoring + LM,
-    guided PnP's guess scoring) and matching by projection once on a small exact scene."""
+    guided PnP's guess scoring), matching by projection and the pose covariance once on a
+    small exact scene."""
     rng = np.random.default_rng(0)
     descriptors = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
     compute_vlad(descriptors, descriptors[:2].astype(np.float32))
@@ -43,3 +45,5 @@ def warm_up() -> None:
     match_by_projection(grid, point_descriptors, points_cam, np.eye(4), ProjectionMatchConfig())
     # the refit of a pose on its projection matches (refine_rounds)
     refit_relative_pose(pixels, points_cam, np.eye(4), camera, PnpConfig(), "ransac")
+    # each hypothesis's pose covariance (the localizer's default), weighted by keypoint scales
+    planar_pose_covariance(np.eye(4), points_cam, camera, keypoint_scales=np.ones(len(pixels)))

@@ -12,20 +12,28 @@ _PROBE = """
 import json
 from numba.core.registry import CPUDispatcher
 from monoloc.server.index import _scan_kernel
-from monoloc.server.vision import _hamming_kernel, _pnp_kernel, _vlad_kernel, _window_kernel
+from monoloc.server.vision import (
+    _covariance_kernel, _hamming_kernel, _pnp_kernel, _vlad_kernel, _window_kernel,
+)
 from monoloc.server.index.warmup import warm_up as warm_up_index
 from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
 WARM = {warm}
+# kernels only other kernels call (numba compiles them into their caller's code)
+KERNEL_CALLEES = {{"monoloc.server.vision._covariance_kernel.pose_information"}}
 if WARM:
     warm_up_vision()
     warm_up_index()
 kernels = {{}}
-for module in (_hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel, _window_kernel):
+for module in (
+    _covariance_kernel, _hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel, _window_kernel,
+):
     for name, obj in vars(module).items():
         if isinstance(obj, CPUDispatcher) and obj.__module__ == module.__name__:
             if obj.targetoptions.get("inline") == "always":
                 continue  # inlined into its callers, never called on its own
+            if f"{{module.__name__}}.{{name}}" in KERNEL_CALLEES:
+                continue  # compiled into the one kernel that calls it
             kernels[f"{{module.__name__}}.{{name}}"] = len(obj.signatures)
 print(json.dumps(kernels))
 """
@@ -65,8 +73,10 @@ from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index import _scan_kernel
 from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 from monoloc.server.index.warmup import warm_up as warm_up_index
-from monoloc.server.localize import ReferenceEntry, pose_hypotheses
-from monoloc.server.vision import _hamming_kernel, _pnp_kernel, _vlad_kernel, _window_kernel
+from monoloc.server.localize import LocalizeConfig, ReferenceEntry, pose_hypotheses
+from monoloc.server.vision import (
+    _covariance_kernel, _hamming_kernel, _pnp_kernel, _vlad_kernel, _window_kernel,
+)
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.matching import match_against_references
 from monoloc.server.vision.pnp import PnpConfig
@@ -74,7 +84,10 @@ from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
 def signatures():
     out = {{}}
-    for module in (_hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel, _window_kernel):
+    for module in (
+        _covariance_kernel, _hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel,
+        _window_kernel,
+    ):
         for name, obj in vars(module).items():
             if isinstance(obj, CPUDispatcher) and obj.__module__ == module.__name__:
                 out[module.__name__ + "." + name] = len(obj.signatures)
@@ -110,12 +123,17 @@ for j in range(4):
     points_ref = (points_query @ R.T + t).astype(np.float32)
     refs.append(ReferenceEntry(j, T_world_from_ref, descriptors.copy(), points_ref))
 matches = match_against_references(descriptors, [r.descriptors for r in refs])
-for prior in (None, RetrievalPrior(10.0, 2.0, 5.0, 0.3, 0.5)):
-    hyps, _ = pose_hypotheses(
-        pixels.astype(np.float32), refs, matches, {{j: 0.5 for j in range(4)}}, CAM, PnpConfig(),
-        rng, prior=prior, descriptors=descriptors,
-    )
-    assert len(hyps) == 5, len(hyps)
+# as the localizer runs it (pose covariances from keypoint scales) and with the defaults
+scales = np.ones(300)
+for strategy in (LocalizeConfig().pnp_strategy, None):
+    for prior in (None, RetrievalPrior(10.0, 2.0, 5.0, 0.3, 0.5)):
+        extra = {{}} if strategy is None else {{"strategy": strategy, "keypoint_scales": scales}}
+        hyps, _ = pose_hypotheses(
+            pixels.astype(np.float32), refs, matches, {{j: 0.5 for j in range(4)}}, CAM,
+            PnpConfig(), rng, prior=prior, descriptors=descriptors, **extra,
+        )
+        assert len(hyps) == 5, len(hyps)
+        assert strategy is None or all(h.covariance_px1 is not None for h in hyps)
 after = signatures()
 print(json.dumps({{k: [before[k], after[k]] for k in after}}))
 """
@@ -123,7 +141,8 @@ print(json.dumps({{k: [before[k], after[k]] for k in after}}))
 
 def test_a_query_after_the_warm_up_compiles_nothing():
     # Same types and layouts as a real query (float32 keypoints and points, guided PnP,
-    # joint pose, prior or none, flat and scan index): no kernel gains a signature, i.e.
+    # joint pose, pose covariances, prior or none, flat and scan index): no kernel gains a
+    # signature, i.e.
     # nothing is compiled or loaded inside a query.
     done = subprocess.run(
         [sys.executable, "-c", _QUERY_PROBE.format()],
