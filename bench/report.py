@@ -551,6 +551,36 @@ def pnp_scale_section(data: dict | None) -> list[str]:
     return lines
 
 
+def error_split_section(data: dict | None) -> list[str]:
+    """What each recording error costs the localizer (bench/error_split.py)."""
+    lines = ["", "## What each recording error costs (bench/error_split.py)", ""]
+    if not data:
+        return lines + ["not run"]
+    lines += [
+        f"{data['size']} city, {data['frames_per_run']} frames per run, each group of the "
+        "sim's recording errors on alone. Medians against the map's own frame (mm), then the "
+        "filter against the written truth beside the floor (m).",
+        "",
+    ]
+    rows = [
+        [
+            r["group"],
+            r["seed"],
+            round(r["filter_map_median_m"] * 1000, 1),
+            round(r["best_of_k_map_median_m"] * 1000, 1),
+            round(r["likeliest_map_median_m"] * 1000, 1),
+            round(r["filter_over_best_of_k_map"], 2),
+            round(r["filter_rmse_m"], 3),
+            round(r["filter_median_m"], 3),
+            round(r["floor_median_m"], 3),
+        ]
+        for r in data["rows"]
+    ]
+    header = ["errors on", "seed", "filter", "best of k", "likeliest", "ratio"]
+    header += ["RMSE", "median", "floor median"]
+    return lines + [table(header, rows)]
+
+
 def pose_covariance_section(data: dict | None) -> list[str]:
     """What the PnP pose covariance says about a hypothesis's error (bench/pose_covariance.py)."""
     lines = ["", "## PnP pose covariance against the error (bench/pose_covariance.py)", ""]
@@ -784,6 +814,7 @@ def main() -> None:
     lines += pnp_calibration_section(load("pnp_calibration"))
     lines += pnp_scale_section(load("pnp_scale"))
     lines += pose_covariance_section(load("pose_covariance"))
+    lines += error_split_section(load("error_split"))
     lines += [""] + fleet_section(load("load"), load("footprint"))
     for name in ("filter", "ingest", "sim"):
         data = load(name)
