@@ -1,10 +1,10 @@
 """What each recording error costs the localizer: the sim's errors turned on one group at a
 time (issue 13 item 4's errors; `docs/sim.md`).
 
-For each seed and each group of `monoloc.sim.recording.RecordingErrors` (none, all, the
-INS pose errors, the LiDAR-camera calibration, the LiDAR's timing, the vehicle signals,
-the camera, all but the calibration), one small city is recorded (map, query and train
-runs), the measurement model calibrated on `train`, the `map` run mapped and the `query`
+For each seed and each group of the sim's recording errors (`RecordingErrors.only`: none,
+all, the INS pose errors, the LiDAR-camera calibration, the LiDAR's timing, the vehicle
+signals, the camera, all but the calibration), one small city is recorded (map, query and
+train runs), the measurement model calibrated on `train`, the `map` run mapped and the `query`
 run localized with the default filter. Printed per group, against the map's own frame
 (`truth_in_map_frame`: what the recording errors of the map's poses cannot explain away):
 the filter's median error, the best of the frame's hypotheses picked with the truth (the
@@ -19,7 +19,6 @@ relative to the map). Writes bench/results/error_split.json.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib.util
 import json
 import time
@@ -29,35 +28,14 @@ import numpy as np
 
 RESULTS = Path(__file__).parent / "results"
 
-_POSE = ("pose_error_m", "pose_vertical_error_m", "pose_yaw_error_rad", "pose_tilt_error_rad")
-_CALIBRATION = ("calib_translation_m", "calib_rotation_rad")
-_TIMING = ("lidar_motion_distortion", "lidar_sync_offset_s", "lidar_sync_jitter_s")
-_SIGNALS = (
-    "speed_scale_error",
-    "speed_bias_mps",
-    "speed_noise_mps",
-    "yaw_rate_bias_radps",
-    "yaw_rate_noise_radps",
-)
-_CAMERA = ("exposure_bias_ev", "material_gain", "sensor_noise")
+# each row of the split: the groups of `RecordingErrors.only` it turns on
+SOURCES = ("pose", "calibration", "lidar_timing", "signals", "camera")
 GROUPS = {
     "none": (),
-    "all": _POSE + _CALIBRATION + _TIMING + _SIGNALS + _CAMERA,
-    "pose": _POSE,
-    "calibration": _CALIBRATION,
-    "lidar_timing": _TIMING,
-    "signals": _SIGNALS,
-    "camera": _CAMERA,
-    "all_but_calibration": _POSE + _TIMING + _SIGNALS + _CAMERA,
+    "all": SOURCES,
+    **{source: (source,) for source in SOURCES},
+    "all_but_calibration": tuple(s for s in SOURCES if s != "calibration"),
 }
-
-
-def errors_of(group: str):
-    """RecordingErrors with the group's fields at their defaults, every other one off."""
-    from monoloc.sim.recording import RecordingErrors
-
-    on, off = RecordingErrors(), RecordingErrors.none()
-    return dataclasses.replace(off, **{name: getattr(on, name) for name in GROUPS[group]})
 
 
 def _accuracy():
@@ -78,6 +56,7 @@ def measure(group: str, seed: int, size: str, frames: int, data: Path) -> dict:
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
     from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.recording import RecordingErrors
     from monoloc.sim.urban.truth import true_planar_poses
 
     acc = _accuracy()
@@ -86,7 +65,7 @@ def measure(group: str, seed: int, size: str, frames: int, data: Path) -> dict:
         seed=seed,
         runs=("map", "query", "train"),
         max_frames=frames,
-        errors=errors_of(group),
+        errors=RecordingErrors.only(*GROUPS[group]),
         workers=2,
     )
     root = data / f"errors_{group}_{size}_{frames}_s{seed}"

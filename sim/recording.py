@@ -9,10 +9,11 @@ for the error floor). Where each default comes from: ``docs/sim.md``.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from monoloc.core.errors import InvalidInputError
 from monoloc.sim.vehicle import _rpy
 
 
@@ -92,8 +93,41 @@ class RecordingErrors:
             sensor_noise=False,
         )
 
+    @classmethod
+    def only(cls, *groups: str) -> RecordingErrors:
+        """The named groups of errors (``ERROR_GROUPS``: pose, calibration, lidar_timing,
+        signals, camera) at their defaults, every other error off: what each costs
+        (``bench/error_split.py``). ``only()`` is ``none()``; all five groups are the
+        defaults."""
+        unknown = [g for g in groups if g not in ERROR_GROUPS]
+        if unknown:
+            raise InvalidInputError(
+                f"unknown recording error groups {unknown}; use some of {list(ERROR_GROUPS)}"
+            )
+        on = cls()
+        names = [name for g in groups for name in ERROR_GROUPS[g]]
+        return replace(cls.none(), **{name: getattr(on, name) for name in names})
+
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+ERROR_GROUPS: dict[str, tuple[str, ...]] = {
+    "pose": ("pose_error_m", "pose_vertical_error_m", "pose_yaw_error_rad", "pose_tilt_error_rad"),
+    "calibration": ("calib_translation_m", "calib_rotation_rad"),
+    "lidar_timing": ("lidar_motion_distortion", "lidar_sync_offset_s", "lidar_sync_jitter_s"),
+    "signals": (
+        "speed_scale_error",
+        "speed_bias_mps",
+        "speed_noise_mps",
+        "yaw_rate_bias_radps",
+        "yaw_rate_noise_radps",
+    ),
+    "camera": ("exposure_bias_ev", "material_gain", "sensor_noise"),
+}
+"""``RecordingErrors``' fields by where the error comes from: every error's size in one group
+(the pose errors' time constants, ``pose_error_time_s`` and ``pose_error_smoothing_s``, shape
+the pose errors and stay as they are)."""
 
 
 def perturb_calibration(

@@ -270,3 +270,24 @@ def test_night_frames_are_dominated_by_the_lit_road(city_and_plans):
     # the exposure is at its limit.
     wall_ratio = np.array(walls["night"]) / np.array(walls["day"])
     assert np.median(wall_ratio) < 0.5 and wall_ratio.max() < 0.75
+
+
+def test_error_groups_hold_every_error_once_and_only_turns_on_those():
+    from dataclasses import fields
+
+    from monoloc.core.errors import InvalidInputError
+    from monoloc.sim.recording import ERROR_GROUPS
+
+    grouped = [name for names in ERROR_GROUPS.values() for name in names]
+    shape = {"pose_error_time_s", "pose_error_smoothing_s"}
+    assert sorted(grouped) == sorted(f.name for f in fields(RecordingErrors) if f.name not in shape)
+    assert RecordingErrors.only(*ERROR_GROUPS) == RecordingErrors()
+    assert RecordingErrors.only() == RecordingErrors.none()
+    calibration = RecordingErrors.only("calibration")
+    assert calibration.calib_rotation_rad == RecordingErrors().calib_rotation_rad > 0
+    assert calibration.pose_error_m == 0 and not calibration.lidar_motion_distortion
+    assert replace(calibration, calib_translation_m=0, calib_rotation_rad=0) == (
+        RecordingErrors.none()
+    )
+    with pytest.raises(InvalidInputError, match="unknown recording error groups"):
+        RecordingErrors.only("pose", "weather")
