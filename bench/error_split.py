@@ -10,7 +10,8 @@ run localized with the default filter. Printed per group, against the map's own 
 the filter's median error, the best of the frame's hypotheses picked with the truth (the
 oracle of issue 13's filter / best-of-k goal), the likeliest hypothesis, and their ratio;
 against the written truth, the filter's RMSE and median beside the floor (a pose exact
-relative to the map). Writes bench/results/error_split.json.
+relative to the map). Writes bench/results/error_split.json (``--out`` names another:
+results/error_split_medium_s8807.json is `--size medium --frames 300 --seeds 8807`).
 
     python -P bench/error_split.py [--seeds 23 42] [--groups none all calibration] (about 7
     minutes a seed on 2 cores)
@@ -131,6 +132,11 @@ def main() -> None:
     parser.add_argument("--size", default="small")
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
+    parser.add_argument(
+        "--out",
+        default="error_split",
+        help="results/<out>.json; REPORT.md shows error_split.json and every error_split_*.json",
+    )
     args = parser.parse_args()
     _accuracy().limit_threads()
     rows = []
@@ -142,7 +148,7 @@ def main() -> None:
     print_rows(rows)
     out = {"size": args.size, "frames_per_run": args.frames, "rows": rows}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "error_split.json").write_text(json.dumps(out, indent=2) + "\n")
+    (RESULTS / f"{args.out}.json").write_text(json.dumps(out, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -551,15 +551,22 @@ def pnp_scale_section(data: dict | None) -> list[str]:
     return lines
 
 
-def error_split_section(data: dict | None) -> list[str]:
-    """What each recording error costs the localizer (bench/error_split.py)."""
+def error_split_section(runs: list[tuple[str, dict]]) -> list[str]:
+    """What each recording error costs the localizer (bench/error_split.py): the default
+    run (results/error_split.json) and any kept beside it (results/error_split_*.json)."""
     lines = ["", "## What each recording error costs (bench/error_split.py)", ""]
-    if not data:
+    if not runs:
         return lines + ["not run"]
-    lines += [
-        f"{data['size']} city, {data['frames_per_run']} frames per run, each group of the "
-        "sim's recording errors on alone. Medians against the map's own frame (mm), then the "
-        "filter against the written truth beside the floor (m).",
+    for name, data in runs:
+        lines += error_split_table(name, data)
+    return lines
+
+
+def error_split_table(name: str, data: dict) -> list[str]:
+    lines = [
+        f"`results/{name}.json`: {data['size']} city, {data['frames_per_run']} frames per "
+        "run, each group of the sim's recording errors on alone. Medians against the map's "
+        "own frame (mm), then the filter against the written truth beside the floor (m).",
         "",
     ]
     rows = [
@@ -578,7 +585,7 @@ def error_split_section(data: dict | None) -> list[str]:
     ]
     header = ["errors on", "seed", "filter", "best of k", "likeliest", "ratio"]
     header += ["RMSE", "median", "floor median"]
-    return lines + [table(header, rows)]
+    return lines + [table(header, rows), ""]
 
 
 def pose_covariance_section(data: dict | None) -> list[str]:
@@ -814,7 +821,9 @@ def main() -> None:
     lines += pnp_calibration_section(load("pnp_calibration"))
     lines += pnp_scale_section(load("pnp_scale"))
     lines += pose_covariance_section(load("pose_covariance"))
-    lines += error_split_section(load("error_split"))
+    split_names = ["error_split"] + sorted(p.stem for p in RESULTS.glob("error_split_*.json"))
+    splits = [(name, load(name)) for name in split_names]
+    lines += error_split_section([(name, data) for name, data in splits if data])
     lines += [""] + fleet_section(load("load"), load("footprint"))
     for name in ("filter", "ingest", "sim"):
         data = load(name)
