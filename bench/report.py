@@ -142,6 +142,17 @@ def accuracy_section(name: str, data: dict | None) -> list[str]:
                     else "."
                 ),
             ]
+            if "best_of_k_blurred" in rf:  # results written since 2026-11-29 evening
+                out[-1] += (
+                    f" Best of k against the written truth: median "
+                    f"{rf['best_of_k_written_median_m']:.3f} m; with every hypothesis blurred "
+                    "by random noise "
+                    + ", ".join(
+                        f"{float(s) * 100:.0f} cm: {m:.3f} m"
+                        for s, m in rf["best_of_k_blurred"].items()
+                    )
+                    + " (lower: the oracle gains from spread alone)."
+                )
     for run, causes in data.get("excursions", {}).items():
         out += ["", f"Frames off ({run}): {ExcursionCauses(**causes).text()}."]
     reg = data.get("night_registration")

@@ -207,6 +207,27 @@ def best_of_k_errors(hypotheses_world: list[np.ndarray], truth_world: np.ndarray
     return out
 
 
+def blurred_best_of_k_errors(
+    hypotheses_world: list[np.ndarray],
+    truth_world: np.ndarray,
+    blur_sigma_m: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """:func:`best_of_k_errors` after moving every hypothesis's position by an isotropic
+    Gaussian draw of ``blur_sigma_m`` (m, per axis): a test of the oracle itself. Where
+    the truth it is judged by lies off the hypotheses' cluster (recording errors), a
+    wider cluster covers more of the offset, so noise that carries no information can
+    lower the best of k; an estimator that fuses the hypotheses cannot profit from it."""
+    if not (np.isfinite(blur_sigma_m) and blur_sigma_m >= 0.0):
+        raise InvalidInputError(f"blur_sigma_m must be finite and >= 0, got {blur_sigma_m}")
+    blurred = []
+    for poses in hypotheses_world:
+        poses = np.array(poses, dtype=np.float64).reshape(-1, 3)
+        poses[:, :2] += rng.normal(0.0, blur_sigma_m, size=(len(poses), 2))
+        blurred.append(poses)
+    return best_of_k_errors(blurred, truth_world)
+
+
 @dataclass(frozen=True)
 class ExcursionCauses:
     """The frames whose estimate is missing or further than ``tolerance_m`` from the

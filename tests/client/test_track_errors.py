@@ -11,6 +11,7 @@ import pytest
 from monoloc.client.trajectory import (
     TurnClasses,
     best_of_k_errors,
+    blurred_best_of_k_errors,
     errors_by_turning,
     excursion_causes,
     frame_errors,
@@ -107,6 +108,47 @@ def test_best_of_k_picks_the_closest_hypothesis_and_marks_empty_frames():
     np.testing.assert_allclose(best, [0.5, np.nan, 0.1])
     with pytest.raises(InvalidInputError):
         best_of_k_errors(hyps[:2], truth)
+
+
+def _clusters(rng, centre_offset_m, n_frames=400, k=11, spread_m=0.005):
+    """Per frame k hypotheses spread spread_m around a point centre_offset_m (in a random
+    direction) from the truth, as a frame's hypotheses sit around the map's frame."""
+    truth = np.column_stack([np.arange(n_frames) * 1.0, np.zeros(n_frames), np.zeros(n_frames)])
+    angle = rng.uniform(0, 2 * np.pi, n_frames)
+    centre = truth[:, :2] + centre_offset_m * np.column_stack([np.cos(angle), np.sin(angle)])
+    hyps = [np.column_stack([c + rng.normal(0, spread_m, (k, 2)), np.zeros(k)]) for c in centre]
+    return hyps, truth
+
+
+def test_blurring_the_hypotheses_lowers_the_best_of_k_when_the_truth_lies_off_them():
+    rng = np.random.default_rng(5)
+    hyps, truth = _clusters(rng, centre_offset_m=0.05)
+    hyps[3] = np.zeros((0, 3))
+    plain = best_of_k_errors(hyps, truth)
+    # no blur is the plain oracle, frames without hypotheses stay NaN
+    same = blurred_best_of_k_errors(hyps, truth, 0.0, np.random.default_rng(1))
+    np.testing.assert_allclose(same, plain)
+    blurred = blurred_best_of_k_errors(hyps, truth, 0.02, np.random.default_rng(1))
+    assert np.isnan(blurred[3]) and np.isfinite(np.delete(blurred, 3)).all()
+    # 5 cm off a 5 mm cluster: the oracle gains from noise that carries nothing
+    assert np.nanmedian(blurred) < 0.85 * np.nanmedian(plain)
+    # the input is not moved in place
+    np.testing.assert_allclose(best_of_k_errors(hyps, truth), plain)
+    # the same generator state gives the same draws
+    again = blurred_best_of_k_errors(hyps, truth, 0.02, np.random.default_rng(1))
+    np.testing.assert_allclose(again, blurred)
+
+
+def test_blurring_the_hypotheses_raises_the_best_of_k_when_the_truth_is_among_them():
+    rng = np.random.default_rng(6)
+    hyps, truth = _clusters(rng, centre_offset_m=0.0)
+    plain = np.nanmedian(best_of_k_errors(hyps, truth))
+    blurred = np.nanmedian(blurred_best_of_k_errors(hyps, truth, 0.02, rng))
+    assert blurred > 2.0 * plain
+    with pytest.raises(InvalidInputError):
+        blurred_best_of_k_errors(hyps, truth, -0.01, rng)
+    with pytest.raises(InvalidInputError):
+        blurred_best_of_k_errors(hyps, truth, float("nan"), rng)
 
 
 def test_excursion_causes_sort_the_frames_off_by_their_hypotheses():
