@@ -40,6 +40,7 @@ from monoloc.server.vision.pnp import (
     estimate_relative_pose,
     estimate_relative_pose_guided,
     refine_from_pose,
+    robust_refit,
 )
 
 
@@ -48,18 +49,36 @@ class JointConfig:
     """Joint-pose settings. position_gate_m / yaw_gate_rad: a hypothesis within these of
     the anchor's (planar) joins the union; min_entries: fewer consistent entries give no
     joint pose (one entry's pose is already its own hypothesis); rounds: inlier selection
-    + LM rounds on the union (the PnP config's threshold and LM budget)."""
+    + LM rounds on the union (the PnP config's threshold and LM budget).
+    cauchy_scale_sigmas / cauchy_rounds: the union's pose is then refit under a Cauchy
+    loss whose scale is that many robust standard deviations of the inliers' errors
+    (each error divided by its keypoint's pyramid scale), in that many reweighted LM rounds
+    (``pnp.robust_refit``; None: least squares on the inliers, as before 2026-11-29
+    evening). Why: judged against the true poses of two error-free medium cities (the
+    same pipeline, 150 query frames each), the joint pose's median error fell from 6.7 to
+    5.7 mm (seed 8807) and from 12.3 to 10.2 mm (6271; mean 17.5 to 13.6 mm): the union's
+    inliers carry a tail of errors of one to three pixels that least squares follows.
+    2.385 sigmas keeps 95 % of least squares' efficiency on Gaussian errors; a fixed
+    scale of 0.4-1.5 px measured the same within 0.6 mm."""
 
     position_gate_m: float = 0.5
     yaw_gate_rad: float = math.radians(2.0)
     min_entries: int = 2
     rounds: int = 2
+    cauchy_scale_sigmas: float | None = 2.385
+    cauchy_rounds: int = 3
 
     def __post_init__(self) -> None:
         if not (self.position_gate_m > 0 and self.yaw_gate_rad > 0):
             raise InvalidInputError(f"JointConfig gates must be positive: {self}")
         if self.min_entries < 2 or self.rounds < 1:
             raise InvalidInputError(f"JointConfig needs min_entries >= 2, rounds >= 1: {self}")
+        if self.cauchy_scale_sigmas is not None and not (
+            self.cauchy_scale_sigmas > 0 and self.cauchy_rounds >= 1
+        ):
+            raise InvalidInputError(
+                f"JointConfig needs cauchy_scale_sigmas > 0 and cauchy_rounds >= 1: {self}"
+            )
 
 
 @dataclass(frozen=True)
@@ -187,6 +206,13 @@ def estimate_joint_pose(
     )
     if R is None or np.count_nonzero(mask) < pnp.min_inliers:
         return None
+    if config.cauchy_scale_sigmas is not None:
+        R, t, errors_px = robust_refit(
+            points_local, pixels_all, mask, R, t, intrinsics.K, pnp, scales_all,
+            config.cauchy_scale_sigmas, config.cauchy_rounds,
+        )  # fmt: skip
+        if R is None:
+            return None
     members = tuple(j for j in range(len(entries)) if mask[bounds[j] : bounds[j + 1]].any())
     if len(members) < config.min_entries:
         return None

@@ -637,7 +637,8 @@ def test_pose_covariance_weighs_each_inlier_by_its_keypoint_scale():
     """PnpStrategy.covariance_scales: an inlier from pyramid scale s counts as s px of
     noise (every keypoint at scale 2: four times the covariance at 1 px); off, the scales
     leave the covariance alone; either way they leave the poses alone (PnpConfig's
-    scale_weighting is off)."""
+    scale_weighting is off; the joint pose's Cauchy refit measures its loss's scale in
+    the errors divided by the scales, so one scale for every keypoint changes nothing)."""
     T_world_from_query, refs, matches, keypoints = _scene(3, noise_px=0.5)
     scales = np.full(len(keypoints), 2.0)
 
@@ -755,3 +756,41 @@ def test_alternative_pose_needs_pooled_pnp_and_the_covariances():
         PnpStrategy(covariance=True, pooled=None, alternative=AlternativeConfig())
     with pytest.raises(InvalidInputError):
         AlternativeConfig(residual_px=0.0)
+
+
+def test_joint_pose_cauchy_refit_is_the_default_and_can_be_turned_off():
+    """JointConfig's Cauchy refit: on by default, None gives the least-squares pose of the
+    inlier rounds alone (as before it), and bad settings are refused."""
+    from monoloc.server.vision.pnp import refine_from_pose
+
+    T_world_from_query, refs, matches, keypoints = _scene(4, noise_px=0.7, outlier_fraction=0.2)
+    union = [
+        EntryInliers(r.T_world_from_cam, keypoints[m[:, 0]], r.points_cam[m[:, 1]])
+        for r, m in zip(refs, matches, strict=True)
+    ]
+    plain = estimate_joint_pose(
+        union, T_world_from_query, CAM, PnpConfig(), JointConfig(cauchy_scale_sigmas=None)
+    )
+    robust = estimate_joint_pose(union, T_world_from_query, CAM, PnpConfig(), JointConfig())
+    assert plain is not None and robust is not None
+    assert JointConfig().cauchy_scale_sigmas is not None
+    # None: the rounds' own pose, written out here in the union's world frame
+    points = np.concatenate(
+        [e.points_ref @ e.T_world_from_ref[:3, :3].T + e.T_world_from_ref[:3, 3] for e in union]
+    )
+    pixels = np.concatenate([e.pixels_px for e in union]).astype(np.float64)
+    T0 = invert_rigid(T_world_from_query)
+    R, t, _, _ = refine_from_pose(
+        points, pixels, T0[:3, :3].copy(), T0[:3, 3].copy(), CAM.K, PnpConfig(),
+        JointConfig().rounds,
+    )  # fmt: skip
+    T_rounds = np.eye(4)
+    T_rounds[:3, :3], T_rounds[:3, 3] = R, t
+    np.testing.assert_allclose(plain.T_world_from_cam, invert_rigid(T_rounds), atol=1e-6)
+    # the refit moves the pose, a little, and keeps the inliers
+    moved = np.linalg.norm(robust.T_world_from_cam[:3, 3] - plain.T_world_from_cam[:3, 3])
+    assert 0.0 < moved < 0.05
+    assert robust.n_inliers == plain.n_inliers
+    for bad in ({"cauchy_scale_sigmas": 0.0}, {"cauchy_scale_sigmas": -1.0}, {"cauchy_rounds": 0}):
+        with pytest.raises(InvalidInputError):
+            JointConfig(**bad)
