@@ -599,6 +599,36 @@ def error_split_table(name: str, data: dict) -> list[str]:
     return lines + [table(header, rows), ""]
 
 
+def joint_refit_section(data: dict | None) -> list[str]:
+    """The joint pose's Cauchy refit against least squares (bench/joint_refit.py)."""
+    lines = ["", "## The joint pose's Cauchy refit (bench/joint_refit.py)", ""]
+    if not data:
+        return lines + ["not run"]
+    rows = [
+        [
+            name,
+            f"{r['position_median_mm']:.2f}",
+            f"{r['position_mean_mm']:.2f}",
+            f"{r['position_p90_mm']:.2f}",
+            f"{r['heading_median_deg']:.3f}",
+            f"{r['localize_cpu_ms_p50']:.2f}",
+        ]
+        for name, r in data["rows"].items()
+    ]
+    lines.append(
+        table(
+            ["joint pose", "median mm", "mean mm", "p90 mm", "heading deg", "localize CPU ms"],
+            rows,
+        )
+    )
+    return lines + [
+        "",
+        f"Against the true poses of an error-free city ({data['dataset']}), on the "
+        f"{data['frames_compared']} of {data['frames']} query frames where both passes give "
+        f"a joint pose; the refit's median error {data['median_ratio']:.2f}x least squares'.",
+    ]
+
+
 def pose_covariance_section(data: dict | None) -> list[str]:
     """What the PnP pose covariance says about a hypothesis's error (bench/pose_covariance.py)."""
     lines = ["", "## PnP pose covariance against the error (bench/pose_covariance.py)", ""]
@@ -832,6 +862,7 @@ def main() -> None:
     lines += pnp_calibration_section(load("pnp_calibration"))
     lines += pnp_scale_section(load("pnp_scale"))
     lines += pose_covariance_section(load("pose_covariance"))
+    lines += joint_refit_section(load("joint_refit"))
     split_names = ["error_split"] + sorted(p.stem for p in RESULTS.glob("error_split_*.json"))
     splits = [(name, load(name)) for name in split_names]
     lines += error_split_section([(name, data) for name, data in splits if data])

@@ -1,0 +1,158 @@
+"""The joint pose's Cauchy refit against least squares on the same inliers: an error-free
+city, judged against the true poses, both in the same run.
+
+The joint pose (``vision.joint``) refines one pose on the union of the consistent
+entries' inliers; since 2026-11-29 evening a Cauchy refit follows the least-squares
+rounds (``JointConfig.cauchy_scale_sigmas``, ``pnp.robust_refit``). This bench localizes
+every query frame of a city generated without any recording error (exact geometry,
+calibration, poses and signals: its written poses are the true ones) twice, without a
+prior: with the refit and with ``cauchy_scale_sigmas=None`` (the baseline, least squares
+alone). Printed: the joint pose's position and heading error on the frames where both
+passes give one (median, mean, 90th percentile), and each pass's localize CPU time per
+frame (p50, one thread). Writes bench/results/joint_refit.json.
+Usage: python -P bench/joint_refit.py [--size medium] [--frames 150] [--seed 8807]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
+    sys.path.pop(0)  # bench/sim.py would shadow the sim package
+
+import numpy as np  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results"
+RUNS = ("map", "query")
+
+
+def limit_threads() -> None:
+    import cv2
+    import faiss
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(1)
+    faiss.omp_set_num_threads(1)
+    threadpool_limits(1)
+
+
+def error_free_city(root: Path, size: str, frames: int, seed: int) -> dict:
+    """Generate (or reuse) the city without recording errors; its runs' sequence ids."""
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.recording import RecordingErrors
+
+    if not (root / "dataset.json").exists():
+        print(f"generating an error-free {size} city into {root} ...", flush=True)
+        config = GenerateConfig(
+            size=size,
+            seed=seed,
+            runs=RUNS,
+            max_frames=frames,
+            errors=RecordingErrors.none(),
+            workers=2,
+        )
+        generate_dataset(config, root)
+    meta = json.loads((root / "dataset.json").read_text())
+    return {s["run"]: s["id"] for s in meta["sequences"]}
+
+
+def joint_pass(memory, query, config) -> tuple[dict[int, tuple[float, float]], list[float]]:
+    """Per query frame index, the joint pose's (position m, |heading| rad) error against the
+    frame's pose; and the localize CPU time (ms) of every frame."""
+    from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
+    from monoloc.server.localize import localize_frame
+
+    rng = np.random.default_rng(1)
+    errors, cpu_ms = {}, []
+    for i, frame in enumerate(query.frames):
+        image = query.load(frame).image_gray
+        truth = planar_from_T_world_from_cam(frame.T_world_from_cam)
+        t0 = time.thread_time()
+        result = localize_frame(
+            image, query.intrinsics, memory.vocabulary, memory.index, memory.lookup, config, rng
+        )
+        cpu_ms.append((time.thread_time() - t0) * 1e3)
+        if result.joint is not None:
+            d = result.joint.pose_world - truth
+            errors[i] = (float(np.hypot(d[0], d[1])), abs(float(wrap_angle(d[2]))))
+    return errors, cpu_ms
+
+
+def summary(errors: np.ndarray, cpu_ms: list[float]) -> dict:
+    position_mm = errors[:, 0] * 1e3
+    return {
+        "position_median_mm": float(np.median(position_mm)),
+        "position_mean_mm": float(np.mean(position_mm)),
+        "position_p90_mm": float(np.percentile(position_mm, 90)),
+        "heading_median_deg": float(np.degrees(np.median(errors[:, 1]))),
+        "localize_cpu_ms_p50": float(np.median(cpu_ms)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="medium")
+    parser.add_argument("--frames", type=int, default=150)
+    parser.add_argument("--seed", type=int, default=8807)
+    parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
+    args = parser.parse_args()
+    limit_threads()
+    from monoloc.evaluation import MemoryMap
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.vision.joint import JointConfig
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
+
+    root = args.data / f"urban_{args.size}_{args.frames}_s{args.seed}_error_free"
+    ids = error_free_city(root, args.size, args.frames, args.seed)
+    vocab = load_default_vocabulary()
+    memory = MemoryMap.empty(vocab)
+    memory.add_run(read_kitti_sequence(root, ids["map"]))
+    query = read_kitti_sequence(root, ids["query"])
+    configs = {
+        "least squares (baseline)": LocalizeConfig(joint=JointConfig(cauchy_scale_sigmas=None)),
+        "Cauchy refit (default)": LocalizeConfig(),
+    }
+    passes = {}
+    for name, config in configs.items():
+        print(f"localizing {len(query.frames)} query frames: {name} ...", flush=True)
+        passes[name] = joint_pass(memory, query, config)
+    both = sorted(set.intersection(*(set(errors) for errors, _ in passes.values())))
+    if not both:
+        raise SystemExit("no frame has a joint pose in both passes: nothing to compare")
+    rows = {
+        name: summary(np.array([errors[i] for i in both]), cpu_ms)
+        for name, (errors, cpu_ms) in passes.items()
+    }
+    print(
+        f"\njoint pose against the true pose, {len(both)} of {len(query.frames)} frames "
+        f"(error-free {args.size} city, seed {args.seed}):"
+    )
+    print(f"  {'':<26}{'median mm':>10}{'mean mm':>9}{'p90 mm':>8}{'head deg':>9}{'CPU ms':>8}")
+    for name, r in rows.items():
+        print(
+            f"  {name:<26}{r['position_median_mm']:>10.2f}{r['position_mean_mm']:>9.2f}"
+            f"{r['position_p90_mm']:>8.2f}{r['heading_median_deg']:>9.3f}"
+            f"{r['localize_cpu_ms_p50']:>8.2f}"
+        )
+    base, refit = rows["least squares (baseline)"], rows["Cauchy refit (default)"]
+    ratio = refit["position_median_mm"] / base["position_median_mm"]
+    print(f"  Cauchy refit / least squares, median position error: {ratio:.2f}x")
+    RESULTS.mkdir(exist_ok=True)
+    out = {
+        "dataset": root.name,
+        "frames": len(query.frames),
+        "frames_compared": len(both),
+        "rows": rows,
+        "median_ratio": ratio,
+    }
+    (RESULTS / "joint_refit.json").write_text(json.dumps(out, indent=2) + "\n")
+    print(f"wrote {RESULTS / 'joint_refit.json'}")
+
+
+if __name__ == "__main__":
+    main()
