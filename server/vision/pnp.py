@@ -215,10 +215,26 @@ def _weighted_final(
     one threshold, and with it entries near ``min_inliers``, as measured at night).
     Returns (R, t, errors_px (M,)) of the weighted pose (R None if LM left the finite
     numbers); without weights the pose is returned as it is, errors None."""
-    from monoloc.server.vision._pnp_kernel import refine_lm
-
     if not len(weights) or np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
         return R, t, None
+    return _weighted_lm(points, pixels, mask, weights, R, t, K, config)
+
+
+def _weighted_lm(
+    points: np.ndarray,
+    pixels: np.ndarray,
+    mask: np.ndarray,
+    weights: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    config: PnpConfig,
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """LM on the masked correspondences, each squared error weighted by ``weights`` (M,),
+    and the reprojection errors (M,) px at its pose; all None if LM left the finite
+    numbers."""
+    from monoloc.server.vision._pnp_kernel import refine_lm
+
     R, t, _ = refine_lm(
         points, pixels, mask, weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
         config.refine_iterations,
@@ -560,8 +576,6 @@ def robust_refit(
     lets that tail pull the pose, the Cauchy weights fade it out. The inliers stay those
     of ``mask``. Returns (R, t, errors_px (M,) at the final pose); R None if LM left the
     finite numbers."""
-    from monoloc.server.vision._pnp_kernel import refine_lm
-
     scales = np.asarray(keypoint_scales, dtype=np.float64).reshape(-1)
     if len(scales) != len(points) or not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
         raise InvalidInputError(
@@ -583,13 +597,10 @@ def robust_refit(
     for _ in range(rounds):
         u = errors_px / (scales * c)
         weights = 1.0 / (scales * scales * (1.0 + u * u))
-        R, t, _ = refine_lm(
-            points, pixels, mask, weights, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-            config.refine_iterations,
-        )  # fmt: skip
-        if not _finite(R, t):
+        R_new, t_new, errors_new = _weighted_lm(points, pixels, mask, weights, R, t, K, config)
+        if R_new is None:
             return None, None, errors_px
-        _, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+        R, t, errors_px = R_new, t_new, errors_new
     return R, t, errors_px
 
 
