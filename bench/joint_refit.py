@@ -30,16 +30,6 @@ RESULTS = Path(__file__).parent / "results"
 RUNS = ("map", "query")
 
 
-def limit_threads() -> None:
-    import cv2
-    import faiss
-    from threadpoolctl import threadpool_limits
-
-    cv2.setNumThreads(1)
-    faiss.omp_set_num_threads(1)
-    threadpool_limits(1)
-
-
 def error_free_city(root: Path, size: str, frames: int, seed: int) -> dict:
     """Generate (or reuse) the city without recording errors; its runs' sequence ids."""
     from monoloc.sim.generate import GenerateConfig, generate_dataset
@@ -100,7 +90,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=8807)
     parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
     args = parser.parse_args()
-    limit_threads()
+    from monoloc.server.settings import Settings
+    from monoloc.server.threads import limit_threads
+
+    # one thread per library, as the server runs a query (its defaults, set explicitly)
+    limiter = limit_threads(Settings(cv_threads=1, faiss_threads=1))  # noqa: F841 (held)
     from monoloc.evaluation import MemoryMap
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig
