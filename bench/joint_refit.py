@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
@@ -53,22 +52,15 @@ def error_free_city(root: Path, size: str, frames: int, seed: int) -> dict:
 def joint_pass(memory, query, config) -> tuple[dict[int, tuple[float, float]], list[float]]:
     """Per query frame index, the joint pose's (position m, |heading| rad) error against the
     frame's pose; and the localize CPU time (ms) of every frame."""
-    from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
-    from monoloc.server.localize import localize_frame
+    from monoloc.core.geometry import wrap_angle
+    from monoloc.evaluation import localize_globally
 
-    rng = np.random.default_rng(1)
     errors, cpu_ms = {}, []
-    for i, frame in enumerate(query.frames):
-        image = query.load(frame).image_gray
-        truth = planar_from_T_world_from_cam(frame.T_world_from_cam)
-        t0 = time.thread_time()
-        result = localize_frame(
-            image, query.intrinsics, memory.vocabulary, memory.index, memory.lookup, config, rng
-        )
-        cpu_ms.append((time.thread_time() - t0) * 1e3)
-        if result.joint is not None:
-            d = result.joint.pose_world - truth
-            errors[i] = (float(np.hypot(d[0], d[1])), abs(float(wrap_angle(d[2]))))
+    for frame in localize_globally(memory, query, config, np.random.default_rng(1)):
+        cpu_ms.append(frame.cpu_ms)
+        if frame.result.joint is not None:
+            d = frame.result.joint.pose_world - frame.truth_world
+            errors[frame.index] = (float(np.hypot(d[0], d[1])), abs(float(wrap_angle(d[2]))))
     return errors, cpu_ms
 
 

@@ -20,7 +20,8 @@ the method can be compared quickly on the same frames:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -37,7 +38,12 @@ from monoloc.core.registration import RegistrationConfig, RunCorrection
 from monoloc.server.entry_builder import BuildConfig, TooFewPointsError, build_entry
 from monoloc.server.index.retrieval import RetrievalIndex
 from monoloc.server.ingest.register import RegistrationTarget, register_source
-from monoloc.server.localize import LocalizationResult, LocalizeConfig, ReferenceEntry
+from monoloc.server.localize import (
+    LocalizationResult,
+    LocalizeConfig,
+    ReferenceEntry,
+    localize_frame,
+)
 from monoloc.server.localizer import InProcessAnswer, InProcessLocalizer
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -277,6 +283,33 @@ def evaluate_run(
     times = np.array([f.timestamp_s for f in seq.frames])
     reseeds = {v: t.filter.n_reseeds for v, t in trackers.items()}
     return RunEvaluation(truth, est, metrics, timings, n_hyp, times, hypotheses, likeliest, reseeds)
+
+
+@dataclass(frozen=True)
+class GlobalFrame:
+    """One query frame localized without a prior: its index in the run, its written pose
+    (3,) (X m, Y m, heading rad), the server's result, and the CPU time (ms, this thread)
+    the localization took."""
+
+    index: int
+    truth_world: np.ndarray
+    result: LocalizationResult
+    cpu_ms: float
+
+
+def localize_globally(
+    memory: MemoryMap, query, config: LocalizeConfig, rng: np.random.Generator
+) -> Iterator[GlobalFrame]:
+    """Every frame of a KittiSequence / TumRun localized against the whole map (no prior),
+    in order, with the server's pipeline: what the per-frame benches compare."""
+    for index, frame in enumerate(query.frames):
+        image = query.load(frame).image_gray
+        truth = planar_from_T_world_from_cam(frame.T_world_from_cam)
+        started = time.thread_time()
+        result = localize_frame(
+            image, query.intrinsics, memory.vocabulary, memory.index, memory.lookup, config, rng
+        )
+        yield GlobalFrame(index, truth, result, (time.thread_time() - started) * 1e3)
 
 
 def stage_percentiles(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:

@@ -77,3 +77,38 @@ def test_the_in_process_localizer_takes_png_bytes_or_arrays(memory_map, sim_city
     np.testing.assert_array_equal(from_array.hypotheses.pose_world, from_png.hypotheses.pose_world)
     np.testing.assert_array_equal(from_array.best_pose_world, from_array.result.best.pose_world)
     assert set(from_array.timings_ms) >= {"features", "vlad"}
+
+
+def test_localize_globally_gives_each_frame_its_truth_result_and_time(memory_map, sim_city):
+    from dataclasses import replace as dc_replace
+
+    from monoloc.core.geometry import planar_from_T_world_from_cam
+    from monoloc.evaluation import localize_globally
+    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.localize import LocalizeConfig, localize_frame
+
+    query = read_kitti_sequence(sim_city, QUERY_SEQ)
+    query = dc_replace(query, frames=query.frames[:4])
+    config = LocalizeConfig()
+    frames = list(localize_globally(memory_map, query, config, np.random.default_rng(3)))
+    assert [f.index for f in frames] == [0, 1, 2, 3]
+    rng = np.random.default_rng(3)
+    for f, frame in zip(frames, query.frames, strict=True):
+        np.testing.assert_allclose(
+            f.truth_world, planar_from_T_world_from_cam(frame.T_world_from_cam)
+        )
+        assert f.cpu_ms > 0
+        direct = localize_frame(
+            query.load(frame).image_gray,
+            query.intrinsics,
+            memory_map.vocabulary,
+            memory_map.index,
+            memory_map.lookup,
+            config,
+            rng,
+        )
+        # the frame's own image through the server's pipeline: the same hypotheses
+        assert [h.entry_id for h in f.result.hypotheses] == [h.entry_id for h in direct.hypotheses]
+        for mine, theirs in zip(f.result.hypotheses, direct.hypotheses, strict=True):
+            np.testing.assert_allclose(mine.pose_world, theirs.pose_world)
+    assert any(len(f.result.hypotheses) for f in frames)
