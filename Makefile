@@ -25,7 +25,7 @@ chromium:
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium; }
 
 
-# The tests start a throwaway PostgreSQL (initdb/pg_ctl, monoloc/pg_cluster.py) and check the
+# The tests start a throwaway PostgreSQL (initdb/pg_ctl, tests/pg_cluster.py) and check the
 # nginx config of docker/ with `nginx -t`: install Debian's packages when missing.
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 system-deps:
@@ -64,12 +64,12 @@ BENCHES := vision filter sim ingest localize pnp_calibration retrieval speed acc
 bench: install
 	$(PY) -m pytest -q -m slow
 	@for b in $(BENCHES); do \
-	  if [ -f bench/$$b.py ]; then echo "== bench/$$b.py"; $(PY) -P bench/$$b.py || exit 1; fi; \
+	  if [ -f bench/$$b.py ]; then echo "== bench/$$b.py"; $(PY) -m bench.$$b || exit 1; fi; \
 	done
-	$(PY) -P bench/accuracy.py --scenario indoor --size small
-	$(PY) -P bench/closed_loop.py --scenario indoor
-	$(PY) -P bench/closed_loop.py --scenario urban
-	$(PY) -P bench/report.py
+	$(PY) -m bench.accuracy --scenario indoor --size small
+	$(PY) -m bench.closed_loop --scenario indoor
+	$(PY) -m bench.closed_loop --scenario urban
+	$(PY) -m bench.report
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -4,7 +4,7 @@ Generates (or reuses) a sim dataset, builds the map in memory with the server's 
 code, calibrates the measurement model on the `train` run (a district the map and the
 query never see; with a `trainnight` run, the quality-aware model also on both together,
 run beside the default), and localizes the `query` run with each variant of
-monoloc.evaluation: the default (the PnP covariance model, the server's alternative poses),
+bench.lab.evaluation: the default (the PnP covariance model, the server's alternative poses),
 and beside it the paper's covariance (with and without monoloc's tail) and the PnP
 covariance model without the alternative poses. With a
 `nightmap` run in the dataset, the `night` query is run twice:
@@ -284,8 +284,8 @@ def registered_night(root, meta, vocab, night_seq, nsig, model, lever):
     """The night query against the day map + the night run registered to it first (as
     ``monoloc map ingest --register`` / ``register_to_map`` does): (metrics row, the
     registration's summary)."""
+    from bench.lab.evaluation import MemoryMap, evaluate_run, metrics_row
     from monoloc.core.registration import RegistrationConfig
-    from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row
     from monoloc.server.ingest.kitti import read_kitti_sequence
 
     memory = MemoryMap.empty(vocab)
@@ -463,15 +463,15 @@ def urban_city(
     With ``filter_seeds`` N > 1, the day query ("full") and the night with night entries
     run again with the filter seeds 1..N-1 (``EvalConfig.seed``; the RANSAC draws follow
     it): a night's RMSE turns on a few stretches and moves a lot from seed to seed."""
-    from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
-    from monoloc.client.trajectory import ExcursionCauses
-    from monoloc.evaluation import (
+    from bench.lab.evaluation import (
         EvalConfig,
         MemoryMap,
         evaluate_run,
         metrics_row,
         stage_percentiles,
     )
+    from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
+    from monoloc.client.trajectory import ExcursionCauses
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
@@ -846,15 +846,15 @@ PAPER_INDOOR = {"open_loop_within_0_1m": 1.0, "open_loop_within_0_06m": 0.92}
 
 
 def main_indoor(args) -> None:
-    from monoloc.client.replay import read_tum_run as read_tum_replay
-    from monoloc.client.replay import rig_lever_arm_m
-    from monoloc.evaluation import (
+    from bench.lab.evaluation import (
         EvalConfig,
         MemoryMap,
         evaluate_run,
         metrics_row,
         stage_percentiles,
     )
+    from monoloc.client.replay import read_tum_run as read_tum_replay
+    from monoloc.client.replay import rig_lever_arm_m
     from monoloc.server.ingest.tum import read_tum_run
     from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary

@@ -1,4 +1,4 @@
-"""The closed-loop study (issue 16; METHOD.md section 10, the paper's indoor closed loop).
+"""The closed-loop study (issue 16; docs/method.md section 10, the paper's indoor closed loop).
 
 Starts a map server, maps the track (indoor: the 1:10 track's centre line; urban: the
 lane centre of the city's map route) with laps recorded by the sim's own vehicle,

@@ -1,5 +1,5 @@
 """Crash trials: SIGKILL of a real server process during ingestion, entry adds and
-deletes, and around the index file write (``monoloc.crash_trials``), 50 trials by
+deletes, and around the index file write (``bench.lab.crash_trials``), 50 trials by
 default, kinds in turn, each on a fresh data directory with its own seed.
 
 Figures: trials whose restart lost an acknowledged write, duplicated an entry, served
@@ -57,7 +57,7 @@ def _camera() -> dict:
 
 
 def _start_time_s(workdir: Path) -> float:
-    from monoloc.demo_io import free_port, new_admin_key, start_server, stop_server
+    from monoloc.local_server import free_port, new_admin_key, start_server, stop_server
 
     workdir.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
@@ -70,7 +70,7 @@ def _start_time_s(workdir: Path) -> float:
 def main() -> None:
     import numpy as np
 
-    from monoloc.crash_trials import KINDS, TrialDataset, run_trial
+    from bench.lab.crash_trials import KINDS, TrialDataset, run_trial
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=50)

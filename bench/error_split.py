@@ -13,7 +13,7 @@ against the written truth, the filter's RMSE and median beside the floor (a pose
 relative to the map). Writes bench/results/error_split.json (``--out`` names another:
 results/error_split_medium_s8807.json is `--size medium --frames 300 --seeds 8807`).
 
-    python -P bench/error_split.py [--seeds 23 42] [--groups none all calibration] (about 7
+    python -m bench.error_split [--seeds 23 42] [--groups none all calibration] (about 7
     minutes a seed on 2 cores)
 """
 
@@ -51,9 +51,9 @@ def _accuracy():
 
 def measure(group: str, seed: int, size: str, frames: int, data: Path) -> dict:
     """One city with the group's errors: the figures of the module docstring."""
+    from bench.lab.evaluation import MemoryMap, evaluate_run
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.client.trajectory import best_of_k_errors, truth_in_map_frame
-    from monoloc.evaluation import MemoryMap, evaluate_run
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
     from monoloc.sim.generate import GenerateConfig, generate_dataset

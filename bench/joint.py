@@ -94,7 +94,7 @@ def _error(hypothesis, truth) -> tuple[float, float]:
 
 def global_pass(memory, query, config) -> dict:
     """Every query frame without a prior: accepted share, best / joint errors, PnP time."""
-    from monoloc.evaluation import localize_globally
+    from bench.lab.evaluation import localize_globally
 
     rng = np.random.default_rng(1)
     accepted = retrieved = 0
@@ -141,8 +141,8 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
     args = parser.parse_args()
     limit_threads()
+    from bench.lab.evaluation import EvalConfig, MemoryMap, evaluate_run, metrics_row
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
-    from monoloc.evaluation import EvalConfig, MemoryMap, evaluate_run, metrics_row
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig, PnpStrategy
     from monoloc.server.vision.vocabulary import load_default_vocabulary

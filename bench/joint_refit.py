@@ -10,7 +10,7 @@ prior: with the refit and with ``cauchy_scale_sigmas=None`` (the baseline, least
 alone). Printed: the joint pose's position and heading error on the frames where both
 passes give one (median, mean, 90th percentile), and each pass's localize CPU time per
 frame (p50, one thread). Writes bench/results/joint_refit.json.
-Usage: python -P bench/joint_refit.py [--size medium] [--frames 150] [--seed 8807]
+Usage: python -m bench.joint_refit [--size medium] [--frames 150] [--seed 8807]
 """
 
 from __future__ import annotations
@@ -52,8 +52,8 @@ def error_free_city(root: Path, size: str, frames: int, seed: int) -> dict:
 def joint_pass(memory, query, config) -> tuple[dict[int, tuple[float, float]], list[float]]:
     """Per query frame index, the joint pose's (position m, |heading| rad) error against the
     frame's pose; and the localize CPU time (ms) of every frame."""
+    from bench.lab.evaluation import localize_globally
     from monoloc.core.geometry import wrap_angle
-    from monoloc.evaluation import localize_globally
 
     errors, cpu_ms = {}, []
     for frame in localize_globally(memory, query, config, np.random.default_rng(1)):
@@ -87,7 +87,7 @@ def main() -> None:
 
     # one thread per library, as the server runs a query (its defaults, set explicitly)
     limiter = limit_threads(Settings(cv_threads=1, faiss_threads=1))  # noqa: F841 (held)
-    from monoloc.evaluation import MemoryMap
+    from bench.lab.evaluation import MemoryMap
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.joint import JointConfig

@@ -151,7 +151,7 @@ def replicas(
 def throwaway_postgres():
     """The admin URL of a throwaway PostgreSQL server (stopped and deleted afterwards), or
     None when no PostgreSQL server is installed."""
-    from monoloc.pg_cluster import start_throwaway_postgres
+    from tests.pg_cluster import start_throwaway_postgres
 
     server = start_throwaway_postgres(free_port())
     try:
@@ -168,7 +168,7 @@ def database(choice: str, admin_url: str | None):
     if choice == "sqlite":
         yield None, "sqlite"
     elif choice == "postgresql":
-        from monoloc.pg_cluster import fresh_database
+        from tests.pg_cluster import fresh_database
 
         with fresh_database(admin_url) as url:
             yield url, "postgresql (throwaway server, fsync off)"
@@ -846,7 +846,7 @@ def main() -> None:
     parser.add_argument(
         "--database",
         default="auto",
-        help="sqlite, postgresql (a throwaway server from monoloc/pg_cluster.py), a "
+        help="sqlite, postgresql (a throwaway server from tests/pg_cluster.py), a "
         "SQLAlchemy URL, or auto: 1 replica on SQLite (the embedded default), 2+ replicas "
         "on a throwaway PostgreSQL when one is installed (else SQLite, said so)",
     )

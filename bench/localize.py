@@ -224,7 +224,7 @@ def ensure_dataset(root: Path, frames: int = 100) -> Path:
 
 def build_registry(workdir: Path, map_run):
     from monoloc.server.ingest.manage import create_map, ingest_source
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
     from monoloc.server.settings import Settings
     from monoloc.server.storage.db import create_engine_for, make_session_factory
     from monoloc.server.storage.migrate import upgrade_database

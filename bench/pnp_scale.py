@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from accuracy import add_city_arguments, city_root, ensure_dataset, limit_threads  # noqa: E402
+from bench.accuracy import add_city_arguments, city_root, ensure_dataset, limit_threads  # noqa: E402
 
 RIGHT_POSE_M = 2.0
 RIGHT_MATCH_PX = 3.0
@@ -77,8 +77,8 @@ def entry_truth(memory, written_positions: np.ndarray, true_poses: np.ndarray) -
 def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, step: int) -> dict:
     """Translation errors (m) of the per-entry poses with and without the scales, and
     every match's residual (px) under the true pose with its query keypoint's scale."""
+    from bench.lab.evaluation import EvalConfig, MemoryMap
     from monoloc.core.geometry import invert_rigid
-    from monoloc.evaluation import EvalConfig, MemoryMap
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.vision.binary_code import vlad_binary_code
     from monoloc.server.vision.features import extract_features

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from accuracy import (  # noqa: E402
+from bench.accuracy import (  # noqa: E402
     add_city_arguments,
     city_root,
     ensure_dataset,
@@ -123,7 +123,7 @@ def main() -> None:
     add_city_arguments(parser)
     args = parser.parse_args()
     limit_threads()
-    from monoloc.evaluation import MemoryMap
+    from bench.lab.evaluation import MemoryMap
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 

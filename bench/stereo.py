@@ -95,8 +95,8 @@ def depth_quality(seq_lidar, seq_stereo, every: int = 5) -> dict:
 def compare(root: Path, meta: dict, lever_arm_m: float | None = None) -> dict:
     """Build the LiDAR and the stereo map of the `map` run, calibrate each on `train`,
     localize `query` against each; print and return the figures."""
+    from bench.lab.evaluation import MemoryMap, evaluate_run, metrics_row
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
-    from monoloc.evaluation import MemoryMap, evaluate_run, metrics_row
     from monoloc.server.calibrate import CalibrationConfig, calibrate
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.jobs.calibration import training_frames
@@ -178,7 +178,7 @@ def print_table(out: dict) -> None:
 
 
 def main() -> None:
-    from accuracy import HELD_OUT_SEED, limit_threads
+    from bench.accuracy import HELD_OUT_SEED, limit_threads
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--size", default="medium")

@@ -1,7 +1,7 @@
 """Where a vehicle's hypotheses come from: one ``Localizer`` protocol, several places.
 
 ``localize(image, prior, k)`` answers one frame with the server's pose hypotheses
-(METHOD.md section 6) as a :class:`LocalizeAnswer`. Remote implementations live here:
+(docs/method.md section 6) as a :class:`LocalizeAnswer`. Remote implementations live here:
 :class:`HttpLocalizer` (one ``POST /v1/maps/{id}/localize`` per frame) and
 :class:`StreamLocalizer` (one frame at a time over the map's WebSocket stream). The
 in-process one, the server's pipeline called directly, is

@@ -1,4 +1,4 @@
-"""Kinematic motion model of METHOD.md section 8, per-particle noise.
+"""Kinematic motion model of docs/method.md section 8, per-particle noise.
 
 The paper's Euler step moves a particle along the heading it has at the start of the
 step. In a steady turn that misses the arc by about V dt * gamma dt / 2 sideways per
@@ -25,13 +25,13 @@ class MotionConfig:
 
     speed_noise_mps: (v_lo, v_hi) of w_v; yaw_rate_noise_radps: (g_lo, g_hi) of w_gamma.
     integration: "exact" (the arc driven at constant speed and yaw rate, monoloc's
-    default) or "euler" (METHOD.md section 8 as printed).
+    default) or "euler" (docs/method.md section 8 as printed).
     """
 
     speed_noise_mps: tuple[float, float] = (-0.5, 0.5)
     yaw_rate_noise_radps: tuple[float, float] = (-0.1, 0.1)
     # How far ahead of the point whose speed is measured (e.g. the rear axle) the camera
-    # sits, along the heading. 0 is METHOD.md's model; with a lever arm l the camera also
+    # sits, along the heading. 0 is docs/method.md's model; with a lever arm l the camera also
     # moves sideways at gamma * l, which matters in turns (a 90-degree turn with l = 1 m
     # displaces the camera 1.4 m more than the plain model says).
     lever_arm_m: float = 0.0

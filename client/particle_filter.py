@@ -1,4 +1,4 @@
-"""Particle filter on the planar pose (X, Y, psi): METHOD.md sections 7 and 8.
+"""Particle filter on the planar pose (X, Y, psi): docs/method.md sections 7 and 8.
 
 Predict with measured speed and yaw rate, update with the Gaussian-mixture measurement
 model, systematic resampling when the effective sample size falls. Recovery: a frame
@@ -44,7 +44,7 @@ from monoloc.core.measurement import Hypotheses, MeasurementModel, log_likelihoo
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """Settings of the particle filter (METHOD.md sections 7-8)."""
+    """Settings of the particle filter (docs/method.md sections 7-8)."""
 
     n_particles: int = 1000
     motion: MotionConfig = field(default_factory=MotionConfig)
@@ -117,7 +117,7 @@ class FilterConfig:
     roughening_std: tuple[float, float, float] = (0.02, 0.02, math.radians(0.1))
     # The reported pose: a Gaussian filter riding on the main mode (client/refine.py)
     # averages the hypotheses over time with the measured motion and the speed signal's
-    # scale; None reports the particles' mode itself (METHOD.md's filter).
+    # scale; None reports the particles' mode itself (docs/method.md's filter).
     refine: RefineConfig | None = field(default_factory=RefineConfig)
 
 

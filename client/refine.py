@@ -1,6 +1,6 @@
 """A Gaussian filter riding on the particle filter's main mode: the reported pose.
 
-The particle filter (METHOD.md sections 7-8) finds the right place and keeps it: a
+The particle filter (docs/method.md sections 7-8) finds the right place and keeps it: a
 mixture over the frame's hypotheses, heavy motion noise and roughening make it robust to
 wrong hypotheses and to a start tens of metres off. The same choices make it imprecise
 at the centimetre scale: each frame's likelihood is a sum of sharp components, one per

@@ -1,4 +1,4 @@
-"""Maximum-likelihood calibration of the measurement model (METHOD.md section 7).
+"""Maximum-likelihood calibration of the measurement model (docs/method.md section 7).
 
 From a training run that is not the test run: build a temporary map from every other
 frame (``map_every``), query it with the remaining frames, and for each query take its k

@@ -1,4 +1,4 @@
-"""Turn a reference image with a pose and a 3D source into a map entry (METHOD.md s. 5).
+"""Turn a reference image with a pose and a 3D source into a map entry (docs/method.md s. 5).
 
 Pure: arrays in, a ``NewEntry`` out. The 3D source is one of a LiDAR scan with its
 extrinsics, a registered depth image with its scale, the right image of a rectified

@@ -1,4 +1,4 @@
-"""Localization of one query frame (METHOD.md section 6): pure, timed stage by stage.
+"""Localization of one query frame (docs/method.md section 6): pure, timed stage by stage.
 
 image -> blur + ORB -> VLAD -> k-NN retrieval -> per entry: Hamming matching + PnP RANSAC
 -> hypotheses T_world_from_query = T_world_from_ref @ T_ref_from_query.
@@ -305,7 +305,7 @@ class ReferenceEntry:
 
 @dataclass(frozen=True)
 class PoseHypothesis:
-    """One accepted PnP solution against one retrieved entry (METHOD.md s. 6 step 5), or
+    """One accepted PnP solution against one retrieved entry (docs/method.md s. 6 step 5), or
     the joint pose of several (``joint``; then ``entry_id``, ``entry_pose_world`` and
     ``e_vlad`` are its anchor's, ``entry_ids`` every member, ``n_matches`` / ``n_inliers``
     count the union). method: "ransac", "guided", "joint" or "pooled" (one RANSAC on

@@ -43,7 +43,7 @@ def localize(
     from monoloc.server.ingest.manage import find_map, parse_prior
     from monoloc.server.ingest.report import print_localization
     from monoloc.server.localize import LocalizeConfig
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
     from monoloc.server.threads import limit_threads
     from monoloc.server.vision.warmup import warm_up as warm_up_vision
 

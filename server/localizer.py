@@ -1,7 +1,7 @@
 """The in-process Localizer: the server's pipeline (``localize_frame``) called directly
 on a retrieval index and an entry lookup, no HTTP, no database. It answers like the
 remote localizers of ``monoloc.client.localizer``, so the vehicle's loop
-(``monoloc.client.tracking``) runs unchanged against it (monoloc.evaluation does)."""
+(``monoloc.client.tracking``) runs unchanged against it (bench.lab.evaluation does)."""
 
 from __future__ import annotations
 

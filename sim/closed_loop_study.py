@@ -1,4 +1,4 @@
-"""The closed-loop study, end to end through a map server (METHOD.md section 10: the
+"""The closed-loop study, end to end through a map server (docs/method.md section 10: the
 paper's indoor closed-loop result).
 
 1. Mapping laps on the centre line (open loop on the ground truth, camera + depth) are
@@ -75,7 +75,7 @@ class StudyConfig:
 def serving(out_dir: Path, server: str | None = None, key: str | None = None) -> Iterator[tuple]:
     """(base URL, admin key) of ``server``, or of a `monoloc serve` started here with its
     own data folder under ``out_dir`` (stopped on exit)."""
-    from monoloc import demo_io
+    from monoloc import local_server
 
     if server:
         if not key:
@@ -83,16 +83,16 @@ def serving(out_dir: Path, server: str | None = None, key: str | None = None) ->
         yield server.rstrip("/"), key
         return
     out_dir.mkdir(parents=True, exist_ok=True)
-    port, admin = demo_io.free_port(), demo_io.new_admin_key()
+    port, admin = local_server.free_port(), local_server.new_admin_key()
     # A fresh data folder per start: a folder kept from an earlier run holds that run's
     # bootstrap key, and this start's key would be refused.
     stamp = time.strftime("%Y%m%d-%H%M%S")
     data_dir = out_dir / f"server-{stamp}"
-    proc = demo_io.start_server(data_dir, port, admin, out_dir / f"server-{stamp}.log")
+    proc = local_server.start_server(data_dir, port, admin, out_dir / f"server-{stamp}.log")
     try:
         yield f"http://127.0.0.1:{port}", admin
     finally:
-        demo_io.stop_server(proc)
+        local_server.stop_server(proc)
 
 
 def filter_config_for(world) -> FilterConfig:
@@ -125,15 +125,15 @@ def record_lap(world, out_dir: Path, name: str, config: LoopConfig) -> tuple[Pat
 
 def upload(client: MonolocClient, map_id: int, world, run_dir: Path, path: str, **fields) -> dict:
     """Upload a recorded run to ``path`` (runs or calibration jobs); wait for its job."""
-    from monoloc import demo_io
+    from monoloc import local_server
 
     archive, described = run_archive(world, run_dir, run_dir.with_suffix(".tar"))
     try:
-        answer = demo_io.upload_run(client, map_id, archive, path, **described, **fields)
+        answer = local_server.upload_run(client, map_id, archive, path, **described, **fields)
     finally:
         archive.unlink(missing_ok=True)
     job_id = answer["job"]["id"] if "job" in answer else answer["id"]
-    return demo_io.wait_job(client, job_id, lambda _p: None)
+    return local_server.wait_job(client, job_id, lambda _p: None)
 
 
 @dataclass

@@ -8,7 +8,7 @@ runs the storage and ingestion suites that way.
 
 ``postgres_url``: always PostgreSQL (the replica, change-log and job-lease suites): a
 fresh database on ``MONOLOC_TEST_POSTGRES_URL``'s server if set, else on a throwaway
-server this session starts itself (``monoloc/pg_cluster.py``; ``make test`` installs the
+server this session starts itself (``tests/pg_cluster.py``; ``make test`` installs the
 Debian ``postgresql`` package when none is installed). Skipped only when no server can
 be found at all.
 
@@ -25,8 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
-from monoloc.pg_cluster import fresh_database, start_throwaway_postgres
+from pg_cluster import fresh_database, start_throwaway_postgres
 
 POSTGRES_ADMIN_URL = os.environ.get("MONOLOC_TEST_POSTGRES_URL", "")
 

@@ -1,4 +1,4 @@
-"""Maximum-likelihood fit of the measurement model (METHOD.md section 7, calibration).
+"""Maximum-likelihood fit of the measurement model (docs/method.md section 7, calibration).
 
 The server gathers the error samples from a training run; the fit itself is pure math
 and lives here so the vehicle and the server share one definition.

@@ -1,6 +1,6 @@
 """Planar and rigid-body geometry shared by the vehicle and the server (pure numpy).
 
-Conventions (METHOD.md section 9): camera frame is OpenCV (x right, y down, z forward);
+Conventions (docs/method.md section 9): camera frame is OpenCV (x right, y down, z forward);
 world frame is right-handed with z up; a planar pose (X, Y, psi) is the camera position
 on the ground plane and the heading of its optical axis, counter-clockwise from +X, in
 (-pi, pi]. Transforms are named by what they map: ``T_world_from_cam`` takes camera

@@ -1,4 +1,4 @@
-"""Gaussian-mixture measurement model of METHOD.md section 7, evaluated in log space.
+"""Gaussian-mixture measurement model of docs/method.md section 7, evaluated in log space.
 
 For a particle x = (X, Y, psi) and hypotheses i = 1..H from one frame::
 
@@ -30,7 +30,7 @@ from monoloc.core.errors import InvalidInputError
 
 @dataclass(frozen=True)
 class Hypotheses:
-    """The pose hypotheses of one query frame (METHOD.md section 6 step 5).
+    """The pose hypotheses of one query frame (docs/method.md section 6 step 5).
 
     pose_world: (H, 3) planar (X, Y, psi) of T_world_from_query per hypothesis.
     entry_pose_world: (H, 3) planar pose of the retrieved map entry behind each.

@@ -8,7 +8,7 @@ mat-vecs many times slower); every map's index loaded (or rebuilt) by the regist
 its replica sync started; the job runner (leases: it takes over jobs whose holder died).
 Shutdown: sync stopped, running jobs handed back to the queue, indexes persisted, the
 engine disposed. Any number of processes may serve one database: each is a replica
-(``server/runtime.py``), admission control bounds what each one accepts
+(``server/map_registry.py``), admission control bounds what each one accepts
 (``server/api/admission.py``).
 """
 
@@ -112,7 +112,7 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
     from monoloc.server.index.warmup import warm_up as warm_up_index
     from monoloc.server.jobs.handlers import HANDLERS
     from monoloc.server.jobs.runner import JobRunner
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
     from monoloc.server.storage.db import make_session_factory
     from monoloc.server.vision.warmup import warm_up as warm_up_vision
 

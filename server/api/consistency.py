@@ -13,7 +13,7 @@ import anyio
 import anyio.to_thread
 
 from monoloc.server.api.admission import OverloadedError
-from monoloc.server.runtime import MapRegistry
+from monoloc.server.map_registry import MapRegistry
 
 MIN_VERSION_HEADER = "X-Min-Map-Version"
 MAP_VERSION_HEADER = "X-Map-Version"

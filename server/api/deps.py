@@ -32,7 +32,7 @@ from monoloc.server.api.errors import ForbiddenError, NotReadyError, Unauthorize
 from monoloc.server.api.key_cache import KeyCache
 from monoloc.server.api.metrics import Metrics
 from monoloc.server.jobs.runner import JobRunner
-from monoloc.server.runtime import MapRegistry
+from monoloc.server.map_registry import MapRegistry
 from monoloc.server.settings import Settings
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.keys import verify_api_key

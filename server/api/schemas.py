@@ -1,7 +1,7 @@
 """Request and response bodies of the API (pydantic v2), each with an OpenAPI example.
 
 Naming follows the FastAPI template: ``XCreate`` / ``XUpdate`` in, ``XPublic`` out.
-Poses are in the z-up world (METHOD.md section 9): metres and radians; a 4x4
+Poses are in the z-up world (docs/method.md section 9): metres and radians; a 4x4
 ``T_world_from_cam`` travels as 16 numbers, row-major. API keys and health: see
 server/api/schemas_admin.py; localization: server/api/schemas_localize.py.
 """
@@ -440,7 +440,7 @@ class VocabularyJobCreate(BaseModel):
 
 
 class CalibrationUpdate(BaseModel):
-    """Measurement-model parameters (METHOD.md section 7) and their provenance."""
+    """Measurement-model parameters (docs/method.md section 7) and their provenance."""
 
     model_config = ConfigDict(
         strict=True,

@@ -228,7 +228,7 @@ class GeoPosePublic(BaseModel):
 
 
 class HypothesisPublic(BaseModel):
-    """One accepted PnP solution against one retrieved entry (METHOD.md s. 6 step 5)."""
+    """One accepted PnP solution against one retrieved entry (docs/method.md s. 6 step 5)."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [_HYPOTHESIS]})
     entry_id: int

@@ -1,4 +1,4 @@
-"""Per-map retrieval index (METHOD.md section 4, monoloc's binary design).
+"""Per-map retrieval index (docs/method.md section 4, monoloc's binary design).
 
 A FAISS binary index over the entries' VLAD sign codes gives a Hamming shortlist; the
 shortlist is re-ranked by the exact L2 distance of the float VLADs. Large maps (from

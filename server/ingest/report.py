@@ -1,6 +1,6 @@
 """Human-facing output of the map commands: progress bar, summary tables, JSON.
 
-Degrees appear here only (METHOD.md section 9: radians everywhere else).
+Degrees appear here only (docs/method.md section 9: radians everywhere else).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The ``calibrate`` job kind: fit a map's measurement model on a training run (METHOD.md
+"""The ``calibrate`` job kind: fit a map's measurement model on a training run (docs/method.md
 section 7) and store it, with its provenance, on the map. At the edges of
 ``monoloc.server.calibrate``: read the run's frames, fit, store.
 

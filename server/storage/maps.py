@@ -30,7 +30,7 @@ from monoloc.server.storage.records import MapChangeRecord, MapRecord, Vocabular
 from monoloc.server.vision.sizes import N_WORDS
 
 MAP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
-# Calibration of the measurement model (METHOD.md section 7): key -> shape.
+# Calibration of the measurement model (docs/method.md section 7): key -> shape.
 CALIBRATION_SHAPES = {"mu1": (3,), "Sigma1": (3, 3), "mu2": (4,), "Sigma2": (4, 4)}
 
 

@@ -1,4 +1,4 @@
-"""Compact binary codes of VLADs for the FAISS binary retrieval index (METHOD.md section 4).
+"""Compact binary codes of VLADs for the FAISS binary retrieval index (docs/method.md section 4).
 
 The code of a VLAD v (2048 floats) is its sign pattern: bit i = 1 iff v[i] > 0 (zeros,
 e.g. the rows of empty words, give 0). Bits are packed with ``np.packbits`` in its
@@ -27,7 +27,7 @@ from monoloc.core.errors import InvalidInputError
 def vlad_binary_code(vlad: np.ndarray) -> np.ndarray:
     """Sign-bit code of one VLAD (D,) or a batch (N, D), D a multiple of 8 (2048 here).
 
-    Returns (D/8,) or (N, D/8) uint8 (256 bytes for METHOD.md's 2048-d VLAD).
+    Returns (D/8,) or (N, D/8) uint8 (256 bytes for docs/method.md's 2048-d VLAD).
     """
     values = np.asarray(vlad)
     if values.ndim not in (1, 2) or values.shape[-1] % 8 != 0 or values.shape[-1] == 0:

@@ -1,4 +1,4 @@
-"""3D points for keypoints, from a LiDAR scan or a registered depth image (METHOD.md s. 5).
+"""3D points for keypoints, from a LiDAR scan or a registered depth image (docs/method.md s. 5).
 
 The rule (monoloc's, documented here and in docs/decisions.md):
 

@@ -1,10 +1,10 @@
-"""Blur + ORB feature extraction (METHOD.md section 2).
+"""Blur + ORB feature extraction (docs/method.md section 2).
 
 Query frames and mapping images go through exactly the same function, so a map entry and
 a query are always described the same way.
 
 ORB keeps the ``max_features`` corners with the highest Harris response over the whole
-image (METHOD.md's rule, ``OrbConfig(grid_cells=None)``). monoloc's default spreads them
+image (docs/method.md's rule, ``OrbConfig(grid_cells=None)``). monoloc's default spreads them
 over the image instead, as ORB-SLAM's extractor does: ORB is asked for
 ``candidates_factor`` times as many corners, and the kept ones are taken cell by cell over
 a ``grid_cells`` grid (each cell's strongest first, then each cell's second, ...), so a
@@ -35,7 +35,7 @@ from monoloc.server.vision.sizes import DESCRIPTOR_BYTES
 
 @dataclass(frozen=True)
 class OrbConfig:
-    """Pre-filter and OpenCV ORB settings. Defaults are METHOD.md's (5x5 blur, 1000 features).
+    """Pre-filter and OpenCV ORB settings. Defaults are docs/method.md's (5x5 blur, 1000 features).
 
     ``blur_ksize`` is the side of the Gaussian kernel (odd; sigma derived by OpenCV from the
     size, 1.1 px for 5); 1 disables the blur. The ORB parameters map one to one onto

@@ -1,4 +1,4 @@
-"""Global pose hypotheses from a reference's pose and a relative pose (METHOD.md 6.5)."""
+"""Global pose hypotheses from a reference's pose and a relative pose (docs/method.md 6.5)."""
 
 from __future__ import annotations
 
@@ -19,5 +19,5 @@ def compose_hypothesis(T_world_from_ref: np.ndarray, T_ref_from_query: np.ndarra
 
 
 def planar_hypothesis(T_world_from_ref: np.ndarray, T_ref_from_query: np.ndarray) -> np.ndarray:
-    """Planar pose z = (X, Y, psi) of the query camera, (3,) float64 (METHOD.md 6.5, 9)."""
+    """Planar pose z = (X, Y, psi) of the query camera, (3,) float64 (docs/method.md 6.5, 9)."""
     return planar_from_T_world_from_cam(compose_hypothesis(T_world_from_ref, T_ref_from_query))

@@ -1,7 +1,7 @@
 """One pose from every consistent retrieved entry: the joint (multi-entry) PnP pose.
 
 The k retrieved entries are neighbours seeing one place. Each gives a hypothesis from its
-own correspondences (METHOD.md 6.5); together their inliers constrain the query far
+own correspondences (docs/method.md 6.5); together their inliers constrain the query far
 better than any one of them (hloc's multi-image PnP over covisible references does the
 same). Here:
 

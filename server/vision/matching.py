@@ -1,4 +1,4 @@
-"""Hamming matching of ORB descriptors between a query and reference images (METHOD.md 6.3).
+"""Hamming matching of ORB descriptors between a query and reference images (docs/method.md 6.3).
 
 The match rule (both implementations below apply exactly this rule, so their outputs are
 identical, not just similar):

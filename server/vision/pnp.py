@@ -1,4 +1,4 @@
-"""Relative pose of a query camera from 2D-3D matches with one reference (METHOD.md 6.3-6.4).
+"""Relative pose of a query camera from 2D-3D matches with one reference (docs/method.md 6.3-6.4).
 
 PnP solves for T_query_from_ref (camera = query, object points in the reference camera
 frame); the result is inverted to T_ref_from_query. A reference that gives no credible
@@ -60,8 +60,8 @@ class PnpConfig:
     keypoints of a warped real photograph lie a median 0.75 px from their exact
     projection and 97 % within 3 px); iterations / confidence: RANSAC
     budget (stops early once ``confidence`` is reached); min_inliers: fewer inliers means
-    reject (METHOD.md 6.4, monoloc's minimum); max_rotation_rad: reject relative
-    rotations above this, None = the camera's horizontal field of view (METHOD.md 6.4);
+    reject (docs/method.md 6.4, monoloc's minimum); max_rotation_rad: reject relative
+    rotations above this, None = the camera's horizontal field of view (docs/method.md 6.4);
     refine: Levenberg-Marquardt on the inliers after RANSAC, at most
     ``refine_iterations`` accepted steps (started from the SQPnP refit, two steps matched
     twenty to 0.5 mm on the bench scene); minimal_solver: RANSAC's hypothesis solver, one of

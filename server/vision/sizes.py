@@ -1,4 +1,4 @@
-"""The sizes of the method's data, defined once (METHOD.md sections 2-4).
+"""The sizes of the method's data, defined once (docs/method.md sections 2-4).
 
 An ORB descriptor is 32 bytes; the vocabulary has 64 words; a VLAD is 64 x 32 floats;
 its binary code is one sign bit per float.

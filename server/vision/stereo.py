@@ -1,4 +1,4 @@
-"""Keypoint depth from a rectified stereo pair (a fleet without LiDAR; METHOD.md s. 5).
+"""Keypoint depth from a rectified stereo pair (a fleet without LiDAR; docs/method.md s. 5).
 
 The rule (monoloc's, documented here and in docs/decisions.md):
 

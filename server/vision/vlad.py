@@ -1,4 +1,4 @@
-"""VLAD image descriptors (METHOD.md section 4): a float32 GEMM, then compiled passes.
+"""VLAD image descriptors (docs/method.md section 4): a float32 GEMM, then compiled passes.
 
 For an image with ORB descriptors x_n (bytes as a 32-d vector) and centres c_k:
 1. a_n = argmin_k ||x_n - c_k||_2            (nearest centre, L2 in byte space)
@@ -105,14 +105,14 @@ def compute_vlad_batch(
 def compute_vlad(descriptors: np.ndarray, vocabulary: Vocabulary | np.ndarray) -> np.ndarray:
     """VLAD of one image: (N, 32) uint8 ORB descriptors -> (K*32,) float32, unit norm.
 
-    K = 64 for METHOD.md's vocabulary (2048 values); N = 0 gives the all-zero vector.
+    K = 64 for docs/method.md's vocabulary (2048 values); N = 0 gives the all-zero vector.
     Row-major: entries [32k, 32k+32) belong to word k.
     """
     return compute_vlad_batch([descriptors], vocabulary)[0]
 
 
 def vlad_distance(vlad_a: np.ndarray, vlad_b: np.ndarray) -> float:
-    """L2 (Frobenius) distance of two VLADs: METHOD.md's e_vlad."""
+    """L2 (Frobenius) distance of two VLADs: docs/method.md's e_vlad."""
     a = np.asarray(vlad_a, dtype=np.float64)
     b = np.asarray(vlad_b, dtype=np.float64)
     if a.shape != b.shape or a.ndim != 1:

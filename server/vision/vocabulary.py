@@ -1,4 +1,4 @@
-"""The visual vocabulary: k-means centres of ORB descriptors (METHOD.md section 3).
+"""The visual vocabulary: k-means centres of ORB descriptors (docs/method.md section 3).
 
 A vocabulary is versioned data. Its version is a hash of the centres' float32 bytes, so
 two vocabularies with the same version give the same VLADs, and a map entry records the
@@ -55,7 +55,7 @@ def vocabulary_hash(centres: np.ndarray) -> str:
 class Vocabulary:
     """K visual words. centres: (K, 32) float32 in descriptor byte space (0..255 per
     entry), read-only; version: :func:`vocabulary_hash` of the centres; description: how
-    it was made. METHOD.md uses K = 64; any K >= 1 works with VLAD (output K * 32)."""
+    it was made. docs/method.md uses K = 64; any K >= 1 works with VLAD (output K * 32)."""
 
     centres: np.ndarray
     version: str

@@ -322,7 +322,7 @@ def test_in_a_steady_turn_the_filter_adds_no_sideways_bias_to_its_hypotheses(yaw
     """Issue 13 item 2: a long turn at 9 m/s (0.47 rad/s: a car-like corner held for
     1.5 turns; 1.5 rad/s: a tight one) with unbiased hypotheses (3 cm of noise) and exact
     signals: over filter seeds 0-2 the mean cross-track error of the reported pose, and of
-    the particles' mode (``refine=None``, METHOD.md's estimate), is within 3 mm of the
+    the particles' mode (``refine=None``, docs/method.md's estimate), is within 3 mm of the
     hypotheses' own. The paper's Euler step (the heading at the start of the step) misses
     the arc to the outside by V dt * gamma dt / 2 every step (2 cm at 0.47 rad/s); with it
     the particles' mode sits more than a centimetre outside, so the check can fail."""

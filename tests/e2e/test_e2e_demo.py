@@ -21,7 +21,7 @@ def demo_summary(tmp_path_factory):
 def _leave_a_previous_runs_server(data_dir):
     """What an earlier `make demo` leaves in out/demo/server: a database whose admin key
     is that run's (each run makes a new one). A second run must still work."""
-    from monoloc.demo_io import new_admin_key
+    from monoloc.local_server import new_admin_key
     from monoloc.server.api.bootstrap import bootstrap_admin_key
     from monoloc.server.settings import Settings
     from monoloc.server.storage.db import create_engine_for, make_session_factory

@@ -1,4 +1,4 @@
-"""The benchmark's engine (monoloc.evaluation) on the tiny sim city: the map held in
+"""The benchmark's engine (bench.lab.evaluation) on the tiny sim city: the map held in
 memory, the frames answered by the in-process localizer and the vehicle's own loop."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from monoloc.client.particle_filter import FilterConfig
 
 @pytest.fixture(scope="module")
 def memory_map(sim_city):
-    from monoloc.evaluation import MemoryMap
+    from bench.lab.evaluation import MemoryMap
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
@@ -22,9 +22,9 @@ def memory_map(sim_city):
 
 
 def test_every_variant_localizes_the_query_run(memory_map, sim_city):
+    from bench.lab.evaluation import EvalConfig, evaluate_run
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.core.measurement import MeasurementModel
-    from monoloc.evaluation import EvalConfig, evaluate_run
     from monoloc.server.ingest.kitti import read_kitti_sequence
 
     query = read_kitti_sequence(sim_city, QUERY_SEQ)
@@ -82,8 +82,8 @@ def test_the_in_process_localizer_takes_png_bytes_or_arrays(memory_map, sim_city
 def test_localize_globally_gives_each_frame_its_truth_result_and_time(memory_map, sim_city):
     from dataclasses import replace as dc_replace
 
+    from bench.lab.evaluation import localize_globally
     from monoloc.core.geometry import planar_from_T_world_from_cam
-    from monoloc.evaluation import localize_globally
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig, localize_frame
 

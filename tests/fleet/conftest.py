@@ -44,7 +44,8 @@ def street(tmp_path_factory) -> Path:
 def fleet(postgres_admin_url, street, tmp_path_factory) -> Iterator[Fleet]:
     """Two replicas (own data directories, a shared uploads directory) on one fresh
     PostgreSQL database, with keys and map 'street' ingested through replica a."""
-    from monoloc.pg_cluster import fresh_database
+    from pg_cluster import fresh_database
+
     from monoloc.server.storage.migrate import upgrade_database
 
     root = tmp_path_factory.mktemp("fleet")

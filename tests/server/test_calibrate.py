@@ -1,4 +1,4 @@
-"""Calibration of the measurement model (METHOD.md section 7) on tiny sim `train` runs
+"""Calibration of the measurement model (docs/method.md section 7) on tiny sim `train` runs
 at full KITTI resolution (30 frames: a temporary map of 15 entries, 15 queries).
 
 - With the sim's realistic recording errors: finite, positive-definite covariances and

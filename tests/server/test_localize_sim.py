@@ -28,7 +28,7 @@ class Outcome:
 
 @dataclass(frozen=True)
 class City:
-    registry: object  # monoloc.server.runtime.MapRegistry, map id 1
+    registry: object  # monoloc.server.map_registry.MapRegistry, map id 1
     query_run: object
     entry_xy: dict
 
@@ -37,7 +37,7 @@ class City:
 def city(tmp_path_factory) -> City:
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.ingest.manage import create_map, ingest_source
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
     from monoloc.server.settings import Settings
     from monoloc.server.storage.db import create_engine_for, make_session_factory
     from monoloc.server.storage.migrate import upgrade_database

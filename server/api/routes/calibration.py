@@ -1,4 +1,4 @@
-"""Measurement-model calibration per map (METHOD.md section 7): get (localize: the
+"""Measurement-model calibration per map (docs/method.md section 7): get (localize: the
 vehicle downloads it), put and delete (map:write), and calibration jobs (map:write): a
 training run uploaded like a mapping run (``monoloc.server.api.uploads``: one tar/zip archive or
 a multipart file set, KITTI or TUM) is fitted by a ``calibrate`` job, which stores the
@@ -263,7 +263,7 @@ async def calibration_job(
     ] = None,
 ) -> CalibrationJobAccepted:
     """Maximum-likelihood mu1, Sigma1, mu2, Sigma2 from a training run that is not the
-    test run (METHOD.md s. 7): a temporary map of every other frame, queried by the
+    test run (docs/method.md s. 7): a temporary map of every other frame, queried by the
     others against their k closest entries by pose, with the run's own camera and the
     map's vocabulary. Follow the job at /v1/jobs/{id}; when it is done,
     GET /v1/maps/{map_id}/calibration returns the parameters with ``calibrated: true``

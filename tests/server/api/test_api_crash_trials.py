@@ -1,4 +1,4 @@
-"""Crash trials against a real server process (``monoloc.crash_trials``): SIGKILL during
+"""Crash trials against a real server process (``bench.lab.crash_trials``): SIGKILL during
 ingestion, during entry adds and deletes, and around the index file write; after the
 restart nothing acknowledged is lost, nothing is duplicated, and the served index equals
 the database. One trial per kind here; ``bench/crash.py`` runs 50."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from api_helpers import camera_of
 
-from monoloc.crash_trials import KINDS, TrialDataset, run_trial
+from bench.lab.crash_trials import KINDS, TrialDataset, run_trial
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -94,7 +94,7 @@ def test_orb_mode_keypoints_are_orb_detections_model_mode_the_observations(
 
 def test_imported_map_localizes_a_query_frame(factory, settings, sift_model, query_run):
     from monoloc.server.localize import LocalizeConfig
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
 
     model_dir, images_dir, _ = sift_model
     model = read_colmap_model(model_dir, images_dir)

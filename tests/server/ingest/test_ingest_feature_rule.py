@@ -89,7 +89,7 @@ def test_queries_are_described_by_their_maps_rule(factory, make_map, settings):
     from monoloc.core.camera import KITTI_CAM0
     from monoloc.server.entry_builder import DepthSource
     from monoloc.server.localize import LocalizeConfig
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
 
     camera = KITTI_CAM0
     image = _shaded_photograph(camera.width_px, camera.height_px)

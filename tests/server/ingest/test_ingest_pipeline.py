@@ -145,7 +145,7 @@ def test_bad_metadata_fails_before_writing_and_keeps_earlier_data(
 
 
 def test_registry_sees_new_entries_at_once(kitti_root, factory, make_map, make_run, settings):
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
 
     seq = read_kitti_sequence(kitti_root.root)
     map_id = make_map()

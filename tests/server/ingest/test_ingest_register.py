@@ -147,7 +147,7 @@ def test_map_ingest_register_prints_the_registration(kitti_root, kitti_copy, tmp
 
 
 def test_the_measurement_does_not_depend_on_the_number_of_threads(kitti_root, kitti_copy):
-    from monoloc.evaluation import MemoryMap
+    from bench.lab.evaluation import MemoryMap
     from monoloc.server.ingest.register import RegistrationTarget, measure_offsets
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
@@ -174,8 +174,8 @@ def test_the_measurement_does_not_depend_on_the_number_of_threads(kitti_root, ki
 
 
 def test_the_in_memory_map_registers_a_run_as_ingestion_does(kitti_root, kitti_copy):
-    """monoloc.evaluation (the benchmark's engine) registers through the same code."""
-    from monoloc.evaluation import MemoryMap
+    """bench.lab.evaluation (the benchmark's engine) registers through the same code."""
+    from bench.lab.evaluation import MemoryMap
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     _second_recording(kitti_copy, np.random.default_rng(4))
@@ -193,8 +193,8 @@ def test_a_tum_run_is_registered_too(kitti_root, tum_run):
     """The same wall as a TUM RGB-D run with its ground truth off by a known shift is
     moved back onto the KITTI run's map (another reader's frames, copied with new poses,
     their depth images untouched)."""
+    from bench.lab.evaluation import MemoryMap
     from monoloc.core.registration import RunCorrection
-    from monoloc.evaluation import MemoryMap
     from monoloc.server.ingest.register import RegistrationTarget, correct_source, register_source
     from monoloc.server.ingest.tum import read_tum_run
     from monoloc.server.vision.vocabulary import load_default_vocabulary

@@ -1,4 +1,4 @@
-"""The live index of an ingested map (monoloc.server.runtime.MapRegistry): restart, corrupt and
+"""The live index of an ingested map (monoloc.server.map_registry.MapRegistry): restart, corrupt and
 stale index files, and edits while another thread searches."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import ingest_run
-from monoloc.server.runtime import MapRegistry
+from monoloc.server.map_registry import MapRegistry
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.features import extract_features
 from monoloc.server.vision.vlad import compute_vlad
@@ -56,7 +56,7 @@ def test_index_survives_a_restart(ingested, factory, settings, caplog):
     registry, map_id, seq = ingested
     before = _query(registry, map_id, seq)
     caplog.clear()
-    caplog.set_level(logging.INFO, logger="monoloc.server.runtime")
+    caplog.set_level(logging.INFO, logger="monoloc.server.map_registry")
     restarted = MapRegistry(factory, settings.index_dir)
     after = _query(restarted, map_id, seq)
     assert "index loaded from" in caplog.text and "rebuilding" not in caplog.text
@@ -72,7 +72,7 @@ def test_corrupt_index_file_is_rebuilt(ingested, factory, settings, caplog):
     data[len(data) // 2 : len(data) // 2 + 64] = b"\x00" * 64
     path.write_bytes(bytes(data))
     caplog.clear()
-    caplog.set_level(logging.INFO, logger="monoloc.server.runtime")
+    caplog.set_level(logging.INFO, logger="monoloc.server.map_registry")
     restarted = MapRegistry(factory, settings.index_dir)
     after = _query(restarted, map_id, seq)
     assert "rebuilding from the database" in caplog.text
@@ -92,7 +92,7 @@ def test_stale_index_file_is_rebuilt(ingested, factory, settings, caplog):
         first = entries_repo.list_entries(session, map_id, limit=1)[0]
         entries_repo.delete_entry(session, first.id)
     caplog.clear()
-    caplog.set_level(logging.INFO, logger="monoloc.server.runtime")
+    caplog.set_level(logging.INFO, logger="monoloc.server.map_registry")
     restarted = MapRegistry(factory, settings.index_dir)
     assert len(restarted.get(map_id).index) == 7
     assert "is stale: map version 8, database 9" in caplog.text

@@ -49,7 +49,7 @@ def test_single_image_with_lidar_then_depth(kitti_root, factory, make_map):
 
 
 def test_train_and_change_vocabulary(kitti_root, factory, make_map, make_run, settings):
-    from monoloc.server.runtime import MapRegistry
+    from monoloc.server.map_registry import MapRegistry
 
     seq = read_kitti_sequence(kitti_root.root)
     map_id = make_map()

@@ -23,7 +23,7 @@ def _descriptors(name):
 
 
 def _naive_vlad(descriptors, centres):
-    """METHOD.md section 4 written as plainly as possible (loops, float64)."""
+    """docs/method.md section 4 written as plainly as possible (loops, float64)."""
     x = descriptors.astype(np.float64)
     c = centres.astype(np.float64)
     sums = np.zeros_like(c)

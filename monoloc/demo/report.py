@@ -74,7 +74,7 @@ def _map_positions(client, map_id: int) -> tuple[np.ndarray, list[dict]]:
 def make_plots(out: Path, client, map_id: int, dataset, results: dict[str, DriveResult]):
     import cv2
 
-    from monoloc.plots import plot_errors, plot_retrieval, plot_trajectories
+    from monoloc.demo.plots import plot_errors, plot_retrieval, plot_trajectories
 
     map_xy, entries = _map_positions(client, map_id)
     paths = [out / "trajectories.png", out / "errors.png", out / "retrieval.png"]

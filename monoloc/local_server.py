@@ -1,4 +1,6 @@
-"""The demo's edges: a server process, run archives, job polling, operator uploads."""
+"""A map server on loopback and what feeds it: a `monoloc serve` child process, run
+archives, job polling, operator uploads (the demo, the sim's closed-loop study and the
+lab's crash trials drive a server through these)."""
 
 from __future__ import annotations
 
@@ -18,8 +20,8 @@ from monoloc.client.api import MonolocClient, ServerError, wait_until_ready
 from monoloc.core.errors import MonolocError
 
 
-class DemoError(MonolocError):
-    """A demo step failed (server did not start, a job failed, ...)."""
+class LocalServerError(MonolocError):
+    """A local server step failed (server did not start, a job failed, ...)."""
 
 
 def free_port() -> int:
@@ -52,7 +54,7 @@ def start_server(data_dir: Path, port: int, admin_key: str, log_path: Path) -> s
         wait_until_ready(f"http://127.0.0.1:{port}", 90.0, proc, poll_s=0.3)
     except ServerError as exc:
         proc.terminate()
-        raise DemoError(f"{exc}; see {log_path}") from exc
+        raise LocalServerError(f"{exc}; see {log_path}") from exc
     return proc
 
 
@@ -75,14 +77,16 @@ def kitti_archive(dataset_root: Path, sequence: str, out: Path) -> Path:
 
 
 def wait_job(client: MonolocClient, job_id: int, progress: Callable[[float], None]) -> dict:
-    """Poll a job until it ends; returns its final JSON or raises DemoError."""
+    """Poll a job until it ends; returns its final JSON or raises LocalServerError."""
     while True:
         job = client.request("GET", f"/v1/jobs/{job_id}").json()
         progress(float(job["progress"]))
         if job["state"] == "done":
             return job
         if job["state"] in ("failed", "interrupted"):
-            raise DemoError(f"job {job_id} ({job['kind']}) {job['state']}: {job.get('error')}")
+            raise LocalServerError(
+                f"job {job_id} ({job['kind']}) {job['state']}: {job.get('error')}"
+            )
         time.sleep(0.5)
 
 

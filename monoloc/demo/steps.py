@@ -1,4 +1,4 @@
-"""The steps of `monoloc demo` (see monoloc/demo.py), each printing its progress."""
+"""The steps of `monoloc demo` (see monoloc/demo/__init__.py), each printing its progress."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from monoloc import demo_io
+from monoloc import local_server
 from monoloc.client.api import MonolocClient
 from monoloc.client.drive import DriveConfig, DriveResult, drive, write_outputs
 from monoloc.client.replay import read_run
@@ -78,15 +78,15 @@ class DemoSteps:
     # ---- 3 ---------------------------------------------------------------------------
     def _upload(self, client, map_id, dataset, run, path, label, **fields) -> dict:
         seq = dataset.sequences[run]
-        archive = demo_io.kitti_archive(dataset.root, seq, self.out / f"upload_{run}.tar")
+        archive = local_server.kitti_archive(dataset.root, seq, self.out / f"upload_{run}.tar")
         try:
-            answer = demo_io.upload_run(client, map_id, archive, path, sequence=seq, **fields)
+            answer = local_server.upload_run(client, map_id, archive, path, sequence=seq, **fields)
         finally:
             archive.unlink(missing_ok=True)
         job_id = answer["job"]["id"] if "job" in answer else answer["id"]
         with _progress(self.console) as bar:
             task = bar.add_task(label, total=1.0)
-            job = demo_io.wait_job(client, job_id, lambda p: bar.update(task, completed=p))
+            job = local_server.wait_job(client, job_id, lambda p: bar.update(task, completed=p))
         return job
 
     def build_map(self, client: MonolocClient, dataset: Dataset) -> int:
@@ -180,7 +180,7 @@ class DemoSteps:
             task = bar.add_task("operator adds night images", total=seq.n_frames)
             for i, frame in enumerate(seq.frames):
                 try:
-                    answer = demo_io.add_entry(
+                    answer = local_server.add_entry(
                         client,
                         map_id,
                         frame.image_path,
@@ -191,7 +191,7 @@ class DemoSteps:
                         frame.timestamp_s,
                     )
                     added += int(bool(answer.get("created", True)))
-                except demo_io.MonolocError:
+                except local_server.MonolocError:
                     pass  # an image with too few 3D points is refused; the operator moves on
                 bar.update(task, completed=i + 1)
         return added
@@ -245,7 +245,7 @@ class DemoSteps:
 
     # ---- 5 and 6 -----------------------------------------------------------------------
     def report(self, client, map_id, dataset, results, total_s: float) -> dict:
-        from monoloc.demo_report import make_plots, summary_table
+        from monoloc.demo.report import make_plots, summary_table
 
         self.console.print(summary_table(results))
         plots = make_plots(self.out, client, map_id, dataset, results)

@@ -32,7 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from monoloc.demo_io import free_port, kitti_archive, new_admin_key, start_server
+from monoloc.local_server import free_port, kitti_archive, new_admin_key, start_server
 
 KINDS = ("ingest", "entries", "index_write")
 

@@ -82,9 +82,9 @@ def _serve_until_interrupted(console, key: str) -> None:
 def run_demo(config: DemoConfig) -> dict:
     from rich.console import Console
 
-    from monoloc import demo_io
+    from monoloc import local_server
     from monoloc.client.api import MonolocClient
-    from monoloc.demo_steps import DemoSteps
+    from monoloc.demo.steps import DemoSteps
 
     console = Console()
     started = time.monotonic()
@@ -95,16 +95,16 @@ def run_demo(config: DemoConfig) -> dict:
     proc = None
     if config.server:
         if not config.key:
-            raise demo_io.DemoError("--server needs --key (an admin key)")
+            raise local_server.LocalServerError("--server needs --key (an admin key)")
         url, key = config.server.rstrip("/"), config.key
     else:
-        port, key = demo_io.free_port(), demo_io.new_admin_key()
+        port, key = local_server.free_port(), local_server.new_admin_key()
         url = f"http://127.0.0.1:{port}"
         console.print(f"[bold]2[/] starting the map server on {url} (log: {out / 'server.log'})")
         # The demo's own server starts empty each run: it builds its map anew, and a
         # previous run's database would hold that run's admin key, not this one's.
         shutil.rmtree(out / "server", ignore_errors=True)
-        proc = demo_io.start_server(out / "server", port, key, out / "server.log")
+        proc = local_server.start_server(out / "server", port, key, out / "server.log")
     try:
         with MonolocClient(url, key, timeout_s=120.0) as client:
             map_id = steps.build_map(client, dataset)
@@ -121,7 +121,7 @@ def run_demo(config: DemoConfig) -> dict:
             _serve_until_interrupted(console, key)
     finally:
         if proc is not None:
-            demo_io.stop_server(proc)
+            local_server.stop_server(proc)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
     console.print(f"summary: {out / 'summary.json'}; plots: {', '.join(summary['plots'])}")
     console.print(f"total {summary['total_s']:.0f} s")

@@ -7,7 +7,7 @@ the method can be compared quickly on the same frames:
 
 - full:        particle filter + prior-constrained retrieval (the product);
 - full_euler:  the same with the paper's Euler motion step instead of the exact arc;
-- full_mode:   the same reporting the particles' main mode (METHOD.md's estimate) instead
+- full_mode:   the same reporting the particles' main mode (docs/method.md's estimate) instead
                of the Gaussian filter riding on it (``FilterConfig.refine``);
 - kidnapped:   the full method with the filter initialised ``kidnap_offset_m`` to the
                left of the first pose: how long it takes to find its way back;
