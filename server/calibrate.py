@@ -60,7 +60,6 @@ from monoloc.server.storage.records import NewEntry
 from monoloc.server.vision.features import extract_features
 from monoloc.server.vision.matching import MatchConfig, match_against_references
 from monoloc.server.vision.pnp import PnpConfig
-from monoloc.server.vision.projection import ProjectionMatchConfig
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -120,17 +119,12 @@ class CalibrationConfig:
         return self.map_every * (self.k - 1) + 2
 
 
-def server_calibration_config(
-    k: int, refine_by_projection: bool, covariance: CovarianceModel = "pnp"
-) -> CalibrationConfig:
-    """The calibration matching a server's localizer: its PnP strategy with the refit by
-    projection on or off (``Settings.localize_refine``), ``k`` entries per query, the
-    stored calibration selecting ``covariance`` (every model is fitted either way)."""
-    refine = ProjectionMatchConfig() if refine_by_projection else None
+def server_calibration_config(k: int, covariance: CovarianceModel = "pnp") -> CalibrationConfig:
+    """The calibration matching a server's localizer: its PnP strategy, ``k`` entries per
+    query, the stored calibration selecting ``covariance`` (every model is fitted either
+    way)."""
     return CalibrationConfig(
-        k=k,
-        strategy=PnpStrategy(guess_from_prior=False, refine=refine, covariance=True),
-        covariance=covariance,
+        k=k, strategy=PnpStrategy(guess_from_prior=False, covariance=True), covariance=covariance
     )
 
 

@@ -327,7 +327,7 @@ def map_calibrate(
             condition = condition_name(condition)
         except InvalidInputError as exc:
             raise typer.BadParameter(str(exc), param_hint="--condition") from exc
-    config = server_calibration_config(k, settings.localize_refine, covariance)
+    config = server_calibration_config(k, covariance)
     source = open_source(
         fmt,
         run,

@@ -116,30 +116,6 @@ class Settings(BaseSettings):
         description="Serve /metrics without an API key (only for a private scrape network); "
         "otherwise it needs an admin key.",
     )
-    # The names of monoloc.server.localize.PRESETS (not imported: it loads OpenCV).
-    localize_pipeline: Literal["monoloc", "paper"] = Field(
-        default="monoloc",
-        description="Localization preset (server.localize.PRESETS). 'monoloc': Hamming "
-        "shortlist of the binary codes re-ranked by exact float VLAD distance, and numba "
-        "Hamming matching; 'paper': the paper-faithful baseline (exact float k-NN over "
-        "every VLAD of the index, OpenCV brute-force matching per entry), same answers, "
-        "for benchmarks.",
-    )
-    localize_refine: bool = Field(
-        default=True,
-        description="Refit every PnP pose on the entry's points matched by projection from it "
-        "(server.vision.projection; LocalizeConfig.refine_by_projection). False: the poses "
-        "as PnP RANSAC found them, e.g. to compare both on a fleet's own data. Calibration "
-        "jobs follow it, so a map's measurement model is fitted on the hypotheses sent.",
-    )
-    localize_alternative: bool = Field(
-        default=True,
-        description="Add an alternative pose to a frame whose per-entry poses are poorly "
-        "pinned down (a moved car carrying most inliers): one pooled RANSAC on the matches "
-        "the most-inlier pose leaves unexplained (LocalizeConfig.alternative, hypothesis "
-        "method 'alternative'). On by default with the 'pnp' measurement model; on the "
-        "paper's it is mixed (docs/measured.md, 'Where the frames beyond 0.25 m come from').",
-    )
     localize_seed: int | None = Field(
         default=None,
         description="Seed of the server's RNG seed sequence (RANSAC); None draws OS entropy. "

@@ -22,18 +22,14 @@ from monoloc.server.api.convert import localize_response
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
-from monoloc.server.localize import AlternativeConfig, LocalizeConfig
+from monoloc.server.localize import LocalizeConfig
 from monoloc.server.settings import Settings
-from monoloc.server.vision.projection import ProjectionMatchConfig
 
 
 def localize_config(settings: Settings) -> LocalizeConfig:
-    """The pipeline a server runs on every query frame, from its deployment knobs."""
-    return LocalizeConfig(
-        pipeline=settings.localize_pipeline,
-        refine_by_projection=ProjectionMatchConfig() if settings.localize_refine else None,
-        alternative=AlternativeConfig() if settings.localize_alternative else None,
-    )
+    """The pipeline a server runs on every query frame: the product's one pipeline (its
+    deployment knobs are threads and limits, not algorithm variants)."""
+    return LocalizeConfig()
 
 
 def _intrinsics(

@@ -366,7 +366,6 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
         source,
         config=server_calibration_config(
             int(params.get("k", CalibrationConfig.k)),
-            ctx.settings.localize_refine,
             params.get("covariance") or "paper",
         ),
         seed=int(params.get("seed", 0)),
