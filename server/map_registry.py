@@ -309,9 +309,7 @@ class MapRegistry:
             return {map_id: len(rt.index) for map_id, rt in self._maps.items()}
 
     # ---- edits (call after the database commit) -------------------------------------
-    def entries_added(
-        self, map_id: int, entry_ids, codes, vlads, poses_world, new_version: int
-    ) -> None:
+    def entries_added(self, map_id: int) -> None:
         """Entries committed by this process: the map catches up from the log now (the
         same path as any replica's), so the next query sees them."""
         self.changed(map_id)

@@ -219,15 +219,7 @@ class _Writer:
         self.added += len(created)
         self.points.extend(len(e.points_cam) for _, e in created)
         if created and self.registry is not None:
-            entries = [e for _, e in created]
-            self.registry.entries_added(
-                self.map_id,
-                np.array([i for i, _ in created], dtype=np.int64),
-                np.stack([e.code for e in entries]),
-                np.stack([e.vlad for e in entries]),
-                planar_from_T_world_from_cam(np.stack([e.T_world_from_cam for e in entries])),
-                self.version,
-            )
+            self.registry.entries_added(self.map_id)
 
 
 def _load_vocabulary(factory, map_id: int, source) -> tuple[Vocabulary, int, dict | None]:

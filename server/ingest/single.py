@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InputFileError, InvalidInputError
-from monoloc.core.geometry import check_rigid, planar_from_T_world_from_cam
+from monoloc.core.geometry import check_rigid
 from monoloc.server.encoded_image import read_image_header
 from monoloc.server.entry_builder import BuildConfig, DepthSource, LidarSource, build_entry
 from monoloc.server.ingest.common import (
@@ -91,16 +91,8 @@ def add_single_image(
         summary, created = entries_repo.add_entry(
             session, map_id, entry, also_known_as=(bytes_hash(image_bytes),)
         )
-        version = maps_repo.get_map(session, map_id).version
     if created and registry is not None:
-        registry.entries_added(
-            map_id,
-            np.array([summary.id], dtype=np.int64),
-            entry.code[None],
-            entry.vlad[None],
-            planar_from_T_world_from_cam(entry.T_world_from_cam)[None],
-            version,
-        )
+        registry.entries_added(map_id)
     return summary, created
 
 
