@@ -121,17 +121,16 @@ def hamming_rows(query_words, codes_words, rows, out):
 
 
 @njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
-def vlad_distances(query, vectors, scales, rows, out):
-    """Euclidean distances of query (D,) float64 to the VLADs vectors[rows] * scales[rows]
-    (vectors float32 or int8) into out (len(rows),) float64, accumulated in float64.
-    Reading the rows in place avoids numpy's gathered copy, whose fresh pages cost more
-    than the arithmetic (fastmath only reorders the sum, for vectorisation)."""
+def vlad_distances(query, vectors, rows, out):
+    """Euclidean distances of query (D,) float64 to the float32 VLADs vectors[rows] into
+    out (len(rows),) float64, accumulated in float64. Reading the rows in place avoids
+    numpy's gathered copy, whose fresh pages cost more than the arithmetic (fastmath only
+    reorders the sum, for vectorisation)."""
     n_dim = query.shape[0]
     for k in range(rows.shape[0]):
         vector = vectors[rows[k]]
-        scale = np.float64(scales[rows[k]])
         acc = 0.0
         for i in range(n_dim):
-            d = np.float64(vector[i]) * scale - query[i]
+            d = np.float64(vector[i]) - query[i]
             acc += d * d
         out[k] = np.sqrt(acc)

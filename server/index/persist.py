@@ -1,10 +1,11 @@
 """Index files: written atomically, stamped with the map version, verified on load.
 
 A file is an uncompressed ``.npz`` (zip members carry CRC-32, so torn or flipped bytes
-are detected) holding the index arrays, the map version and, for IVF indexes, the
-serialised FAISS index so a large map does not re-train on start. On start the server
-loads it only if it is intact and its version equals the database's; anything else is
-rebuilt from the database, never served empty.
+are detected) holding the index arrays and the map version. On start the server loads it
+only if it is intact and its version equals the database's; anything else is rebuilt
+from the database, never served empty. A file that carries a serialised FAISS index
+(``faiss_large``: written by the HNSW and IVF kinds monoloc no longer has) is refused the
+same way, so its map is rebuilt with the current index.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from monoloc.core.errors import MonolocError
 from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 
 FORMAT_VERSION = 1
+_REMOVED_KIND_MEMBER = "faiss_large"
 
 
 class IndexFileError(MonolocError):
@@ -36,18 +38,11 @@ def _fsync_dir(directory: Path) -> None:
 
 def save_index(path: Path, index: RetrievalIndex, map_version: int) -> None:
     """Write ``index`` to ``path`` atomically: temp file, fsync, rename, fsync directory."""
-    import faiss
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = index.snapshot()
-    payload = dict(arrays)
+    payload = dict(index.snapshot())
     payload["map_version"] = np.array(map_version, dtype=np.int64)
     payload["format_version"] = np.array(FORMAT_VERSION, dtype=np.int64)
-    if index.kind in ("ivf", "hnsw"):
-        with index._lock.read():
-            if index._tombstones == 0:  # else rebuilt on load, without the removed nodes
-                payload["faiss_large"] = faiss.serialize_index_binary(index._faiss)
     fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
@@ -64,14 +59,18 @@ def save_index(path: Path, index: RetrievalIndex, map_version: int) -> None:
 def load_index(
     path: Path, expected_map_version: int, config: IndexConfig | None = None
 ) -> RetrievalIndex:
-    """Load an index file; raise IndexFileError if missing, stale or corrupt."""
-    import faiss
-
+    """Load an index file; raise IndexFileError if missing, stale, corrupt or of a removed
+    kind."""
     path = Path(path)
     if not path.exists():
         raise IndexFileError(f"index file {path} is missing")
     try:
         with np.load(path, allow_pickle=False) as data:
+            if _REMOVED_KIND_MEMBER in data.files:  # not read: it can be hundreds of MB
+                raise IndexFileError(
+                    f"index file {path} holds a FAISS HNSW or IVF index, kinds this server "
+                    "no longer has"
+                )
             arrays = {name: data[name] for name in data.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
         raise IndexFileError(f"index file {path} is corrupt: {exc}") from exc
@@ -83,12 +82,6 @@ def load_index(
         raise IndexFileError(
             f"index file {path} is stale: map version {version}, database {expected_map_version}"
         )
-    ivf = None
-    if "faiss_large" in arrays:
-        try:
-            ivf = faiss.deserialize_index_binary(arrays["faiss_large"])
-        except RuntimeError as exc:
-            raise IndexFileError(f"index file {path}: unreadable FAISS index: {exc}") from exc
     try:
         return RetrievalIndex.from_arrays(
             arrays["ids"],
@@ -96,7 +89,6 @@ def load_index(
             arrays["vlads"],
             arrays["poses"],
             config,
-            ivf,
             sketches=arrays.get("sketches"),
         )
     except (ValueError, MonolocError) as exc:

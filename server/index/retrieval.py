@@ -1,13 +1,12 @@
 """Per-map retrieval index (docs/method.md section 4, monoloc's binary design).
 
-A FAISS binary index over the entries' VLAD sign codes gives a Hamming shortlist; the
-shortlist is re-ranked by the exact L2 distance of the float VLADs. Large maps (from
-``ivf_min_entries``) shortlist by an exhaustive scan of 256-bit sketches instead
-(``large_kind="scan"``, see monoloc.server.index.sketch for why), re-ranked by the full codes and
-then exactly; FAISS's binary HNSW and IVF remain selectable. With a planar prior
-only entries inside the radius (and heading window) compete. Entries are added and
-removed live; a readers-writer lock lets searches run concurrently but never during an
-add or a remove (FAISS's rule).
+A FAISS binary flat index over the entries' VLAD sign codes gives a Hamming shortlist;
+the shortlist is re-ranked by the exact L2 distance of the float VLADs. Large maps (from
+``IndexConfig.scan_min_entries``) shortlist by an exhaustive scan of 256-bit sketches
+instead (monoloc.server.index.sketch says why), re-ranked by the full codes and then
+exactly. With a planar prior only entries inside the radius (and heading window)
+compete. Entries are added and removed live; a readers-writer lock lets searches run
+concurrently but never during an add or a remove (FAISS's rule).
 """
 
 from __future__ import annotations
@@ -16,13 +15,18 @@ import numpy as np
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.prior import RetrievalPrior
-from monoloc.server.index.faiss_kinds import configure, new_flat, new_hnsw, new_ivf
 from monoloc.server.index.rwlock import ReadWriteLock
 from monoloc.server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
 from monoloc.server.index.types import IndexConfig, SearchResult, empty_result
 from monoloc.server.vision.sizes import CODE_BYTES, VLAD_DIM
 
 __all__ = ["IndexConfig", "RetrievalIndex", "SearchResult"]
+
+
+def _new_flat():
+    import faiss
+
+    return faiss.IndexBinaryIDMap2(faiss.IndexBinaryFlat(VLAD_DIM))
 
 
 class RetrievalIndex:
@@ -33,15 +37,13 @@ class RetrievalIndex:
         self._lock = ReadWriteLock()
         self._ids = np.zeros(0, dtype=np.int64)
         self._codes = np.zeros((0, CODE_BYTES), dtype=np.uint8)
-        self._vlads = np.zeros((0, VLAD_DIM), dtype=self.config.vector_dtype)
-        self._scales = np.zeros(0, dtype=np.float32)  # stored vector * scale = VLAD
+        self._vlads = np.zeros((0, VLAD_DIM), dtype=np.float32)
         self._poses = np.zeros((0, 3), dtype=np.float64)
         self._size = 0
         self._row_of_id: dict[int, int] = {}
         self._sketches = SketchTable()
-        self._faiss = new_flat()
+        self._faiss = _new_flat()  # None once the sketches are the index ("scan")
         self._kind = "flat"
-        self._tombstones = 0
 
     # ---- construction -------------------------------------------------------------
     def __len__(self) -> int:
@@ -49,6 +51,7 @@ class RetrievalIndex:
 
     @property
     def kind(self) -> str:
+        """The shortlist: "flat" (FAISS's flat Hamming index) or "scan" (the sketches)."""
         return self._kind
 
     def entry_ids(self) -> np.ndarray:
@@ -72,20 +75,7 @@ class RetrievalIndex:
 
         self._ids, self._codes = grow(self._ids), grow(self._codes)
         self._vlads, self._poses = grow(self._vlads), grow(self._poses)
-        self._scales = grow(self._scales)
         self._sketches.reserve(capacity, self._size)
-
-    def _store_vectors(self, rows: slice, vlads: np.ndarray) -> None:
-        """Store float VLADs (n, 2048) at ``rows`` in the configured representation."""
-        if self.config.vector_dtype == "int8":
-            peak = np.maximum(np.abs(vlads).max(axis=1), 1e-12)
-            scale = (peak / 127.0).astype(np.float32)
-            q = np.rint(vlads / scale[:, None]).astype(np.int8)
-            self._vlads[rows] = q
-            self._scales[rows] = scale
-        else:
-            self._vlads[rows] = vlads
-            self._scales[rows] = 1.0
 
     def add(
         self, entry_ids: np.ndarray, codes: np.ndarray, vlads: np.ndarray, poses_world: np.ndarray
@@ -107,15 +97,16 @@ class RetrievalIndex:
             self._reserve(len(ids))
             rows = slice(self._size, self._size + len(ids))
             self._ids[rows], self._codes[rows], self._poses[rows] = ids, codes, poses
-            self._store_vectors(rows, vlads)
+            self._vlads[rows] = vlads
             self._sketches.set_rows(self._size, vlad_sketch(vlads))
             for offset, entry_id in enumerate(ids):
                 self._row_of_id[int(entry_id)] = self._size + offset
             self._size += len(ids)
-            if self._faiss is not None:
-                self._faiss.add_with_ids(codes, ids)
-            if self._kind == "flat" and self._size >= self.config.ivf_min_entries:
-                self._rebuild_faiss()
+            if self._kind == "flat":
+                if self._size >= self.config.scan_min_entries:
+                    self._faiss, self._kind = None, "scan"  # the sketches are the index
+                else:
+                    self._faiss.add_with_ids(codes, ids)
 
     def remove(self, entry_ids) -> int:
         """Remove entries by id; unknown ids are ignored. Returns how many were removed."""
@@ -133,37 +124,23 @@ class RetrievalIndex:
                     moved_id = int(self._ids[last])
                     self._ids[row], self._codes[row] = self._ids[last], self._codes[last]
                     self._vlads[row], self._poses[row] = self._vlads[last], self._poses[last]
-                    self._scales[row] = self._scales[last]
                     self._sketches.move_row(row, last)
                     self._row_of_id[moved_id] = row
                 self._size -= 1
-            if self._kind == "hnsw":
-                self._tombstones += len(rows)
-                if self._tombstones > self.config.hnsw_max_tombstones * max(self._size, 1):
-                    self._rebuild_faiss()
-            elif self._faiss is not None:
+            if self._faiss is not None:  # a map that shrinks under the size keeps its scan
                 self._faiss.remove_ids(faiss.IDSelectorBatch(np.asarray(wanted, dtype=np.int64)))
             return len(rows)
 
-    def _rebuild_faiss(self) -> None:
-        codes = self._codes[: self._size]
-        ids = self._ids[: self._size]
-        self._tombstones = 0
-        if self._size >= self.config.ivf_min_entries:
-            self._kind = self.config.large_kind
-            if self._kind == "scan":
-                self._faiss = None  # the sketches are the index
-                return
-            if self._kind == "ivf":
-                self._faiss = new_ivf(codes, self.config)
-            else:
-                self._faiss = new_hnsw(self.config)
-        else:
-            self._faiss = new_flat()
-            self._kind = "flat"
-        configure(self._faiss, self._kind, self.config)
+    def _build_shortlist(self) -> None:
+        """The shortlist index of the rows held: the sketches alone from
+        ``scan_min_entries`` on, else a flat FAISS index of the codes."""
+        if self._size >= self.config.scan_min_entries:
+            self._faiss, self._kind = None, "scan"
+            return
+        self._faiss, self._kind = _new_flat(), "flat"
         if self._size:
-            self._faiss.add_with_ids(np.ascontiguousarray(codes), ids)
+            codes = np.ascontiguousarray(self._codes[: self._size])
+            self._faiss.add_with_ids(codes, self._ids[: self._size])
 
     # ---- search -------------------------------------------------------------------
     def search(
@@ -194,7 +171,7 @@ class RetrievalIndex:
         from monoloc.server.index._scan_kernel import hamming_rows
 
         n_candidates = max(self.config.scan_candidates, 4 * size)
-        rows = self._sketches.nearest(sketch, self._size, n_candidates, self.config.scan_threads)
+        rows = self._sketches.nearest(sketch, self._size, n_candidates)
         if len(rows) <= size:
             return rows
         distances = np.empty(len(rows), dtype=np.int32)
@@ -204,22 +181,16 @@ class RetrievalIndex:
 
     def _shortlist_rows(self, code: np.ndarray, sketch, size: int, cap: int | None = None):
         """Up to ``size`` rows nearest by Hamming distance. With ``cap`` (the k wanted),
-        approximate kinds return at most their configured shortlist, but never fewer than
-        ``cap`` rows; a prior search passes no cap and widens past the shortlist."""
+        the scan returns at most ``scan_shortlist`` rows, but never fewer than ``cap``; a
+        prior search passes no cap and widens past the shortlist."""
         if self._kind == "scan":
             if cap is not None:
                 size = min(size, max(self.config.scan_shortlist, cap))
             return self._scan_rows(code, sketch, size)
-        if self._kind == "hnsw":
-            if cap is not None:
-                size = min(size, max(self.config.hnsw_shortlist, cap))
-            size += self._tombstones
-        _, found = self._faiss.search(code, min(size, self._size + self._tombstones))
-        # Tombstoned (removed) ids are no longer in the row map; a re-added id may appear
-        # twice in an HNSW graph: keep each live row once.
+        _, found = self._faiss.search(code, min(size, self._size))
         row_of_id = self._row_of_id
-        rows = dict.fromkeys(row_of_id[i] for i in found[0].tolist() if i >= 0 and i in row_of_id)
-        return np.fromiter(rows, dtype=np.int64, count=len(rows))
+        rows = [row_of_id[i] for i in found[0].tolist() if i >= 0]
+        return np.array(rows, dtype=np.int64)
 
     def _prior_rows(self, code: np.ndarray, sketch, k: int, prior: RetrievalPrior) -> np.ndarray:
         inside = np.flatnonzero(prior.mask(self._poses[: self._size]))
@@ -243,19 +214,19 @@ class RetrievalIndex:
             return empty_result()
         rows = np.ascontiguousarray(rows, dtype=np.int64)
         dist = np.empty(len(rows), dtype=np.float64)
-        vlad_distances(query.astype(np.float64), self._vlads, self._scales, rows, dist)
+        vlad_distances(query.astype(np.float64), self._vlads, rows, dist)
         order = np.argsort(dist, kind="stable")[:k]
         return SearchResult(self._ids[rows[order]].copy(), dist[order].astype(np.float32))
 
     # ---- snapshot (for persistence) ---------------------------------------------------
     def snapshot(self) -> dict[str, np.ndarray]:
-        """Copies of the live arrays: ids, codes, float32 vlads, poses."""
+        """Copies of the live arrays: ids, codes, float32 vlads, poses, sketches."""
         with self._lock.read():
             n = self._size
             return {
                 "ids": self._ids[:n].copy(),
                 "codes": self._codes[:n].copy(),
-                "vlads": self._vlads[:n].astype(np.float32) * self._scales[:n, None],
+                "vlads": self._vlads[:n].copy(),
                 "poses": self._poses[:n].copy(),
                 "sketches": self._sketches.rows(n),
             }
@@ -268,12 +239,10 @@ class RetrievalIndex:
         vlads,
         poses,
         config: IndexConfig | None = None,
-        faiss_index=None,
         sketches=None,
     ) -> RetrievalIndex:
-        """Build an index from arrays; ``faiss_index`` (already holding exactly these ids)
-        skips building and, for IVF, training; ``sketches`` (N, 32) uint8 (as
-        ``snapshot`` gives them) skip recomputing them from the VLADs."""
+        """Build an index from arrays; ``sketches`` (N, 32) uint8 (as ``snapshot`` gives
+        them) skip recomputing them from the VLADs."""
         index = cls(config)
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         if len(np.unique(ids)) != len(ids):
@@ -292,17 +261,10 @@ class RetrievalIndex:
         for start in range(0, n, 65536):  # chunked: bounded temporaries for huge maps
             stop = min(n, start + 65536)
             block = vlads[start:stop].astype(np.float32)
-            index._store_vectors(slice(start, stop), block)
+            index._vlads[start:stop] = block
             if sketches is None:
                 index._sketches.set_rows(start, vlad_sketch(block))
         index._size = n
         index._row_of_id = {int(i): row for row, i in enumerate(ids)}
-        if faiss_index is not None:
-            if faiss_index.ntotal != n:
-                raise InvalidInputError("the FAISS index does not hold the given entries")
-            index._kind = "ivf" if "IVF" in type(faiss_index).__name__ else "hnsw"
-            index._faiss = faiss_index
-            configure(faiss_index, index._kind, index.config)
-        else:
-            index._rebuild_faiss()
+        index._build_shortlist()
         return index

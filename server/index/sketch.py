@@ -5,21 +5,19 @@ A sketch is the sign pattern of the VLAD projected on 256 fixed orthonormal dire
 estimates the angle between the two VLADs (sign random projection), with 8x fewer bits
 than the 2048 sign bits of :func:`monoloc.server.vision.binary_code.vlad_binary_code`.
 
-Why a scan and not a graph or inverted index: on bench/retrieval.py's route model at 1M
-entries, FAISS's binary HNSW found 19 % of the true top 10 (a query is equally far from
-everything but its few true neighbours, so greedy graph search has nothing to follow)
-and the binary IVF lost neighbours across its coarse cells already at 100k (71 %). An
-exhaustive scan of 32-byte sketches reads 32 MB per million entries and runs as fast as a
-bare read of them; selecting the nearest candidates costs a fraction of that
-(bench/retrieval.py, figures in bench/REPORT.md). Its candidates are re-ranked
-by the full 2048-bit codes and finally by exact float distance.
+Why a scan and not a graph or inverted index: a query is about equally far from every
+entry but its few true neighbours, so a greedy graph search has nothing to follow and
+coarse cells split the neighbours (FAISS's binary HNSW and IVF are the baselines of
+``bench/retrieval.py --baselines``). An exhaustive scan of 32-byte sketches reads 32 MB
+per million entries, as fast as a bare read of them; selecting the nearest candidates
+costs a fraction of that. Its candidates are re-ranked by the full 2048-bit codes and
+finally by exact float distance.
 """
 
 from __future__ import annotations
 
 import functools
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -60,11 +58,6 @@ def vlad_sketch(vlads: np.ndarray, chunk: int = 65536) -> np.ndarray:
     return out[0] if single else out
 
 
-@functools.cache
-def _helper_pool() -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="monoloc-scan")
-
-
 class SketchTable:
     """The sketches of an index's rows, stored transposed ((4, capacity) uint64 words) for
     the scan. Row edits mirror the owning index's; the index's lock guards them."""
@@ -101,23 +94,15 @@ class SketchTable:
         """(size, 32) uint8 copy of the first ``size`` sketches (for persistence)."""
         return np.ascontiguousarray(self._words_t[:, :size].T).view(np.uint8)
 
-    def nearest(self, sketch: np.ndarray, size: int, n_wanted: int, threads: int = 1):
+    def nearest(self, sketch: np.ndarray, size: int, n_wanted: int):
         """Rows (<= n_wanted,) int64 of the sketches nearest to ``sketch`` (32,) uint8 among
-        the first ``size`` rows, nearest first. ``threads`` = 2 splits the scan in halves."""
+        the first ``size`` rows, nearest first."""
         from monoloc.server.index._scan_kernel import BLOCK, scan, select_nearest
 
         query_words = np.ascontiguousarray(sketch, dtype=np.uint8).view(np.uint64)
         distances = self._distance_buffer(size)
         block_min = np.empty((size + BLOCK - 1) // BLOCK, dtype=np.int32)
-        half = (size // 2 // BLOCK) * BLOCK
-        if threads > 1 and half > 0:
-            other = _helper_pool().submit(
-                scan, query_words, self._words_t, half, size, distances, block_min
-            )
-            scan(query_words, self._words_t, 0, half, distances, block_min)
-            other.result()
-        else:
-            scan(query_words, self._words_t, 0, size, distances, block_min)
+        scan(query_words, self._words_t, 0, size, distances, block_min)
         out = np.empty(min(n_wanted, size), dtype=np.int64)
         written = select_nearest(distances, block_min, size, n_wanted, out)
         return out[:written]

@@ -102,7 +102,7 @@ vlads = rng.normal(size=(40, 2048)).astype(np.float32)
 vlads /= np.linalg.norm(vlads, axis=1, keepdims=True)
 codes = np.stack([vlad_binary_code(v) for v in vlads])
 poses = np.c_[np.arange(40.0), np.zeros(40), np.zeros(40)]
-for config in (IndexConfig(), IndexConfig(ivf_min_entries=10)):
+for config in (IndexConfig(), IndexConfig(scan_min_entries=10)):
     index = RetrievalIndex(config)
     index.add(np.arange(40), codes, vlads, poses)
     for prior in (None, RetrievalPrior(5.0, 0.0, 8.0, 0.0, 0.5)):

@@ -117,31 +117,23 @@ def test_concurrent_add_remove_while_searching():
     assert index.search(vlads[399], codes[399], k=1).entry_ids[0] == 399
 
 
-@pytest.mark.parametrize("kind", ["scan", "ivf", "hnsw"])
-def test_large_map_index_keeps_recall(kind):
+def test_large_map_index_keeps_recall():
     rng = np.random.default_rng(4)
     vlads, poses = _places(rng, 1500, 2)
-    config = IndexConfig(ivf_min_entries=2000, ivf_nprobe=16, large_kind=kind)
+    config = IndexConfig(scan_min_entries=2000)
     index = RetrievalIndex.from_arrays(np.arange(3000), _codes(vlads), vlads, poses, config)
-    assert index.kind == kind
+    assert index.kind == "scan"
     rows = range(0, 3000, 60)
     hits = [index.search(vlads[i], _codes(vlads[i]), k=1).entry_ids[0] == i for i in rows]
     assert np.mean(hits) >= 0.95
 
 
-@pytest.mark.parametrize("kind", ["scan", "hnsw"])
-def test_k_above_the_approximate_shortlist_still_returns_k(kind):
+def test_k_above_the_scan_shortlist_still_returns_k():
     rng = np.random.default_rng(7)
     vlads, poses = _places(rng, 300, 2)
-    config = IndexConfig(
-        ivf_min_entries=500,
-        large_kind=kind,
-        scan_shortlist=5,
-        scan_candidates=200,
-        hnsw_shortlist=5,
-    )
+    config = IndexConfig(scan_min_entries=500, scan_shortlist=5, scan_candidates=200)
     index = RetrievalIndex.from_arrays(np.arange(600), _codes(vlads), vlads, poses, config)
-    assert index.kind == kind
+    assert index.kind == "scan"
     found = index.search(vlads[100], _codes(vlads[100]), k=20)
     assert len(found.entry_ids) == 20
     assert found.entry_ids[0] == 100
@@ -171,33 +163,23 @@ def test_persist_round_trip_stale_and_corrupt(tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
-@pytest.mark.parametrize("kind", ["scan", "ivf", "hnsw"])
-def test_large_index_persist_round_trip(tmp_path, kind):
+def test_a_map_grows_from_the_flat_index_into_the_scan_and_persists(tmp_path):
     rng = np.random.default_rng(6)
     vlads, poses = _places(rng, 600, 1)
-    config = IndexConfig(ivf_min_entries=500, ivf_nprobe=16, large_kind=kind)
-    index = RetrievalIndex.from_arrays(np.arange(600), _codes(vlads), vlads, poses, config)
+    codes = _codes(vlads)
+    config = IndexConfig(scan_min_entries=500)
+    first = slice(0, 400)
+    index = RetrievalIndex.from_arrays(
+        np.arange(400), codes[first], vlads[first], poses[first], config
+    )
+    assert index.kind == "flat"
+    index.add(np.arange(400, 600), codes[400:], vlads[400:], poses[400:])
+    assert index.kind == "scan" and index.search(vlads[450], codes[450], k=1).entry_ids[0] == 450
+    index.remove(np.arange(0, 200))  # shrinking under the size keeps the scan
+    index.add([0], codes[:1], vlads[:1], poses[:1])
+    assert index.kind == "scan" and len(index) == 401
+    assert index.search(vlads[0], codes[0], k=1).entry_ids[0] == 0
     save_index(tmp_path / "i.npz", index, 1)
-    loaded = load_index(tmp_path / "i.npz", 1, config)
-    assert loaded.kind == kind and len(loaded) == 600
-    assert loaded.search(vlads[77], _codes(vlads[77]), k=1).entry_ids[0] == 77
-
-
-def test_hnsw_removals_are_tombstones_until_a_rebuild():
-    rng = np.random.default_rng(9)
-    vlads, poses = _places(rng, 300, 1)
-    config = IndexConfig(ivf_min_entries=200, large_kind="hnsw", hnsw_max_tombstones=0.2)
-    index = RetrievalIndex.from_arrays(np.arange(300), _codes(vlads), vlads, poses, config)
-    assert index.kind == "hnsw"
-    index.remove(np.arange(0, 40))
-    assert index._tombstones == 40 and len(index) == 260
-    res = index.search(vlads[5], _codes(vlads[5]), k=5)
-    assert not set(res.entry_ids.tolist()) & set(range(40))  # removed never come back
-    assert index.search(vlads[100], _codes(vlads[100]), k=1).entry_ids[0] == 100
-    # Re-adding a removed id finds its new vector, once.
-    index.add([7], _codes(vlads[200:201]), vlads[200:201], poses[200:201])
-    res = index.search(vlads[200], _codes(vlads[200]), k=3)
-    assert res.entry_ids.tolist().count(7) == 1 and 7 in res.entry_ids[:2]
-    index.remove(np.arange(40, 100))  # past 20 %: rebuilt without tombstones
-    assert index._tombstones == 0 and len(index) == 201
-    assert index.search(vlads[150], _codes(vlads[150]), k=1).entry_ids[0] == 150
+    loaded = load_index(tmp_path / "i.npz", 1, IndexConfig(scan_min_entries=400))
+    assert loaded.kind == "scan" and len(loaded) == 401
+    assert loaded.search(vlads[377], codes[377], k=1).entry_ids[0] == 377

@@ -14,9 +14,8 @@ def _unit(rng, n, dim=2048):
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-@pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("size", [1, 31, 1000, 5003])
-def test_scan_returns_the_nearest_sketches_in_order(size, threads):
+def test_scan_returns_the_nearest_sketches_in_order(size):
     rng = np.random.default_rng(size)
     # Few distinct codes with 0-3 flipped bits: many exact ties, the case that decides.
     bases = rng.integers(0, 256, size=(max(size // 20, 2), 32), dtype=np.uint8)
@@ -32,7 +31,7 @@ def test_scan_returns_the_nearest_sketches_in_order(size, threads):
     query[0] ^= 0b101
     truth = hamming_distances(query, sketches)
     for n_wanted in (1, 10, size, size + 5):
-        rows = table.nearest(query, size, n_wanted, threads)
+        rows = table.nearest(query, size, n_wanted)
         assert len(rows) == min(n_wanted, size)
         assert len(set(rows.tolist())) == len(rows)
         got = truth[rows]
@@ -121,7 +120,7 @@ def test_scan_index_live_edits_prior_and_persistence(tmp_path):
     codes = vlad_binary_code(vlads)
     poses = np.zeros((n, 3))
     poses[:, 0] = np.arange(n) * 1.0
-    config = IndexConfig(ivf_min_entries=1000, scan_candidates=300, scan_shortlist=50)
+    config = IndexConfig(scan_min_entries=1000, scan_candidates=300, scan_shortlist=50)
     index = RetrievalIndex.from_arrays(np.arange(n), codes, vlads, poses, config)
     assert index.kind == "scan" and index._faiss is None
     exact = np.argsort(np.linalg.norm(vlads - vlads[1234], axis=1))[:10]
