@@ -81,7 +81,6 @@ GOALS = {
 HELD_OUT_SEED = 4721
 URBAN_VARIANTS = (
     "full",
-    "full_euler",
     "full_mode",
     "kidnapped",
     "no_prior",
@@ -533,9 +532,7 @@ def urban_city(
         "goals": GOALS,
         "reseeds": result.reseeds,
         "lever_arm_m": {"fitted_on_train": lever, "rig": rig_lever_arm_m(root)},
-        "bias": bias_report(
-            result, [v for v in ("full", "full_euler", "full_mode") if v in variants]
-        ),
+        "bias": bias_report(result, [v for v in ("full", "full_mode") if v in variants]),
     }
     if "kidnapped" in result.estimates:
         out["kidnapped_recover_s"] = recovery_s(result, "kidnapped")
@@ -876,7 +873,7 @@ def main_indoor(args) -> None:
     memory.add_run(read_tum_run(root / "map"))
     query = read_tum_run(root / "query")
     signals = read_tum_replay(root / "query").signals
-    variants = ("full", "full_euler", "full_mode", "no_prior", "top1", "topk_mean", "best_pnp")
+    variants = ("full", "full_mode", "no_prior", "top1", "topk_mean", "best_pnp")
     base = evaluate_run(memory, query, signals, calib.model, lever_arm_m=lever, variants=variants)
     rows = [(v, metrics_row(m)) for v, m in base.metrics.items()]
     quality = evaluate_run(
@@ -905,12 +902,6 @@ def main_indoor(args) -> None:
     err = np.linalg.norm(est[:, :2] - truth[:, :2], axis=1)
     shares = {"within_0_1m": float(np.mean(err < 0.1)), "within_0_06m": float(np.mean(err < 0.06))}
     print_table(rows)
-    exact, euler = base.metrics["full"], base.metrics["full_euler"]
-    print(
-        f"indoor, exact arc vs the paper's Euler step: RMSE {exact.position_rmse_m:.4f} vs "
-        f"{euler.position_rmse_m:.4f} m, median {exact.position_median_m:.4f} vs "
-        f"{euler.position_median_m:.4f} m (goal: unchanged or better)"
-    )
     print(
         f"full method: {100 * shares['within_0_1m']:.1f} % of frames < 0.1 m, "
         f"{100 * shares['within_0_06m']:.1f} % < 0.06 m (paper, real 1:10 car, open loop: "

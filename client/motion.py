@@ -1,10 +1,8 @@
 """Kinematic motion model of docs/method.md section 8, per-particle noise.
 
-The paper's Euler step moves a particle along the heading it has at the start of the
-step. In a steady turn that misses the arc by about V dt * gamma dt / 2 sideways per
-step, always to the outside of the turn (2 cm at 9 m/s, 0.47 rad/s and 10 Hz), a bias
-the measurement update only partly pulls back. monoloc integrates the arc exactly
-(constant speed and yaw rate over the step); the Euler step stays selectable.
+Each step integrates the arc exactly (constant speed and yaw rate over the step): the
+paper's Euler step, along the heading at the start of the step, misses the arc by about
+V dt * gamma dt / 2 to the outside of every turn (2 cm at 9 m/s, 0.47 rad/s and 10 Hz).
 """
 
 from __future__ import annotations
@@ -16,16 +14,12 @@ import numpy as np
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
 
-INTEGRATIONS = ("exact", "euler")
-
 
 @dataclass(frozen=True)
 class MotionConfig:
     """Bounds of the uniform noise added to the measured signals, per particle and step.
 
     speed_noise_mps: (v_lo, v_hi) of w_v; yaw_rate_noise_radps: (g_lo, g_hi) of w_gamma.
-    integration: "exact" (the arc driven at constant speed and yaw rate, monoloc's
-    default) or "euler" (docs/method.md section 8 as printed).
     """
 
     speed_noise_mps: tuple[float, float] = (-0.5, 0.5)
@@ -35,13 +29,6 @@ class MotionConfig:
     # moves sideways at gamma * l, which matters in turns (a 90-degree turn with l = 1 m
     # displaces the camera 1.4 m more than the plain model says).
     lever_arm_m: float = 0.0
-    integration: str = "exact"
-
-    def __post_init__(self) -> None:
-        if self.integration not in INTEGRATIONS:
-            raise InvalidInputError(
-                f"unknown integration {self.integration!r}; use one of {INTEGRATIONS}"
-            )
 
 
 def advance(
@@ -50,34 +37,27 @@ def advance(
     yaw_rate_radps: np.ndarray | float,
     dt_s: float,
     lever_arm_m: float = 0.0,
-    integration: str = "exact",
 ) -> np.ndarray:
     """Camera poses (P, 3) (X, Y, psi) moved by one step of the given speed and yaw rate
     (scalars or (P,)) of the point ``lever_arm_m`` behind the camera; a new (P, 3) array.
 
-    exact: that point drives the arc of constant speed and yaw rate, a chord of length
+    That point drives the arc of constant speed and yaw rate, a chord of length
     V dt sinc(gamma dt / 2) in the direction psi + gamma dt / 2, and the camera stays
-    ``lever_arm_m`` ahead of it along the new heading. euler: X += V cos(psi) dt,
-    Y += V sin(psi) dt, plus the lever arm's sideways gamma l dt, psi += gamma dt.
+    ``lever_arm_m`` ahead of it along the new heading.
     """
     psi = poses_world[:, 2]
     turn = np.asarray(yaw_rate_radps, dtype=np.float64) * dt_s
     distance = np.asarray(speed_mps, dtype=np.float64) * dt_s
     out = np.empty_like(poses_world)
-    if integration == "euler":
-        cos_psi, sin_psi = np.cos(psi), np.sin(psi)
-        out[:, 0] = poses_world[:, 0] + distance * cos_psi - turn * lever_arm_m * sin_psi
-        out[:, 1] = poses_world[:, 1] + distance * sin_psi + turn * lever_arm_m * cos_psi
-    else:
-        # np.sinc(x) = sin(pi x) / (pi x): exact and stable as the yaw rate goes to 0.
-        chord = distance * np.sinc(turn / (2.0 * np.pi))
-        mid = psi + 0.5 * turn
-        new_psi = psi + turn
-        out[:, 0] = poses_world[:, 0] + chord * np.cos(mid)
-        out[:, 1] = poses_world[:, 1] + chord * np.sin(mid)
-        if lever_arm_m:
-            out[:, 0] += lever_arm_m * (np.cos(new_psi) - np.cos(psi))
-            out[:, 1] += lever_arm_m * (np.sin(new_psi) - np.sin(psi))
+    # np.sinc(x) = sin(pi x) / (pi x): exact and stable as the yaw rate goes to 0.
+    chord = distance * np.sinc(turn / (2.0 * np.pi))
+    mid = psi + 0.5 * turn
+    new_psi = psi + turn
+    out[:, 0] = poses_world[:, 0] + chord * np.cos(mid)
+    out[:, 1] = poses_world[:, 1] + chord * np.sin(mid)
+    if lever_arm_m:
+        out[:, 0] += lever_arm_m * (np.cos(new_psi) - np.cos(psi))
+        out[:, 1] += lever_arm_m * (np.sin(new_psi) - np.sin(psi))
     out[:, 2] = wrap_angle(psi + turn)
     return out
 
@@ -98,7 +78,7 @@ def predict(
     n = len(particles)
     speed = speed_mps + rng.uniform(*config.speed_noise_mps, size=n)
     yaw_rate = yaw_rate_radps + rng.uniform(*config.yaw_rate_noise_radps, size=n)
-    return advance(particles, speed, yaw_rate, dt_s, config.lever_arm_m, config.integration)
+    return advance(particles, speed, yaw_rate, dt_s, config.lever_arm_m)
 
 
 def fit_lever_arm_m(

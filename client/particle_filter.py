@@ -97,9 +97,8 @@ class FilterConfig:
     # and the track's support does not age: it must be outweighed by frames that
     # contradict the track (each pushes one of its frames out of the last
     # ``reseed_window_frames`` with hypotheses: 11 of them against a fully supported
-    # track). Without this, a car that left the map's streets found no hypothesis for
-    # 10 s, and then 4 frames of a street 157 m away whose facades look like the
-    # unmapped one's took the filter there for good (fresh seed 3197, 2026-11-29).
+    # track). Without it, a few frames of a look-alike street far away, found after a
+    # silence, take the filter there for good.
     drift_per_m: float = 0.02
     # A candidate whose heading differs from the filter's by more than this contradicts
     # the gyro, not just the position: its frames do not displace the track's support
@@ -262,17 +261,10 @@ class ParticleFilter:
             )
             self.driven_since_support_m += abs(float(speed_mps)) * float(dt_s)
             if self.refiner is not None:
-                self.refiner.predict(
-                    dt_s, speed_mps, yaw_rate_radps, motion.lever_arm_m, motion.integration
-                )
+                self.refiner.predict(dt_s, speed_mps, yaw_rate_radps, motion.lever_arm_m)
         if len(self._recent_world):
             self._recent_world = advance(
-                self._recent_world,
-                speed_mps,
-                yaw_rate_radps,
-                dt_s,
-                motion.lever_arm_m,
-                motion.integration,
+                self._recent_world, speed_mps, yaw_rate_radps, dt_s, motion.lever_arm_m
             )
 
     def update(self, hypotheses: Hypotheses) -> None:
@@ -364,9 +356,8 @@ class ParticleFilter:
             agree = _agrees(centres_world, self._recent_world, cfg)
             if self.particles is not None:
                 # A past hypothesis nearer the filter's estimate than the candidate is the
-                # track's evidence, not the candidate's: within the tolerance (1 m) the
-                # right frames before a few wrong ones a few decimetres off "agreed" with
-                # them too, and re-seeded the filter there (fresh seed 6121, filter seed 1)
+                # track's evidence, not the candidate's: else, within the 1 m tolerance, the
+                # right frames before a few wrong ones decimetres off count for them.
                 mode = self._mode()
                 to_mode = np.hypot(*(self._recent_world[:, :2] - mode[:2]).T)
                 offsets = centres_world[:, None, :2] - self._recent_world[None, :, :2]

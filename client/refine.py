@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
@@ -41,8 +40,6 @@ from monoloc.client.motion import advance
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
 from monoloc.core.measurement import Hypotheses, MeasurementModel
-
-RefineMeasurement = Literal["joint", "all"]
 
 
 @dataclass(frozen=True)
@@ -59,12 +56,9 @@ class RefineConfig:
     deg gives headings off by about that; 0 keeps b at 0); heading_offset_walk_rad: its
     random walk per step. yaw_rate_bias_std_radps: prior 1 sigma of g, the yaw-rate
     signal's bias (0 keeps g at 0); yaw_rate_bias_walk_radps: its random walk per step.
-    measurement: "joint" corrects with the frame's joint pose (the union of its entries'
-    inliers), or without one its per-entry hypothesis with the most inliers; "all" with
-    every hypothesis in turn, as if their errors were independent (they are not: the
-    entries share the query's keypoints). gate_mahalanobis_sq: a hypothesis further than
-    this (squared, 3 dof; 16: P = 0.1 %) from the prediction is not used, nor one further
-    than the restart tolerances ``reset_position_m`` / ``reset_yaw_rad``.
+    gate_mahalanobis_sq: a hypothesis further than this (squared, 3 dof; 16: P = 0.1 %)
+    from the prediction is not used, nor one further than the restart tolerances
+    ``reset_position_m`` / ``reset_yaw_rad``.
     restart_mahalanobis_sq: the filter also starts over from the particles' mode when the
     two are further apart than this (squared, 3 dof) under the sum of this filter's pose
     covariance and the particles' spread: started from a mode on a wrong hypothesis with
@@ -73,10 +67,9 @@ class RefineConfig:
     the tolerances alone). restart_after_frames: a disagreement within the restart
     tolerances restarts the filter only once it has lasted this many frames in a row
     (1: at once); beyond the tolerances it restarts at once. Why: the particles follow
-    a few frames whose every hypothesis agrees on one wrong pose (a parked car moved
-    along the street since the map was made pulls every retrieved entry's pose 0.2-0.4 m
-    the same way), and a restart there took the reported pose with them and then,
-    with the particles' tight spread, gated out the right poses that followed.
+    a few frames whose every hypothesis agrees on one wrong pose (a parked car that
+    moved since the map was made pulls every entry the same way); restarting on them
+    takes the reported pose along, and then gates out the right poses that follow.
     """
 
     speed_noise_mps: float = 0.1
@@ -89,7 +82,6 @@ class RefineConfig:
     heading_offset_walk_rad: float = math.radians(0.002)
     yaw_rate_bias_std_radps: float = 0.005
     yaw_rate_bias_walk_radps: float = 1e-5
-    measurement: RefineMeasurement = "joint"
     gate_mahalanobis_sq: float = 16.0
     reset_position_m: float = 0.5
     reset_yaw_rad: float = math.radians(2.0)
@@ -123,10 +115,6 @@ class RefineConfig:
             )
         if not 0 < lo <= 1 <= hi:
             raise InvalidInputError(f"speed_scale_bounds must hold 1, got {(lo, hi)}")
-        if self.measurement not in ("joint", "all"):
-            raise InvalidInputError(
-                f"refinement measurement must be 'joint' or 'all', got {self.measurement!r}"
-            )
 
 
 class ModeRefiner:
@@ -250,7 +238,6 @@ class ModeRefiner:
         speed_mps: float,
         yaw_rate_radps: float,
         lever_arm_m: float = 0.0,
-        integration: str = "exact",
     ) -> None:
         """One step of the measured signals; the covariance through the Jacobians of the
         motion model in the state and in the two signals (forward differences)."""
@@ -267,7 +254,7 @@ class ModeRefiner:
         scale[4] += eps[3]
         speed[5] += eps[4]
         yaw_rate[6] += eps[5]
-        moved = advance(poses, scale * speed, yaw_rate, dt_s, lever_arm_m, integration)
+        moved = advance(poses, scale * speed, yaw_rate, dt_s, lever_arm_m)
         diff = moved[1:] - moved[0]
         diff[:, 2] = wrap_angle(diff[:, 2])
         jac = (diff / eps[:, None]).T  # (3, 6): d pose / d (X, Y, psi, k, speed, yaw rate)
@@ -293,17 +280,18 @@ class ModeRefiner:
         self.covariance = F @ self.covariance @ F.T + Q
 
     def correct(self, hypotheses: Hypotheses, model: MeasurementModel) -> int:
-        """Correct with the frame's hypotheses (see ``RefineConfig.measurement``); the
-        number used (those within the gate)."""
+        """Correct with one of the frame's hypotheses: the joint pose (the union of its
+        entries' inliers), else the per-entry one with the most inliers, the first of
+        them within the gate. One, not each in turn: their errors are not independent
+        (the entries share the query's keypoints). Returns how many were used (0 or 1)."""
         if self.state is None or len(hypotheses) == 0:
             return 0
         centres, covs = model.hypothesis_gaussians(hypotheses)
         used = 0
         for i in self._order(hypotheses):
             if self._correct_one(centres[i], covs[i]):
-                used += 1
-                if self.config.measurement == "joint":
-                    break
+                used = 1
+                break
         lo, hi = self.config.speed_scale_bounds
         self.state[3] = float(np.clip(self.state[3], lo, hi))
         return used

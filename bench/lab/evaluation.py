@@ -6,7 +6,6 @@ vehicle's own loop (monoloc.client.tracking). No HTTP and no database, so varian
 the method can be compared quickly on the same frames:
 
 - full:        particle filter + prior-constrained retrieval (the product);
-- full_euler:  the same with the paper's Euler motion step instead of the exact arc;
 - full_mode:   the same reporting the particles' main mode (docs/method.md's estimate) instead
                of the Gaussian filter riding on it (``FilterConfig.refine``);
 - kidnapped:   the full method with the filter initialised ``kidnap_offset_m`` to the
@@ -151,7 +150,7 @@ class RunEvaluation:
     reseeds: dict[str, int] = field(default_factory=dict)
 
 
-FILTER_VARIANTS = ("full", "full_euler", "full_mode", "kidnapped", "no_prior")
+FILTER_VARIANTS = ("full", "full_mode", "kidnapped", "no_prior")
 GLOBAL_VARIANTS = ("no_prior", "top1", "topk_mean", "best_pnp")
 
 
@@ -193,10 +192,7 @@ def _trackers(
     times = np.array([f.timestamp_s for f in seq.frames])
     motion = replace(config.filter.motion, lever_arm_m=lever_arm_m)
     fconf = replace(config.filter, motion=motion)
-    configs = {
-        "full_euler": replace(fconf, motion=replace(motion, integration="euler")),
-        "full_mode": replace(fconf, refine=None),
-    }
+    configs = {"full_mode": replace(fconf, refine=None)}
     trackers = {
         v: Tracker(
             configs.get(v, fconf),
@@ -247,6 +243,9 @@ def evaluate_run(
 
     ``signals`` (N, 2): measured speed and yaw rate per frame (vehicle.txt).
     """
+    unknown = set(variants) - {*FILTER_VARIANTS, *GLOBAL_VARIANTS}
+    if unknown:
+        raise ValueError(f"unknown variants {sorted(unknown)}")
     n = seq.n_frames
     truth = np.array([planar_from_T_world_from_cam(f.T_world_from_cam) for f in seq.frames])
     trackers = _trackers(seq, signals, model, config, lever_arm_m, variants, truth[0])

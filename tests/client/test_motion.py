@@ -1,5 +1,5 @@
-"""The motion model's integration of the arc: exact at any step size, and the paper's
-Euler step's sideways miss to the outside of the turn that the exact one removes."""
+"""The motion model's integration of the arc: exact at any step size, with or without a
+lever arm, and on a straight line; per-particle noise around it; the lever arm's fit."""
 
 from __future__ import annotations
 
@@ -30,28 +30,14 @@ def test_exact_integration_stays_on_the_circle_at_10_hz(lever_arm_m):
     truth = _circle(np.arange(n) * DT_S, lever_arm_m)
     pose = truth[:1].copy()
     for k in range(1, n):
-        pose = advance(pose, SPEED_MPS, YAW_RATE_RADPS, DT_S, lever_arm_m, "exact")
+        pose = advance(pose, SPEED_MPS, YAW_RATE_RADPS, DT_S, lever_arm_m)
         np.testing.assert_allclose(pose[0], truth[k], atol=1e-9)
 
 
-def test_euler_misses_the_arc_to_the_outside_by_half_a_step_turn():
-    truth = _circle(np.array([0.0, DT_S]))
-    euler = advance(truth[:1], SPEED_MPS, YAW_RATE_RADPS, DT_S, 0.0, "euler")[0]
-    # Error in the truth's frame at the end of the step: the Euler point sits to the right
-    # (outside of this left turn) by about V dt * gamma dt / 2.
-    d = euler[:2] - truth[1, :2]
-    psi = truth[1, 2]
-    cross_m = -d[0] * math.sin(psi) + d[1] * math.cos(psi)
-    expected = SPEED_MPS * DT_S * YAW_RATE_RADPS * DT_S / 2.0
-    assert cross_m == pytest.approx(-expected, rel=0.05)
-    assert expected == pytest.approx(0.021, abs=0.001)
-
-
-def test_straight_line_is_the_same_for_both_and_handles_zero_yaw_rate():
+def test_a_straight_line_handles_zero_yaw_rate_and_ignores_the_lever_arm():
     start = np.array([[3.0, -2.0, 0.4]])
-    for integration in ("exact", "euler"):
-        moved = advance(start, 5.0, 0.0, 2.0, 0.7, integration)[0]
-        np.testing.assert_allclose(moved, [3 + 10 * math.cos(0.4), -2 + 10 * math.sin(0.4), 0.4])
+    moved = advance(start, 5.0, 0.0, 2.0, 0.7)[0]
+    np.testing.assert_allclose(moved, [3 + 10 * math.cos(0.4), -2 + 10 * math.sin(0.4), 0.4])
 
 
 def test_predict_draws_noise_per_particle_around_the_exact_arc():
@@ -62,11 +48,6 @@ def test_predict_draws_noise_per_particle_around_the_exact_arc():
     exact = advance(start[:1], SPEED_MPS, YAW_RATE_RADPS, DT_S)[0]
     np.testing.assert_allclose(moved.mean(axis=0), exact, atol=2e-3)
     assert moved[:, 2].std() > 1e-3
-
-
-def test_unknown_integration_is_refused():
-    with pytest.raises(InvalidInputError, match="unknown integration"):
-        MotionConfig(integration="rk4")
 
 
 def test_the_lever_arm_is_fitted_from_poses_and_measured_speed():
