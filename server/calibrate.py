@@ -43,7 +43,13 @@ from monoloc.core.calibration import (
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
-from monoloc.core.measurement import CovarianceModel, MeasurementModel, RetrievalFrame
+from monoloc.core.measurement import (
+    DEFAULT_COVARIANCE,
+    DEFAULT_RETRIEVAL_FRAME,
+    CovarianceModel,
+    MeasurementModel,
+    RetrievalFrame,
+)
 from monoloc.server.entry_builder import (
     BuildConfig,
     Source3d,
@@ -90,10 +96,9 @@ class CalibrationConfig:
     strategy: PnpStrategy = field(
         default_factory=lambda: PnpStrategy(guess_from_prior=False, covariance=True)
     )
-    covariance: CovarianceModel = "pnp"
-    # the frame of the retrieval vector's offset: "world" (the paper's) or "vehicle"
-    # (along / across the heading; see monoloc.core.measurement)
-    retrieval_frame: RetrievalFrame = "world"
+    # the product's choices; bench/ sets the variants it measures (monoloc.core.measurement)
+    covariance: CovarianceModel = DEFAULT_COVARIANCE
+    retrieval_frame: RetrievalFrame = DEFAULT_RETRIEVAL_FRAME
     # the paper covariance's tail (monoloc.core.calibration.PAPER_TAIL_WEIGHT): set, not
     # fitted; tail_weight 0 stores the paper's single Gaussian
     tail_weight: float = PAPER_TAIL_WEIGHT

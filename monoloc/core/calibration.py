@@ -11,6 +11,7 @@ import numpy as np
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
 from monoloc.core.measurement import (
+    DEFAULT_RETRIEVAL_FRAME,
     MeasurementModel,
     PnpCovarianceModel,
     QualityModel,
@@ -30,7 +31,7 @@ def retrieval_vectors(
     e_vlad: np.ndarray,
     entry_pose_world: np.ndarray,
     truth_world: np.ndarray,
-    frame: RetrievalFrame = "world",
+    frame: RetrievalFrame = DEFAULT_RETRIEVAL_FRAME,
 ) -> np.ndarray:
     """[e_vlad_i, X_i - X_q, Y_i - Y_q, wrap(psi_i - psi_q)] per sample: (N, 4); with
     ``frame="vehicle"`` the offset is turned into the query's frame (along, across its
@@ -80,13 +81,9 @@ def fit_gaussian(
 
 
 # Smallest spread Sigma2 may have (1 sigma): of the entry's offset in any direction (m)
-# and of its heading difference (rad). The training run is split into its own map and
-# queries, all from one drive: its queries are never a lane beside the map or turned a
-# few degrees against it, as a later drive is. A training run along one straight street
-# gave a Sigma2 5 cm wide across it and 0.06 deg in heading (dev city 6), and every
-# hypothesis of a query on a cross street then weighed less than the outlier floor: the
-# filter dead-reckoned 0.3-0.5 m off while its hypotheses were within 0.1 m. A minimum,
-# not an addition: a training run that turns (the usual case) keeps its Sigma2.
+# and of its heading difference (rad). A minimum, not an addition: the training run's
+# queries all come from the map's own drive, so a run along one straight street would
+# otherwise give a Sigma2 too narrow for any later drive; one that turns keeps its own.
 RETRIEVAL_MIN_STD_M = 1.0
 RETRIEVAL_MIN_STD_RAD = 0.05
 
@@ -103,18 +100,11 @@ def _clamp_retrieval_spread(Sigma2: np.ndarray) -> np.ndarray:
 
 
 # The paper covariance's tail (``MeasurementModel.tail_weight`` / ``tail_scale``): set,
-# not fitted. A training run cannot show the errors it stands for: its queries meet the
-# k entries nearest by pose, by day, of the same drive, and none of its hypotheses falls
-# beyond the gates (dev city 3: 0 of 919). Query runs do have them: on the development
-# nights a frame's lone hypothesis is 0.3-1.6 m off in 18-62 % of such frames (2-7 % of
-# the hypotheses of frames with several), in runs of up to four frames, and a Gaussian
-# of Sigma1 (4-9 cm) drags the whole particle cloud onto each of them. A tail ten times
-# as wide (0.4-0.9 m: the spread of those wrong poses) with a 30 % share makes such a
-# hypothesis's pull on particles near the truth 1/100 of the Gaussian's while the right
-# ones, within a few Sigma1, weigh as before. Measured on five development cities, day
-# and night, three filter seeds each (docs/decisions.md): mean RMSE down in 4 of 5 cities by night
-# (one even) and by day (one worse: 0.097 -> 0.111 m). Only for lone hypotheses: less
-# (their frames are a minority). 0 switches it off (the paper's single Gaussian).
+# not fitted, because a training run never shows the errors it stands for (its queries
+# meet the nearest entries of their own drive). A tail ten times as wide with a 30 %
+# share keeps a wrong hypothesis a few decimetres off from dragging the particle cloud
+# onto itself, while the right ones weigh as before (measured: docs/decisions.md).
+# 0 switches it off (the paper's single Gaussian).
 PAPER_TAIL_WEIGHT = 0.3
 PAPER_TAIL_SCALE = 10.0
 
@@ -125,7 +115,7 @@ def fit_measurement_model(
     unbiased: bool = True,
     outlier_log_density: float | None = -16.0,
     source: str = "calibrated",
-    retrieval_frame: RetrievalFrame = "world",
+    retrieval_frame: RetrievalFrame = DEFAULT_RETRIEVAL_FRAME,
     tail_weight: float = PAPER_TAIL_WEIGHT,
     tail_scale: float = PAPER_TAIL_SCALE,
 ) -> MeasurementModel:

@@ -8,12 +8,11 @@ For a particle x = (X, Y, psi) and hypotheses i = 1..H from one frame::
 
 Everything is vectorised over particles and hypotheses (P x H). Pure numpy.
 
-The retrieval vector's offset (``MeasurementModel.retrieval_frame``): "world" is the
-paper's (X_i - X, Y_i - Y, in the world frame), monoloc's default; "vehicle" is the same
-offset turned into the particle's frame, (along, across) its heading. A world-frame
-Sigma2 remembers the compass direction of the training run's streets; in the vehicle
-frame the spread is along and across the road wherever the road runs. On the development
-cities neither was better across the board (docs/measured.md), so the paper's stays.
+The product's choices are :data:`DEFAULT_COVARIANCE` (each hypothesis's own PnP
+covariance) and :data:`DEFAULT_RETRIEVAL_FRAME` (the paper's world-frame offset). The
+variants beside them ("paper" and "quality" covariances, the "vehicle" frame) stay
+reachable here for bench/ and for calibrations stored with them; the API does not offer
+them.
 """
 
 from __future__ import annotations
@@ -291,9 +290,8 @@ class PnpCovarianceModel:
     hypothesis). A tail scaled from S_i would not do: a precise-looking wrong pose would
     then pull the particles as hard as a right one. A pooled pose's C_i comes from the
     inliers of all its entries; a hypothesis without C_i (an older server's pooled pose)
-    follows the paper's model alone; joint poses are left out, as in the paper's model (on
-    dev cities 3, 5, 7, 42 keeping them with their C_i changed the mean RMSE by -0.007 to
-    +0.005 m, within the filter seeds' spread). Fitted by maximum likelihood
+    follows the paper's model alone; joint poses are left out, as in the paper's model
+    (keeping them gained nothing measurable). Fitted by maximum likelihood
     (``core.calibration.fit_pnp_covariance_model``).
     """
 
@@ -346,6 +344,12 @@ class PnpCovarianceModel:
 CovarianceModel = Literal["paper", "quality", "pnp"]
 RetrievalFrame = Literal["world", "vehicle"]
 
+DEFAULT_COVARIANCE: CovarianceModel = "pnp"
+"""The pose-error model the product calibrates and selects. A model without its
+parameters (the documented defaults, a calibration stored before it) uses the paper's."""
+DEFAULT_RETRIEVAL_FRAME: RetrievalFrame = "world"
+"""The frame of the retrieval vector's offset: the paper's (X_i - X, Y_i - Y)."""
+
 
 @dataclass(frozen=True)
 class MeasurementModel:
@@ -365,10 +369,11 @@ class MeasurementModel:
     ``covariance`` selects the pose-error model: "paper" (mu1, Sigma1 for all, joint
     hypotheses left out), "quality" (``quality``'s per-hypothesis covariance; needs
     ``quality``) or "pnp" (``pnp``'s covariance from each hypothesis's own PnP geometry,
-    joint hypotheses left out; needs ``pnp``). ``with_covariance`` switches between them.
-    ``retrieval_frame``: the frame of the retrieval vector's offset, "world" (the paper's;
-    calibrations stored before the choice existed) or "vehicle" (along and across the
-    particle's heading).
+    joint hypotheses left out; needs ``pnp``); None picks :data:`DEFAULT_COVARIANCE`
+    when its parameters are given, else "paper". ``with_covariance`` switches between
+    them. ``retrieval_frame``: the frame of the retrieval vector's offset, "world" (the
+    paper's; calibrations stored before the choice existed) or "vehicle" (along and
+    across the particle's heading).
     ``conditions``: models calibrated on a training run of one condition, by the entry tag
     that names it (e.g. "night": a night training run against its own night map). A
     hypothesis whose entry carries that tag (``Hypotheses.entry_tags``) is weighed by that
@@ -389,9 +394,9 @@ class MeasurementModel:
     outlier_log_density: float | None = -16.0
     source: str = "defaults"
     quality: QualityModel | None = None
-    covariance: CovarianceModel = "paper"
+    covariance: CovarianceModel | None = None
     pnp: PnpCovarianceModel | None = None
-    retrieval_frame: RetrievalFrame = "world"
+    retrieval_frame: RetrievalFrame = DEFAULT_RETRIEVAL_FRAME
     tail_weight: float = 0.0
     tail_scale: float = 1.0
     conditions: dict[str, MeasurementModel] = field(default_factory=dict)
@@ -413,6 +418,10 @@ class MeasurementModel:
                 "tail_weight must be in [0, 1) and tail_scale in [1, 1000), got "
                 f"{self.tail_weight} and {self.tail_scale}"
             )
+        if self.covariance is None:
+            parameters = {"paper": self.Sigma1, "quality": self.quality, "pnp": self.pnp}
+            chosen = DEFAULT_COVARIANCE if parameters[DEFAULT_COVARIANCE] is not None else "paper"
+            object.__setattr__(self, "covariance", chosen)
         if self.covariance not in ("paper", "quality", "pnp"):
             raise InvalidInputError(
                 f"covariance must be 'paper', 'quality' or 'pnp', got {self.covariance!r}"
@@ -530,7 +539,8 @@ class MeasurementModel:
     def from_dict(cls, data: dict) -> MeasurementModel:
         """Parameters from :meth:`to_dict` output; a calibration stored before the quality
         model existed (no ``quality`` / ``covariance``) loads as the paper's model, one
-        stored before the PnP covariance model without it (``pnp`` None)."""
+        stored before the PnP covariance model without it (``pnp`` None), one stored
+        before the retrieval frame was a choice in the world frame."""
         try:
             quality = data.get("quality")
             return cls(
@@ -541,7 +551,7 @@ class MeasurementModel:
                 outlier_log_density=data.get("outlier_log_density", -16.0),
                 source=str(data.get("source", "calibrated")),
                 quality=None if quality is None else QualityModel.from_dict(quality),
-                covariance=data.get("covariance") or "paper",
+                covariance=data.get("covariance"),
                 pnp=None if data.get("pnp") is None else PnpCovarianceModel.from_dict(data["pnp"]),
                 retrieval_frame=data.get("retrieval_frame") or "world",
                 tail_weight=float(data.get("tail_weight") or 0.0),
@@ -688,10 +698,8 @@ def _pnp_terms(X, Y, psi, hypotheses, r1_paper, model, pnp):
     (P, H) of the "lost" signal: (1 - w) N(x; z_i + mu1, S_i) + w paper(x) where the
     hypothesis has a covariance, the paper's density alone where not. The distance is the
     smaller of the two components' (with w > 0): a particle within the paper's Sigma1 of
-    a hypothesis is not lost to it. Under S_i alone, whose heading is a twentieth of a
-    degree sharp, a filter whose heading had drifted half a degree found every right
-    hypothesis "unlikely", and re-seeded onto a ghost basin that four frames agreed on
-    (fresh seed 7702: 15 frames 0.6-0.8 m off)."""
+    a hypothesis is not lost to it (S_i alone is so sharp in heading that a filter drifted
+    by half a degree would find every right hypothesis unlikely and re-seed)."""
     maha_paper = _mahalanobis(r1_paper, model._whiten1)
     paper = model.paper_log_density(maha_paper)
     S, known = pnp.covariances(hypotheses.pose_covariance)
