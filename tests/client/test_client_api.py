@@ -89,11 +89,11 @@ def test_retry_after_of_a_429_is_honoured_and_capped():
     with script.client(retries=1) as client:
         client.request("GET", "/v1/maps")
     assert script.times[1] - script.times[0] >= 0.2
-    capped = Script([(503, _error("busy"), {"Retry-After": "30"}), (200, {"items": []})])
+    capped = Script([(503, _error("busy"), {"Retry-After": "600"}), (200, {"items": []})])
     start = time.perf_counter()
     with capped.client(retries=1, max_backoff_s=0.05) as client:
         client.request("GET", "/v1/maps")
-    assert time.perf_counter() - start < 5
+    assert time.perf_counter() - start < 60
 
 
 @pytest.mark.parametrize(

@@ -15,6 +15,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from busy_machine import GENEROUS_DEADLINES
+
 ADMIN_KEY = "mlk_" + "E" * 43
 MAP_SEQ, QUERY_SEQ = "00", "01"  # the sim's map and query runs
 SIM_FRAMES = 40  # per run; full KITTI resolution (half size gives too few 3D points)
@@ -76,6 +78,7 @@ def make_settings(data_dir: Path, **overrides):
     from monoloc.server.settings import Settings
 
     values = dict(data_dir=data_dir, bootstrap_admin_key=ADMIN_KEY, worker_threads=1)
+    values.update(GENEROUS_DEADLINES)
     values.update(overrides)
     return Settings(**values)
 
@@ -104,7 +107,7 @@ def create_keys(client) -> Keys:
     return Keys(admin=ADMIN_KEY, localize=made["car"], write=made["operator"])
 
 
-def upload_map_run(client, name: str, dataset: Path, seq: str, timeout_s: float = 120) -> int:
+def upload_map_run(client, name: str, dataset: Path, seq: str, timeout_s: float = 600) -> int:
     """Create map ``name`` (admin client) and ingest sequence ``seq`` through the API."""
     from monoloc.core.camera import KITTI_CAM0
 

@@ -100,7 +100,7 @@ def test_an_uncalibrated_map_gives_the_documented_defaults(client, live_map):
 
 def test_client_errors_are_raised_at_once_with_the_server_message(live_map, query):
     image, _ = query
-    slow = dict(retries=3, backoff_s=2.0)  # a retry would take >= 2 s
+    slow = dict(retries=3, backoff_s=60.0)  # a retry would take >= 60 s
     start = time.perf_counter()
     with MonolocClient(live_map.url, "mlk_" + "x" * 43, **slow) as stranger:
         with pytest.raises(ServerError, match="401 unknown or revoked API key") as info:
@@ -126,4 +126,4 @@ def test_client_errors_are_raised_at_once_with_the_server_message(live_map, quer
         with pytest.raises(ServerError) as info:
             stranger.stream(live_map.map_id)
     assert info.value.status_code == 401
-    assert time.perf_counter() - start < 2.0
+    assert time.perf_counter() - start < 30.0  # no retry, even on a loaded machine

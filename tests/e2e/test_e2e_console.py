@@ -93,7 +93,7 @@ class Offline:
         self.context = browser.new_context(viewport={"width": 1400, "height": 950})
         self.context.route("**/*", self._route)
         self.page = self.context.new_page()
-        self.page.set_default_timeout(30_000)
+        self.page.set_default_timeout(60_000)
         self.errors: list[str] = []
         self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
 

@@ -5,6 +5,7 @@ import json
 
 import cv2
 import pytest
+from busy_machine import generous_env
 
 from monoloc.demo import DemoConfig, run_demo
 
@@ -15,7 +16,11 @@ def demo_summary(tmp_path_factory):
     _leave_a_previous_runs_server(out / "server")
     # The closed-loop lap is left out here: its steps have their own end-to-end test
     # (test_e2e_closed_loop.py), and it would add ~40 s to this one.
-    return run_demo(DemoConfig(out_dir=out, frames=40, seed=5, closed_loop_frames=0)), out
+    config = DemoConfig(out_dir=out, frames=40, seed=5, closed_loop_frames=0)
+    with pytest.MonkeyPatch.context() as env:  # the demo's `monoloc serve` reads them
+        for name, value in generous_env().items():
+            env.setenv(name, value)
+        return run_demo(config), out
 
 
 def _leave_a_previous_runs_server(data_dir):

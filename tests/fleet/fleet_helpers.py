@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
+from busy_machine import generous_env
 
 from monoloc.client.api import ServerError, wait_until_ready
 
@@ -94,6 +95,7 @@ class Replica:
 
 def replica_env(database_url: str, uploads: Path, **extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("MONOLOC_")}
+    env.update(generous_env())  # the lease below is short: a takeover is a suite's subject
     env.update(
         MONOLOC_DATABASE_URL=database_url,
         MONOLOC_UPLOADS_DIR=str(uploads),
@@ -118,7 +120,7 @@ class Fleet:
         return {"X-API-Key": self.keys[scope]}
 
 
-def wait_job(url: str, job_id: int, headers: dict, timeout_s: float = 120.0) -> dict:
+def wait_job(url: str, job_id: int, headers: dict, timeout_s: float = 600.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         job = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers, timeout=10).json()

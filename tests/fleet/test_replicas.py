@@ -122,7 +122,7 @@ def test_writes_on_one_replica_while_the_other_localizes_leave_every_index_equal
         stop.set()
         thread.join(60)
     assert answers and set(answers) == {200}
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 60  # a bound, not a latency (the test above has that)
     for replica in fleet.replicas:
         while not (state := _replica_state(fleet, replica))["in_sync"]:
             assert time.monotonic() < deadline, state
@@ -142,7 +142,7 @@ def test_sigkill_of_the_replica_running_an_ingestion_the_other_finishes_it(fleet
         os.kill(pid, signal.SIGKILL)
         victim.process.wait(10)
         survivor = b if victim is a else a
-        job = wait_job(survivor.url, job_id, fleet.headers("admin"), timeout_s=120)
+        job = wait_job(survivor.url, job_id, fleet.headers("admin"))
         assert job["state"] == "done", job
         with engine.connect() as connection:
             row = connection.execute(
@@ -202,10 +202,10 @@ def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_pat
     subprocess.run([nginx, "-p", str(tmp_path), "-c", str(conf)], check=True)
     try:
         front = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 60
         while True:
             try:
-                if httpx.get(f"{front}/readyz", timeout=2).status_code == 200:
+                if httpx.get(f"{front}/readyz", timeout=10).status_code == 200:
                     break
             except httpx.TransportError:
                 pass

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from busy_machine import GENEROUS_DEADLINES
 
 from monoloc.server.settings import Settings
 
@@ -46,6 +47,7 @@ class Keys:
 
 def make_settings(data_dir: Path, **overrides) -> Settings:
     values = dict(data_dir=data_dir, bootstrap_admin_key=ADMIN_KEY, worker_threads=2)
+    values.update(GENEROUS_DEADLINES)
     values.update(overrides)
     return Settings(**values)
 
@@ -82,7 +84,7 @@ def tar_sequence(dataset: Path, seq: str = "00") -> bytes:
     return buffer.getvalue()
 
 
-def wait_job(client: TestClient, job_id: int, headers: dict, timeout_s: float = 60.0) -> dict:
+def wait_job(client: TestClient, job_id: int, headers: dict, timeout_s: float = 600.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         job = client.get(f"/v1/jobs/{job_id}", headers=headers).json()

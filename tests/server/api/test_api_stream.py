@@ -52,16 +52,31 @@ def test_round_trip_in_order_with_errors_in_place(sim_dataset, map_copy):
     assert answers[3]["t"] == pytest.approx(0.2) and len(answers[3]["retrieved"]) <= 5
 
 
-def test_flooding_drops_the_oldest_frames_and_says_so(sim_dataset, map_copy):
+def test_flooding_drops_the_oldest_frames_and_says_so(sim_dataset, map_copy, monkeypatch):
+    import monoloc.server.api.routes.stream as stream_route
+
     settings = make_settings(map_copy.data_dir, stream_max_pending_frames=2)
     app = create_app(settings)
     n = 12
+    # A server that falls behind: nothing is localized before every frame has arrived
+    # (an event, not a sleep: the outcome must not depend on how busy the machine is).
+    arrived = threading.Event()
+    pushed: list = []
+    push = stream_route._Session.push
+
+    def counting_push(session, item):
+        push(session, item)
+        pushed.append(item.seq)
+        if len(pushed) == n:
+            arrived.set()
+
+    monkeypatch.setattr(stream_route._Session, "push", counting_push)
     with live_server(settings, app) as port:
         registry = app.state.monoloc.registry
         original = registry.localize
 
-        def slow_localize(*args, **kwargs):  # a server that falls behind
-            time.sleep(0.15)
+        def slow_localize(*args, **kwargs):
+            assert arrived.wait(60), "the frames did not arrive"
             return original(*args, **kwargs)
 
         registry.localize = slow_localize

@@ -18,7 +18,7 @@ from monoloc.client.api import ServerError, wait_until_ready
 REPO = Path(__file__).resolve().parents[3]
 
 
-def _wait_ready(url: str, process: subprocess.Popen, timeout_s: float = 60.0) -> None:
+def _wait_ready(url: str, process: subprocess.Popen, timeout_s: float = 180.0) -> None:
     try:
         wait_until_ready(url, timeout_s, process)
     except ServerError as exc:
