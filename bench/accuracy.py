@@ -15,7 +15,7 @@ stereo depth against the LiDAR-built map of the same run, same query (bench/ster
 Indoor (`--scenario indoor`): the 1:10 car's query lap against the map lap, then against
 the map plus the off-center lap (the paper's augmentation), next to the paper's indoor
 open-loop figures.
-Usage: python bench/accuracy.py [--scenario urban|indoor] [--size medium] [--frames 300]
+Usage: python -m bench.accuracy [--scenario urban|indoor] [--size medium] [--frames 300]
 """
 
 from __future__ import annotations
@@ -152,19 +152,6 @@ def ensure_dataset(
     return json.loads((root / "dataset.json").read_text())
 
 
-def _sibling(name: str):
-    """bench/<name>.py as a module: the benches run with ``python -P`` (bench/sim.py would
-    shadow the sim package), so the bench folder is not on the import path."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        f"monoloc_bench_{name}", Path(__file__).with_name(f"{name}.py")
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def calibrate_on(train, vocabulary, trainnight=None, covariance: str = "pnp"):
     """The measurement model fitted on a training run (KittiSequence / TumRun), each frame
     read once, exactly as the server's calibration job does; with ``trainnight``, on the
@@ -268,7 +255,7 @@ def main() -> None:
         )
         out["floor"] = floor
     if not args.no_stereo:
-        stereo = _sibling("stereo")
+        from bench import stereo
 
         stereo_root = root.with_name(root.name + "_stereo")
         stereo_meta = stereo.ensure_stereo_dataset(stereo_root, args.size, args.frames, args.seed)

@@ -11,7 +11,7 @@ The city route is no loop: there, "laps" is the share of the route driven, and e
 drives that share ``--passes`` times from its start (fresh filter each pass; the figures
 pool the passes).
 
-Usage: python bench/closed_loop.py [--scenario indoor|urban] [--laps N] [--passes N]
+Usage: python -m bench.closed_loop [--scenario indoor|urban] [--laps N] [--passes N]
     [--size small]
 """
 

@@ -22,9 +22,6 @@ from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
-    sys.path.pop(0)
-
 RESULTS = Path(__file__).parent / "results"
 DEFAULT_DATA = Path(__file__).parent.parent / "out" / "bench_crash"
 

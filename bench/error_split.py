@@ -20,12 +20,19 @@ results/error_split_medium_s8807.json is `--size medium --frames 300 --seeds 880
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bench.accuracy import (
+    calibrate_on,
+    fitted_lever_arm_m,
+    limit_threads,
+    sequence_of,
+    written_poses,
+)
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -39,16 +46,6 @@ GROUPS = {
 }
 
 
-def _accuracy():
-    """bench/accuracy.py as a module (the benches run with ``python -P``)."""
-    spec = importlib.util.spec_from_file_location(
-        "monoloc_bench_accuracy", Path(__file__).with_name("accuracy.py")
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def measure(group: str, seed: int, size: str, frames: int, data: Path) -> dict:
     """One city with the group's errors: the figures of the module docstring."""
     from bench.lab.evaluation import MemoryMap, evaluate_run
@@ -60,7 +57,6 @@ def measure(group: str, seed: int, size: str, frames: int, data: Path) -> dict:
     from monoloc.sim.recording import RecordingErrors
     from monoloc.sim.urban.truth import true_planar_poses
 
-    acc = _accuracy()
     config = GenerateConfig(
         size=size,
         seed=seed,
@@ -73,18 +69,18 @@ def measure(group: str, seed: int, size: str, frames: int, data: Path) -> dict:
     if not (root / "dataset.json").exists():
         generate_dataset(config, root)
     meta = json.loads((root / "dataset.json").read_text())
-    ids = {run: acc.sequence_of(meta, run) for run in ("map", "query", "train")}
+    ids = {run: sequence_of(meta, run) for run in ("map", "query", "train")}
     true_world = true_planar_poses(config, np.array(meta["T_simworld_from_zupworld"]))
     vocab = load_default_vocabulary()
-    lever = acc.fitted_lever_arm_m(read_kitti_run(root, ids["train"]), rig_lever_arm_m(root))
-    model = acc.calibrate_on(read_kitti_sequence(root, ids["train"]), vocab).model
+    lever = fitted_lever_arm_m(read_kitti_run(root, ids["train"]), rig_lever_arm_m(root))
+    model = calibrate_on(read_kitti_sequence(root, ids["train"]), vocab).model
     memory = MemoryMap.empty(vocab)
     memory.add_run(read_kitti_sequence(root, ids["map"]))
     query = read_kitti_sequence(root, ids["query"])
     signals = read_kitti_run(root, ids["query"]).signals
     result = evaluate_run(memory, query, signals, model, lever_arm_m=lever, variants=("full",))
     placed = truth_in_map_frame(
-        true_world["query"], true_world["map"], acc.written_poses(root, ids["map"])
+        true_world["query"], true_world["map"], written_poses(root, ids["map"])
     )
     estimate = result.estimates["full"]
     filter_map = np.linalg.norm(estimate[:, :2] - placed[:, :2], axis=1)
@@ -138,7 +134,7 @@ def main() -> None:
         help="results/<out>.json; REPORT.md shows error_split.json and every error_split_*.json",
     )
     args = parser.parse_args()
-    _accuracy().limit_threads()
+    limit_threads()
     rows = []
     for seed in args.seeds:
         for group in args.groups:

@@ -10,20 +10,16 @@
   given with ``--database-url``; the database's own file size per entry for SQLite.
 
 Writes bench/results/footprint.json. Usage:
-    python bench/footprint.py [--entries 200000] [--database-url sqlite:///...]
+    python -m bench.footprint [--entries 200000] [--database-url sqlite:///...]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
-    sys.path.pop(0)  # bench/sim.py would shadow the sim package
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"

@@ -10,7 +10,7 @@ observations as they are, described with ORB), and the map run is also ingested 
 LiDAR. Every query frame is localized against each map (one frame, no filter: the best
 hypothesis, and whether there is one). Prints the table, writes bench/results/formats.json.
 
-Usage: python bench/formats.py [--size small] [--frames 120] [--seed 5] [--out out/bench_formats]
+Usage: python -m bench.formats [--size small] [--frames 120] [--seed 5] [--out out/bench_formats]
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ skips it). A real frame: a 1241 x 376 photograph-like PNG (scikit-image's camera
 resized), decoded through the same path and by ``cv2.imdecode`` alone (the server's path
 inflates the data once, then hands OpenCV the scanlines in stored deflate blocks).
 Figures are CPU seconds (process time, one thread). Usage:
-    python bench/hostile.py [--inflate-mb 4096] [--no-baseline]
+    python -m bench.hostile [--inflate-mb 4096] [--no-baseline]
 """
 
 from __future__ import annotations

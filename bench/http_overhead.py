@@ -12,7 +12,7 @@ empty data directory and sends, over one keep-alive connection each:
 
 The figure is the server process's CPU time (user + system, from /proc) per request,
 next to the baseline measured in the same run. Usage:
-    python bench/http_overhead.py [--requests 2000] [--repeat 3]
+    python -m bench.http_overhead [--requests 2000] [--repeat 3]
 """
 
 from __future__ import annotations

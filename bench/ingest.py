@@ -26,15 +26,9 @@ import os
 import platform
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
-
-# `python bench/ingest.py` puts bench/ first on sys.path, where bench/sim.py would shadow
-# the sim package.
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
-    sys.path.pop(0)
 
 RESULTS = Path(__file__).parent / "results"
 DEFAULT_DATA = Path(__file__).parent.parent / "out" / "bench_sim"

@@ -13,22 +13,18 @@ entry (the paper) and with guided PnP, and the map is built in memory. Then:
 
 Checks printed (issue 17.1): mu1 / Sigma1 and the filter's RMSE move by less than 5 %,
 the accepted-hypothesis share by less than 1 point. Writes bench/results/joint.json.
-Usage: python bench/joint.py [--size medium] [--frames 300] [--seed 7]
+Usage: python -m bench.joint [--size medium] [--frames 300] [--seed 7]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
-    sys.path.pop(0)  # bench/sim.py would shadow the sim package
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = ("map", "query", "train")

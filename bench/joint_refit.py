@@ -17,13 +17,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
-    sys.path.pop(0)  # bench/sim.py would shadow the sim package
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = ("map", "query")

@@ -42,7 +42,7 @@ overload with the CPU it got from a shared machine, and only the second figure s
 them. What it cannot separate: the GIL contention inside a replica, and the scheduler's
 split of the cores between the replicas, the generator and other jobs.
 Writes bench/results/load.json. Usage:
-    python bench/load.py [--duration 20] [--slices 4] [--replicas 1 2] [--rate-hz 10]
+    python -m bench.load [--duration 20] [--slices 4] [--replicas 1 2] [--rate-hz 10]
                          [--database auto]
 """
 
@@ -65,10 +65,7 @@ import time
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
-    sys.path.pop(0)  # bench/sim.py would shadow the sim package
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"

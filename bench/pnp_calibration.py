@@ -19,27 +19,19 @@ their spread, so a difference in Sigma1 can be told apart into "other hypotheses
 "the same hypotheses, other errors"; and the mean correlation between the errors of two
 hypotheses of the same frame (the measurement model multiplies them as independent).
 
-    python bench/pnp_calibration.py [--seed N] [--frames 300]
+    python -m bench.pnp_calibration [--seed N] [--frames 300]
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-# bench/accuracy.py's dataset helpers, loaded by path (bench/ is not put on sys.path:
-# bench/sim.py would shadow the sim package)
-_spec = importlib.util.spec_from_file_location(
-    "bench_accuracy", Path(__file__).with_name("accuracy.py")
-)
-accuracy = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(accuracy)
-HELD_OUT_SEED = accuracy.HELD_OUT_SEED
+from bench.accuracy import HELD_OUT_SEED, ensure_dataset, limit_threads, sequence_of
 
 RESULTS = Path(__file__).parent / "results"
 CLOSE_M = 0.5
@@ -131,15 +123,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=HELD_OUT_SEED)
     parser.add_argument("--data", type=Path, default=Path(__file__).parent / "data")
     args = parser.parse_args()
-    accuracy.limit_threads()
+    limit_threads()
     from monoloc.server.calibrate import CalibrationConfig, TrainingRun, collect_samples
     from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.jobs.calibration import training_frames
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     root = args.data / f"urban_{args.size}_{args.frames}_s{args.seed}_train"
-    meta = accuracy.ensure_dataset(root, args.size, args.frames, args.seed, ("train",))
-    train = read_kitti_sequence(root, accuracy.sequence_of(meta, "train"))
+    meta = ensure_dataset(root, args.size, args.frames, args.seed, ("train",))
+    train = read_kitti_sequence(root, sequence_of(meta, "train"))
     vocabulary = load_default_vocabulary()
     rows, keyed = {}, {}
     for name, strategy in strategies().items():

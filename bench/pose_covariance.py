@@ -23,14 +23,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-from bench.accuracy import (  # noqa: E402
+from bench.accuracy import (
     add_city_arguments,
     city_root,
     ensure_dataset,

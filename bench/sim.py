@@ -10,14 +10,13 @@ raster at the depth stream's own stamp, depth noise) along the small room's map 
 timed the same way, and ORB features per frame (map lap and training room) against the
 300 bar. Writes bench/results/sim.json (indoor figures under keys starting "indoor_").
 
-    python bench/sim.py [--frames 40] [--seed 0]
+    python -m bench.sim [--frames 40] [--seed 0]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -28,20 +27,8 @@ ORB_TARGET = 500
 INDOOR_ORB_TARGET = 300
 
 
-def _import_the_sim_package() -> None:
-    """Running ``python bench/sim.py`` puts bench/ first on sys.path, where this very file
-    would shadow the ``sim`` package: drop that entry and make sure the repo root is there."""
-    here = Path(__file__).resolve().parent
-    sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != here]
-    sys.path.insert(0, str(here.parent))
-    if "sim" in sys.modules and not hasattr(sys.modules["sim"], "__path__"):
-        del sys.modules["sim"]
-
-
 def main() -> None:
     import cv2
-
-    _import_the_sim_package()
 
     from monoloc.sim.camera import Lighting, render
     from monoloc.sim.generate import GenerateConfig

@@ -19,7 +19,7 @@ OpenCV brute-force matching); same features, VLAD, PnP and answers.
 Printed: server per-stage p50/p99 (the answers' ``timings_ms``), client round trip
 p50/p99, end-to-end frames per second, the ratio to the paper pipeline, and the targets
 (p50 <= 20 ms per query on one core; >= 5x the paper-faithful pipeline). Writes
-bench/results/speed.json. Usage: python bench/speed.py [--frames 100] [--window 1]
+bench/results/speed.json. Usage: python -m bench.speed [--frames 100] [--window 1]
 """
 
 from __future__ import annotations
@@ -38,10 +38,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).parent.resolve():
-    sys.path.pop(0)  # bench/sim.py would shadow the sim package
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"

@@ -10,7 +10,7 @@ their depth error against the rendered depth (all keypoints, and those on smooth
 surfaces), ingestion time per frame, entries, localization RMSE / median / heading /
 share within 0.25 m and 2 deg. Writes bench/results/stereo.json.
 
-    python bench/stereo.py [--size medium] [--frames 400] [--seed 1013]
+    python -m bench.stereo [--size medium] [--frames 400] [--seed 1013]
 
 bench/accuracy.py calls ``compare`` on its own city (same size, frames and seed).
 """
