@@ -1,13 +1,20 @@
-"""Gather bench/results/*.json into bench/REPORT.md with plots (bench/results/plots/).
+"""Gather bench/results/*.json into bench/REPORT.md with plots (bench/results/plots/),
+and the README's one results table between its ``<!-- results:begin -->`` and
+``<!-- results:end -->`` markers.
 
 Every number in the report is read from a result file written by a bench script in the
-same `make bench` run; a missing file is reported as "not run", never filled in.
+same `make bench` run; a missing file is reported as "not run", never filled in. Run from
+the repository root: ``python -m bench.report``.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import platform
+import subprocess
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,10 +24,13 @@ from monoloc.client.trajectory import ExcursionCauses
 HERE = Path(__file__).parent
 RESULTS = HERE / "results"
 PLOTS = RESULTS / "plots"
+README = HERE.parent / "README.md"
+RESULTS_BEGIN = "<!-- results:begin -->"
+RESULTS_END = "<!-- results:end -->"
 
 
-def load(name: str) -> dict | None:
-    path = RESULTS / f"{name}.json"
+def load(name: str, results: Path = RESULTS) -> dict | None:
+    path = results / f"{name}.json"
     return json.loads(path.read_text()) if path.exists() else None
 
 
@@ -694,12 +704,370 @@ def pose_covariance_section(data: dict | None) -> list[str]:
     return lines
 
 
+# --- The README's results table ------------------------------------------------------
+# One row per headline figure that bench/results/*.json holds, each beside its goal (or
+# the paper's figure), with the date its results file was produced.
+
+PAPER_KITTI_RMSE_M = 0.313  # docs/method.md section 10: KITTI 00, 85 % map / 15 % test
+PAPER_RATE = "~10 Hz, worst 5 Hz, on an i7-9750H laptop CPU"
+PAPER_INDOOR = "100 % < 0.1 m, ~92 % < 0.06 m"
+
+
+@dataclass(frozen=True)
+class Headline:
+    """One row of the README's table: the figure (and the command that measures it), its
+    value as measured, its goal or the paper's figure with the verdict, and the stem of
+    the results file it is read from (whose date the row carries)."""
+
+    figure: str
+    value: str
+    goal: str
+    source: str
+
+
+def _verdict(ok: bool) -> str:
+    return "met" if ok else "**missed**"
+
+
+def _not_run(figure: str, source: str) -> Headline:
+    return Headline(figure, "not run", "-", source)
+
+
+def accuracy_headlines(data: dict | None) -> list[Headline]:
+    """Day query, filter / best-of-k and night of the urban city (bench/accuracy.py)."""
+    source = "accuracy_urban"
+    if data is None:
+        return [_not_run("Position RMSE, medium sim city (`python -m bench.accuracy`)", source)]
+    goals, floors = data.get("goals", {}), data.get("goals_floor", {})
+    full = data["query"]["full"]
+    seed = data.get("seed", "?")
+
+    def floor(name: str) -> str:
+        return f" (floor {floors[name]:.3f} m)" if name in floors else ""
+
+    rmse, median = full["position_rmse_m"], full["position_median_m"]
+    rows = [
+        Headline(
+            f"Position RMSE, medium sim city with recording errors, query run, seed {seed} "
+            "(`python -m bench.accuracy`)",
+            f"{rmse:.3f} m" + floor("position RMSE (m)"),
+            f"<= {goals['position_rmse_m']:g} m: {_verdict(rmse <= goals['position_rmse_m'])}; "
+            f"paper {PAPER_KITTI_RMSE_M} m on KITTI 00",
+            source,
+        ),
+        Headline(
+            "Position median, same run",
+            f"{median:.3f} m" + floor("position median (m)"),
+            f"<= {goals['position_median_m']:g} m: "
+            f"{_verdict(median <= goals['position_median_m'])}",
+            source,
+        ),
+        Headline(
+            "Heading RMSE / frames within 0.25 m and 2 deg, same run",
+            f"{full['heading_rmse_deg']:.2f} deg / {100 * full['within_0_25m_2deg']:.0f} %",
+            f"<= {goals['heading_rmse_deg']:g} deg: "
+            f"{_verdict(full['heading_rmse_deg'] <= goals['heading_rmse_deg'])} / "
+            f">= {100 * goals['within_0_25m_2deg']:.0f} %: "
+            f"{_verdict(full['within_0_25m_2deg'] >= goals['within_0_25m_2deg'])}",
+            source,
+        ),
+    ]
+    frames = data.get("bias", {}).get("frames_with_hypotheses", {})
+    if frames.get("best_of_k_median_m") and frames.get("full_median_m") is not None:
+        ratio = frames["full_median_m"] / frames["best_of_k_median_m"]
+        goal = goals["filter_median_over_best_of_k"]
+        name = "filter / best-of-k median"
+        note = ""
+        if ratio > goal and name in floors and goal < floors[name]:
+            note = " (the goal lies under the floor)"
+        rows.append(
+            Headline(
+                "Filter median / the best of the 10 hypotheses' median (picked with the truth)",
+                f"{ratio:.2f}" + (f" (floor {floors[name]:.2f})" if name in floors else ""),
+                f"<= {goal:g}: {_verdict(ratio <= goal)}{note}",
+                source,
+            )
+        )
+    night = data.get("night", {}).get("night, + night entries")
+    if night and night.get("position_rmse_m") is not None and rmse:
+        ratio = night["position_rmse_m"] / rmse
+        seeds = data.get("filter_seeds")
+        extra = ""
+        if seeds:
+            mean = sum(seeds["night_rmse_m"]) / sum(seeds["day_rmse_m"])
+            extra = f" (filter seeds 0-{len(seeds['day_rmse_m']) - 1}: {mean:.2f}x)"
+        goal = goals["night_rmse_over_day"]
+        rows.append(
+            Headline(
+                "Night query after night images were added, RMSE over the day's",
+                f"{ratio:.2f}x{extra}",
+                f"<= {goal:g}x: {_verdict(ratio <= goal)}",
+                source,
+            )
+        )
+    return rows
+
+
+def indoor_headline(data: dict | None) -> Headline:
+    """The 1:10 indoor track (bench/accuracy.py --scenario indoor), beside the paper's."""
+    figure = (
+        "Indoor 1:10 track, open loop, position RMSE (`python -m bench.accuracy --scenario indoor`)"
+    )
+    if data is None:
+        return _not_run(figure, "accuracy_indoor")
+    full, shares = data["query"]["full"], data.get("full_error_shares", {})
+    paper = data.get("paper", {})
+    value = f"{full['position_rmse_m']:.4f} m"
+    goal = f"paper {PAPER_INDOOR}"
+    if "within_0_1m" in shares and "within_0_06m" in shares:
+        value += (
+            f"; {100 * shares['within_0_1m']:.0f} % < 0.1 m, "
+            f"{100 * shares['within_0_06m']:.0f} % < 0.06 m"
+        )
+        if "open_loop_within_0_06m" in paper:
+            ok = shares["within_0_1m"] >= paper["open_loop_within_0_1m"] and (
+                shares["within_0_06m"] >= paper["open_loop_within_0_06m"]
+            )
+            goal += f": {_verdict(ok)}"
+    return Headline(figure, value, goal, "accuracy_indoor")
+
+
+def localize_headline(data: dict | None) -> Headline:
+    """One frame on one core without a prior (bench/localize.py)."""
+    figure = "Localize one frame, one core, no prior, p50 (`python -m bench.localize`)"
+    if data is None or "met" not in data.get("goals", {}):
+        return _not_run(figure, "localize")
+    g = data["goals"]
+    met = g["met"]
+    value = (
+        f"{g['total_p50_ms']:.1f} ms, {g['total_over_features']:.2f}x the blur+ORB stage, "
+        f"{g['paper_over_total']:.1f}x faster than the paper-faithful pipeline"
+    )
+    goal = (
+        f"<= {data.get('target_p50_ms', 20.0):g} ms: {_verdict(met['p50_target'])}, "
+        f"<= 2x ORB: {_verdict(met['x_features'])}, >= 5x: {_verdict(met['x_paper'])}; "
+        f"paper {PAPER_RATE}"
+    )
+    return Headline(figure, value, goal, "localize")
+
+
+def filter_headline(data: dict | None) -> Headline:
+    figure = "Filter step, 1000 particles, 10 hypotheses (`python -m bench.filter`)"
+    if data is None:
+        return _not_run(figure, "filter")
+    figure = (
+        f"Filter step, {data['n_particles']} particles, {data['n_hypotheses']} hypotheses "
+        "(`python -m bench.filter`)"
+    )
+    ms, goal = data["step_p50_ms"], data["target_step_ms"]
+    return Headline(figure, f"{ms:.2f} ms", f"<= {goal:g} ms: {_verdict(ms <= goal)}", "filter")
+
+
+def ingest_headline(data: dict | None) -> Headline:
+    figure = "Ingestion of KITTI frames (`python -m bench.ingest`)"
+    if data is None or not data.get("variants"):
+        return _not_run(figure, "ingest")
+    name, best = max(data["variants"].items(), key=lambda kv: kv[1]["median_fps"])
+    fps, goal = best["median_fps"], data["target_fps"]
+    return Headline(
+        f"Ingestion of KITTI frames, {name} (`python -m bench.ingest`)",
+        f"{fps:.0f} frames/s",
+        f">= {goal:g}: {_verdict(fps >= goal)}",
+        "ingest",
+    )
+
+
+def retrieval_headline(data: dict | None) -> Headline:
+    figure = "Retrieval, the largest map measured (`python -m bench.retrieval`)"
+    if data is None or not data.get("sizes"):
+        return _not_run(figure, "retrieval")
+    size = max(data["sizes"], key=lambda r: r["entries"])
+    goal = data["goal"]
+    n = size["entries"]
+    entries = f"{n / 1e6:g}M" if n >= 1_000_000 else f"{n / 1e3:g}k"
+    ok = size["p50_ms"] <= goal["p50_ms"] and size["recall_at_10"] >= goal["recall_at_10"]
+    return Headline(
+        f"Retrieval over {entries} entries, p50 / recall@10 against exact float search "
+        "(`python -m bench.retrieval`)",
+        f"{size['p50_ms']:.2f} ms / {size['recall_at_10']:.3f}",
+        f"<= {goal['p50_ms']:g} ms / >= {goal['recall_at_10']:g}: {_verdict(ok)}",
+        "retrieval",
+    )
+
+
+def load_headline(data: dict | None) -> Headline:
+    """Fleet load at twice capacity (bench/load.py): the served share over HTTP and over
+    the stream, the worst p99, and how many phases missed a goal."""
+    figure = "Fleet load at 2x capacity, share of capacity served (`python -m bench.load`)"
+    if data is None or not data.get("results"):
+        return _not_run(figure, "load")
+    http, stream, p99, missed, phases = [], [], [], 0, 0
+    for setup in data["results"]:
+        for name, run in setup["runs"].items():
+            v = run["verdicts"]
+            (stream if name.startswith("ws") else http).append(v["served_share"])
+            p99.append(v["p99_over_capacity_p50"])
+            phases += 1
+            missed += not all(ok for key, ok in v.items() if key.endswith("_met"))
+
+    def span(shares: list[float]) -> str:
+        return f"{100 * min(shares):.0f}-{100 * max(shares):.0f} %"
+
+    parts = [f"{span(http)} over HTTP"] if http else []
+    parts += [f"{span(stream)} over the stream"] if stream else []
+    g = data["goals"]
+    return Headline(
+        figure,
+        ", ".join(parts) + f"; p99 <= {max(p99):.1f}x the capacity p50",
+        f">= {100 * g['served_share_min']:.0f} %, p99 <= {g['p99_over_capacity_p50_max']:g}x: "
+        + ("met in every phase" if not missed else f"**missed** in {missed} of {phases} phases"),
+        "load",
+    )
+
+
+def headline_rows(results: Path = RESULTS) -> list[Headline]:
+    """The README's rows, read from ``results`` (a directory of bench result files)."""
+    return [
+        *accuracy_headlines(load("accuracy_urban", results)),
+        indoor_headline(load("accuracy_indoor", results)),
+        localize_headline(load("localize", results)),
+        filter_headline(load("filter", results)),
+        ingest_headline(load("ingest", results)),
+        retrieval_headline(load("retrieval", results)),
+        load_headline(load("load", results)),
+    ]
+
+
+def result_date(path: Path) -> str | None:
+    """When a results file was produced (YYYY-MM-DD): the date of the commit that last
+    wrote it when it is committed unchanged (a checkout resets file times), else its
+    modification time; None when it does not exist."""
+    if not path.exists():
+        return None
+    try:
+        status = subprocess.run(
+            ["git", "status", "--porcelain", "--", path.name],
+            cwd=path.parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        if not status.strip():
+            committed = subprocess.run(
+                ["git", "log", "-1", "--format=%cs", "--", path.name],
+                cwd=path.parent,
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout.strip()
+            if committed:
+                return committed
+    except (OSError, subprocess.CalledProcessError):
+        pass  # not a git checkout: the file's own time
+    return time.strftime("%Y-%m-%d", time.localtime(path.stat().st_mtime))
+
+
+def _cpu_model_now() -> str:
+    """The CPU model of the machine running this (Linux's /proc/cpuinfo, else platform)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def machine_summary(results: Path = RESULTS) -> str:
+    """The machine the results were measured on, as the results files record it (cores,
+    platform, CPU model), completed by this machine's CPU model where none is recorded."""
+    cores, platforms, models = set(), set(), set()
+    for path in sorted(results.glob("*.json")):
+        data = json.loads(path.read_text())
+        if not isinstance(data, dict):
+            continue
+        machine = data.get("machine")
+        if isinstance(machine, dict):
+            cores.add(machine.get("cpus"))
+            platforms.add(machine.get("platform"))
+            models.add(machine.get("cpu_model"))
+        elif isinstance(machine, str):
+            platforms.add(machine)
+        cores.add(data.get("cpu_count"))
+        models.add(data.get("cpu_model"))
+    cores.discard(None)
+    platforms.discard(None)
+    models.discard(None)
+    systems = sorted(
+        {
+            " ".join(p for p in (s.split("-")[0], "x86_64" if "x86_64" in s else "") if p)
+            for s in platforms
+        }
+    )
+    text = (
+        f"{'/'.join(str(c) for c in sorted(cores))} cores" if cores else f"{os.cpu_count()} cores"
+    )
+    if systems:
+        text += f", {', '.join(systems)}"
+    if models:
+        text += f", {', '.join(sorted(models))}"
+    else:
+        text += (
+            f" (the results do not record the CPU model; this table was generated on "
+            f"{_cpu_model_now()}, {os.cpu_count()} cores)"
+        )
+    return text
+
+
+def results_table(results: Path = RESULTS) -> str:
+    """The README's results section (Markdown): when and where, then the table."""
+    rows = headline_rows(results)
+    dates = {row.source: result_date(results / f"{row.source}.json") for row in rows}
+    produced = sorted(d for d in dates.values() if d)
+    when = (
+        "no results yet"
+        if not produced
+        else produced[0]
+        if produced[0] == produced[-1]
+        else f"between {produced[0]} and {produced[-1]}"
+    )
+    lines = [
+        f"Measured on the sim (not a real street), one thread per stage, {when} (each row's "
+        f"date beside it), on {machine_summary(results)}. Generated by `python -m bench.report` "
+        "from `bench/results/*.json`; every table in full: `bench/REPORT.md`.",
+        "",
+        "| figure | measured | goal or paper | date |",
+        "| --- | --- | --- | --- |",
+    ]
+    lines += [f"| {r.figure} | {r.value} | {r.goal} | {dates[r.source] or '-'} |" for r in rows]
+    return "\n".join(lines)
+
+
+def write_results_section(readme: Path, section: str) -> bool:
+    """Put ``section`` between the README's results markers, leaving every other byte of
+    the file as it was. Returns whether the file changed; raises ValueError when the
+    markers are missing, repeated or out of order."""
+    text = readme.read_text()
+    if text.count(RESULTS_BEGIN) != 1 or text.count(RESULTS_END) != 1:
+        raise ValueError(f"{readme} needs one {RESULTS_BEGIN} and one {RESULTS_END}")
+    start = text.index(RESULTS_BEGIN) + len(RESULTS_BEGIN)
+    end = text.index(RESULTS_END)
+    if end < start:
+        raise ValueError(f"{readme}: {RESULTS_END} comes before {RESULTS_BEGIN}")
+    new = text[:start] + "\n" + section.strip("\n") + "\n" + text[end:]
+    if new == text:
+        return False
+    readme.write_text(new)
+    return True
+
+
 def main() -> None:
     lines = [
         "# monoloc benchmark report",
         "",
-        f"Generated by `make bench` on {time.strftime('%Y-%m-%d %H:%M')} from "
-        "bench/results/*.json (2 cores, one thread per stage unless stated).",
+        f"Generated by `python -m bench.report` (the last step of `make bench`) on "
+        f"{time.strftime('%Y-%m-%d %H:%M')} from bench/results/*.json, measured on "
+        f"{machine_summary()}; one thread per stage unless stated.",
         "",
     ]
     vision = load("vision")
@@ -882,7 +1250,7 @@ def main() -> None:
     if stereo:
         seed, frames = stereo.get("seed", "?"), stereo.get("frames_per_run", "?")
         lines += [f"## Stereo vs LiDAR maps, {stereo.get('size')} city, seed {seed}", ""]
-        lines += [f"{frames} frames per run, from `python bench/stereo.py`.", ""]
+        lines += [f"{frames} frames per run, from `python -m bench.stereo`.", ""]
         lines += [*stereo_lines(stereo), ""]
     lines += crash_section(load("crash"))
     lines += hostile_section(load("hostile"))
@@ -892,6 +1260,8 @@ def main() -> None:
         lines += closed_loop_section(scenario, load(f"closed_loop_{scenario}"))
     (HERE / "REPORT.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {HERE / 'REPORT.md'}")
+    changed = write_results_section(README, results_table())
+    print(f"{'wrote' if changed else 'unchanged:'} the results table of {README}")
 
 
 if __name__ == "__main__":
