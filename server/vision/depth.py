@@ -1,6 +1,6 @@
 """3D points for keypoints, from a LiDAR scan or a registered depth image (docs/method.md s. 5).
 
-The rule (monoloc's, documented here and in docs/decisions.md):
+The rule (monoloc's, documented here and in docs/notebook/map-building.md):
 
 - LiDAR: the scan is projected into the image with the calibration (points with camera
   depth >= ``min_depth_m``); where several land on one pixel the nearest is kept. A
