@@ -1,6 +1,6 @@
 """Keypoint depth from a rectified stereo pair (a fleet without LiDAR; docs/method.md s. 5).
 
-The rule (monoloc's, documented here and in docs/decisions.md):
+The rule (monoloc's, documented here and in docs/notebook/map-building.md):
 
 - Disparity: OpenCV's semi-global matching (``cv2.StereoSGBM``) of the left image against
   the right one, row by row (the pair is rectified: the same camera matrix, the right
