@@ -8,7 +8,7 @@ image (docs/method.md's rule, ``OrbConfig(grid_cells=None)``). monoloc's default
 over the image instead, as ORB-SLAM's extractor does: ORB is asked for
 ``candidates_factor`` times as many corners, and the kept ones are taken cell by cell over
 a ``grid_cells`` grid (each cell's strongest first, then each cell's second, ...), so a
-facade in the shade keeps its corners beside one in the sun. Why (docs/decisions.md,
+facade in the shade keeps its corners beside one in the sun. Why (docs/notebook/features.md,
 "ORB features spread over the image"): with the whole-image rule the corners follow the
 light, and a query driven under a sun opposite to the map's (one side of the street bright
 in one run, the other side in the other) shared too few of them with the map to find its
@@ -19,7 +19,7 @@ a cell finds nothing): an image with fewer than ``flat_fast_corners`` FAST corne
 ``fast_threshold`` at full resolution (a run under flat light, plain facades; counting
 them costs 0.3 ms) is described by ORB at ``min_fast_threshold`` (12: as good as 7 on
 the development cities, at two thirds of its cost). With one fixed threshold a whole query run of
-such frames found no street (docs/decisions.md, "Two FAST thresholds on the grid").
+such frames found no street (docs/notebook/features.md, "Two FAST thresholds on the grid").
 """
 
 from __future__ import annotations
@@ -235,7 +235,7 @@ def selection_rule(config: OrbConfig = OrbConfig()) -> dict:
     "grid_cells": [columns, rows], "candidates_factor": f, "fast_thresholds": [t, t_min],
     "flat_fast_corners": n}`` (a grid map recorded before the second threshold has no
     ``fast_thresholds``: one pass at 20). Entries and queries picked by different rules
-    share fewer corners (docs/decisions.md, "ORB features spread over the image")."""
+    share fewer corners (docs/notebook/features.md, "ORB features spread over the image")."""
     if config.grid_cells is None:
         return {"rule": "strongest"}
     rule = {
