@@ -103,7 +103,7 @@ def _clamp_retrieval_spread(Sigma2: np.ndarray) -> np.ndarray:
 # not fitted, because a training run never shows the errors it stands for (its queries
 # meet the nearest entries of their own drive). A tail ten times as wide with a 30 %
 # share keeps a wrong hypothesis a few decimetres off from dragging the particle cloud
-# onto itself, while the right ones weigh as before (measured: docs/decisions.md).
+# onto itself, while the right ones weigh as before (measured: docs/notebook/measurement-model.md).
 # 0 switches it off (the paper's single Gaussian).
 PAPER_TAIL_WEIGHT = 0.3
 PAPER_TAIL_SCALE = 10.0
