@@ -272,7 +272,7 @@ def registered_night(root, meta, vocab, night_seq, nsig, model, lever):
     registration's summary)."""
     from bench.lab.evaluation import MemoryMap, evaluate_run, metrics_row
     from monoloc.core.registration import RegistrationConfig
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     memory = MemoryMap.empty(vocab)
     memory.add_run(read_kitti_sequence(root, sequence_of(meta, "map")))
@@ -322,7 +322,7 @@ def true_poses(meta: dict, args) -> dict[str, np.ndarray]:
 
 def written_poses(root: Path, seq_id: str) -> np.ndarray:
     from monoloc.core.geometry import planar_from_T_world_from_cam
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     seq = read_kitti_sequence(root, seq_id)
     return np.array([planar_from_T_world_from_cam(f.T_world_from_cam) for f in seq.frames])
@@ -458,7 +458,7 @@ def urban_city(
     )
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.client.trajectory import ExcursionCauses
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
@@ -839,7 +839,7 @@ def main_indoor(args) -> None:
     )
     from monoloc.client.replay import read_tum_run as read_tum_replay
     from monoloc.client.replay import rig_lever_arm_m
-    from monoloc.server.ingest.tum import read_tum_run
+    from monoloc.server.ingest.sources import read_tum_run
     from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 

@@ -51,7 +51,7 @@ def measure(group: str, seed: int, size: str, frames: int, data: Path) -> dict:
     from bench.lab.evaluation import MemoryMap, evaluate_run
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.client.trajectory import best_of_k_errors, truth_in_map_frame
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
     from monoloc.sim.generate import GenerateConfig, generate_dataset
     from monoloc.sim.recording import RecordingErrors

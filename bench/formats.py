@@ -124,8 +124,8 @@ def main() -> None:
     from monoloc.server.formats.colmap import read_colmap_model
     from monoloc.server.formats.maps import import_sources_into_map
     from monoloc.server.formats.model import import_sources
-    from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.ingest.manage import create_map, ingest_source, map_stats
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.map_registry import MapRegistry
     from monoloc.server.settings import Settings
     from monoloc.server.storage.db import create_engine_for, make_session_factory

@@ -125,7 +125,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--repeats", type=int, default=REPEATS)
     args = parser.parse_args()
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     source = read_kitti_sequence(ensure_dataset(args.data), "00")
     n = source.n_frames

@@ -139,7 +139,7 @@ def main() -> None:
     limit_threads()
     from bench.lab.evaluation import EvalConfig, MemoryMap, evaluate_run, metrics_row
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig, PnpStrategy
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 

@@ -84,7 +84,7 @@ def main() -> None:
     # one thread per library, as the server runs a query (its defaults, set explicitly)
     limiter = limit_threads(Settings(cv_threads=1, faiss_threads=1))  # noqa: F841 (held)
     from bench.lab.evaluation import MemoryMap
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig
     from monoloc.server.vision.joint import JointConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary

@@ -117,7 +117,7 @@ def filter_priors(registry, map_id, root: Path, sequence: str, config, k: int, s
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.client.tracking import Tracker
     from monoloc.core.measurement import MeasurementModel
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.localizer import hypotheses_of
 
     query_run, run = read_kitti_sequence(root, sequence), read_kitti_run(root, sequence)
@@ -244,7 +244,7 @@ def main() -> None:
     from threadpoolctl import threadpool_limits
 
     from monoloc.core.geometry import planar_from_T_world_from_cam
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig
 
     root = ensure_dataset(args.data)

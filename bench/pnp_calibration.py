@@ -125,7 +125,7 @@ def main() -> None:
     args = parser.parse_args()
     limit_threads()
     from monoloc.server.calibrate import CalibrationConfig, TrainingRun, collect_samples
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.jobs.calibration import training_frames
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 

@@ -33,14 +33,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-from bench.accuracy import add_city_arguments, city_root, ensure_dataset, limit_threads  # noqa: E402
+from bench.accuracy import add_city_arguments, city_root, ensure_dataset, limit_threads
 
 RIGHT_POSE_M = 2.0
 RIGHT_MATCH_PX = 3.0
@@ -79,7 +77,7 @@ def measure(root: Path, ids: dict, truth: dict, query_run: str, map_run: str, st
     every match's residual (px) under the true pose with its query keypoint's scale."""
     from bench.lab.evaluation import EvalConfig, MemoryMap
     from monoloc.core.geometry import invert_rigid
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.binary_code import vlad_binary_code
     from monoloc.server.vision.features import extract_features
     from monoloc.server.vision.pnp import estimate_relative_pose

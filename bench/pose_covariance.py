@@ -122,7 +122,7 @@ def main() -> None:
     args = parser.parse_args()
     limit_threads()
     from bench.lab.evaluation import MemoryMap
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     root = city_root(args)

@@ -98,7 +98,7 @@ def compare(root: Path, meta: dict, lever_arm_m: float | None = None) -> dict:
     from bench.lab.evaluation import MemoryMap, evaluate_run, metrics_row
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.server.calibrate import CalibrationConfig, calibrate
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.jobs.calibration import training_frames
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 

@@ -21,8 +21,6 @@ Frame times are the images' header stamps. Reading the bag needs ``rosbags`` (an
 from __future__ import annotations
 
 import io
-import threading
-import weakref
 from pathlib import Path
 
 import numpy as np
@@ -67,20 +65,14 @@ def png_from_raw(pixels: np.ndarray, encoding: str) -> bytes:
 
 
 class _BagImages:
-    """Reads frame images back from the bag by their bag time (one reader, kept open)."""
+    """Reads frame images back from the bag by their bag time (``bag.MessageReader``)."""
 
     def __init__(self, root: Path, topic: str, times_ns: dict[Path, int]) -> None:
-        self.root, self.topic, self.times_ns = root, topic, times_ns
-        self._lock = threading.Lock()
-        self._reader = None
+        self.topic, self.times_ns = topic, times_ns
+        self._messages = bag.MessageReader(root)
 
     def __call__(self, key: Path) -> bytes:
-        with self._lock:
-            if self._reader is None:
-                self._reader = bag.open_reader(self.root)
-                # closed with this object, or at exit (before the interpreter tears down)
-                weakref.finalize(self, self._reader.close)
-            msgtype, msg = bag.read_message(self._reader, self.topic, self.times_ns[key])
+        msgtype, msg = self._messages(self.topic, self.times_ns[key])
         if msgtype == bag.COMPRESSED_IMAGE:
             return bytes(msg.data)
         return png_from_raw(bag.raw_image_array(msg), bag.image_encoding(msg))

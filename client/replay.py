@@ -1,10 +1,11 @@
 """Reading a recorded run the way a vehicle would replay it: frames, signals, truth.
 
-KITTI odometry (``image_0/``, ``times.txt``, ``vehicle.txt``, ``../../poses/NN.txt``) and
-TUM RGB-D (``rgb.txt``, ``groundtruth.txt``, ``vehicle.txt``). ``vehicle.txt`` holds one
-line per frame: ``t speed_mps yaw_rate_radps``. A KITTI sequence without it gets speed
-and yaw rate derived from its poses plus configurable noise, and says so. The files'
-formats are ``monoloc.core.formats``; this module aligns them into a run.
+KITTI odometry (``image_0/``, ``times.txt``, ``vehicle.txt``, the poses) and TUM RGB-D
+(``rgb.txt``, ``groundtruth.txt``, ``vehicle.txt``). ``vehicle.txt`` holds one line per
+frame: ``t speed_mps yaw_rate_radps``. A KITTI sequence without it gets speed and yaw rate
+derived from its poses plus configurable noise, and says so. The layouts and the files'
+formats are ``monoloc.core.formats`` (where a sequence's poses are, what a file list
+holds); this module aligns them into a run.
 """
 
 from __future__ import annotations
@@ -131,20 +132,12 @@ def _vehicle_signals(path: Path, timestamps_s: np.ndarray) -> np.ndarray:
     return np.column_stack([signals.speed_mps, signals.yaw_rate_radps])
 
 
-def _check_images_exist(paths: list[Path], listing: Path) -> None:
-    missing = [p for p in paths if not p.is_file()]
-    if missing:
-        raise NotFoundError(
-            f"{listing}: {len(missing)} image(s) listed but missing, first {missing[0]}"
-        )
-
-
 def read_kitti_run(
     root: Path, sequence: str | None = None, noise: SignalNoise = SignalNoise()
 ) -> ReplayRun:
-    """A KITTI sequence: ``root`` is the dataset root (with ``sequence``) or the sequence."""
-    root = Path(root)
-    seq_dir = root / "sequences" / sequence if sequence else root
+    """A KITTI sequence: ``root`` is the dataset root (with ``sequence``, optional when it
+    holds one) or the sequence folder (``kitti.resolve_sequence``)."""
+    seq_dir, seq_name, poses_path = kitti.resolve_sequence(root, sequence)
     if not (seq_dir / "image_0").is_dir():
         raise NotFoundError(f"{seq_dir / 'image_0'} does not exist")
     images = sorted((seq_dir / "image_0").glob("*.png"))
@@ -156,8 +149,6 @@ def read_kitti_run(
     times = kitti.read_times(times_path)
     if len(times) != len(images):
         raise InvalidInputError(f"{times_path}: {len(times)} lines for {len(images)} images")
-    seq_name = seq_dir.name
-    poses_path = seq_dir.parent.parent / "poses" / f"{seq_name}.txt"
     truth = None
     if poses_path.exists():
         T_kittiworld_from_cam = kitti.read_poses(poses_path)
@@ -187,9 +178,8 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
     rgb_path = root / "rgb.txt"
     if not rgb_path.exists():
         raise NotFoundError(f"{rgb_path} does not exist")
-    times_arr, names = tum.read_file_list(rgb_path)
+    times_arr, names = tum.read_file_list(rgb_path, root=root)  # every image must exist
     images = [root / name for name in names]
-    _check_images_exist(images, rgb_path)
     truth = None
     gt_path = root / "groundtruth.txt"
     if gt_path.exists():

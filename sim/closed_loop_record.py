@@ -68,7 +68,7 @@ class TumRecorder:
         )
         signals = result.frames["signals"]
         tw.write_vehicle(self.run_dir / "vehicle.txt", stamps, signals[:, 0], signals[:, 1])
-        tw.write_camera_json(
+        tum.write_camera_json(
             self.run_dir / "camera.json", self.world.intrinsics, self.world.camera_json_extra()
         )
         return self.run_dir
@@ -91,12 +91,13 @@ class KittiRecorder:
         self.T_world_from_cam: list[np.ndarray] = []
 
     def __call__(self, i: int, t_s: float, image, scan, T_world_from_cam) -> None:
+        from monoloc.core.formats import kitti
         from monoloc.sim import kitti_writer as kw
 
         kw.write_image(self.seq_dir / "image_0" / f"{i:06d}.png", image)
         if scan is not None:
             (self.seq_dir / "velodyne").mkdir(exist_ok=True)
-            kw.write_velodyne(self.seq_dir / "velodyne" / f"{i:06d}.bin", scan)
+            kitti.write_scan(self.seq_dir / "velodyne" / f"{i:06d}.bin", scan)
         self.times.append(t_s)
         self.T_world_from_cam.append(np.asarray(T_world_from_cam))
 

@@ -1,5 +1,6 @@
-"""Writers (and the binary readers tests use) of the KITTI odometry layout; the text
-files' formats are ``monoloc.core.formats.kitti`` and ``monoloc.core.formats.vehicle``.
+"""The sim's writers of the KITTI odometry layout: the files' contents are
+``monoloc.core.formats.kitti`` (calib, poses, times, velodyne scans, the layout's paths)
+and ``monoloc.core.formats.vehicle``; here the images (OpenCV) and dataset.json.
 
 <root>/sequences/NN/image_0/%06d.png   uint8 gray
 <root>/sequences/NN/image_1/%06d.png   optional: uint8 gray, the right camera (P1)
@@ -23,44 +24,18 @@ import numpy as np
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.formats import kitti, vehicle
 
-KITTI_STEREO_BASELINE_M = 0.5371657
-KITTI_COLOUR_OFFSET_M = -0.0598  # camera 2 sits ~6 cm left of camera 0 in KITTI
-
-
-def sequence_dir(root: Path, seq_id: str) -> Path:
-    return Path(root) / "sequences" / seq_id
-
-
-def projection_matrices(
-    K: np.ndarray, stereo_baseline_m: float = KITTI_STEREO_BASELINE_M
-) -> list[np.ndarray]:
-    """P0..P3 (3, 4) like KITTI's: cam 0 = K [I | 0]; cam 1 the right gray camera,
-    ``stereo_baseline_m`` to the right (P1 = K [I | (-b, 0, 0)]); cams 2, 3 colour cameras
-    (not rendered, listed for format compatibility)."""
-    out = []
-    for baseline in (
-        0.0,
-        stereo_baseline_m,
-        KITTI_COLOUR_OFFSET_M,
-        KITTI_COLOUR_OFFSET_M + stereo_baseline_m,
-    ):
-        P = np.zeros((3, 4))
-        P[:, :3] = K
-        P[0, 3] = -K[0, 0] * baseline
-        out.append(P)
-    return out
-
 
 def write_calib(
     path: Path,
     K: np.ndarray,
     T_cam_from_lidar: np.ndarray,
-    stereo_baseline_m: float = KITTI_STEREO_BASELINE_M,
+    stereo_baseline_m: float = kitti.KITTI_STEREO_BASELINE_M,
 ) -> None:
-    """calib.txt: ``P0: 12 numbers`` ... ``P3:``, ``Tr: 12 numbers``."""
-    projections = tuple(projection_matrices(K, stereo_baseline_m))
+    """calib.txt (``KittiCalib.from_camera``): ``P0: 12 numbers`` ... ``P3:``, ``Tr:``."""
     with open(path, "w") as handle:
-        kitti.write_calib(handle, kitti.KittiCalib(projections, T_cam_from_lidar))
+        kitti.write_calib(
+            handle, kitti.KittiCalib.from_camera(K, T_cam_from_lidar, stereo_baseline_m)
+        )
 
 
 def write_poses(path: Path, T_world_from_cam: np.ndarray) -> None:
@@ -88,18 +63,6 @@ def write_image(path: Path, image: np.ndarray) -> None:
 
     if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 3]):
         raise InvalidInputError(f"could not write {path}")
-
-
-def write_velodyne(path: Path, points: np.ndarray) -> None:
-    """(N, 4) float32 x, y, z, reflectance."""
-    np.ascontiguousarray(points, dtype=np.float32).tofile(path)
-
-
-def read_velodyne(path: Path) -> np.ndarray:
-    data = np.fromfile(path, dtype=np.float32)
-    if data.size % 4:
-        raise InvalidInputError(f"{path}: size is not a multiple of 4 floats")
-    return data.reshape(-1, 4)
 
 
 def write_depth(path: Path, depth_m: np.ndarray) -> None:

@@ -1,5 +1,6 @@
-"""Writers (and the depth reader tests use) of the TUM RGB-D layout, one folder per run;
-the text files' formats are ``monoloc.core.formats.tum`` and ``monoloc.core.formats.vehicle``::
+"""The sim's writers of the TUM RGB-D layout, one folder per run; the files' contents are
+``monoloc.core.formats.tum`` (file lists, trajectories, depth encoding, camera.json) and
+``monoloc.core.formats.vehicle``; here the images (OpenCV) and dataset.json::
 
     <root>/<run>/rgb/<t>.png        8-bit colour PNG (the sim renders monochrome: three
                                     identical channels)
@@ -24,12 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.formats import tum, vehicle
 from monoloc.core.geometry import R_from_quaternion_xyzw, quaternion_xyzw_from_R
-
-DEPTH_SCALE_PER_M = 5000.0
 
 
 def write_file_list(path: Path, what: str, source: str, stamps_s, rel_paths) -> None:
@@ -84,32 +82,10 @@ def write_vehicle(path: Path, stamps_s, speed_mps, yaw_rate_radps) -> None:
         vehicle.write_vehicle(handle, stamps_s, speed_mps, yaw_rate_radps)
 
 
-def write_camera_json(path: Path, intrinsics: CameraIntrinsics, extra: dict) -> None:
-    k = intrinsics
-    info = {
-        "fx": k.fx,
-        "fy": k.fy,
-        "cx": k.cx,
-        "cy": k.cy,
-        "width": k.width_px,
-        "height": k.height_px,
-        "depth_scale_per_m": DEPTH_SCALE_PER_M,
-        **extra,
-    }
-    Path(path).write_text(json.dumps(info, indent=2) + "\n")
-
-
-def encode_depth(depth_m: np.ndarray) -> np.ndarray:
-    """(H, W) metres (0, negative or non-finite: none) -> uint16 at 5000 per metre; depths
-    beyond 13.107 m cannot be encoded and are written as 0."""
-    d = np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m * DEPTH_SCALE_PER_M + 0.5, 0.0)
-    return np.where(d < 65535.5, d, 0.0).astype(np.uint16)
-
-
 def write_depth(path: Path, depth_m: np.ndarray) -> None:
     import cv2
 
-    if not cv2.imwrite(str(path), encode_depth(depth_m), [cv2.IMWRITE_PNG_COMPRESSION, 3]):
+    if not cv2.imwrite(str(path), tum.encode_depth(depth_m), [cv2.IMWRITE_PNG_COMPRESSION, 3]):
         raise InvalidInputError(f"could not write {path}")
 
 
@@ -120,7 +96,7 @@ def read_depth(path: Path) -> np.ndarray:
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
         raise InvalidInputError(f"{path}: not a 16-bit single-channel depth PNG")
-    return raw.astype(np.float32) / DEPTH_SCALE_PER_M
+    return raw.astype(np.float32) / tum.DEPTH_SCALE_PER_M
 
 
 def write_rgb(path: Path, image: np.ndarray) -> None:

@@ -171,7 +171,7 @@ def _resume_to_done(client: httpx.Client, job_id: int, result: TrialResult) -> d
 
 
 def _ingest_trial(server, dataset, rng, workdir, result, at_end: bool) -> None:
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     archive = kitti_archive(dataset.root, dataset.map_sequence, workdir / "map.tar")
     probe = read_kitti_sequence(dataset.root, dataset.map_sequence).frames[1].image_path
@@ -223,7 +223,7 @@ def _ingest_trial(server, dataset, rng, workdir, result, at_end: bool) -> None:
 
 
 def _entries_trial(server, dataset, rng, workdir, result) -> None:
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     seq = read_kitti_sequence(dataset.root, dataset.map_sequence)
     client = server.start()

@@ -90,20 +90,13 @@ class DemoSteps:
         return job
 
     def build_map(self, client: MonolocClient, dataset: Dataset) -> int:
-        from monoloc.server.ingest.common import png_size
-        from monoloc.server.ingest.kitti import read_kitti_calibration
+        from monoloc.core.formats.kitti import read_calib_file
+        from monoloc.core.formats.png import png_size
 
         seq_dir = dataset.root / "sequences" / dataset.sequences["map"]
-        calib = read_kitti_calibration(seq_dir / "calib.txt")
+        fx, fy, cx, cy = read_calib_file(seq_dir / "calib.txt").pinhole
         width, height = png_size(seq_dir / "image_0" / "000000.png")
-        camera = {
-            "fx": calib.fx,
-            "fy": calib.fy,
-            "cx": calib.cx,
-            "cy": calib.cy,
-            "width_px": width,
-            "height_px": height,
-        }
+        camera = dict(fx=fx, fy=fy, cx=cx, cy=cy, width_px=width, height_px=height)
         stamp = time.strftime("%Y%m%d-%H%M%S")
         self.console.print("[bold]3[/] training the vocabulary on the train run")
         scratch = client.request(
@@ -172,7 +165,7 @@ class DemoSteps:
         return result
 
     def add_night_entries(self, client, map_id, dataset) -> int:
-        from monoloc.server.ingest.kitti import read_kitti_sequence
+        from monoloc.server.ingest.sources import read_kitti_sequence
 
         seq = read_kitti_sequence(dataset.root, dataset.sequences["nightmap"])
         added = 0

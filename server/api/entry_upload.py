@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monoloc.core.errors import InvalidInputError
+from monoloc.core.formats.kitti import LIDAR_POINT_BYTES
 from monoloc.server.api.convert import entry_detail
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.errors import PayloadTooLargeError
@@ -24,8 +25,6 @@ from monoloc.server.entry_builder import DepthSource, LidarSource
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
-
-LIDAR_POINT_BYTES = 16  # float32 x, y, z, reflectance (KITTI .bin)
 
 
 @dataclass(frozen=True)

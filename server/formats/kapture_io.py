@@ -97,8 +97,8 @@ class LidarFile:
     T_cam_from_lidar: np.ndarray
 
     def load(self):
+        from monoloc.core.formats.kitti import read_scan
         from monoloc.server.entry_builder import LidarSource
-        from monoloc.server.ingest.kitti import read_scan
 
         return LidarSource(read_scan(self.path), self.T_cam_from_lidar)
 

@@ -1,4 +1,4 @@
-"""Ingestion of recordings into maps: readers (``kitti``, ``tum``), the pipeline
+"""Ingestion of recordings into maps: the recordings as sources (``sources``), the pipeline
 (``pipeline.ingest_run``), single images (``single``), vocabularies (``vocab``) and
 the typed operations behind the CLI (``manage``, ``report``).
 

@@ -1,15 +1,7 @@
-"""What the dataset readers share: frame ranges, the loaded-frame record the ingestion
-pipeline consumes, and image decoding. (The text files' formats are
-``monoloc.core.formats``; their errors, ``InputFileError``, name the file and line.)
-
-A reader (``kitti.read_kitti_sequence``, ``tum.read_tum_run``, ``rosbag.read_rosbag_run``)
-validates a recording's metadata completely when it is opened and returns a *source*: an
-object with ``format`` ("kitti" | "tum" | "rosbag"), ``name``, ``intrinsics``, ``frames``
-(a list of frame records, each with ``index``, ``timestamp_s``, ``image_path``,
-``T_world_from_cam``), ``read_skips`` (frames dropped at read time, reason -> count) and
-``load(frame) -> LoadedFrame``, which reads the frame's files (thread-safe). A source
-whose images are not files (a ROS bag: ``image_path`` then only names the message) also
-has ``read_image(frame) -> (bytes, (H, W) uint8 image)``.
+"""What the ingestion's sources share: frame ranges, the loaded-frame record the pipeline
+consumes, image identity and decoding. The sources themselves are ``sources``; the
+formats' files are read in ``monoloc.core.formats`` (their errors, ``InputFileError``,
+name the file and line).
 """
 
 from __future__ import annotations
@@ -136,18 +128,3 @@ def decode_depth(data: bytes, path: Path) -> np.ndarray:
             path, f"depth image must be 16-bit single-channel, got {image.dtype} {image.shape}"
         )
     return image
-
-
-def png_size(path: Path) -> tuple[int, int]:
-    """(width, height) of a PNG read from its header (no decoding)."""
-    try:
-        with open(path, "rb") as handle:
-            head = handle.read(24)
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read image: {exc.strerror or exc}") from exc
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        raise InputFileError(path, "not a PNG image")
-    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    if width <= 0 or height <= 0:
-        raise InputFileError(path, f"PNG header gives an empty image ({width}x{height})")
-    return width, height

@@ -20,8 +20,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.camera import KITTI_CAM0, CameraIntrinsics
 from monoloc.core.errors import InputFileError, InvalidInputError
+from monoloc.core.formats import kitti, tum
+from monoloc.core.formats.png import png_size
 from monoloc.core.prior import RetrievalPrior
-from monoloc.server.ingest.common import png_size
 from monoloc.server.ingest.pipeline import IngestConfig, IngestSummary, ingest_run
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
@@ -58,9 +59,6 @@ def _with_size(fx, fy, cx, cy, size: tuple[int, int] | None, o: CameraOverrides,
 
 def camera_from_spec(spec: str | None, overrides: CameraOverrides = CameraOverrides()):
     """A CameraIntrinsics from a camera spec (see the module docstring)."""
-    from monoloc.server.ingest.kitti import read_kitti_calibration
-    from monoloc.server.ingest.tum import TUM_CAMERAS, read_tum_run
-
     if spec is None:
         camera = overrides.complete()
         if camera is None:
@@ -68,13 +66,13 @@ def camera_from_spec(spec: str | None, overrides: CameraOverrides = CameraOverri
         return camera
     if spec.lower() == "kitti":
         return KITTI_CAM0
-    if spec.lower() in TUM_CAMERAS:
-        return CameraIntrinsics(*TUM_CAMERAS[spec.lower()], 640, 480)
+    if spec.lower() in tum.TUM_CAMERAS:
+        return CameraIntrinsics(*tum.TUM_CAMERAS[spec.lower()], 640, 480)
     path = Path(spec).expanduser()
     if path.is_dir() and (path / "calib.txt").is_file():
         path = path / "calib.txt"
     elif path.is_dir():
-        return read_tum_run(path).intrinsics
+        return tum.read_run(path).intrinsics
     if not path.is_file():
         raise InvalidInputError(
             f"unknown camera {spec!r}: use kitti, freiburg1|2|3, a calib.txt, a KITTI "
@@ -89,10 +87,10 @@ def camera_from_spec(spec: str | None, overrides: CameraOverrides = CameraOverri
             raise InputFileError(path, f"needs numeric fx, fy, cx, cy ({exc})") from exc
         w, h = data.get("width_px", data.get("width")), data.get("height_px", data.get("height"))
         return _with_size(fx, fy, cx, cy, (w, h) if w and h else None, overrides, path)
-    calib = read_kitti_calibration(path)
+    fx, fy, cx, cy = kitti.read_calib_file(path).pinhole
     first = path.parent / "image_0" / "000000.png"
     size = png_size(first) if first.is_file() else None
-    return _with_size(calib.fx, calib.fy, calib.cx, calib.cy, size, overrides, path)
+    return _with_size(fx, fy, cx, cy, size, overrides, path)
 
 
 def resolve_vocabulary(session: Session, ref: str = "default") -> VocabularyRecord:
@@ -136,11 +134,11 @@ def open_source(
     depth_from: str = "lidar",
 ):
     """Open (and validate) a KITTI sequence, a TUM run or a ROS bag (``topics``: role ->
-    topic, see ``monoloc.server.ingest.rosbag``). ``depth_from``: where a KITTI sequence's
+    topic, see ``monoloc.core.formats.rosbag``). ``depth_from``: where a KITTI sequence's
     keypoint depth comes from, ``lidar`` (velodyne/) or ``stereo`` (image_1/ and P1); a
     TUM run has its depth camera."""
     if fmt == "kitti":
-        from monoloc.server.ingest.kitti import read_kitti_sequence
+        from monoloc.server.ingest.sources import read_kitti_sequence
 
         return read_kitti_sequence(path, sequence, frames, depth_from=depth_from)
     if depth_from != "lidar":
@@ -149,11 +147,11 @@ def open_source(
             "depth (depth images or point clouds)"
         )
     if fmt == "tum":
-        from monoloc.server.ingest.tum import read_tum_run
+        from monoloc.server.ingest.sources import read_tum_run
 
         return read_tum_run(path, intrinsics=camera, camera=tum_camera, frames=frames)
     if fmt == "rosbag":
-        from monoloc.server.ingest.rosbag import read_rosbag_run
+        from monoloc.server.ingest.sources import read_rosbag_run
 
         return read_rosbag_run(path, topics=topics, intrinsics=camera, frames=frames)
     raise InvalidInputError(f"unknown format {fmt!r}: kitti, tum or rosbag")

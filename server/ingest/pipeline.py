@@ -281,7 +281,7 @@ def ingest_run(
     should_stop: Callable[[], bool] | None = None,
     config: IngestConfig = IngestConfig(),
 ) -> IngestSummary:
-    """Add the frames of ``source`` (a ``KittiSequence``, ``TumRun`` or ``RosbagRun``) to
+    """Add the frames of ``source`` (a ``KittiSource``, ``TumSource`` or ``RosbagSource``) to
     map ``map_id`` as entries of run ``run_id`` (created by the caller). Idempotent and
     resumable (see the module docstring). ``progress(done, total)`` is called after every
     frame;

@@ -133,9 +133,9 @@ def read_lidar_extrinsics(spec: str) -> np.ndarray:
     """T_cam_from_lidar from a KITTI calib.txt path (its Tr line) or 12/16 numbers."""
     path = Path(spec)
     if path.is_file():
-        from monoloc.server.ingest.kitti import read_kitti_calibration
+        from monoloc.core.formats.kitti import read_calib_file
 
-        return read_kitti_calibration(path).T_cam_from_lidar
+        return read_calib_file(path).T_cam0_from_lidar
     return transform_from_numbers(parse_numbers(spec, "LiDAR extrinsics"), "LiDAR extrinsics")
 
 
@@ -146,6 +146,6 @@ def depth_source_from_file(path: Path, scale_per_m: float) -> DepthSource:
 
 def lidar_source_from_file(path: Path, T_cam_from_lidar: np.ndarray) -> LidarSource:
     """A KITTI .bin scan (float32 x, y, z, r) and T_cam_from_lidar (4, 4)."""
-    from monoloc.server.ingest.kitti import read_scan
+    from monoloc.core.formats.kitti import read_scan
 
     return LidarSource(read_scan(Path(path)), T_cam_from_lidar)

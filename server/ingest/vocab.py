@@ -111,7 +111,7 @@ class VocabularyChange:
 
 
 def _reopen(source_format: str, source_name: str):
-    from monoloc.server.ingest.tum import read_tum_run
+    from monoloc.server.ingest.sources import read_tum_run
 
     path = Path(source_name)
     if not source_name or not path.is_dir():
@@ -128,7 +128,7 @@ def _reopen(source_format: str, source_name: str):
 
 def _reopen_kitti(path: Path):
     """Only the images are read again: a run mapped from stereo may have no scans."""
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     try:
         return read_kitti_sequence(path)

@@ -10,8 +10,7 @@ from pathlib import Path
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.server.ingest.common import parse_frame_range
-from monoloc.server.ingest.kitti import read_kitti_sequence
-from monoloc.server.ingest.tum import read_tum_run
+from monoloc.server.ingest.sources import read_kitti_sequence, read_tum_run
 from monoloc.server.settings import Settings
 from monoloc.server.storage.records import JobRecord
 

@@ -114,7 +114,7 @@ def write_run_metadata(config, indoor: IndoorConfig, plan: IndoorRunPlan, out_di
     st = plan.states.sample(plan.rgb_times_s)
     speed, yaw_rate = measured_signals(st["speed_mps"], st["yaw_rate_radps"], signal_errors, rng)
     tw.write_vehicle(run_dir / "vehicle.txt", rgb_stamps, speed, yaw_rate)
-    tw.write_camera_json(
+    tum.write_camera_json(
         run_dir / "camera.json",
         indoor.intrinsics,
         {

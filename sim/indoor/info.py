@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict
 
+from monoloc.core.formats.tum import DEPTH_SCALE_PER_M
 from monoloc.sim.indoor.track import lap_length_m
-from monoloc.sim.tum_writer import DEPTH_SCALE_PER_M
 
 WORLD_FRAME = (
     "All groundtruth.txt (timestamp tx ty tz qx qy qz qw: T_world_from_cam, camera axes "

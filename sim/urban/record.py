@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monoloc.core.formats import kitti
 from monoloc.core.geometry import invert_rigid
 from monoloc.sim import kitti_writer as kw
 from monoloc.sim.camera import CameraConfig, render
@@ -74,7 +75,7 @@ def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
 
 def write_run_metadata(plan, written: WrittenRun, frames: dict, config, out_dir: Path) -> None:
     """calib.txt, times.txt, vehicle.txt and poses/NN.txt of one run."""
-    seq = kw.sequence_dir(out_dir, plan.seq_id)
+    seq = kitti.sequence_dir(out_dir, plan.seq_id)
     subs = ("image_0", "velodyne") + (("depth",) if config.write_depth else ())
     for sub in subs + (("image_1",) if config.write_stereo else ()):
         (seq / sub).mkdir(parents=True, exist_ok=True)
@@ -85,9 +86,7 @@ def write_run_metadata(plan, written: WrittenRun, frames: dict, config, out_dir:
     kw.write_times(seq / "times.txt", times)
     kw.write_vehicle(seq / "vehicle.txt", times, written.speed_mps, written.yaw_rate_radps)
     T_kitti_from_sim = invert_rigid(frames["T_simworld_from_kittiworld"])
-    kw.write_poses(
-        Path(out_dir) / "poses" / f"{plan.seq_id}.txt", T_kitti_from_sim @ written.T_written
-    )
+    kw.write_poses(kitti.poses_path(out_dir, plan.seq_id), T_kitti_from_sim @ written.T_written)
 
 
 _STATE: dict = {}
@@ -116,7 +115,7 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
 
     cv2.setNumThreads(1)
     scene, bank = _world(config, plan)
-    seq = kw.sequence_dir(out_dir, plan.seq_id)
+    seq = kitti.sequence_dir(out_dir, plan.seq_id)
     rig, errors = config.rig, config.errors
     intrinsics = config.intrinsics()
     draws = run_draws(plan, errors)
@@ -171,4 +170,4 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
             else:
                 T_wl = plan.states.T_world_from_vehicle(np.array([t_sweep]))[0] @ T_v_lidar
             points = scan(scene, T_wl, config.lidar, rng, bank)
-            kw.write_velodyne(seq / "velodyne" / f"{k:06d}.bin", points)
+            kitti.write_scan(seq / "velodyne" / f"{k:06d}.bin", points)

@@ -141,8 +141,11 @@ def test_malformed_vehicle_txt_is_refused_naming_file_and_line(sim_run, tmp_path
     vehicle.write_text("\n".join(lines) + "\n")
     with pytest.raises(InvalidInputError, match="vehicle.txt:5: not a number"):
         read_kitti_run(root, "00")
-    with pytest.raises(NotFoundError, match="image_0"):
+    with pytest.raises(InvalidInputError, match="no such sequence"):
         read_kitti_run(root, "07")
+    shutil.rmtree(root / "sequences" / "00" / "image_0")
+    with pytest.raises(NotFoundError, match="image_0"):
+        read_kitti_run(root, "00")
 
 
 def _write_tum(root: Path, n: int = 5, missing_image: bool = False) -> Path:
@@ -170,7 +173,7 @@ def test_tum_run_matches_truth_by_nearest_time(tmp_path):
     np.testing.assert_allclose(run.truth_world[:, 0], 0.5 * np.arange(5))
     np.testing.assert_allclose(run.truth_world[:, 2], 0.0, atol=1e-9)
     np.testing.assert_allclose(run.signals, [[5.0, 0.0]] * 5)
-    with pytest.raises(NotFoundError, match="missing, first .*2.png"):
+    with pytest.raises(InvalidInputError, match=r"rgb.txt:4: lists rgb/2.png, which does not"):
         read_tum_run(_write_tum(tmp_path / "tum2", missing_image=True))
     with pytest.raises(InvalidInputError, match="no ground truth within 0.001 s"):
         read_tum_run(tmp_path / "tum", max_dt_s=0.001)

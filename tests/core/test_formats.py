@@ -57,6 +57,47 @@ def test_kitti_calib_round_trip():
     np.testing.assert_allclose(back.T_cam0_from_lidar, calib.T_cam0_from_lidar, atol=1e-12)
 
 
+def test_kitti_calib_of_a_camera_reads_back_its_camera_and_baseline():
+    K = np.array([[718.856, 0.0, 607.1928], [0.0, 718.856, 185.2157], [0.0, 0.0, 1.0]])
+    T = _random_poses(1, seed=3)[0]
+    calib = kitti.KittiCalib.from_camera(K, T, stereo_baseline_m=0.54)
+    back, _ = _read_back(kitti.write_calib, kitti.read_calib, calib)
+    assert len(back.P_image_from_cam0) == 4  # P0..P3, as KITTI lists them
+    assert back.pinhole == pytest.approx((718.856, 718.856, 607.1928, 185.2157))
+    assert back.intrinsics(1241, 376).width_px == 1241
+    assert back.stereo_baseline_m() == pytest.approx(0.54, rel=1e-9)
+    np.testing.assert_allclose(back.T_cam0_from_lidar, T, atol=1e-11)
+    skewed = kitti.KittiCalib((back.P_image_from_cam0[0], back.P_image_from_cam0[0] * 1.01), T)
+    with pytest.raises(InvalidInputError, match="not a rectified stereo pair"):
+        skewed.stereo_baseline_m()
+    with pytest.raises(InvalidInputError, match="no P1 line"):
+        kitti.KittiCalib(back.P_image_from_cam0[:1], T).stereo_baseline_m()
+
+
+def test_kitti_scans_round_trip_without_their_non_finite_points(tmp_path):
+    points = np.random.default_rng(0).normal(size=(50, 4)).astype(np.float32)
+    points[7, 1] = np.nan
+    kitti.write_scan(tmp_path / "000000.bin", points)
+    back = kitti.read_scan(tmp_path / "000000.bin")
+    np.testing.assert_array_equal(back, np.delete(points, 7, axis=0))
+    (tmp_path / "000001.bin").write_bytes(b"\0" * 20)
+    with pytest.raises(InputFileError, match=r"000001\.bin: .* not a multiple of 16"):
+        kitti.read_scan(tmp_path / "000001.bin")
+
+
+def test_tum_camera_json_and_depth_encoding_read_back(tmp_path):
+    from monoloc.core.camera import CameraIntrinsics
+
+    camera = CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    tum.write_camera_json(tmp_path / "camera.json", camera, {"world_frame": "z-up"})
+    path, data = tum.read_camera_json(tmp_path)
+    assert path == tmp_path / "camera.json" and data["world_frame"] == "z-up"
+    assert (data["fx"], data["width"], data["depth_scale_per_m"]) == (525.0, 640, 5000.0)
+    depth_m = np.array([[1.0, 0.0], [np.nan, 20.0]])
+    raw = tum.encode_depth(depth_m)
+    assert raw.dtype == np.uint16 and raw.tolist() == [[5000, 0], [0, 0]]  # 20 m: too far
+
+
 def test_tum_trajectory_round_trip():
     T = _random_poses(6, seed=1)
     timestamps_s = 1305031102.175304 + 0.033 * np.arange(6)

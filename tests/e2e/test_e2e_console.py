@@ -222,7 +222,7 @@ def _plot_entries(page, selector: str = "#map-plot") -> dict[str, list[int]]:
 
 
 def _night_frame(city) -> dict:
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     seq = read_kitti_sequence(city["root"], city["night"])
     frame = seq.frames[CITY_FRAMES // 2]
@@ -405,7 +405,7 @@ def test_jobs_page_cancels_a_queued_job_and_resumes_it(offline, server, city):
 
 def test_live_page_follows_a_vehicle(offline, server, city):
     from monoloc.client.api import FrameStream
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     page, url, map_id = offline.page, server["url"], server["map_id"]
     offline.sign_in(server["keys"].localize)

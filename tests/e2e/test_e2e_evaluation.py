@@ -13,7 +13,7 @@ from monoloc.client.particle_filter import FilterConfig
 @pytest.fixture(scope="module")
 def memory_map(sim_city):
     from bench.lab.evaluation import MemoryMap
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     memory = MemoryMap.empty(load_default_vocabulary())
@@ -25,7 +25,7 @@ def test_every_variant_localizes_the_query_run(memory_map, sim_city):
     from bench.lab.evaluation import EvalConfig, evaluate_run
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.core.measurement import MeasurementModel
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     query = read_kitti_sequence(sim_city, QUERY_SEQ)
     signals = read_kitti_run(sim_city, QUERY_SEQ).signals
@@ -59,7 +59,7 @@ def test_every_variant_localizes_the_query_run(memory_map, sim_city):
 
 
 def test_the_in_process_localizer_takes_png_bytes_or_arrays(memory_map, sim_city):
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.localizer import InProcessLocalizer
 
     query = read_kitti_sequence(sim_city, QUERY_SEQ)
@@ -84,7 +84,7 @@ def test_localize_globally_gives_each_frame_its_truth_result_and_time(memory_map
 
     from bench.lab.evaluation import localize_globally
     from monoloc.core.geometry import planar_from_T_world_from_cam
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.localize import LocalizeConfig, localize_frame
 
     query = read_kitti_sequence(sim_city, QUERY_SEQ)

@@ -63,7 +63,7 @@ def exact_run(tmp_path_factory) -> Path:
 def _frames(root: Path, offset_x_m: float = 0.0, offset_yaw_rad: float = 0.0) -> list:
     """TrainingFrames of sequence 00; the query frames' (odd frames') truth is moved by
     +offset_x_m along world X and turned by +offset_yaw_rad about world z."""
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     source = read_kitti_sequence(root)
     c, s = math.cos(offset_yaw_rad), math.sin(offset_yaw_rad)
@@ -80,7 +80,7 @@ def _frames(root: Path, offset_x_m: float = 0.0, offset_yaw_rad: float = 0.0) ->
 
 
 def _calibrate(root: Path, config: CalibrationConfig, progress=None, **offsets):
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     intrinsics = read_kitti_sequence(root).intrinsics
@@ -208,7 +208,7 @@ def test_runs_are_pooled_each_against_its_own_map(exact_run):
     queries, and one fit covers the samples of both. The second run's query truths carry
     a planted +0.5 m X offset, the first's none, so the pooled mu1 X is the offset times
     the second run's share of the samples."""
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     runs = [
@@ -238,7 +238,7 @@ def test_runs_are_pooled_each_against_its_own_map(exact_run):
 
 
 def test_too_short_a_run_is_refused(noisy_run):
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     with pytest.raises(InvalidInputError, match="at least 10 map frames .* got 6 map frames"):

@@ -35,8 +35,8 @@ class City:
 
 @pytest.fixture(scope="module")
 def city(tmp_path_factory) -> City:
-    from monoloc.server.ingest.kitti import read_kitti_sequence
     from monoloc.server.ingest.manage import create_map, ingest_source
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.map_registry import MapRegistry
     from monoloc.server.settings import Settings
     from monoloc.server.storage.db import create_engine_for, make_session_factory

@@ -42,7 +42,7 @@ def test_files_follow_the_kitti_layout(exact_dataset, tiny_config):
     assert [s["run"] for s in info["sequences"]] == ["map", "query"]
     assert "first frame of the map run" in info["world_frame"]
     for seq in info["sequences"]:
-        d = kw.sequence_dir(root, seq["id"])
+        d = kitti.sequence_dir(root, seq["id"])
         n = seq["frames"]
         # the query stops where the map run's stretch ends (monoloc.sim.urban.runs)
         assert n == 4 if seq["run"] == "map" else 1 <= n <= 4
@@ -68,12 +68,12 @@ def test_lidar_agrees_with_rendered_depth(exact_dataset):
     different things from their 27 cm apart viewpoints), the depth must agree within
     5 cm for at least 95 % of points (the LiDAR has 2 cm range noise)."""
     root, info = exact_dataset
-    d = kw.sequence_dir(root, "00")
+    d = kitti.sequence_dir(root, "00")
     calib = kitti.read_calib(d / "calib.txt")
     Tr, P0 = calib.T_cam0_from_lidar, calib.P_image_from_cam0[0]
     checked, agree = 0, 0
     for k in range(4):
-        pts = kw.read_velodyne(d / "velodyne" / f"{k:06d}.bin")[:, :3].astype(np.float64)
+        pts = kitti.read_scan(d / "velodyne" / f"{k:06d}.bin")[:, :3].astype(np.float64)
         cam = pts @ Tr[:3, :3].T + Tr[:3, 3]
         cam = cam[cam[:, 2] > 1.0]
         u, v, z = _project(cam, P0)
@@ -91,7 +91,7 @@ def test_written_poses_reproduce_the_rendered_views(exact_dataset):
     into frame 3 with its written pose: where visible (not occluded), the depth rendered
     in frame 3 is the predicted one."""
     root, _ = exact_dataset
-    d = kw.sequence_dir(root, "00")
+    d = kitti.sequence_dir(root, "00")
     P0 = kitti.read_calib(d / "calib.txt").P_image_from_cam0[0]
     K = P0[:, :3]
     poses = kitti.read_poses(root / "poses" / "00.txt")
@@ -134,7 +134,7 @@ def test_same_seed_gives_same_bytes(tmp_path, tiny_config):
 
 def test_true_poses_are_the_written_ones_without_recording_errors(exact_dataset, tiny_config):
     from monoloc.core.geometry import planar_from_T_world_from_cam
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.sim.urban.truth import true_planar_poses
 
     root, meta = exact_dataset

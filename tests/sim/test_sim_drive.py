@@ -6,7 +6,6 @@ import pytest
 from monoloc.core.formats import kitti
 from monoloc.core.formats.vehicle import read_vehicle
 from monoloc.core.geometry import invert_rigid, kitti_to_zup
-from monoloc.sim import kitti_writer as kw
 from monoloc.sim.camera import Lighting, render
 from monoloc.sim.generate import GenerateConfig
 from monoloc.sim.recording import RecordingErrors
@@ -70,7 +69,7 @@ def _integration_errors(tmp_path, plan, errors: RecordingErrors, window: int = 1
     config = GenerateConfig(**{**CONFIG.__dict__, "errors": errors})
     written = prepare_run_files(plan, config, tmp_path)
     write_run_metadata(plan, written, kitti_world(written.T_written[0]), config, tmp_path)
-    signals = read_vehicle(kw.sequence_dir(tmp_path, plan.seq_id) / "vehicle.txt")
+    signals = read_vehicle(kitti.sequence_dir(tmp_path, plan.seq_id) / "vehicle.txt")
     T_cam = kitti_to_zup(kitti.read_poses(tmp_path / "poses" / f"{plan.seq_id}.txt"))
     T_vehicle = T_cam @ invert_rigid(config.rig.T_vehicle_from_cam())
     truth = np.stack(

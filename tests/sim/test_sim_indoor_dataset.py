@@ -248,10 +248,10 @@ def test_cli_generates_and_previews(tmp_path):
 def test_server_tum_reader_reads_the_output(noisy_dataset):
     """The contract: monoloc's own TUM reader associates every frame and gets the
     camera and the ground truth."""
-    from monoloc.server.ingest import tum as server_tum
+    from monoloc.server.ingest.sources import read_tum_run
 
     root, info = noisy_dataset
-    run = server_tum.read_tum_run(root / "map")
+    run = read_tum_run(root / "map")
     assert run.n_frames == info["sequences"][0]["frames"] and not run.read_skips
     assert run.intrinsics.fx == pytest.approx(307.5) and run.depth_scale_per_m == 5000
     gt = tum.read_trajectory(root / "map" / "groundtruth.txt")

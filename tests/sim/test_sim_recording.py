@@ -167,13 +167,13 @@ def test_lidar_sweep_offset_shows_in_the_written_points(tmp_path):
     info = json.loads((tmp_path / "dataset.json").read_text())
     drawn = info["sequences"][0]["lidar_time_offset_mean_s"]
     plan = plan_runs(build_city(config.city_config(), config.seed), config)[0]
-    seq = kw.sequence_dir(tmp_path, "00")
+    seq = kitti.sequence_dir(tmp_path, "00")
     P0 = kitti.read_calib(seq / "calib.txt").P_image_from_cam0[0]
     T_cam = true_camera_poses(plan, config.rig)
     T_v_lidar = config.rig.T_vehicle_from_lidar()
     grid = np.arange(-0.05, 0.0501, 0.0025)
     for k in range(3):
-        points = kw.read_velodyne(seq / "velodyne" / f"{k:06d}.bin")[:, :3].astype(np.float64)
+        points = kitti.read_scan(seq / "velodyne" / f"{k:06d}.bin")[:, :3].astype(np.float64)
         depth = kw.read_depth(seq / "depth" / f"{k:06d}.png")
         t = plan.frame_times_s[k]
 

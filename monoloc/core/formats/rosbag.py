@@ -1,6 +1,7 @@
 """ROS 2 bags (rosbag2, sqlite3 or mcap storage; ROS 1 bags too), read with ``rosbags``
-(pure Python, no ROS installation): what the map server's bag ingestion and the vehicle's
-bag replay share.
+(pure Python, no ROS installation): the messages the vehicle's bag replay reads, a bag
+opened as a mapping run (``read_mapping_run``, what the map server ingests) and the pose
+bag ``monoloc drive`` writes (``write_pose_bag``).
 
 ``rosbags`` is not part of the bare vehicle install: it is imported when a bag is opened,
 and its absence is one error naming ``pip install 'monoloc[formats]'``.
@@ -26,6 +27,8 @@ Times: a message's ``header.stamp`` (sensor time) in seconds; the bag's own rece
 
 from __future__ import annotations
 
+import threading
+import weakref
 from collections import deque
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -36,6 +39,7 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InputFileError, InvalidInputError, MonolocError
+from monoloc.core.formats.tum import associate, ground_truth_at
 from monoloc.core.geometry import R_from_quaternion_xyzw, invert_rigid
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -461,3 +465,245 @@ def write_pose_bag(
             )
             writer.write(connection, ns, store.serialize_cdr(msg, ODOMETRY))
     return path
+
+
+class MessageReader:
+    """Messages of a bag read again by (topic, bag time), ``read_message``'s answer: one
+    reader, opened on first use and kept open behind a lock (thread-safe), closed with
+    this object or at exit (before the interpreter tears down)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._lock = threading.Lock()
+        self._reader = None
+
+    def __call__(self, topic: str, bag_time_ns: int):
+        with self._lock:
+            if self._reader is None:
+                self._reader = open_reader(self.root)
+                weakref.finalize(self, self._reader.close)
+            return read_message(self._reader, topic, bag_time_ns)
+
+
+# ---- a bag as a mapping run ----------------------------------------------------------
+#
+# Topics (``topics``: role -> topic name; a role left out is found by message type when the
+# bag has exactly one topic of that type):
+#
+# - ``image``: ``sensor_msgs/Image`` or ``CompressedImage``, the reference images;
+# - ``camera_info``: ``sensor_msgs/CameraInfo`` of that camera (or ``intrinsics`` given);
+# - ``depth`` (a registered depth ``Image``: 16UC1/mono16 in millimetres, 32FC1 in metres)
+#   or ``cloud`` (``PointCloud2``): the 3D source. When both exist, the depth image wins
+#   unless ``cloud`` is named;
+# - ``pose``: ``nav_msgs/Odometry`` (its pose is ``T_<frame_id>_from_<child_frame_id>``);
+#   without one, the one moving transform of ``/tf``.
+#
+# The camera's pose at an image's stamp: the body pose interpolated (translation linearly,
+# rotation by slerp: ``tum.ground_truth_at``) between the two samples bracketing the stamp
+# when they are at most ``pose_max_gap_s`` apart, else the nearest within
+# ``max_difference_s``, times the static transform (``/tf_static``) from the body frame to
+# the image's ``frame_id`` (identity when they are the same frame). A point cloud's frame
+# must reach the camera's by static transforms. Depth images and scans pair with images by
+# stamp (``tum.associate``: greedy, closest first, within ``max_difference_s`` /
+# ``cloud_max_difference_s``). Images without a pose or a 3D partner are counted in
+# ``read_skips`` (``no_ground_truth``, ``no_depth``).
+#
+# Opening a run indexes the bag (headers only); each frame's messages are read again when
+# it is loaded (``MessageReader``).
+
+MAPPING_ROLES = ("image", "camera_info", "depth", "cloud", "pose")
+DEPTH_MM_PER_M = 1000.0
+
+
+@dataclass(frozen=True)
+class RosbagFrame:
+    """One image with its pose; ``image_path`` names the message (``<bag>#<topic>@<ns>``)
+    in errors; ``partner`` is the depth image's or scan's bag time (ns)."""
+
+    index: int
+    timestamp_s: float
+    image_path: Path
+    image_time_ns: int
+    partner_time_ns: int
+    T_world_from_cam: np.ndarray = field(repr=False)
+
+
+@dataclass
+class RosbagRun:
+    """A bag opened as a mapping run: its camera, the topic of each role, its frames."""
+
+    root: Path
+    intrinsics: CameraIntrinsics
+    topics: dict[str, str]
+    frames: list[RosbagFrame] = field(repr=False)
+    T_cam_from_lidar: np.ndarray | None = field(default=None, repr=False)
+    read_skips: dict[str, int] = field(default_factory=dict)
+    format: str = "rosbag"
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def name(self) -> str:
+        return str(self.root)
+
+    @property
+    def depth_role(self) -> str:
+        """The role of the 3D source: ``depth`` or ``cloud``."""
+        return "depth" if "depth" in self.topics else "cloud"
+
+    def partner_path(self, frame: RosbagFrame) -> Path:
+        """The name of the frame's depth image or scan message, for errors."""
+        return Path(f"{self.root}#{self.topics[self.depth_role]}@{frame.partner_time_ns}")
+
+
+def depth_mm(msgtype: str, msg) -> np.ndarray:
+    """A depth message -> (H, W) uint16 millimetres (0: no depth)."""
+    if msgtype != IMAGE:
+        raise InvalidInputError("a depth topic must be a raw sensor_msgs/Image")
+    depth = raw_image_array(msg)
+    if depth.ndim != 2:
+        raise InvalidInputError(f"depth image must be single-channel, got {msg.encoding}")
+    if depth.dtype == np.float32:  # metres
+        mm = np.where(np.isfinite(depth) & (depth > 0), depth * DEPTH_MM_PER_M + 0.5, 0.0)
+        return np.clip(mm, 0, 65535).astype(np.uint16)
+    if depth.dtype != np.uint16:
+        raise InvalidInputError(f"depth image must be 16UC1 (mm) or 32FC1 (m), got {msg.encoding}")
+    return depth
+
+
+def _mapping_topics(reader, root: Path, given: dict[str, str]) -> dict[str, str]:
+    """role -> topic: the named ones checked, the others found by type (and, for the
+    depth image and the camera info, by name when types alone are ambiguous)."""
+    unknown = sorted(set(given) - set(MAPPING_ROLES))
+    if unknown:
+        raise InvalidInputError(f"unknown topic role(s) {unknown}: roles are {list(MAPPING_ROLES)}")
+    types = topic_types(reader)
+    topics: dict[str, str] = {}
+    if "depth" in given or "cloud" not in given:
+        named_depth = {t: k for t, k in types.items() if "depth" in t and t != given.get("image")}
+        pool = types if "depth" in given else named_depth
+        found = choose_topic(pool, (IMAGE,), given.get("depth"), "depth", root)
+        if found is not None:
+            topics["depth"] = found
+    cameras = {t: k for t, k in types.items() if t != topics.get("depth")}
+    found = choose_topic(cameras, IMAGE_TYPES, given.get("image"), "image", root)
+    if found is None:
+        raise InvalidInputError(f"{root}: no image topic (sensor_msgs/Image or CompressedImage)")
+    topics["image"] = found
+    info = given.get("camera_info")
+    sibling = found.rsplit("/", 1)[0] + "/camera_info"
+    if info is None and types.get(sibling) == CAMERA_INFO:
+        info = sibling
+    found = choose_topic(types, (CAMERA_INFO,), info, "camera_info", root)
+    if found is not None:
+        topics["camera_info"] = found
+    if "depth" not in topics:
+        found = choose_topic(types, (POINT_CLOUD,), given.get("cloud"), "cloud", root)
+        if found is None:
+            raise InvalidInputError(
+                f"{root}: no 3D source: a depth image topic or a PointCloud2 topic is needed"
+            )
+        topics["cloud"] = found
+    found = choose_topic(types, (ODOMETRY,), given.get("pose"), "pose", root)
+    if found is not None:
+        topics["pose"] = found
+    return topics
+
+
+def _camera(reader, topics, given: CameraIntrinsics | None, root: Path) -> CameraIntrinsics:
+    if given is not None:
+        return given
+    if "camera_info" not in topics:
+        raise InvalidInputError(
+            f"{root}: no CameraInfo topic: name one (--topic camera_info=...) or give "
+            "the intrinsics"
+        )
+    connections = [c for c in reader.connections if c.topic == topics["camera_info"]]
+    for connection, _, raw in reader.messages(connections=connections):
+        return intrinsics_from_camera_info(reader.deserialize(raw, connection.msgtype))
+    raise InvalidInputError(f"{root}: topic {topics['camera_info']!r} holds no message")
+
+
+def _pair(images: list[BagImage], partners: list[BagImage], max_s: float) -> dict[int, int]:
+    """image index -> partner index, TUM's greedy association by stamp."""
+    a = np.array([i.stamp_s for i in images])
+    b = np.array([p.stamp_s for p in partners])
+    return dict(associate(a, b, max_s)) if len(a) and len(b) else {}
+
+
+def read_mapping_run(
+    root: Path,
+    *,
+    topics: dict[str, str] | None = None,
+    intrinsics: CameraIntrinsics | None = None,
+    frames: slice | None = None,
+    max_difference_s: float = 0.02,
+    cloud_max_difference_s: float = 0.05,
+    pose_max_gap_s: float = 0.5,
+) -> RosbagRun:
+    """Open and index a bag as a mapping run (see the comment above). ``frames`` selects
+    frames (images with a pose and a 3D partner) with Python slice semantics."""
+    root = Path(root).expanduser().resolve()
+    with open_bag(root) as reader:
+        chosen = _mapping_topics(reader, root, dict(topics or {}))
+        camera = _camera(reader, chosen, intrinsics, root)
+        tree = read_frame_tree(reader)
+        if "pose" in chosen:
+            track = read_odometry(reader, chosen["pose"])
+            body, pose_rows = track.body, track.pose_rows
+        else:
+            _, body, pose_rows = tree.dynamic_rows(None, root)
+        images = list_images(reader, chosen["image"])
+        role = "depth" if "depth" in chosen else "cloud"
+        partners = list_images(reader, chosen[role])
+    if not images:
+        raise InvalidInputError(f"{root}: topic {chosen['image']!r} holds no image")
+    camera_frame = images[0].frame_id
+    T_body_from_cam = tree.static_between(body, camera_frame)
+    if T_body_from_cam is None:
+        raise InvalidInputError(
+            f"{root}: no static transform (/tf_static) from the pose's frame {body!r} to the "
+            f"camera's {camera_frame!r}"
+        )
+    T_cam_from_lidar = None
+    if role == "cloud" and partners:
+        T_cam_from_cloud = tree.static_between(camera_frame, partners[0].frame_id)
+        if T_cam_from_cloud is None:
+            raise InvalidInputError(
+                f"{root}: no static transform from the camera's frame {camera_frame!r} to "
+                f"the point cloud's {partners[0].frame_id!r}"
+            )
+        T_cam_from_lidar = T_cam_from_cloud
+    limit = max_difference_s if role == "depth" else cloud_max_difference_s
+    pairs = _pair(images, partners, limit)
+    skips = {"no_depth": 0, "no_ground_truth": 0}
+    out: list[RosbagFrame] = []
+    for i, image in enumerate(images):
+        if i not in pairs:
+            skips["no_depth"] += 1
+            continue
+        T_world_from_body = ground_truth_at(
+            pose_rows, image.stamp_s, max_difference_s, pose_max_gap_s
+        )
+        if T_world_from_body is None:
+            skips["no_ground_truth"] += 1
+            continue
+        where = Path(f"{root}#{image.topic}@{image.bag_time_ns}")
+        T = T_world_from_body @ T_body_from_cam
+        out.append(
+            RosbagFrame(
+                i, image.stamp_s, where, image.bag_time_ns, partners[pairs[i]].bag_time_ns, T
+            )
+        )
+    if frames is not None:
+        out = out[frames]
+    return RosbagRun(
+        root=root,
+        intrinsics=camera,
+        topics=chosen,
+        frames=out,
+        T_cam_from_lidar=T_cam_from_lidar,
+        read_skips={k: v for k, v in skips.items() if v},
+    )

@@ -30,13 +30,13 @@ def sim_city(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def map_run(sim_city):
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     return read_kitti_sequence(sim_city, "00")
 
 
 @pytest.fixture(scope="session")
 def query_run(sim_city):
-    from monoloc.server.ingest.kitti import read_kitti_sequence
+    from monoloc.server.ingest.sources import read_kitti_sequence
 
     return read_kitti_sequence(sim_city, "01")

@@ -9,9 +9,9 @@ import numpy as np
 from sqlalchemy import update
 
 from monoloc.server.ingest.common import content_hash
-from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import ingest_run
 from monoloc.server.ingest.single import add_single_image
+from monoloc.server.ingest.sources import read_kitti_sequence
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.models import Map

@@ -9,7 +9,7 @@ import pytest
 from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import kitti_to_zup
 from monoloc.server.ingest.common import parse_frame_range
-from monoloc.server.ingest.kitti import read_kitti_sequence
+from monoloc.server.ingest.sources import read_kitti_sequence
 
 
 def test_reads_calibration_poses_and_frames(kitti_root):

@@ -8,8 +8,8 @@ import pytest
 
 from monoloc.core.errors import InputFileError
 from monoloc.core.geometry import zup_to_kitti
-from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import IngestConfig, ingest_run
+from monoloc.server.ingest.sources import read_kitti_sequence
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.db import session_scope

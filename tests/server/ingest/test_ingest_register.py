@@ -8,8 +8,8 @@ import numpy as np
 
 from monoloc.core.geometry import zup_to_kitti
 from monoloc.core.registration import RegistrationConfig
-from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import IngestConfig, ingest_run
+from monoloc.server.ingest.sources import read_kitti_sequence
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.db import session_scope
@@ -196,7 +196,7 @@ def test_a_tum_run_is_registered_too(kitti_root, tum_run):
     from bench.lab.evaluation import MemoryMap
     from monoloc.core.registration import RunCorrection
     from monoloc.server.ingest.register import RegistrationTarget, correct_source, register_source
-    from monoloc.server.ingest.tum import read_tum_run
+    from monoloc.server.ingest.sources import read_tum_run
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     memory = MemoryMap.empty(load_default_vocabulary())

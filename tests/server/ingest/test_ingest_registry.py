@@ -10,8 +10,8 @@ import time
 import numpy as np
 import pytest
 
-from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import ingest_run
+from monoloc.server.ingest.sources import read_kitti_sequence
 from monoloc.server.map_registry import MapRegistry
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.features import extract_features

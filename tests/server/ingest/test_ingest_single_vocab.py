@@ -7,9 +7,9 @@ import pytest
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.server.entry_builder import DepthSource
-from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import ingest_run
 from monoloc.server.ingest.single import add_single_image, transform_from_numbers
+from monoloc.server.ingest.sources import read_kitti_sequence
 from monoloc.server.ingest.vocab import change_map_vocabulary_detailed, train_map_vocabulary
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo

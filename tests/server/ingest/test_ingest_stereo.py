@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from monoloc.core.errors import InputFileError, InvalidInputError
-from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.manage import ingest_source
+from monoloc.server.ingest.sources import read_kitti_sequence
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import runs as runs_repo
 from monoloc.server.storage.db import session_scope

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from monoloc.core.errors import InputFileError, InvalidInputError
+from monoloc.core.formats.tum import associate, ground_truth_at
 from monoloc.core.geometry import (
     kitti_to_zup,
     quaternion_xyzw_from_R,
     zup_to_kitti,
 )
 from monoloc.server.ingest.pipeline import ingest_run
-from monoloc.server.ingest.tum import associate, ground_truth_at, read_tum_run
+from monoloc.server.ingest.sources import read_tum_run
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage.db import session_scope
 

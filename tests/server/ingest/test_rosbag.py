@@ -14,9 +14,8 @@ from rosbag_helpers import SimRun, write_sim_bag
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam
-from monoloc.server.ingest.kitti import read_kitti_sequence
 from monoloc.server.ingest.pipeline import ingest_run
-from monoloc.server.ingest.rosbag import read_rosbag_run
+from monoloc.server.ingest.sources import read_kitti_sequence, read_rosbag_run
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage.db import session_scope
 

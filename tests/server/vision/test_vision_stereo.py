@@ -8,7 +8,7 @@ import pytest
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.ingest.kitti import read_kitti_sequence
+from monoloc.server.ingest.sources import read_kitti_sequence
 from monoloc.server.vision.features import OrbConfig, extract_features
 from monoloc.server.vision.stereo import (
     StereoConfig,
