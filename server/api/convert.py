@@ -1,9 +1,9 @@
-"""Storage records and pipeline results -> response schemas, plus the error responses
-every route documents."""
+"""Storage records and pipeline results -> response schemas where the shape changes
+(nesting, arrays, records combined), plus the error responses every route documents. A
+record a schema reads as it is needs no mapper: ``XPublic.model_validate(record)``."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -18,16 +18,8 @@ from monoloc.server.api.schemas_localize import (
     RetrievedPublic,
 )
 from monoloc.server.localize import LocalizationResult, PoseHypothesis
-from monoloc.server.storage.records import (
-    EntrySummary,
-    JobRecord,
-    MapRecord,
-    VocabularyRecord,
-)
+from monoloc.server.storage.records import EntrySummary, MapRecord, VocabularyRecord
 from monoloc.server.vision.features import rule_is_current
-
-# Internal job parameters that clients do not need to see.
-_PRIVATE_PARAMS = ("upload",)
 
 
 def _err(code: str, message: str) -> dict[str, Any]:
@@ -63,18 +55,12 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
 AUTH_ERRORS = error_responses(401, 403)
 
 
-def vocabulary(v: VocabularyRecord) -> s.VocabularyPublic:
-    return s.VocabularyPublic(
-        id=v.id, hash=v.version_hash, n_words=v.n_words, description=v.description
-    )
-
-
 def map_public(m: MapRecord, vocab: VocabularyRecord) -> s.MapPublic:
     return s.MapPublic(
         id=m.id,
         name=m.name,
         camera=s.Camera.model_validate(m.camera),
-        vocabulary=vocabulary(vocab),
+        vocabulary=s.VocabularyPublic.model_validate(vocab),
         version=m.version,
         n_entries=m.n_entries,
         calibrated=bool(m.calibration),
@@ -102,36 +88,18 @@ def planar(pose: np.ndarray) -> s.PlanarPose:
     return s.PlanarPose(x_m=float(pose[0]), y_m=float(pose[1]), yaw_rad=float(pose[2]))
 
 
-def entry_fields(e: EntrySummary) -> dict[str, Any]:
-    return dict(
-        id=e.id,
-        map_id=e.map_id,
-        run_id=e.run_id,
-        pose=s.PlanarPose(x_m=e.x_m, y_m=e.y_m, yaw_rad=e.yaw_rad),
-        tags=list(e.tags),
-        n_points=e.n_points,
-        image_width_px=e.image_width_px,
-        image_height_px=e.image_height_px,
-        timestamp_s=e.timestamp_s,
-        source_image_hash=e.source_image_hash,
-        vocabulary_id=e.vocabulary_id,
-        created_at=e.created_at,
-    )
+def _entry_fields(e: EntrySummary) -> dict[str, Any]:
+    """The summary's fields, its planar pose nested as the API shows it."""
+    return {**vars(e), "pose": s.PlanarPose(x_m=e.x_m, y_m=e.y_m, yaw_rad=e.yaw_rad)}
 
 
 def entry_public(e: EntrySummary) -> s.EntryPublic:
-    return s.EntryPublic(**entry_fields(e))
+    return s.EntryPublic.model_validate(_entry_fields(e))
 
 
 def entry_detail(e: EntrySummary, T_world_from_cam: np.ndarray) -> s.EntryDetail:
-    return s.EntryDetail(
-        **entry_fields(e), T_world_from_cam=np.asarray(T_world_from_cam, float).ravel().tolist()
-    )
-
-
-def job_public(j: JobRecord) -> s.JobPublic:
-    params = {k: v for k, v in j.params.items() if k not in _PRIVATE_PARAMS}
-    return s.JobPublic.model_validate(replace(j, params=params))
+    T = np.asarray(T_world_from_cam, float).ravel().tolist()
+    return s.EntryDetail.model_validate({**_entry_fields(e), "T_world_from_cam": T})
 
 
 def hypothesis(h: PoseHypothesis, geopose: GeoPose | None = None) -> HypothesisPublic:

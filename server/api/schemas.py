@@ -11,7 +11,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator
 
 from monoloc.server.api.errors import PATTERN_RULES
 
@@ -193,8 +193,10 @@ class GeoReferencePublic(BaseModel):
 
 
 class VocabularyPublic(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
     id: int
-    hash: str
+    # a storage record calls it version_hash
+    hash: str = Field(validation_alias=AliasChoices("hash", "version_hash"))
     n_words: int
     description: str
 
@@ -395,6 +397,10 @@ _JOB_EXAMPLE = dict(
 )
 
 
+# Job parameters of the server's own bookkeeping (where its upload lives), not shown.
+_PRIVATE_JOB_PARAMS = ("upload",)
+
+
 class JobPublic(BaseModel):
     model_config = record_example(**_JOB_EXAMPLE)
     id: int
@@ -410,6 +416,11 @@ class JobPublic(BaseModel):
     created_at: datetime
     updated_at: datetime
     finished_at: datetime | None
+
+    @field_validator("params")
+    @classmethod
+    def _public_params(cls, params: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in params.items() if k not in _PRIVATE_JOB_PARAMS}
 
 
 class JobList(BaseModel):

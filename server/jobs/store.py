@@ -32,24 +32,6 @@ _JOB_TRANSITIONS = {
 }
 
 
-def _job_record(row: Job) -> JobRecord:
-    return JobRecord(
-        id=row.id,
-        kind=row.kind,
-        map_id=row.map_id,
-        run_id=row.run_id,
-        state=row.state,
-        progress=row.progress,
-        message=row.message,
-        error=row.error,
-        params=dict(row.params or {}),
-        result=None if row.result is None else dict(row.result),
-        created_at=row.created_at,
-        updated_at=row.updated_at,
-        finished_at=row.finished_at,
-    )
-
-
 def _job_row(session: Session, job_id: int) -> Job:
     row = session.get(Job, job_id, populate_existing=True)
     if row is None:
@@ -82,11 +64,11 @@ def create_job(
     )
     session.add(row)
     session.flush()
-    return _job_record(row)
+    return JobRecord.model_validate(row)
 
 
 def get_job(session: Session, job_id: int) -> JobRecord:
-    return _job_record(_job_row(session, job_id))
+    return JobRecord.model_validate(_job_row(session, job_id))
 
 
 def list_jobs(
@@ -104,7 +86,7 @@ def list_jobs(
     if states is not None:
         stmt = stmt.where(Job.state.in_(list(states)))
     stmt = stmt.order_by(Job.id.desc()).limit(max(0, limit)).offset(max(0, offset))
-    return [_job_record(r) for r in session.scalars(stmt)]
+    return [JobRecord.model_validate(r) for r in session.scalars(stmt)]
 
 
 def update_job(
@@ -151,7 +133,7 @@ def update_job(
         row.result = dict(result)
     row.updated_at = utc_now()
     session.flush()
-    return _job_record(row)
+    return JobRecord.model_validate(row)
 
 
 def mark_interrupted_jobs(

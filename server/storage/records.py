@@ -1,7 +1,10 @@
 """Plain frozen records the repositories return (no ORM objects leak out of a session),
 and the input record of a new map entry.
 
-Arrays in records are numpy arrays; those decoded from blobs are read-only views.
+A record whose row holds it as it is (a run, a job) is a pydantic model read from the
+row's attributes (``RunRecord.model_validate(row)``); the others are dataclasses their
+repository builds (arrays decoded from blobs, tags, the map's camera). Arrays in records
+are numpy arrays; those decoded from blobs are read-only views.
 """
 
 from __future__ import annotations
@@ -11,8 +14,11 @@ from datetime import datetime
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict
 
 from monoloc.core.camera import CameraIntrinsics
+
+_FROM_ROW = ConfigDict(frozen=True, from_attributes=True)
 
 # Reading what a map looks like needs a valid key of any scope (see ApiKeyRecord.has_scope).
 READ_ACCESS = "read"
@@ -61,10 +67,10 @@ class MapRecord:
     features: dict[str, Any] | None = None
 
 
-@dataclass(frozen=True)
-class RunRecord:
+class RunRecord(BaseModel):
     """One ingested recording (mapping run) and its counters."""
 
+    model_config = _FROM_ROW
     id: int
     map_id: int
     kind: str
@@ -183,10 +189,11 @@ class MapVectors:
     planar: np.ndarray
 
 
-@dataclass(frozen=True)
-class JobRecord:
-    """A durable long-running job (ingestion, vocabulary change, ...)."""
+class JobRecord(BaseModel):
+    """A durable long-running job (ingestion, vocabulary change, ...); ``params`` is the
+    JSON of its kind's parameters (``monoloc.server.jobs.params``)."""
 
+    model_config = _FROM_ROW
     id: int
     kind: str
     map_id: int | None

@@ -39,26 +39,6 @@ def check_count(value: int, name: str) -> int:
     return int(value)
 
 
-def _run_record(row: Run) -> RunRecord:
-    return RunRecord(
-        id=row.id,
-        map_id=row.map_id,
-        kind=row.kind,
-        source_format=row.source_format,
-        source_name=row.source_name,
-        status=row.status,
-        frames_total=row.frames_total,
-        frames_done=row.frames_done,
-        entries_added=row.entries_added,
-        frames_skipped=row.frames_skipped,
-        skip_reasons=dict(row.skip_reasons or {}),
-        error=row.error,
-        created_at=row.created_at,
-        updated_at=row.updated_at,
-        registration=dict(row.registration) if row.registration is not None else None,
-    )
-
-
 def _run_row(session: Session, run_id: int) -> Run:
     row = session.get(Run, run_id, populate_existing=True)
     if row is None:
@@ -93,11 +73,11 @@ def create_run(
     )
     session.add(row)
     session.flush()
-    return _run_record(row)
+    return RunRecord.model_validate(row)
 
 
 def get_run(session: Session, run_id: int) -> RunRecord:
-    return _run_record(_run_row(session, run_id))
+    return RunRecord.model_validate(_run_row(session, run_id))
 
 
 def list_runs(session: Session, map_id: int) -> list[RunRecord]:
@@ -107,7 +87,7 @@ def list_runs(session: Session, map_id: int) -> list[RunRecord]:
         .order_by(Run.id)
         .execution_options(populate_existing=True)
     )
-    return [_run_record(r) for r in rows]
+    return [RunRecord.model_validate(r) for r in rows]
 
 
 def update_run(
@@ -148,4 +128,4 @@ def update_run(
         row.error = error
     row.updated_at = utc_now()
     session.flush()
-    return _run_record(row)
+    return RunRecord.model_validate(row)

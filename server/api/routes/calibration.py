@@ -27,7 +27,6 @@ from sqlalchemy.orm import Session
 
 from monoloc.core.measurement import MeasurementModel
 from monoloc.server import calibration_conditions as conditions
-from monoloc.server.api import convert
 from monoloc.server.api.archives import Unpacked
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AppState, MapWriteKey, ReadKey, SessionDep, StateDep
@@ -281,7 +280,7 @@ async def calibration_job(
     )
     state.jobs.submit(job.id)
     return CalibrationJobAccepted(
-        job=convert.job_public(job),
+        job=JobPublic.model_validate(job),
         n_frames=n_frames,
         n_files=unpacked.n_files,
         total_bytes=unpacked.total_bytes,

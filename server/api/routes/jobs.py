@@ -6,7 +6,6 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query
 
-from monoloc.server.api import convert
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import MapWriteKey, SessionDep, StateDep
 from monoloc.server.api.guard import GuardedRoute
@@ -35,7 +34,7 @@ def list_jobs(
 ) -> JobList:
     """Newest first, optionally of one map and/or in the given states."""
     jobs = jobs_repo.list_jobs(session, map_id=map_id, states=state, limit=limit, offset=offset)
-    return JobList(items=[convert.job_public(j) for j in jobs])
+    return JobList(items=[JobPublic.model_validate(j) for j in jobs])
 
 
 @router.get(
@@ -47,7 +46,7 @@ def list_jobs(
 def get_job(job_id: JobId, session: SessionDep, _key: MapWriteKey) -> JobPublic:
     """State (queued, running, done, failed, interrupted), progress 0..1, message, error
     and, when done, the result (an ingestion's summary: entries added, skips and why)."""
-    return convert.job_public(jobs_repo.get_job(session, job_id))
+    return JobPublic.model_validate(jobs_repo.get_job(session, job_id))
 
 
 @router.post(
@@ -59,7 +58,7 @@ def get_job(job_id: JobId, session: SessionDep, _key: MapWriteKey) -> JobPublic:
 def resume_job(job_id: JobId, state: StateDep, _key: MapWriteKey) -> JobPublic:
     """Re-queue an interrupted or failed job (409 otherwise). Ingestion skips the frames
     already in the map, so nothing is added twice."""
-    return convert.job_public(state.jobs.resume(job_id))
+    return JobPublic.model_validate(state.jobs.resume(job_id))
 
 
 @router.post(
@@ -71,4 +70,4 @@ def resume_job(job_id: JobId, state: StateDep, _key: MapWriteKey) -> JobPublic:
 def cancel_job(job_id: JobId, state: StateDep, _key: MapWriteKey) -> JobPublic:
     """Stop a queued or running job: it ends 'interrupted' (what it committed stays) and
     may be resumed later."""
-    return convert.job_public(state.jobs.cancel(job_id))
+    return JobPublic.model_validate(state.jobs.cancel(job_id))

@@ -138,4 +138,4 @@ def vocabulary_job(
     job = jobs_repo.create_job(session, "vocabulary", map_id=map_id, params=params)
     session.commit()
     state.jobs.submit(job.id)
-    return convert.job_public(job)
+    return JobPublic.model_validate(job)

@@ -19,7 +19,6 @@ import anyio
 from fastapi import APIRouter, Form, UploadFile, status
 from sqlalchemy.orm import Session
 
-from monoloc.server.api import convert
 from monoloc.server.api.archives import Unpacked
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
@@ -28,6 +27,7 @@ from monoloc.server.api.params import MapId, RunId
 from monoloc.server.api.schemas import (
     RUN_KIND_PATTERN,
     TAG_LIST_PATTERN,
+    JobPublic,
     RunPublic,
     UploadAccepted,
 )
@@ -167,7 +167,7 @@ async def upload_run(
     job, run, unpacked = await anyio.to_thread.run_sync(_store, state, up, ingest, archive, files)
     state.jobs.submit(job.id)
     return UploadAccepted(
-        job=convert.job_public(job),
+        job=JobPublic.model_validate(job),
         run=RunPublic.model_validate(run),
         n_files=unpacked.n_files,
         total_bytes=unpacked.total_bytes,
