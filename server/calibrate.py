@@ -124,15 +124,6 @@ class CalibrationConfig:
         return self.map_every * (self.k - 1) + 2
 
 
-def server_calibration_config(k: int, covariance: CovarianceModel = "pnp") -> CalibrationConfig:
-    """The calibration matching a server's localizer: its PnP strategy, ``k`` entries per
-    query, the stored calibration selecting ``covariance`` (every model is fitted either
-    way)."""
-    return CalibrationConfig(
-        k=k, strategy=PnpStrategy(guess_from_prior=False, covariance=True), covariance=covariance
-    )
-
-
 def check_run_length(n_frames: int, config: CalibrationConfig, what: str) -> None:
     """InvalidInputError naming ``what`` when a run of ``n_frames`` is too short."""
     if n_frames < config.min_frames:

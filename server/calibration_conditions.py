@@ -131,7 +131,7 @@ def public_conditions(stored: Mapping[str, Any] | None) -> dict[str, dict[str, A
 
 
 def checked(calibration: dict[str, Any]) -> dict[str, Any]:
-    """``calibration`` unchanged if a vehicle can load it, conditions included
-    (InvalidInputError otherwise)."""
-    MeasurementModel.from_dict(calibration)
-    return calibration
+    """``calibration`` if a vehicle can load it, conditions included (InvalidInputError
+    otherwise), with the pose-error model it selects spelled out (a PUT may leave it to
+    the default)."""
+    return {**calibration, "covariance": MeasurementModel.from_dict(calibration).covariance}

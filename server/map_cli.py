@@ -209,6 +209,23 @@ def map_ingest(
     print_ingest_summary(summary)
 
 
+def job_params(model, **values):
+    """``model.create(**values)`` (a job's parameters, monoloc.server.jobs.params); a bad
+    value is a usage error naming its option."""
+    from pydantic import ValidationError
+
+    from monoloc.core.errors import InvalidInputError
+
+    try:
+        return model.create(**values)
+    except InvalidInputError as exc:
+        cause = exc.__cause__
+        errors = cause.errors() if isinstance(cause, ValidationError) else []
+        options = ["--" + str(e["loc"][0]).replace("_", "-") for e in errors if e["loc"]]
+        why = "; ".join(e["msg"].removeprefix("Value error, ") for e in errors)
+        raise typer.BadParameter(why or str(exc), param_hint=options or None) from None
+
+
 def parse_topics(items: list[str] | None) -> dict[str, str]:
     """The ``--topic ROLE=TOPIC`` values as a dict (a usage error otherwise)."""
     from monoloc.core.formats.rosbag import parse_topic_options
@@ -231,19 +248,33 @@ def map_vocab(
         str | None,
         typer.Option(help="Switch to an existing vocabulary (id, hash or default) instead."),
     ] = None,
-    max_images: int = 300,
-    seed: int = 0,
+    max_images: Annotated[
+        int | None, typer.Option(help="Images of the run to train on (default: the training's).")
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="k-means seed (default: the training's).")
+    ] = None,
 ) -> None:
     """Train a vocabulary (k=64) from a run and/or switch the map to it (a recorded job:
     every entry's VLAD and code is recomputed)."""
     from monoloc.server.ingest.common import parse_frame_range
     from monoloc.server.ingest.manage import open_source
     from monoloc.server.ingest.report import progress_bar
-    from monoloc.server.jobs.vocabulary import run_vocabulary_job
+    from monoloc.server.jobs.vocabulary import (
+        VocabularyParams,
+        VocabularyTraining,
+        run_vocabulary_job,
+    )
 
     _, factory = open_database(ctx)
     if (train_from is None) == (vocabulary is None):
         raise typer.BadParameter("give exactly one of --train-from and --vocabulary")
+    train = None
+    if train_from is not None:
+        train = job_params(
+            VocabularyTraining, run=str(train_from), max_images=max_images, seed=seed
+        )
+    params = job_params(VocabularyParams, vocabulary=vocabulary, train=train)
     source = None
     if train_from is not None:
         source = open_source(
@@ -254,15 +285,7 @@ def map_vocab(
             tum_camera="default",
         )
     with progress_bar("recomputing VLADs") as update:
-        job, change = run_vocabulary_job(
-            factory,
-            map_ref,
-            source=source,
-            vocabulary=vocabulary,
-            max_images=max_images,
-            seed=seed,
-            progress=update,
-        )
+        job, change = run_vocabulary_job(factory, map_ref, params, source=source, progress=update)
     typer.echo(
         f"job {job.id} {job.state}: map {change.map_id} now on vocabulary "
         f"{change.vocabulary_id}; {change.recomputed} entries recomputed "
@@ -281,19 +304,15 @@ def map_calibrate(
     fmt: Annotated[str, typer.Option("--format", help="kitti | tum")] = "kitti",
     sequence: Annotated[str | None, typer.Option(help="KITTI sequence (NN).")] = None,
     frames: Annotated[str | None, typer.Option(help="Frame range A:B (Python slice).")] = None,
-    k: Annotated[int, typer.Option(help="Map entries per query, closest by pose.")] = 10,
-    seed: Annotated[int, typer.Option(help="RANSAC seed.")] = 0,
+    k: Annotated[
+        int | None,
+        typer.Option(help="Map entries per query, closest by pose (default: the calibration's)."),
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="RANSAC seed (default: the job's).")] = None,
     camera: Annotated[str | None, typer.Option(help="TUM: freiburg1|2|3|default.")] = None,
     depth_from: Annotated[
-        str, typer.Option(help="KITTI: keypoint depth from lidar or stereo.")
-    ] = "lidar",
-    covariance: Annotated[
-        str,
-        typer.Option(
-            help="Pose-error model the calibration selects: pnp (each hypothesis's own PnP "
-            "covariance; the default) | paper | quality (every model is fitted and stored)."
-        ),
-    ] = "pnp",
+        str | None, typer.Option(help="KITTI: keypoint depth from lidar (default) or stereo.")
+    ] = None,
     condition: Annotated[
         str | None,
         typer.Option(
@@ -309,53 +328,38 @@ def map_calibrate(
     store it with its provenance (a recorded job; the run is not added to the map).
     With --condition NAME (e.g. a night run, --condition night) it becomes the model of
     the entries tagged NAME; calibrating the base again keeps it (same vocabulary)."""
-    from monoloc.core.errors import InvalidInputError
-    from monoloc.server.calibrate import server_calibration_config
-    from monoloc.server.calibration_conditions import condition_name
     from monoloc.server.ingest.common import parse_frame_range
     from monoloc.server.ingest.manage import open_source
     from monoloc.server.ingest.report import progress_bar
-    from monoloc.server.jobs.calibration import describe_calibration, run_calibration_job
-
-    settings, factory = open_database(ctx)
-    if covariance not in ("paper", "quality", "pnp"):
-        raise typer.BadParameter(
-            f"{covariance!r}: expected paper, quality or pnp", param_hint="--covariance"
-        )
-    if condition is not None:
-        try:
-            condition = condition_name(condition)
-        except InvalidInputError as exc:
-            raise typer.BadParameter(str(exc), param_hint="--condition") from exc
-    config = server_calibration_config(k, covariance)
-    source = open_source(
-        fmt,
-        run,
-        sequence=sequence,
-        frames=parse_frame_range(frames),
-        tum_camera=camera,
-        depth_from=depth_from,
+    from monoloc.server.jobs.calibration import (
+        CalibrationParams,
+        describe_calibration,
+        run_calibration_job,
     )
-    params = {
-        "format": fmt,
-        "path": str(run),
-        "sequence": sequence,
-        "frames": frames,
-        "covariance": covariance,
-    }
-    if depth_from != "lidar":
-        params["depth_from"] = depth_from
+
+    params = job_params(
+        CalibrationParams,
+        format=fmt,
+        path=str(run),
+        sequence=sequence,
+        frames=frames,
+        depth_from=depth_from,
+        k=k,
+        seed=seed,
+        condition=condition,
+    )
+    _, factory = open_database(ctx)
+    source = open_source(
+        params.format,
+        run,
+        sequence=params.sequence,
+        frames=parse_frame_range(params.frames),
+        tum_camera=camera,
+        depth_from=params.depth_from,
+    )
+    condition = params.condition
     with progress_bar(f"calibrating on {source.name}") as update:
-        job, calibration = run_calibration_job(
-            factory,
-            map_ref,
-            source,
-            params=params,
-            config=config,
-            seed=seed,
-            progress=update,
-            condition=condition,
-        )
+        job, calibration = run_calibration_job(factory, map_ref, source, params, progress=update)
     if condition is None:
         typer.echo(f"job {job.id} {job.state}: map {job.map_id} calibrated")
     else:

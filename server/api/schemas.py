@@ -11,8 +11,9 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from monoloc.core.measurement import DEFAULT_COVARIANCE, DEFAULT_RETRIEVAL_FRAME
 from monoloc.server.api.errors import PATTERN_RULES
 
 # The server's own rules, as patterns in the OpenAPI description (storage checks them too):
@@ -450,21 +451,20 @@ class VocabularyJobCreate(BaseModel):
     )
 
 
-class CalibrationUpdate(BaseModel):
-    """Measurement-model parameters (docs/method.md section 7) and their provenance."""
+_CALIBRATION_EXAMPLE = dict(
+    mu1=[0.02, -0.01, 0.001],
+    Sigma1=[[0.04, 0, 0], [0, 0.04, 0], [0, 0, 0.0007]],
+    mu2=[0.9, 0.0, 0.0, 0.0],
+    Sigma2=[[0.06, 0, 0, 0], [0, 64, 0, 0], [0, 0, 64, 0], [0, 0, 0, 0.27]],
+    outlier_log_density=-16.0,
+    provenance={"training_run": "kitti-05", "method": "ML, unbiased covariance"},
+)
 
-    model_config = ConfigDict(
-        strict=True,
-        allow_inf_nan=False,
-        **example(
-            mu1=[0.02, -0.01, 0.001],
-            Sigma1=[[0.04, 0, 0], [0, 0.04, 0], [0, 0, 0.0007]],
-            mu2=[0.9, 0.0, 0.0, 0.0],
-            Sigma2=[[0.06, 0, 0, 0], [0, 64, 0, 0], [0, 0, 64, 0], [0, 0, 0, 0.27]],
-            outlier_log_density=-16.0,
-            provenance={"training_run": "kitti-05", "method": "ML, unbiased covariance"},
-        ),
-    )
+
+class _MeasurementModelFields(BaseModel):
+    """The measurement model's parameters (docs/method.md section 7) and provenance, as a
+    calibration is set and as it is served."""
+
     mu1: list[float] = Field(min_length=3, max_length=3, description="Bias of (X, Y, psi).")
     Sigma1: list[_row(3)] = Field(
         min_length=3, max_length=3, description="3x3, symmetric positive definite."
@@ -477,8 +477,8 @@ class CalibrationUpdate(BaseModel):
     quality: dict[str, Any] | None = Field(
         default=None,
         description="Quality-aware pose-error model (mu1, Sigma1, beta, n_ref, error_ref_px, "
-        "log_scale_bounds, tail_weight, tail_scale: a share tail_weight of hypotheses has "
-        "tail_scale times the spread; monoloc.core.measurement.QualityModel); null: none.",
+        "log_scale_bounds, tail_weight, tail_scale; monoloc.core.measurement.QualityModel), "
+        "fitted and stored by a calibration job beside the others; null: none.",
     )
     pnp: dict[str, Any] | None = Field(
         default=None,
@@ -486,11 +486,6 @@ class CalibrationUpdate(BaseModel):
         "outlier_weight w: each hypothesis's error ~ (1 - w) N(mu1, pixel_std_px^2 C + floor) "
         "+ w times the paper covariance's density, C its pose_covariance from the localize "
         "answer; monoloc.core.measurement.PnpCovarianceModel); null: none.",
-    )
-    covariance: Literal["paper", "quality", "pnp"] = Field(
-        default="paper",
-        description="Which pose-error model the vehicle uses: paper (mu1, Sigma1 for every "
-        "hypothesis), quality (needs quality) or pnp (needs pnp).",
     )
     tail_weight: float = Field(
         default=0.0,
@@ -502,12 +497,6 @@ class CalibrationUpdate(BaseModel):
     )
     tail_scale: float = Field(
         default=1.0, ge=1.0, lt=1000.0, description="Spread of that tail over Sigma1's (10)."
-    )
-    retrieval_frame: Literal["world", "vehicle"] = Field(
-        default="world",
-        description="Frame of the retrieval vector's offset (mu2[1:3], Sigma2): world "
-        "(X_i - X, Y_i - Y, the paper's; monoloc's default) or vehicle (along and across "
-        "the vehicle's heading).",
     )
     provenance: dict[str, Any] = Field(default_factory=dict)
     conditions: dict[Tag, dict[str, Any]] = Field(
@@ -521,15 +510,67 @@ class CalibrationUpdate(BaseModel):
     )
 
 
-class CalibrationPublic(CalibrationUpdate):
+def _check_choices(values: dict[str, Any], where: str) -> None:
+    """ValueError naming a choice the product does not offer (the lab's variants of
+    monoloc.core.measurement are served when stored, never taken)."""
+    offered = {
+        "covariance": (None, "paper", DEFAULT_COVARIANCE),
+        "retrieval_frame": (None, DEFAULT_RETRIEVAL_FRAME),
+    }
+    for name, allowed in offered.items():
+        if values.get(name) not in allowed:
+            raise ValueError(
+                f"{where}{name} {values[name]!r} is not offered: "
+                f"{' or '.join(repr(a) for a in allowed if a is not None)}"
+            )
+
+
+class CalibrationUpdate(_MeasurementModelFields):
+    """Measurement-model parameters computed elsewhere, and their provenance. The
+    retrieval vector's offset is in the world frame (X_i - X, Y_i - Y)."""
+
+    model_config = ConfigDict(strict=True, allow_inf_nan=False, **example(**_CALIBRATION_EXAMPLE))
+    covariance: Literal["paper", "pnp"] | None = Field(
+        default=None,
+        description="Which pose-error model the vehicle uses: pnp (each hypothesis's own "
+        "PnP covariance; needs pnp) or paper (mu1, Sigma1 for every hypothesis); null: pnp "
+        "when pnp is given, else paper.",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _offered_choices(cls, values: Any) -> Any:
+        if isinstance(values, dict):
+            _check_choices(values, "")
+            conditions = values.get("conditions")
+            for name, condition in (conditions if isinstance(conditions, dict) else {}).items():
+                if isinstance(condition, dict):
+                    _check_choices(condition, f"conditions.{name}.")
+        return values
+
+
+class CalibrationPublic(_MeasurementModelFields):
+    """The map's measurement model as the vehicle downloads it."""
+
     model_config = ConfigDict(
-        strict=False,
+        allow_inf_nan=False,
         **example(
-            **CalibrationUpdate.model_config["json_schema_extra"]["examples"][0],
+            **_CALIBRATION_EXAMPLE,
+            covariance="paper",
             calibrated=True,
             source="put",
             updated_at=TIME_EXAMPLE,
         ),
+    )
+    covariance: str = Field(
+        description="The pose-error model the vehicle uses: pnp or paper (as stored: a "
+        "calibration stored by an older server may name another)."
+    )
+    retrieval_frame: str = Field(
+        default=DEFAULT_RETRIEVAL_FRAME,
+        description="Frame of the retrieval vector's offset (mu2[1:3], Sigma2): world, "
+        "X_i - X and Y_i - Y (as stored: a calibration stored by an older server may name "
+        "another).",
     )
     calibrated: bool = Field(description="False: these are the documented defaults.")
     source: str

@@ -4,7 +4,10 @@ section 7) and store it, with its provenance, on the map. At the edges of
 
 The job runner (:func:`run_calibration`, a training run uploaded over HTTP) and
 ``monoloc map calibrate`` (:func:`run_calibration_job`, recorded as a job row like the
-CLI's vocabulary job) both end in :func:`calibrate_map`. The training run is never
+CLI's vocabulary job) both end in :func:`calibrate_map`, with the parameters of
+:class:`CalibrationParams`: what an operator tunes (k, the seed, a condition) and the
+run. The pose-error model the stored calibration selects is the product's
+(``monoloc.core.measurement.DEFAULT_COVARIANCE``). The training run is never
 added to the map: its temporary map lives in memory only. Calibrating again replaces
 the stored parameters, so an interrupted calibration is resumed by running it again.
 
@@ -21,25 +24,25 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, Literal, Self
 
 import numpy as np
+from pydantic import Field, field_validator, model_validator
 from sqlalchemy.orm import Session, sessionmaker
 
-from monoloc.core.errors import ConflictError
-from monoloc.core.measurement import MeasurementModel
+from monoloc.core.errors import ConflictError, InvalidInputError
+from monoloc.core.measurement import DEFAULT_COVARIANCE, MeasurementModel
 from monoloc.server import calibration_conditions as conditions
 from monoloc.server.calibrate import (
     CalibrationConfig,
     TrainingFrame,
     calibrate,
     check_run_length,
-    server_calibration_config,
 )
 from monoloc.server.ingest.manage import find_map
 from monoloc.server.jobs.context import JobContext, JobInterruptedError
 from monoloc.server.jobs.lifecycle import run_recorded_job
-from monoloc.server.jobs.uploads import dataset_root, open_source
+from monoloc.server.jobs.params import RunParams
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import JobRecord
@@ -47,6 +50,52 @@ from monoloc.server.vision.features import orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary
 
 JOB_KIND = "calibrate"
+
+
+class CalibrationParams(RunParams):
+    """A calibration: the training run (``RunParams``: uploaded over HTTP, or at ``path``
+    for ``monoloc map calibrate``, which also reads ROS bags) and its name, k entries per
+    query, the RANSAC seed, and the condition it calibrates (an entry tag; None: the
+    base calibration)."""
+
+    format: Literal["kitti", "tum", "rosbag"]
+    source_name: str | None = None
+    path: str | None = None
+    k: int = Field(default=CalibrationConfig.k, ge=1, le=100)
+    seed: int = Field(default=0, ge=0)
+    condition: str | None = None
+    upload: bool = False
+
+    @field_validator("condition")
+    @classmethod
+    def _condition(cls, condition: str | None) -> str | None:
+        try:
+            return None if condition is None else conditions.condition_name(condition)
+        except InvalidInputError as exc:
+            raise ValueError(str(exc)) from None
+
+    @model_validator(mode="after")
+    def _named_upload(self) -> Self:
+        if self.upload and self.source_name is None:
+            raise ValueError("an uploaded run needs its source_name (the upload's name)")
+        return self
+
+    @property
+    def config(self) -> CalibrationConfig:
+        return CalibrationConfig(k=self.k)
+
+    @classmethod
+    def stored_shape(cls, job: JobRecord, stored: dict[str, Any]) -> dict[str, Any]:
+        """Rows from when the calibration's pose-error model was a choice (``covariance``):
+        they run if they chose the product's, and are refused if they chose another."""
+        chosen = stored.pop("covariance", None)
+        if chosen not in (None, DEFAULT_COVARIANCE):
+            raise ConflictError(
+                f"job {job.id} asked the calibration to select the {chosen!r} pose-error "
+                f"model; this server selects {DEFAULT_COVARIANCE!r}: create a new "
+                "calibration job"
+            )
+        return stored
 
 
 def training_frames(source) -> Iterator[TrainingFrame]:
@@ -163,11 +212,11 @@ def _store(
 
 def describe_calibration(calibration: dict[str, Any]) -> list[str]:
     """Human-readable lines: biases and standard deviations in cm and deg, provenance."""
-    mu1, mu2 = np.asarray(calibration["mu1"]), np.asarray(calibration["mu2"])
-    std1 = np.sqrt(np.diag(np.asarray(calibration["Sigma1"])))
-    std2 = np.sqrt(np.diag(np.asarray(calibration["Sigma2"])))
+    model = MeasurementModel.from_dict(calibration)
+    mu1, mu2 = model.mu1, model.mu2
+    std1, std2 = np.sqrt(np.diag(model.Sigma1)), np.sqrt(np.diag(model.Sigma2))
     deg = math.degrees
-    if (calibration.get("retrieval_frame") or "world") == "vehicle":
+    if model.retrieval_frame == "vehicle":
         head, a, b = "along / across the vehicle's heading", "along", "across"
     else:
         head, a, b = "X_i - X, Y_i - Y", "X", "Y"
@@ -182,7 +231,7 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
         f"  std2   e_vlad {std2[0]:.3f}, {a} {std2[1]:.2f} m, {b} {std2[2]:.2f} m, "
         f"psi {deg(std2[3]):.2f} deg",
         f"outlier log density: {calibration.get('outlier_log_density')}",
-        *_describe_quality(calibration),
+        *_describe_quality(calibration, model.covariance),
         *_describe_pnp(calibration),
         *_describe_conditions(calibration),
         "provenance:",
@@ -192,10 +241,10 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _describe_quality(calibration: dict[str, Any]) -> list[str]:
-    """The quality-aware model's lines (none for a calibration stored before it)."""
+def _describe_quality(calibration: dict[str, Any], selected: str) -> list[str]:
+    """The selected model, and the quality-aware model's lines (none for a calibration
+    stored before it)."""
     quality = calibration.get("quality")
-    selected = calibration.get("covariance") or "paper"
     if not quality:
         return [f"covariance model: {selected} (no quality-aware parameters stored)"]
     mu, beta = np.asarray(quality["mu1"]), np.asarray(quality["beta"])
@@ -238,7 +287,7 @@ def _describe_conditions(calibration: dict[str, Any]) -> list[str]:
         lines.append(
             f"condition {name}: std1 X {100 * std1[0]:.1f} cm, Y {100 * std1[1]:.1f} cm, "
             f"psi {math.degrees(std1[2]):.2f} deg, covariance model "
-            f"{model.get('covariance') or 'paper'}, updated {model.get('updated_at')}"
+            f"{MeasurementModel.from_dict(model).covariance}, updated {model.get('updated_at')}"
         )
     return lines
 
@@ -261,37 +310,27 @@ def run_calibration_job(
     session_factory: sessionmaker[Session],
     map_ref: str | int,
     source,
+    params: CalibrationParams,
     *,
-    params: dict[str, Any] | None = None,
-    config: CalibrationConfig = CalibrationConfig(),
-    seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
-    condition: str | None = None,
 ) -> tuple[JobRecord, dict[str, Any]]:
-    """:func:`calibrate_map` recorded as a job (state, progress, error, result) for the
-    CLI. ``params`` describe the run for the job row (format, path, frames, ...). A
-    ``condition`` on a map without a base calibration is refused (ConflictError) before
-    any job is recorded."""
+    """:func:`calibrate_map` of ``source`` (the run ``params`` describe) recorded as a job
+    (state, progress, error, result) for the CLI. A condition on a map without a base
+    calibration is refused (ConflictError) before any job is recorded."""
     record = find_map(session_factory, map_ref)
+    condition = params.condition
     if condition is not None:
-        condition = conditions.condition_name(condition)
         conditions.require_base(record.calibration, record.id, condition)
-    job_params = {
-        **(params or {}),
-        "source_name": source.name,
-        "k": config.k,
-        "seed": seed,
-        "upload": False,
-        "condition": condition,
-    }
+    if params.source_name is None:
+        params = params.model_copy(update={"source_name": source.name})
 
     def work(job: JobRecord, report: Callable[[int, int], None]) -> dict[str, Any]:
         return calibrate_map(
             session_factory,
             record.id,
             source,
-            config=config,
-            seed=seed,
+            config=params.config,
+            seed=params.seed,
             job_id=job.id,
             progress=report,
             condition=condition,
@@ -301,7 +340,7 @@ def run_calibration_job(
         session_factory,
         JOB_KIND,
         map_id=record.id,
-        params=job_params,
+        params=params.model_dump(mode="json"),
         started="calibrating",
         describe_progress=_frame_of,
         work=work,
@@ -339,6 +378,7 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
     map's vocabulary) and store it on the map; the run is not added to the map. A stop
     request ends the job ``interrupted``; resuming it calibrates again from the start."""
     job = ctx.job
+    params = CalibrationParams.from_row(job)
     if job.map_id is None:
         raise ConflictError(f"the map of job {job.id} was deleted")
     upload = ctx.upload_dir()
@@ -348,10 +388,7 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
         )
     if not upload.is_dir():
         raise ConflictError(f"the upload of job {job.id} is gone; upload the run again")
-    params = job.params
-    source = open_source(
-        params["format"], dataset_root(upload), params.get("sequence"), params.get("frames")
-    )
+    source = params.open_upload(upload)
 
     def progress(done: int, total: int) -> None:
         if ctx.should_stop():
@@ -364,14 +401,11 @@ def run_calibration(ctx: JobContext) -> dict[str, Any]:
         ctx.sessions,
         job.map_id,
         source,
-        config=server_calibration_config(
-            int(params.get("k", CalibrationConfig.k)),
-            params.get("covariance") or "paper",
-        ),
-        seed=int(params.get("seed", 0)),
+        config=params.config,
+        seed=params.seed,
         job_id=job.id,
-        source_name=params.get("source_name") or "upload",
+        source_name=params.source_name,
         progress=progress,
-        condition=params.get("condition"),
+        condition=params.condition,
     )
-    return job_result(calibration, params.get("condition"))
+    return job_result(calibration, params.condition)

@@ -287,6 +287,13 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     short = runner.invoke(cli.app, [*args, "--frames", "0:10"], env=env)
     assert isinstance(short.exception, InvalidInputError)
     assert "too short to calibrate: 10 frames" in str(short.exception)
+    # which pose-error model is stored selected is no option (the product's, pnp); a bad
+    # parameter is a usage error naming it, before any job is recorded
+    gone = runner.invoke(cli.app, [*args, "--covariance", "paper"], env=env)
+    assert gone.exit_code == 2 and "No such option" in gone.output
+    for bad in (["--k", "0"], ["--depth-from", "sonar"]):
+        refused = runner.invoke(cli.app, [*args, *bad], env=env)
+        assert refused.exit_code == 2 and f"'{bad[0]}'" in refused.output, refused.output
 
     engine = create_engine_for(Settings(data_dir=tmp_path / "data"))
     with session_scope(make_session_factory(engine)) as session:
@@ -300,19 +307,10 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert f"{100 * calibration['mu1'][0]:+.1f} cm" in out
     assert jobs[1].kind == "calibrate" and jobs[1].state == "done"
     assert jobs[1].result["provenance"] == calibration["provenance"]
-    assert jobs[2].state == "failed" and "too short" in jobs[2].error
-
-    # the model the calibration selects: a wrong name is refused before any job, "pnp"
-    # is stored selected (the API's job form takes the same choice)
-    wrong = runner.invoke(cli.app, [*args, "--covariance", "kalman"], env=env)
-    assert wrong.exit_code == 2 and "expected paper, quality or pnp" in wrong.output
-    pnp = runner.invoke(cli.app, [*args, "--covariance", "pnp"], env=env, catch_exceptions=False)
-    assert pnp.exit_code == 0, pnp.output
-    assert "job 3 done" in pnp.output and "covariance model: pnp" in pnp.output
-    with session_scope(make_session_factory(engine)) as session:
-        stored = maps_repo.find_map(session, "street").calibration
-    engine.dispose()
-    assert stored["covariance"] == "pnp" and stored["pnp"]["pixel_std_px"] > 0
+    assert jobs[2].state == "failed" and "too short" in jobs[2].error and sorted(jobs) == [1, 2]
+    assert "covariance model: pnp" in out
+    assert calibration["covariance"] == "pnp" and calibration["pnp"]["pixel_std_px"] > 0
+    assert jobs[1].params["k"] == 10 and jobs[1].params["path"] == str(noisy_run)
 
 
 def test_map_calibrate_cli_condition(noisy_run, tmp_path):

@@ -18,7 +18,7 @@ removes one.
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Form, Path, UploadFile, status
@@ -51,7 +51,7 @@ from monoloc.server.api.uploads import (
 )
 from monoloc.server.calibrate import CalibrationConfig, check_run_length
 from monoloc.server.jobs import store as jobs_repo
-from monoloc.server.jobs.calibration import JOB_KIND
+from monoloc.server.jobs.calibration import JOB_KIND, CalibrationParams
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import JobRecord
@@ -185,36 +185,29 @@ def delete_condition(
 
 def _store_job(
     state: AppState,
-    up: RunUpload,
-    config: CalibrationConfig,
-    seed: int,
+    map_id: int,
+    params: CalibrationParams,
     archive: UploadFile | None,
     files: list[UploadFile] | None,
-    condition: str | None,
 ) -> tuple[JobRecord, int, Unpacked]:
     """Refuse a condition without a base calibration (before the upload is unpacked),
     unpack and validate the training run, refuse a too short one, record the job."""
-    if condition is not None:
+    if params.condition is not None:
         with session_scope(state.sessions) as session:
-            stored = maps_repo.get_map(session, up.map_id).calibration
-        conditions.require_base(stored, up.map_id, condition)
+            stored = maps_repo.get_map(session, map_id).calibration
+        conditions.require_base(stored, map_id, params.condition)
+    assert params.source_name is not None
+    up = RunUpload(map_id, params.format, params.sequence, params.frames, params.source_name)
 
     def record(session: Session, source) -> tuple[JobRecord, int]:
         n_frames = len(source.frames)
-        check_run_length(n_frames, config, f"the uploaded {up.format} run")
-        params = {
-            "format": up.format,
-            "sequence": up.sequence,
-            "frames": up.frames,
-            "k": config.k,
-            "covariance": config.covariance,
-            "seed": seed,
-            "upload": True,
-            "source_name": up.source_name,
-            "condition": condition,
-        }
+        check_run_length(n_frames, params.config, f"the uploaded {up.format} run")
         job = jobs_repo.create_job(
-            session, JOB_KIND, map_id=up.map_id, params=params, message="queued"
+            session,
+            JOB_KIND,
+            map_id=map_id,
+            params=params.model_dump(mode="json"),
+            message="queued",
         )
         return job, n_frames
 
@@ -242,14 +235,6 @@ async def calibration_job(
         int, Form(ge=1, le=100, description="Map entries per query, closest by pose.")
     ] = CalibrationConfig.k,
     seed: Annotated[int, Form(ge=0, description="RANSAC seed (a re-run repeats it).")] = 0,
-    covariance: Annotated[
-        Literal["paper", "quality", "pnp"],
-        Form(
-            description="The pose-error model the stored calibration selects (every model "
-            "is fitted and stored): pnp (each hypothesis's own PnP covariance; the default), "
-            "paper (the paper's one Sigma1) or quality."
-        ),
-    ] = "pnp",
     condition: Annotated[
         str | None,
         Form(
@@ -269,14 +254,21 @@ async def calibration_job(
     and their provenance. A run shorter than 2 (k - 1) + 2 frames is refused (422).
     With ``condition``, the parameters become ``conditions[condition]`` of the stored
     calibration; calibrating the base again keeps the conditions calibrated with the same
-    vocabulary."""
+    vocabulary. The stored calibration selects the pose-error model of each hypothesis's
+    own PnP covariance (every model is fitted and stored)."""
     check_upload_parts(archive, files)
-    config = CalibrationConfig(k=k, covariance=covariance)
-    if condition is not None:
-        condition = conditions.condition_name(condition)
-    up = RunUpload(map_id, format, sequence, frames, upload_name(archive))
+    params = CalibrationParams.create(
+        format=format,
+        sequence=sequence,
+        frames=frames,
+        k=k,
+        seed=seed,
+        condition=condition,
+        source_name=upload_name(archive),
+        upload=True,
+    )
     job, n_frames, unpacked = await anyio.to_thread.run_sync(
-        _store_job, state, up, config, seed, archive, files, condition
+        _store_job, state, map_id, params, archive, files
     )
     state.jobs.submit(job.id)
     return CalibrationJobAccepted(

@@ -14,6 +14,7 @@ from monoloc.server.api.guard import GuardedRoute
 from monoloc.server.api.params import MapId
 from monoloc.server.api.schemas import JobPublic, MapCreate, MapDetail, MapList, VocabularyJobCreate
 from monoloc.server.jobs import store as jobs_repo
+from monoloc.server.jobs.vocabulary import JOB_KIND, VocabularyParams
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
@@ -131,11 +132,12 @@ def vocabulary_job(
     VLAD while the map keeps answering queries. (Training a vocabulary on the map's own
     data happens with an upload: train_vocabulary=true.)"""
     maps_repo.get_map(session, map_id)
-    params = {
-        "vocabulary_id": _vocabulary_id(session, body.vocabulary),
-        "vocabulary": body.vocabulary,
-    }
-    job = jobs_repo.create_job(session, "vocabulary", map_id=map_id, params=params)
+    params = VocabularyParams.create(
+        vocabulary=body.vocabulary, vocabulary_id=_vocabulary_id(session, body.vocabulary)
+    )
+    job = jobs_repo.create_job(
+        session, JOB_KIND, map_id=map_id, params=params.model_dump(mode="json")
+    )
     session.commit()
     state.jobs.submit(job.id)
     return JobPublic.model_validate(job)

@@ -3,22 +3,23 @@
 (tar, tar.gz/bz2/xz, zip) or as a multipart set of files whose names are their paths
 inside the run (``sequences/00/image_0/000000.png``); list and get runs.
 
-The upload is unpacked into ``uploads/.incoming-<random>`` with the archive limits, then
-opened and validated by the reader (calibration, poses, file counts: 422 naming the
-file). Only then are the run and its ingestion job stored, and the directory renamed to
+The job's parameters are checked first (422 naming the field), then the upload is
+unpacked into ``uploads/.incoming-<random>`` with the archive limits, opened and
+validated by the reader (calibration, poses, file counts: 422 naming the file). Only
+then are the run and its ingestion job stored, and the directory renamed to
 ``uploads/<job id>``: a rejected upload leaves nothing behind (``monoloc.server.api.uploads``,
 shared with the calibration route).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import anyio
 from fastapi import APIRouter, Form, UploadFile, status
 from sqlalchemy.orm import Session
 
+from monoloc.core.errors import NotFoundError
 from monoloc.server.api.archives import Unpacked
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
 from monoloc.server.api.deps import AppState, MapWriteKey, SessionDep, StateDep
@@ -43,56 +44,44 @@ from monoloc.server.api.uploads import (
     upload_name,
 )
 from monoloc.server.jobs import store as jobs_repo
+from monoloc.server.jobs.ingest import JOB_KIND, IngestParams
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage import runs as runs_repo
-from monoloc.server.storage.entry_checks import normalise_tags
 from monoloc.server.storage.records import JobRecord, RunRecord
 
 router = APIRouter(prefix="/v1/maps/{map_id}/runs", tags=["runs"], route_class=GuardedRoute)
 
 
-@dataclass(frozen=True)
-class _Ingest:
-    """What an ingestion job needs besides the upload itself."""
-
-    kind: str
-    tags: list[str]
-    train_vocabulary: bool = False
-    register_to_map: bool = False
-
-
 def _store(
     state: AppState,
-    up: RunUpload,
-    ingest: _Ingest,
+    map_id: int,
+    kind: str,
+    params: IngestParams,
     archive: UploadFile | None,
     files: list[UploadFile] | None,
 ) -> tuple[JobRecord, RunRecord, Unpacked]:
     """Unpack, validate, then record the run and its job (blocking; runs in a thread)."""
+    up = RunUpload(
+        map_id, params.format, params.sequence, params.frames, params.source_name, params.depth_from
+    )
 
     def record(session: Session, source) -> tuple[JobRecord, RunRecord]:
         n_frames = len(source.frames) + sum(getattr(source, "read_skips", {}).values())
         run = runs_repo.create_run(
             session,
-            up.map_id,
-            kind=ingest.kind,
-            source_format=up.format,
-            source_name=up.source_name,
+            map_id,
+            kind=kind,
+            source_format=params.format,
+            source_name=params.source_name,
             frames_total=n_frames,
         )
-        params = {
-            "format": up.format,
-            "sequence": up.sequence,
-            "frames": up.frames,
-            "tags": ingest.tags,
-            "upload": True,
-            "source_name": up.source_name,
-            "train_vocabulary": ingest.train_vocabulary,
-            "depth_from": up.depth_from,
-            "register_to_map": ingest.register_to_map,
-        }
         job = jobs_repo.create_job(
-            session, "ingest", map_id=up.map_id, run_id=run.id, params=params, message="queued"
+            session,
+            JOB_KIND,
+            map_id=map_id,
+            run_id=run.id,
+            params=params.model_dump(mode="json"),
+            message="queued",
         )
         return job, run
 
@@ -159,12 +148,20 @@ async def upload_run(
     """Stores the upload and queues its ingestion; follow the job at /v1/jobs/{id}."""
     check_upload_parts(archive, files)
     runs_repo.check_kind(kind, "run")
-    up = RunUpload(map_id, format, sequence, frames, upload_name(archive), depth_from)
     asked = [t for t in (tags or "").split(",") if t.strip()]
-    ingest = _Ingest(
-        kind, normalise_tags(runs_repo.tags_for_run(kind, asked)), train_vocabulary, register_to_map
+    params = IngestParams.create(
+        format=format,
+        sequence=sequence,
+        frames=frames,
+        depth_from=depth_from,
+        source_name=upload_name(archive),
+        tags=runs_repo.tags_for_run(kind, asked),
+        train_vocabulary=train_vocabulary,
+        register_to_map=register_to_map,
     )
-    job, run, unpacked = await anyio.to_thread.run_sync(_store, state, up, ingest, archive, files)
+    job, run, unpacked = await anyio.to_thread.run_sync(
+        _store, state, map_id, kind, params, archive, files
+    )
     state.jobs.submit(job.id)
     return UploadAccepted(
         job=JobPublic.model_validate(job),
@@ -194,7 +191,5 @@ def list_runs(map_id: MapId, session: SessionDep, _key: MapWriteKey) -> list[Run
 def get_run(map_id: MapId, run_id: RunId, session: SessionDep, _key: MapWriteKey) -> RunPublic:
     run = runs_repo.get_run(session, run_id)
     if run.map_id != map_id:
-        from monoloc.core.errors import NotFoundError
-
         raise NotFoundError(f"run {run_id} does not exist in map {map_id}")
     return RunPublic.model_validate(run)

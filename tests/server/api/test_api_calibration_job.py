@@ -93,17 +93,12 @@ def test_uploaded_training_run_calibrates_the_map(app, sim_dataset):
     model, calibrated = vehicle.measurement_model(map_id)
     assert calibrated and np.allclose(model.Sigma1, Sigma1)
     assert (model.tail_weight, model.tail_scale) == (0.3, 10.0)
-    # every model is fitted and stored; the PnP covariance model is selected unless the
-    # form says otherwise (the paper's stays one field away)
+    # every model is fitted and stored; the product's, the PnP covariance model, is
+    # selected: which one is no choice of the job
     assert model.covariance == "pnp" and model.pnp.pixel_std_px > 0
     assert model.quality is not None and job["result"]["pnp"] == got["pnp"]
-    r = _post(
-        client, keys, map_id, {**TRAIN, "covariance": "paper"}, tar_sequence(sim_dataset, "00")
-    )
-    assert r.status_code == 202 and r.json()["job"]["params"]["covariance"] == "paper"
-    assert wait_job(client, r.json()["job"]["id"], keys.header("write"))["state"] == "done"
-    model, _ = vehicle.measurement_model(map_id)
-    assert model.covariance == "paper" and model.pnp is not None
+    assert "covariance" not in job["params"] and "upload" not in job["params"]
+    assert job["params"]["source_name"] == "train.tar.gz" and job["params"]["seed"] == 0
 
 
 def test_too_short_a_run_is_refused_and_leaves_nothing(app, sim_dataset):
@@ -117,8 +112,6 @@ def test_too_short_a_run_is_refused_and_leaves_nothing(app, sim_dataset):
     r = _post(client, keys, map_id, data={**TRAIN, "frames": "0:6"}, archive=archive)
     assert r.status_code == 422 and "6 frames" in r.json()["error"]["message"]
     assert _post(client, keys, map_id, data={**TRAIN, "k": "0"}, archive=archive).status_code == 422
-    wrong = _post(client, keys, map_id, data={**TRAIN, "covariance": "kalman"}, archive=archive)
-    assert wrong.status_code == 422 and "covariance" in wrong.text
     assert _post(client, keys, 999, archive=archive).status_code == 404
     assert _post(client, keys, map_id, archive=None).status_code == 422  # no upload at all
     assert client.get("/v1/jobs", headers=keys.header("write")).json()["items"] == []

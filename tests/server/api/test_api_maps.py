@@ -109,14 +109,23 @@ def test_calibration_defaults_put_and_delete(fresh):
     assert got["provenance"] == CALIBRATION["provenance"]
     assert np.allclose(got["Sigma2"], CALIBRATION["Sigma2"]) and got["mu1"] == CALIBRATION["mu1"]
     assert client.get(f"/v1/maps/{map_id}", headers=w | keys.header("admin")).json()["calibrated"]
-    # A body without the retrieval frame is the paper's (world); a vehicle-frame one is
-    # served as such; anything else is refused.
-    assert got["retrieval_frame"] == "world"
-    vehicle = dict(CALIBRATION, retrieval_frame="vehicle")
-    assert client.put(url, headers=w, json=vehicle).json()["retrieval_frame"] == "vehicle"
-    assert client.get(url, headers=w).json()["retrieval_frame"] == "vehicle"
-    compass = dict(CALIBRATION, retrieval_frame="compass")
-    assert client.put(url, headers=w, json=compass).status_code == 422
+    # The retrieval vector's offset is served in the world frame, the only one a body may
+    # name; the lab's variants (the vehicle frame, the quality covariance) are refused
+    # with the field named, in a condition too. Without pnp parameters the paper's
+    # covariance is selected.
+    assert got["retrieval_frame"] == "world" and got["covariance"] == "paper"
+    world = dict(CALIBRATION, retrieval_frame="world")
+    assert client.put(url, headers=w, json=world).json()["retrieval_frame"] == "world"
+    for lab in ({"retrieval_frame": "vehicle"}, {"retrieval_frame": "compass"}):
+        refused = client.put(url, headers=w, json=dict(CALIBRATION, **lab))
+        assert refused.status_code == 422 and "retrieval_frame" in refused.text
+    refused = client.put(url, headers=w, json=dict(CALIBRATION, covariance="quality"))
+    assert refused.status_code == 422 and "covariance" in refused.text
+    night = {k: v for k, v in CALIBRATION.items() if k != "provenance"}
+    for lab in ({"retrieval_frame": "vehicle"}, {"covariance": "quality"}):
+        body = dict(CALIBRATION, conditions={"night": {**night, **lab}})
+        refused = client.put(url, headers=w, json=body)
+        assert refused.status_code == 422 and f"conditions.night.{next(iter(lab))}" in refused.text
     # The paper covariance's tail: none unless given; given, served and used by the
     # vehicle; out of range refused with the field named, the stored one kept.
     assert (got["tail_weight"], got["tail_scale"]) == (0.0, 1.0)
@@ -127,7 +136,8 @@ def test_calibration_defaults_put_and_delete(fresh):
         refused = client.put(url, headers=w, json=dict(CALIBRATION, **bad))
         assert refused.status_code == 422 and next(iter(bad)) in refused.text
     assert client.get(url, headers=w).json()["tail_weight"] == 0.3
-    # The PnP covariance model: stored, served, and read back by the vehicle's model;
+    # The PnP covariance model: stored, served, and read back by the vehicle's model (the
+    # product's, selected when its parameters are given unless the body says paper);
     # selected without its parameters, or with a non-positive floor, refused.
     pnp = {
         "mu1": [0.01, 0.0, 0.0],
@@ -140,6 +150,11 @@ def test_calibration_defaults_put_and_delete(fresh):
     served = client.get(url, headers=keys.header("localize")).json()
     assert served["covariance"] == "pnp" and served["pnp"]["pixel_std_px"] == 1.4
     assert MeasurementModel.from_dict(served).pnp.floor[1, 1] == 2e-4
+    unsaid = client.put(url, headers=w, json=dict(CALIBRATION, pnp=pnp)).json()
+    assert unsaid["covariance"] == "pnp"
+    paper = client.put(url, headers=w, json=dict(CALIBRATION, pnp=pnp, covariance="paper"))
+    assert paper.json()["covariance"] == "paper" and paper.json()["pnp"]["pixel_std_px"] == 1.4
+    assert client.put(url, headers=w, json=dict(CALIBRATION, pnp=pnp)).status_code == 200
     no_params = client.put(url, headers=w, json=dict(CALIBRATION, covariance="pnp"))
     assert no_params.status_code == 422 and "pnp" in no_params.text
     bad_floor = dict(pnp, floor=[[-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
@@ -158,6 +173,48 @@ def test_calibration_defaults_put_and_delete(fresh):
     assert client.post(f"{url}/jobs", headers=w, json={"run_id": 1}).status_code == 422
     assert client.delete(url, headers=w).json()["calibrated"] is False
     assert client.put("/v1/maps/77/calibration", headers=w, json=CALIBRATION).status_code == 404
+
+
+def test_a_calibration_stored_with_the_labs_variants_is_still_served(fresh, tmp_path):
+    """A calibration an older server stored selecting the quality covariance with the
+    retrieval offset in the vehicle frame (for a night condition too): served as stored
+    and loaded by the vehicle as such, though a body naming them is refused."""
+    from api_helpers import make_settings
+
+    from monoloc.core.measurement import QualityModel
+    from monoloc.server.calibration_conditions import condition_entry
+    from monoloc.server.storage import maps as maps_repo
+    from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
+
+    client, keys = fresh
+    map_id = client.post(
+        "/v1/maps", json={"name": "old", "camera": CAMERA}, headers=keys.header("admin")
+    ).json()["id"]
+    lab = MeasurementModel(
+        quality=QualityModel(), covariance="quality", retrieval_frame="vehicle", source="calibrated"
+    )
+    night = condition_entry(lab, {"job_id": 2}, "2026-11-20T10:00:00+00:00")
+    stored = {**lab.to_dict(), "provenance": {"job_id": 1}, "conditions": {"night": night}}
+    engine = create_engine_for(make_settings(tmp_path / "data"))
+    with session_scope(make_session_factory(engine)) as session:
+        maps_repo.set_calibration(session, map_id, stored)
+    engine.dispose()
+
+    url = f"/v1/maps/{map_id}/calibration"
+    served = client.get(url, headers=keys.header("localize"))
+    assert served.status_code == 200, served.text
+    got = served.json()
+    assert (got["covariance"], got["retrieval_frame"], got["calibrated"]) == (
+        "quality", "vehicle", True
+    )  # fmt: skip
+    assert got["quality"]["n_ref"] == 100.0 and got["provenance"] == {"job_id": 1}
+    assert got["conditions"]["night"]["covariance"] == "quality"
+    vehicle = MonolocClient("http://testserver", keys.localize, transport=client._transport)
+    model, calibrated = vehicle.measurement_model(map_id)
+    assert calibrated and (model.covariance, model.retrieval_frame) == ("quality", "vehicle")
+    assert model.conditions["night"].retrieval_frame == "vehicle"
+    put_back = {k: v for k, v in got.items() if k not in ("calibrated", "source", "updated_at")}
+    assert client.put(url, headers=keys.header("write"), json=put_back).status_code == 422
 
 
 def test_vehicle_client_reads_calibration_and_localizes(sim_dataset, map_copy, client_on_copy):
