@@ -459,12 +459,12 @@ def urban_city(
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.client.trajectory import ExcursionCauses
     from monoloc.server.ingest.sources import read_kitti_sequence
-    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.localize import LocalizeConfig, PoseConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     vocab = load_default_vocabulary()
-    # the pipeline before the alternative pose (MONOLOC_LOCALIZE_ALTERNATIVE=false)
-    without_alternative = EvalConfig(localize=LocalizeConfig(alternative=None))
+    # the pipeline without the alternative pose (an ablation)
+    without_alternative = EvalConfig(localize=LocalizeConfig(poses=PoseConfig(alternative=None)))
     train_id = sequence_of(meta, "train")
     lever = fitted_lever_arm_m(read_kitti_run(root, train_id), rig_lever_arm_m(root))
     t0 = time.time()
@@ -840,7 +840,7 @@ def main_indoor(args) -> None:
     from monoloc.client.replay import read_tum_run as read_tum_replay
     from monoloc.client.replay import rig_lever_arm_m
     from monoloc.server.ingest.sources import read_tum_run
-    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.localize import LocalizeConfig, PoseConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     root = args.data / f"indoor_{args.size}_{args.frames}_s{args.seed}"
@@ -877,7 +877,7 @@ def main_indoor(args) -> None:
         query,
         signals,
         calib.model.with_covariance("paper"),
-        EvalConfig(localize=LocalizeConfig(alternative=None)),
+        EvalConfig(localize=LocalizeConfig(poses=PoseConfig(alternative=None))),
         lever,
         variants=("full",),
     )

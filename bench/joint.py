@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +51,7 @@ def dataset(root: Path, size: str, frames: int, seed: int) -> dict:
     return {s["run"]: s["id"] for s in meta["sequences"]}
 
 
-def calibrated(train, vocab, strategy):
+def calibrated(train, vocab, pose_stage):
     from monoloc.server.calibrate import CalibrationConfig, calibrate
     from monoloc.server.jobs.calibration import training_frames
 
@@ -64,7 +63,7 @@ def calibrated(train, vocab, strategy):
         # the runs below compare the paper's and the quality model (both fitted and stored);
         # the default "pnp" model would need the poses' covariances, which the paper's
         # independent PnP does not give
-        CalibrationConfig(strategy=strategy, covariance="paper"),
+        CalibrationConfig(pose_stage=pose_stage, covariance="paper"),
         np.random.default_rng(0),
         source_name="train",
     )
@@ -88,14 +87,14 @@ def _error(hypothesis, truth) -> tuple[float, float]:
     return float(np.hypot(d[0], d[1])), abs(float(wrap_angle(d[2])))
 
 
-def global_pass(memory, query, config) -> dict:
+def global_pass(memory, query, config, stages) -> dict:
     """Every query frame without a prior: accepted share, best / joint errors, PnP time."""
     from bench.lab.evaluation import localize_globally
 
     rng = np.random.default_rng(1)
     accepted = retrieved = 0
     best_err, joint_err, joint_frames, pnp_ms, methods = [], [], 0, [], {}
-    for frame in localize_globally(memory, query, config, rng):
+    for frame in localize_globally(memory, query, config, rng, stages):
         result, truth = frame.result, frame.truth_world
         pnp_ms.append(frame.cpu_ms)
         per_entry = [h for h in result.hypotheses if not h.joint]
@@ -138,9 +137,10 @@ def main() -> None:
     args = parser.parse_args()
     limit_threads()
     from bench.lab.evaluation import EvalConfig, MemoryMap, evaluate_run, metrics_row
+    from bench.lab.paper import independent_pose_hypotheses
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.server.ingest.sources import read_kitti_sequence
-    from monoloc.server.localize import LocalizeConfig, PnpStrategy
+    from monoloc.server.localize import FrameStages, LocalizeConfig, pose_hypotheses
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
     root = args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
@@ -148,40 +148,37 @@ def main() -> None:
     vocab = load_default_vocabulary()
     train = read_kitti_sequence(root, ids["train"])
     print("calibrating: independent PnP (paper) ...", flush=True)
-    calib_paper = calibrated(train, vocab, PnpStrategy(guided=False, guess_from_prior=False))
+    calib_paper = calibrated(train, vocab, independent_pose_hypotheses)
     print("calibrating: guided PnP ...", flush=True)
-    calib_guided = calibrated(train, vocab, PnpStrategy(guess_from_prior=False))
+    calib_guided = calibrated(train, vocab, pose_hypotheses)
     memory = MemoryMap.empty(vocab)
     memory.add_run(read_kitti_sequence(root, ids["map"]))
     query = read_kitti_sequence(root, ids["query"])
     signals = read_kitti_run(root, ids["query"]).signals
     lever = rig_lever_arm_m(root) or 0.0
 
-    independent = LocalizeConfig(guided_pnp=False)
-    guided = LocalizeConfig()
+    config = LocalizeConfig()
+    independent = FrameStages(poses=independent_pose_hypotheses)
+    guided = FrameStages()
     print("global pass (no prior) ...", flush=True)
     frames = {
-        "independent": global_pass(memory, query, independent),
-        "guided": global_pass(memory, query, guided),
+        "independent": global_pass(memory, query, config, independent),
+        "guided": global_pass(memory, query, config, guided),
     }
     runs = {
         "independent PnP, paper model": (independent, calib_paper.model),
         "guided PnP, paper model": (guided, calib_guided.model),
-        "guided, no prior guess, paper": (
-            replace(guided, guess_from_prior=False),
-            calib_guided.model,
-        ),
         "guided PnP, quality model": (guided, calib_guided.model.with_covariance("quality")),
     }
     filtered = {}
-    for name, (config, model) in runs.items():
+    for name, (stages, model) in runs.items():
         print(f"filter: {name} ...", flush=True)
         ev = evaluate_run(
             memory,
             query,
             signals,
             model,
-            EvalConfig(localize=config),
+            EvalConfig(localize=config, stages=stages),
             lever_arm_m=lever,
             variants=("full",),
         )

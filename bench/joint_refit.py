@@ -2,11 +2,11 @@
 city, judged against the true poses, both in the same run.
 
 The joint pose (``vision.joint``) refines one pose on the union of the consistent
-entries' inliers; since 2026-11-29 evening a Cauchy refit follows the least-squares
-rounds (``JointConfig.cauchy_scale_sigmas``, ``pnp.robust_refit``). This bench localizes
-every query frame of a city generated without any recording error (exact geometry,
+entries' inliers; a Cauchy refit follows the least-squares rounds
+(``JointConfig.cauchy_scale_sigmas`` / ``cauchy_rounds``, ``pnp.robust_refit``). This
+bench localizes every query frame of a city generated without any recording error (exact geometry,
 calibration, poses and signals: its written poses are the true ones) twice, without a
-prior: with the refit and with ``cauchy_scale_sigmas=None`` (the baseline, least squares
+prior: with the refit and with ``cauchy_rounds=0`` (the baseline, least squares
 alone). Printed: the joint pose's position and heading error on the frames where both
 passes give one (median, mean, 90th percentile), and each pass's localize CPU time per
 frame (p50, one thread). Writes bench/results/joint_refit.json.
@@ -85,7 +85,7 @@ def main() -> None:
     limiter = limit_threads(Settings(cv_threads=1, faiss_threads=1))  # noqa: F841 (held)
     from bench.lab.evaluation import MemoryMap
     from monoloc.server.ingest.sources import read_kitti_sequence
-    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.localize import LocalizeConfig, PoseConfig
     from monoloc.server.vision.joint import JointConfig
     from monoloc.server.vision.vocabulary import load_default_vocabulary
 
@@ -96,7 +96,9 @@ def main() -> None:
     memory.add_run(read_kitti_sequence(root, ids["map"]))
     query = read_kitti_sequence(root, ids["query"])
     configs = {
-        "least squares (baseline)": LocalizeConfig(joint=JointConfig(cauchy_scale_sigmas=None)),
+        "least squares (baseline)": LocalizeConfig(
+            poses=PoseConfig(joint=JointConfig(cauchy_rounds=0))
+        ),
         "Cauchy refit (default)": LocalizeConfig(),
     }
     passes = {}

@@ -94,7 +94,7 @@ def paper_localize(image, intrinsics, vocabulary, ids, vlads, lookup, config, rn
             features.keypoints_px[match[:, 0]],
             ref.points_cam[match[:, 1]],
             intrinsics,
-            config.pnp,
+            config.poses.pnp,
             rng,
         )
         if rel.accepted and rel.n_inliers > best_inliers:
@@ -118,7 +118,7 @@ def filter_priors(registry, map_id, root: Path, sequence: str, config, k: int, s
     from monoloc.client.tracking import Tracker
     from monoloc.core.measurement import MeasurementModel
     from monoloc.server.ingest.sources import read_kitti_sequence
-    from monoloc.server.localizer import hypotheses_of
+    from monoloc.server.localize.in_process import hypotheses_of
 
     query_run, run = read_kitti_sequence(root, sequence), read_kitti_run(root, sequence)
     filter_config = FilterConfig()
@@ -243,9 +243,11 @@ def main() -> None:
     import faiss
     from threadpoolctl import threadpool_limits
 
+    from bench.lab.paper import independent_pose_hypotheses
     from monoloc.core.geometry import planar_from_T_world_from_cam
     from monoloc.server.ingest.sources import read_kitti_sequence
-    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.localize import FrameStages, LocalizeConfig
+    from monoloc.server.localize.frame import PRODUCT_STAGES
 
     root = ensure_dataset(args.data)
     map_run, query_run = read_kitti_sequence(root, "00"), read_kitti_sequence(root, "01")
@@ -255,7 +257,7 @@ def main() -> None:
         snapshot = runtime.index.snapshot()
         ids, vlads, poses = snapshot["ids"], snapshot["vlads"], snapshot["poses"]
         config = LocalizeConfig(k=K)
-        independent = LocalizeConfig(k=K, guided_pnp=False, joint=None)
+        independent = FrameStages(poses=independent_pose_hypotheses)
         cv2.setNumThreads(1)
         faiss.omp_set_num_threads(1)
         with threadpool_limits(1):
@@ -287,12 +289,14 @@ def main() -> None:
                 rng = np.random.default_rng(p)
                 for image, truth, prior in queries:
                     runs = []
-                    for name, cfg, given in (
-                        ("monoloc", config, None),
+                    for name, stages, given in (
+                        ("monoloc", PRODUCT_STAGES, None),
                         ("independent", independent, None),
-                        ("streaming", config, prior),
+                        ("streaming", PRODUCT_STAGES, prior),
                     ):
-                        result, _ = registry.localize(map_id, image, cfg, rng, prior=given, k=K)
+                        result, _ = registry.localize(
+                            map_id, image, config, rng, prior=given, k=K, stages=stages
+                        )
                         runs.append(
                             (name, pose_of(result), result.retrieved_ids, result.timings_ms)
                         )

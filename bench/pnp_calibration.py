@@ -7,7 +7,7 @@ three PnP strategies:
 - ``own RANSAC``: every retrieved entry its own full RANSAC + refinement (PnP before
   guided PnP, and the paper's);
 - ``guided, fallback always``: guided PnP, an entry the found poses do not explain always
-  gets its own RANSAC (``PnpStrategy.fallback_until_confirmed=None``);
+  gets its own RANSAC (``PoseConfig.fallback_until_confirmed`` never reached);
 - ``guided + confirmation rule``: monoloc's default (the fallback only until two entries
   agree).
 
@@ -38,14 +38,15 @@ CLOSE_M = 0.5
 
 
 def strategies() -> dict:
-    from monoloc.server.localize import PnpStrategy
+    """name -> CalibrationConfig fields: the pose stage and its config."""
+    from bench.lab.paper import independent_pose_hypotheses
+    from monoloc.server.localize import PoseConfig
 
     return {
-        "own RANSAC": PnpStrategy(guided=False, guess_from_prior=False, joint=None),
-        "guided, fallback always": PnpStrategy(
-            guess_from_prior=False, fallback_until_confirmed=None
-        ),
-        "guided + confirmation rule": PnpStrategy(guess_from_prior=False),
+        "own RANSAC": {"pose_stage": independent_pose_hypotheses},
+        # no entry ever confirms: every unexplained entry gets its own RANSAC
+        "guided, fallback always": {"poses": PoseConfig(fallback_until_confirmed=10**6)},
+        "guided + confirmation rule": {},
     }
 
 
@@ -134,8 +135,8 @@ def main() -> None:
     train = read_kitti_sequence(root, sequence_of(meta, "train"))
     vocabulary = load_default_vocabulary()
     rows, keyed = {}, {}
-    for name, strategy in strategies().items():
-        config = CalibrationConfig(strategy=strategy)
+    for name, fields in strategies().items():
+        config = CalibrationConfig(**fields)
         t0 = time.time()
         run = TrainingRun(training_frames(train), "train", train.n_frames)
         samples, _ = collect_samples(

@@ -3,12 +3,12 @@ and the reprojection error (the quality-aware model's features).
 
 For every frame of the day query (against the map's entries) and of the night query
 (against the map plus the night entries) of an urban sim city (the held-out one by
-default, generated if missing), one search of the whole map with
-``LocalizeConfig.pose_covariance``: each per-entry hypothesis carries the planar
-covariance of its pose from its own inliers at 1 px (``vision.pose_covariance``). Its
-error is taken against its entry's own frame: the query's true pose moved by the
-recording error (written minus true) of the map frame the entry was built from, so the
-recording errors between the runs do not mask what the hypothesis itself got wrong.
+default, generated if missing), one search of the whole map: each per-entry hypothesis
+carries the planar covariance of its pose from its own inliers at 1 px
+(``vision.pose_covariance``). Its error is taken against its entry's own frame: the
+query's true pose moved by the recording error (written minus true) of the map frame
+the entry was built from, so the recording errors between the runs do not mask what the
+hypothesis itself got wrong.
 
 Prints, per run: Spearman rank correlation of the position error with the position
 spread sqrt(var X + var Y), with 1 / sqrt(inliers) and with the mean reprojection error;
@@ -47,9 +47,17 @@ def measure(memory, query, intrinsics, query_true, map_written, map_true, seed: 
     frame of ``map_written`` (M, 3) at the entry's pose; ``map_true`` (M, 3) its true
     pose), position spread at 1 px (m; the inliers weighed by their keypoints' pyramid
     scales with ``scales``), inliers, mean reprojection error (px)."""
-    from monoloc.server.localize import LocalizeConfig
-    from monoloc.server.localizer import InProcessLocalizer
+    from monoloc.server.localize import FrameStages, LocalizeConfig, pose_hypotheses
+    from monoloc.server.localize.in_process import InProcessLocalizer
     from monoloc.server.vision.pose_covariance import position_spread_m
+
+    def unweighted(keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, prior=None,
+                   keypoint_scales=None, descriptors=None):  # fmt: skip
+        """The pose stage with every inlier at full resolution in the covariance."""
+        return pose_hypotheses(
+            keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, prior, None,
+            descriptors,
+        )  # fmt: skip
 
     localizer = InProcessLocalizer(
         memory.index,
@@ -57,7 +65,8 @@ def measure(memory, query, intrinsics, query_true, map_written, map_true, seed: 
         memory.vocabulary,
         intrinsics,
         np.random.default_rng(seed),
-        LocalizeConfig(pose_covariance=True, pose_covariance_scales=scales),
+        LocalizeConfig(),
+        FrameStages() if scales else FrameStages(poses=unweighted),
     )
     recording_error = map_written[:, :2] - map_true[:, :2]
     rows = []

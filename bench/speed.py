@@ -12,9 +12,10 @@ sends the next (what `monoloc drive` does), after a warm-up of ``WARMUP`` frames
 With 2 worker threads, 2 vehicles stream at once (one stream is served one frame at a
 time, so a single vehicle cannot use the second thread).
 
-Pipelines (``MONOLOC_LOCALIZE_PIPELINE``): ``monoloc`` (binary-code shortlist + exact
-re-rank, FAISS Hamming-matrix matching) and ``paper`` (exact float k-NN over all VLADs,
-OpenCV brute-force matching); same features, VLAD, PnP and answers.
+Pipelines: ``monoloc`` (the product: binary-code shortlist + exact re-rank, Hamming
+matching, guided PnP) and ``paper`` (``bench.lab.paper`` served by
+``bench.lab.paper_server``: exact float k-NN over all VLADs, OpenCV brute-force matching,
+independent PnP per entry); same features and VLAD.
 
 Printed: server per-stage p50/p99 (the answers' ``timings_ms``), client round trip
 p50/p99, end-to-end frames per second, the ratio to the paper pipeline, and the targets
@@ -67,12 +68,13 @@ def serve(data_dir: Path, pipeline: str, workers: int):
         os.environ,
         MONOLOC_BOOTSTRAP_ADMIN_KEY=ADMIN_KEY,
         MONOLOC_WORKER_THREADS=str(workers),
-        MONOLOC_LOCALIZE_PIPELINE=pipeline,
         MONOLOC_LOCALIZE_SEED="0",
         MONOLOC_CV_THREADS="1",
         MONOLOC_FAISS_THREADS="1",
     )
-    cmd = [sys.executable, "-m", "monoloc.cli", "serve", "--port", str(port)]
+    # the paper's pipeline: the same server with the lab's stages (bench.lab.paper_server)
+    module = "bench.lab.paper_server" if pipeline == "paper" else "monoloc.cli"
+    cmd = [sys.executable, "-m", module, "serve", "--port", str(port)]
     cmd += ["--data-dir", str(data_dir), "--log-level", "warning"]
     proc = subprocess.Popen(cmd, env=env, cwd=ROOT)
     url = f"http://127.0.0.1:{port}"

@@ -5,7 +5,7 @@
 :class:`HttpLocalizer` (one ``POST /v1/maps/{id}/localize`` per frame) and
 :class:`StreamLocalizer` (one frame at a time over the map's WebSocket stream). The
 in-process one, the server's pipeline called directly, is
-``monoloc.server.localizer.InProcessLocalizer`` (the client does not import the server).
+``monoloc.server.localize.in_process.InProcessLocalizer`` (the client does not import the server).
 """
 
 from __future__ import annotations

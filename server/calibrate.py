@@ -56,16 +56,11 @@ from monoloc.server.entry_builder import (
     TooFewPointsError,
     build_entry,
 )
-from monoloc.server.localize import (
-    PnpStrategy,
-    ReferenceEntry,
-    needs_keypoint_scales,
-    pose_hypotheses,
-)
+from monoloc.server.localize import PoseConfig, ReferenceEntry, pose_hypotheses
+from monoloc.server.localize.frame import PoseStage
 from monoloc.server.storage.records import NewEntry
 from monoloc.server.vision.features import extract_features
 from monoloc.server.vision.matching import MatchConfig, match_against_references
-from monoloc.server.vision.pnp import PnpConfig
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -79,10 +74,11 @@ class CalibrationConfig:
     """k: map entries per query (closest by pose); map_every: frames 0, m, 2m, ... build
     the temporary map, the others query it; gates: hypotheses farther from the truth are
     counted as outliers and left out of the fit; unbiased: covariance about the mean with
-    N - 1 (monoloc) instead of the paper's mean(e e^T); strategy: PnP as the localizer
-    runs it (guided, joint pose, each pose's covariance); covariance: the model the stored
-    calibration selects ("pnp" by default since 2026-11-28, "paper" or "quality"; all are
-    fitted and stored, "pnp" when the strategy gives the poses' covariances)."""
+    N - 1 (monoloc) instead of the paper's mean(e e^T); poses / pose_stage: the pose
+    stage as the localizer runs it (guided, joint pose, each pose's covariance);
+    covariance: the model the stored calibration selects ("pnp" by default, "paper" or
+    "quality"; all are fitted and stored, "pnp" when the pose stage gives the poses'
+    covariances)."""
 
     k: int = 10
     map_every: int = 2
@@ -92,10 +88,9 @@ class CalibrationConfig:
     # the training map lives in memory only: no entry images
     build: BuildConfig = field(default_factory=lambda: BuildConfig(image_max_side_px=0))
     match: MatchConfig = field(default_factory=MatchConfig)
-    pnp: PnpConfig = field(default_factory=PnpConfig)
-    strategy: PnpStrategy = field(
-        default_factory=lambda: PnpStrategy(guess_from_prior=False, covariance=True)
-    )
+    poses: PoseConfig = field(default_factory=PoseConfig)
+    # the pose stage, the localizer's (bench/ passes a baseline's to compare)
+    pose_stage: PoseStage = pose_hypotheses
     # the product's choices; bench/ sets the variants it measures (monoloc.core.measurement)
     covariance: CovarianceModel = DEFAULT_COVARIANCE
     retrieval_frame: RetrievalFrame = DEFAULT_RETRIEVAL_FRAME
@@ -112,11 +107,6 @@ class CalibrationConfig:
             )
         if not (self.gate_position_m > 0 and self.gate_yaw_rad > 0):
             raise InvalidInputError(f"calibration gates must be positive, got {self}")
-        if self.covariance == "pnp" and not self.strategy.covariance:
-            raise InvalidInputError(
-                "the pnp covariance model needs the poses' covariances: a PnP strategy with "
-                "covariance=True, or covariance='paper' or 'quality'"
-            )
 
     @property
     def min_frames(self) -> int:
@@ -215,7 +205,7 @@ def _split_run(frames, intrinsics, vocabulary, config, tick):
             features = extract_features(
                 frame.image_gray,
                 config.build.orb,
-                scales=needs_keypoint_scales(config.pnp, config.strategy),
+                scales=True,
             )
             queries.append(
                 _Query(
@@ -246,15 +236,14 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         query.descriptors, [r.descriptors for r in refs], config.match
     )
     e_vlad = {int(j): float(np.linalg.norm(entries[j].vlad - query.vlad)) for j in nearest}
-    hypotheses, _ = pose_hypotheses(
+    hypotheses, _ = config.pose_stage(
         query.keypoints_px,
         refs,
         matches,
         e_vlad,
         intrinsics,
-        config.pnp,
+        config.poses,
         rng,
-        config.strategy,
         keypoint_scales=query.keypoint_scales,
         descriptors=query.descriptors,
     )
@@ -364,8 +353,8 @@ def calibrate_runs(
     if config.covariance == "pnp" and pnp is None:
         raise InvalidInputError(
             f"calibration of {what} cannot fit the pnp covariance model: fewer than "
-            f"{MIN_GOOD_HYPOTHESES} hypotheses with a pose covariance (the PnP strategy must "
-            "give them: PnpStrategy.covariance)"
+            f"{MIN_GOOD_HYPOTHESES} hypotheses with a pose covariance (the pose stage must "
+            "give them)"
         )
     model = dataclasses.replace(paper, quality=quality, pnp=pnp, covariance=config.covariance)
     counts = {key: sum(c[key] for c in per_run) for key in per_run[0] if key != "used"}
@@ -395,7 +384,7 @@ def collect_samples(
 ) -> tuple[CalibrationSamples, list[dict]]:
     """The error samples calibration fits, and each run's frame counts: each run split
     into its own temporary map and queries, every query's k closest entries matched and
-    solved with ``config.strategy``. Also for comparing PnP strategies on the same run
+    solved by ``config.pose_stage``. Also for comparing pose stages on the same run
     (bench/pnp_calibration.py)."""
     if not runs:
         raise InvalidInputError("calibration needs at least one training run")
@@ -459,6 +448,11 @@ class _Ticker:
             self.progress(self.done, max(self.total, self.done))
 
 
+def _has_covariances(samples: CalibrationSamples) -> bool:
+    covariances = np.asarray(samples.pose_covariance, dtype=np.float64)
+    return bool(covariances.size) and bool(np.isfinite(covariances).any())
+
+
 def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabulary) -> dict:
     return {
         "source": source_name,
@@ -469,14 +463,16 @@ def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabu
         "joint_used": int(np.sum(samples.joint)),
         "joint_gated_outliers": samples.n_joint_gated,
         "gated_outliers": samples.n_gated,
-        "pnp": "guided" if config.strategy.guided else "independent RANSAC per entry",
+        "pnp": "guided"
+        if config.pose_stage is pose_hypotheses
+        else (config.pose_stage.__doc__ or config.pose_stage.__name__).split("\n")[0],
         "quality_model": "ML: (1 - eps) N(mu1, s Sigma1) + eps N(mu1, kappa^2 s Sigma1), "
         "log s = beta . [log(n_inliers / n_ref), log(reprojection_error / error_ref), joint]",
         "pnp_model": "ML: (1 - w) N(mu1, sigma_px^2 C + diag(floor)) + w paper, C the "
         "pose's covariance from its own inliers at 1 px, paper the paper covariance's "
         "density (outliers), w the paper tail's weight"
-        if config.strategy.covariance
-        else "none (the PnP strategy gives no pose covariances)",
+        if _has_covariances(samples)
+        else "none (the pose stage gives no pose covariances)",
         "k": config.k,
         "map_every": config.map_every,
         "gate_position_m": config.gate_position_m,

@@ -40,6 +40,7 @@ from monoloc.server.localize import (
     ReferenceEntry,
     localize_frame,
 )
+from monoloc.server.localize.frame import PRODUCT_STAGES, FrameStages
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
@@ -416,8 +417,10 @@ class MapRegistry:
         intrinsics: CameraIntrinsics | None = None,
         prior: RetrievalPrior | None = None,
         k: int | None = None,
+        stages: FrameStages = PRODUCT_STAGES,
     ) -> tuple[LocalizationResult, int]:
-        """Hypotheses for one frame and the map version they were computed against."""
+        """Hypotheses for one frame and the map version they were computed against
+        (``stages``: the product's unless a benchmark compares a baseline)."""
         runtime = self.get(map_id)
         camera = intrinsics or runtime.record.camera
         if runtime.record.features:
@@ -433,5 +436,6 @@ class MapRegistry:
             rng,
             prior,
             k,
+            stages,
         )
         return result, runtime.version

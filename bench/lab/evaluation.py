@@ -43,7 +43,8 @@ from monoloc.server.localize import (
     ReferenceEntry,
     localize_frame,
 )
-from monoloc.server.localizer import InProcessAnswer, InProcessLocalizer
+from monoloc.server.localize.frame import PRODUCT_STAGES, FrameStages
+from monoloc.server.localize.in_process import InProcessAnswer, InProcessLocalizer
 from monoloc.server.vision.vocabulary import Vocabulary
 
 Progress = Callable[[int, int], None] | None
@@ -124,6 +125,8 @@ class MemoryMap:
 @dataclass(frozen=True)
 class EvalConfig:
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
+    # the localization stage's stages: the product's, or a baseline's (bench.lab.paper)
+    stages: FrameStages = PRODUCT_STAGES
     filter: FilterConfig = field(default_factory=FilterConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     seed: int = 0
@@ -256,6 +259,7 @@ def evaluate_run(
         seq.intrinsics,
         np.random.default_rng(config.seed + 1),
         config.localize,
+        config.stages,
     )
     est = {v: np.full((n, 3), np.nan) for v in variants if v not in trackers}
     timings, n_hyp = [], np.zeros(n, dtype=np.int64)
@@ -297,7 +301,11 @@ class GlobalFrame:
 
 
 def localize_globally(
-    memory: MemoryMap, query, config: LocalizeConfig, rng: np.random.Generator
+    memory: MemoryMap,
+    query,
+    config: LocalizeConfig,
+    rng: np.random.Generator,
+    stages: FrameStages = PRODUCT_STAGES,
 ) -> Iterator[GlobalFrame]:
     """Every frame of a KittiSequence / TumRun localized against the whole map (no prior),
     in order, with the server's pipeline: what the per-frame benches compare."""
@@ -306,7 +314,14 @@ def localize_globally(
         truth = planar_from_T_world_from_cam(frame.T_world_from_cam)
         started = time.thread_time()
         result = localize_frame(
-            image, query.intrinsics, memory.vocabulary, memory.index, memory.lookup, config, rng
+            image,
+            query.intrinsics,
+            memory.vocabulary,
+            memory.index,
+            memory.lookup,
+            config,
+            rng,
+            stages=stages,
         )
         yield GlobalFrame(index, truth, result, (time.thread_time() - started) * 1e3)
 

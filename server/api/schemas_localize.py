@@ -261,9 +261,9 @@ class HypothesisPublic(BaseModel):
         description="How the pose was found: ransac (the entry's own RANSAC), guided (a pose "
         "found for another entry, re-scored and refined on this entry's own correspondences), "
         "joint, pooled (one RANSAC on the matches of several entries, for a frame none of "
-        "whose entries gave a pose of its own; entry_ids lists them), or alternative (unless "
-        "MONOLOC_LOCALIZE_ALTERNATIVE=false: the same on the matches the frame's most-inlier "
-        "pose leaves unexplained, for a frame whose poses are poorly pinned down).",
+        "whose entries gave a pose of its own; entry_ids lists them), or alternative (the same "
+        "on the matches the frame's most-inlier pose leaves unexplained, for a frame whose "
+        "poses are poorly pinned down).",
     )
     pose_covariance: list[float] | None = Field(
         default=None,

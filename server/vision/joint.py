@@ -52,21 +52,17 @@ class JointConfig:
     + LM rounds on the union (the PnP config's threshold and LM budget).
     cauchy_scale_sigmas / cauchy_rounds: the union's pose is then refit under a Cauchy
     loss whose scale is that many robust standard deviations of the inliers' errors
-    (each error divided by its keypoint's pyramid scale), in that many reweighted LM rounds
-    (``pnp.robust_refit``; None: least squares on the inliers, as before 2026-11-29
-    evening). Why: judged against the true poses of two error-free medium cities (the
-    same pipeline, 150 query frames each), the joint pose's median error fell from 6.7 to
-    5.7 mm (seed 8807) and from 12.3 to 10.3 mm (6271; mean 17.5 to 13.8 mm): the union's
-    inliers carry a tail of errors of one to three pixels that least squares follows.
-    2.385 sigmas keeps 95 % of least squares' efficiency on Gaussian errors; a fixed
-    scale of 0.4-1.5 px measured the same within 0.6 mm; three rounds 5.7 / 10.2 mm, two
-    5.7 / 10.3, one 5.8 / 10.8 (each round about 0.15 ms on 2000 correspondences)."""
+    (each error divided by its keypoint's pyramid scale), in that many reweighted LM
+    rounds (``pnp.robust_refit``): the union's inliers carry a tail of errors of one to
+    three pixels that least squares follows (the joint pose's median error on error-free
+    cities fell by 15-20 %); 2.385 sigmas keep 95 % of least squares' efficiency on
+    Gaussian errors. cauchy_rounds 0 stops at least squares (a bench baseline)."""
 
     position_gate_m: float = 0.5
     yaw_gate_rad: float = math.radians(2.0)
     min_entries: int = 2
     rounds: int = 2
-    cauchy_scale_sigmas: float | None = 2.385
+    cauchy_scale_sigmas: float = 2.385
     cauchy_rounds: int = 2
 
     def __post_init__(self) -> None:
@@ -74,11 +70,9 @@ class JointConfig:
             raise InvalidInputError(f"JointConfig gates must be positive: {self}")
         if self.min_entries < 2 or self.rounds < 1:
             raise InvalidInputError(f"JointConfig needs min_entries >= 2, rounds >= 1: {self}")
-        if self.cauchy_scale_sigmas is not None and not (
-            self.cauchy_scale_sigmas > 0 and self.cauchy_rounds >= 1
-        ):
+        if not (self.cauchy_scale_sigmas > 0 and self.cauchy_rounds >= 0):
             raise InvalidInputError(
-                f"JointConfig needs cauchy_scale_sigmas > 0 and cauchy_rounds >= 1: {self}"
+                f"JointConfig needs cauchy_scale_sigmas > 0 and cauchy_rounds >= 0: {self}"
             )
 
 
@@ -203,11 +197,10 @@ def estimate_joint_pose(
         intrinsics.K,
         pnp,
         config.rounds,
-        keypoint_scales=scales_all,
     )
     if R is None or np.count_nonzero(mask) < pnp.min_inliers:
         return None
-    if config.cauchy_scale_sigmas is not None:
+    if config.cauchy_rounds:
         R, t, errors_px = robust_refit(
             points_local, pixels_all, mask, R, t, intrinsics.K, pnp, scales_all,
             config.cauchy_scale_sigmas, config.cauchy_rounds,
@@ -246,15 +239,6 @@ class PooledConfig:
     (a night frame against a day map) then does not pay a long RANSAC on matches that
     cannot agree (about 20 ms a frame at 1000 iterations).
 
-    near_miss_guesses (opt-in): an entry whose own pose fell short of ``min_inliers`` but
-    kept at least ``guess_min_inliers`` inliers offers that pose as a guess, tried before
-    the RANSAC (see :func:`estimate_pooled_pose`). On bench/localize.py's frames 10 of 14
-    pooled poses then took ~1 ms instead of ~20 ms (p99 of a frame 40 -> 34 ms, accuracy
-    unchanged), but night figures fell a little (dev city 3, three filter seeds: RMSE
-    0.083-0.092 -> 0.094-0.103 m; held-out city, once: night with night images 0.102 ->
-    0.111 m): the first guess that holds is taken where the RANSAC would keep looking
-    for the pose with the most inliers. Off by default.
-
     ransac: the RANSAC on the pooled matches (``PnpConfig.ransac``): "usac", OpenCV's USAC
     (MSAC score, adaptive stop), by default. On bench/localize.py's 16 pooled frames it
     found the same inliers as the classic RANSAC (within one) in 3-7 ms instead of
@@ -265,15 +249,11 @@ class PooledConfig:
     min_inliers_per_entry: int = 4
     iterations: int = 1000
     neighbour_radius_m: float = 25.0
-    near_miss_guesses: bool = False
-    guess_min_inliers: int = 6
     ransac: str = "usac"
 
     def __post_init__(self) -> None:
         if self.min_entries < 2 or self.min_inliers_per_entry < 1 or self.iterations < 1:
             raise InvalidInputError(f"invalid PooledConfig {self}")
-        if self.guess_min_inliers < 4:  # fewer than a minimal sample's: no pose to guess
-            raise InvalidInputError(f"PooledConfig.guess_min_inliers must be >= 4: {self}")
         if self.ransac not in RANSAC_METHODS:
             raise InvalidInputError(f"PooledConfig.ransac must be one of {RANSAC_METHODS}: {self}")
         if not self.neighbour_radius_m > 0:
@@ -304,8 +284,8 @@ def estimate_pooled_pose(
     farther than ``config.neighbour_radius_m`` from it left out; a query
     keypoint matched in several entries keeps its match in the entry with more matches.
     ``keypoint_scales`` (N,): the keypoints' pyramid scales (None: all at full resolution).
-    ``guesses_T_world_from_cam``: poses (4, 4) of the query found elsewhere that fell short
-    (each entry's own pose with fewer than ``pnp.min_inliers``): as in guided PnP the one
+    ``guesses_T_world_from_cam``: poses (4, 4) of the query found elsewhere (the pooled
+    pose itself, when it is refit on matches by projection): as in guided PnP the one
     that keeps the most pooled matches chooses the consensus set, refit on it, and the
     pose stands if it keeps ``pnp.min_inliers`` and the members below; otherwise (or
     without guesses) the RANSAC on the pooled matches runs as before. The RANSAC pays its
@@ -358,11 +338,11 @@ def estimate_pooled_pose(
         # the guess only has to keep min_inliers (a pooled set's inlier ratio is low)
         guided = dataclasses.replace(pooled, guided_min_inlier_ratio=0.0)
         rel = estimate_relative_pose_guided(
-            pixels_all, points_all, guesses, intrinsics, guided, rng, False, scales_all
+            pixels_all, points_all, guesses, intrinsics, guided, rng, False
         )
         members = _pooled_members(rel, owners_all, config)
     if len(members) < config.min_entries and fallback:
-        rel = estimate_relative_pose(pixels_all, points_all, intrinsics, pooled, rng, scales_all)
+        rel = estimate_relative_pose(pixels_all, points_all, intrinsics, pooled, rng)
         members = _pooled_members(rel, owners_all, config)
     if len(members) < config.min_entries:
         return None

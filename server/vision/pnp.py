@@ -37,16 +37,9 @@ from monoloc.core.geometry import invert_rigid, rotation_angle_rad
 
 # Below this many points no solver gives a checked pose (P3P samples 4, EPnP 5).
 _MIN_POINTS_FOR_SOLVER = 6
-SOLVERS = {
-    "p3p": cv2.SOLVEPNP_P3P,
-    "ap3p": cv2.SOLVEPNP_AP3P,
-    "epnp": cv2.SOLVEPNP_EPNP,
-    "iterative": cv2.SOLVEPNP_ITERATIVE,
-    "sqpnp": cv2.SOLVEPNP_SQPNP,
-}
 
 
-# "opencv": cv2.solvePnPRansac's classic RANSAC with ``minimal_solver`` and the budget of
+# "opencv": cv2.solvePnPRansac's classic RANSAC with P3P samples and the budget of
 # :func:`ransac_iterations`; "usac": OpenCV's USAC framework (uniform sampling, MSAC
 # score, its own adaptive stop within ``iterations``; the minimal solver is its own).
 RANSAC_METHODS = ("opencv", "usac")
@@ -64,30 +57,12 @@ class PnpConfig:
     rotations above this, None = the camera's horizontal field of view (docs/method.md 6.4);
     refine: Levenberg-Marquardt on the inliers after RANSAC, at most
     ``refine_iterations`` accepted steps (started from the SQPnP refit, two steps matched
-    twenty to 0.5 mm on the bench scene); minimal_solver: RANSAC's hypothesis solver, one of
-    ``SOLVERS`` ("p3p": the fastest at equal accuracy in bench/vision.py).
+    twenty to 0.5 mm on the bench scene). RANSAC's hypotheses come from P3P (the fastest
+    at equal accuracy in bench/vision.py).
 
-    Keypoint scale (used when the caller gives each query pixel its ORB pyramid scale,
-    ``scale_factor ** octave``): a keypoint found on a coarser level is located less
-    precisely, roughly in proportion to its scale (``bench/pnp_scale.py``: on the held-out
-    city's right matches, judged against the true pose, the median residual grows from
-    0.66 px at level 0 to 1.54 px at level 7, and night frames hold twice the day's share
-    of level 5-7 keypoints). With
-    ``scale_weighting`` the pose is a last LM on the inliers that weighs each squared
-    error by 1 / scale^2, its inverse variance (ORB-SLAM weighs its reprojection errors the
-    same way). The inliers themselves, and so whether an entry is accepted, are chosen as
-    without weights (one threshold for all, by the unweighted pose): re-selected by the
-    weighted pose, coarse keypoints just beyond the threshold dropped out and night entries
-    near ``min_inliers`` with them; a threshold growing with the scale let more wrong poses
-    pass ``min_inliers`` at night and the filter re-seeded on them. ``bench/pnp_scale.py``
-    measures the per-entry pose error with and without the weights against the sim's true
-    poses: 9 % lower median error by day and 18 % by night on the held-out city. Off by
-    default: on the five development cities (three filter seeds each) the filter's
-    figures did not follow. Medians stayed within a centimetre, but the tighter poses also
-    made the wrong consensus of a few stretches tighter (city 7's moved car, city 5's
-    night), the filter re-seeded onto it, and the RMSE rose there (city 7 day 0.09-0.15 ->
-    0.14-0.28 m, city 5 night 0.13-0.22 -> 0.18-0.29 m) while city 6's day improved
-    (0.09-0.19 -> 0.12 m).
+    Every correspondence counts alike: weighing each error by its keypoint's pyramid scale
+    tightened the per-entry poses but not the filter (docs/notebook), so scales weigh only
+    the joint pose's robust refit (:func:`robust_refit`) and the pose covariances.
 
     Guided PnP (:func:`estimate_relative_pose_guided`): a pose guessed from elsewhere
     chooses the entry's consensus set (its correspondences within the threshold), which is
@@ -107,10 +82,8 @@ class PnpConfig:
     max_rotation_rad: float | None = None
     refine: bool = True
     refine_iterations: int = 2
-    minimal_solver: str = "p3p"
     guided_min_inlier_ratio: float = 0.3
     guided_refit_min_fraction: float = 0.5
-    scale_weighting: bool = False
     ransac: str = "opencv"
 
     def __post_init__(self) -> None:
@@ -127,11 +100,6 @@ class PnpConfig:
         if self.ransac not in RANSAC_METHODS:
             raise InvalidInputError(
                 f"PnpConfig.ransac must be one of {RANSAC_METHODS}, got {self.ransac!r}"
-            )
-        if self.minimal_solver not in SOLVERS:
-            raise InvalidInputError(
-                f"PnpConfig.minimal_solver must be one of {sorted(SOLVERS)}, got "
-                f"{self.minimal_solver!r}"
             )
 
 
@@ -181,43 +149,6 @@ def _rejected(
 _UNIT_WEIGHTS = np.empty(0)
 # refine_rounds' "every correspondence may be an inlier"
 _NO_CANDIDATES = np.empty(0, dtype=bool)
-
-
-def _lm_weights(keypoint_scales: np.ndarray | None, n_points: int, config: PnpConfig):
-    """The LM weights (M,) of ``n_points`` correspondences whose query keypoints have
-    ``keypoint_scales`` (M,): 1 / scale^2 with ``config.scale_weighting``, else (or without
-    scales, or all at full resolution) the empty array that stands for all 1."""
-    if keypoint_scales is None or not config.scale_weighting:  # unused: not even checked
-        return _UNIT_WEIGHTS
-    scales = np.asarray(keypoint_scales, dtype=np.float64).reshape(-1)
-    if len(scales) != n_points or not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
-        raise InvalidInputError(
-            f"need {n_points} positive finite keypoint scales, got shape {scales.shape}"
-        )
-    if bool(np.all(scales == 1.0)):
-        return _UNIT_WEIGHTS
-    return 1.0 / (scales * scales)
-
-
-def _weighted_final(
-    points: np.ndarray,
-    pixels: np.ndarray,
-    mask: np.ndarray,
-    R: np.ndarray,
-    t: np.ndarray,
-    K: np.ndarray,
-    config: PnpConfig,
-    weights: np.ndarray,
-) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
-    """The last step of a refit with keypoint weights: LM on the inliers the unweighted
-    pose chose, weighted (the inliers stay those: re-selecting them with the weighted pose
-    would drop coarse keypoints that a pose fitted to the fine ones leaves just beyond the
-    one threshold, and with it entries near ``min_inliers``, as measured at night).
-    Returns (R, t, errors_px (M,)) of the weighted pose (R None if LM left the finite
-    numbers); without weights the pose is returned as it is, errors None."""
-    if not len(weights) or np.count_nonzero(mask) < _MIN_POINTS_FOR_SOLVER:
-        return R, t, None
-    return _weighted_lm(points, pixels, mask, weights, R, t, K, config)
 
 
 def _weighted_lm(
@@ -293,7 +224,6 @@ def _refit(
     mask: np.ndarray,
     K: np.ndarray,
     config: PnpConfig,
-    weights: np.ndarray,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
     """Pose from RANSAC's inliers: SQPnP refit, inlier re-selection, then optional LM.
 
@@ -302,9 +232,7 @@ def _refit(
     textured wall), and early termination leaves an inlier set chosen by a 4-point model.
     SQPnP (globally optimal, planar-safe, cheap next to RANSAC) on those inliers, then
     re-selecting the inliers with that better pose, fixes both; LM then minimises the
-    reprojection error (``_pnp_kernel.refine_lm``) and re-selects the inliers, and with
-    keypoint weights a last weighted LM on those inliers gives the pose
-    (:func:`_weighted_final`). Returns
+    reprojection error (``_pnp_kernel.refine_lm``) and re-selects the inliers. Returns
     (R_query_from_ref (3, 3), t_query_from_ref (3,), final inlier mask, errors_px (M,)); R
     is None if a solver gave nothing finite.
     """
@@ -323,11 +251,6 @@ def _refit(
         if not _finite(R, t):
             return None, None, mask, errors_px
         mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
-        R, t, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, weights)
-        if R is None:
-            return None, None, mask, errors_px
-        if weighted_errors_px is not None:
-            errors_px = weighted_errors_px
     return R, t, mask, errors_px
 
 
@@ -353,12 +276,9 @@ def estimate_relative_pose(
     intrinsics: CameraIntrinsics,
     config: PnpConfig,
     rng: np.random.Generator,
-    keypoint_scales: np.ndarray | None = None,
 ) -> RelativePose:
     """PnP RANSAC on M matches: query pixels (M, 2) and their 3D points in the reference
     camera frame (M, 3), metres. Returns T_ref_from_query and inlier statistics.
-    ``keypoint_scales`` (M,): the query keypoints' pyramid scales (see ``PnpConfig``;
-    None: all at full resolution).
 
     Rejects (accepted=False) on: too few correspondences, RANSAC failure, fewer than
     ``min_inliers`` inliers, relative rotation above ``max_rotation_rad`` (default: the
@@ -366,7 +286,6 @@ def estimate_relative_pose(
     """
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
-    weights = _lm_weights(keypoint_scales, n_points, config)
     if n_points < max(config.min_inliers, _MIN_POINTS_FOR_SOLVER):
         return _rejected(n_points, f"too few correspondences ({n_points})")
     K = intrinsics.K
@@ -375,7 +294,7 @@ def estimate_relative_pose(
         if mask is None:
             return _rejected(n_points, "PnP RANSAC found no pose")
         R_query_from_ref, t_query_from_ref, mask, errors_px = _refit(
-            points, pixels, mask, K, config, weights
+            points, pixels, mask, K, config
         )
     except cv2.error as exc:  # degenerate input (e.g. all points identical)
         return _rejected(n_points, f"PnP failed: {str(exc).strip().splitlines()[-1]}")
@@ -449,7 +368,7 @@ def _ransac_inliers(
             iterationsCount=ransac_iterations(n_points, config),
             reprojectionError=config.reprojection_error_px,
             confidence=config.confidence,
-            flags=SOLVERS[config.minimal_solver],
+            flags=cv2.SOLVEPNP_P3P,
         )
     if not ok or inliers is None or len(inliers) < _MIN_POINTS_FOR_SOLVER:
         return None
@@ -514,22 +433,18 @@ def refine_from_pose(
     config: PnpConfig,
     rounds: int,
     candidates: np.ndarray | None = None,
-    keypoint_scales: np.ndarray | None = None,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
     """Score the correspondences against a pose and refine it on its inliers, ``rounds``
     times: select the inliers of (R, t), Levenberg-Marquardt on them, then a last
-    selection (with keypoint weights, a last weighted LM on those inliers:
-    :func:`_weighted_final`). The shared step of guided PnP and the joint pose.
+    selection. The shared step of guided PnP and the joint pose.
 
     points (M, 3) float64 in the frame (R, t) maps to the query camera, pixels (M, 2)
-    float64; ``candidates`` (M,) bool limits which correspondences may be inliers;
-    ``keypoint_scales`` (M,) as for :func:`estimate_relative_pose`.
+    float64; ``candidates`` (M,) bool limits which correspondences may be inliers.
     Returns (R, t, inlier mask, errors_px (M,)); R is None if LM left the finite numbers
     or fewer than 6 inliers remained to refine on.
     """
     from monoloc.server.vision._pnp_kernel import refine_rounds
 
-    weights = _lm_weights(keypoint_scales, len(points), config)
     errors_px = np.empty(len(points))
     mask = np.empty(len(points), dtype=bool)
     R, t, status = refine_rounds(
@@ -540,10 +455,7 @@ def refine_from_pose(
     )  # fmt: skip
     if status:
         return None, None, mask, errors_px
-    R_w, t_w, weighted_errors_px = _weighted_final(points, pixels, mask, R, t, K, config, weights)
-    if R_w is None:
-        return None, None, mask, errors_px
-    return R_w, t_w, mask, errors_px if weighted_errors_px is None else weighted_errors_px
+    return R, t, mask, errors_px
 
 
 # the median of a 2D Gaussian error's length, in its per-axis sigmas (sqrt(2 ln 2))
@@ -612,7 +524,6 @@ def refit_relative_pose(
     config: PnpConfig,
     method: str,
     rounds: int = 2,
-    keypoint_scales: np.ndarray | None = None,
 ) -> RelativePose:
     """A pose (4, 4) T_ref_from_query re-scored and refined on other correspondences
     (pixels (M, 2), points (M, 3) in the reference frame): inlier selection and LM
@@ -625,9 +536,7 @@ def refit_relative_pose(
     T_query_from_ref = invert_rigid(np.asarray(T_ref_from_query, dtype=np.float64))
     R0 = np.ascontiguousarray(T_query_from_ref[:3, :3])
     t0 = np.ascontiguousarray(T_query_from_ref[:3, 3])
-    R, t, mask, errors_px = refine_from_pose(
-        points, pixels, R0, t0, intrinsics.K, config, rounds, None, keypoint_scales
-    )
+    R, t, mask, errors_px = refine_from_pose(points, pixels, R0, t0, intrinsics.K, config, rounds)
     if R is None:
         return _rejected(
             n_points, "the refit left too few inliers or finite numbers", method=method
@@ -659,7 +568,6 @@ def estimate_relative_pose_guided(
     config: PnpConfig,
     rng: np.random.Generator,
     fallback: bool = True,
-    keypoint_scales: np.ndarray | None = None,
 ) -> RelativePose:
     """PnP seeded by poses found elsewhere (guided PnP), falling back to RANSAC.
 
@@ -672,13 +580,12 @@ def estimate_relative_pose_guided(
     "guided"); otherwise, or without guesses, the entry gets its own
     :func:`estimate_relative_pose`, unless ``fallback`` is False: then it is rejected
     (``method`` "guided"). Either way the pose comes from this entry's own
-    correspondences only. ``keypoint_scales`` (M,) as for :func:`estimate_relative_pose`.
+    correspondences only.
     """
     from monoloc.server.vision._pnp_kernel import count_inliers
 
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
-    weights = _lm_weights(keypoint_scales, n_points, config)
     needed = guided_min_inliers(n_points, config)
     K = intrinsics.K
     best_count = -1
@@ -698,7 +605,7 @@ def estimate_relative_pose_guided(
         # stay anchored to the guess along directions this entry constrains poorly.
         mask, _ = _inliers(points, pixels, R_all[g], t_all[g], K, config.reprojection_error_px)
         try:
-            R, t, mask, errors_px = _refit(points, pixels, mask, K, config, weights)
+            R, t, mask, errors_px = _refit(points, pixels, mask, K, config)
         except cv2.error:
             R = None
         if R is not None and np.count_nonzero(mask) >= needed:
@@ -715,4 +622,4 @@ def estimate_relative_pose_guided(
             f"(< {needed}); no own RANSAC once the pose is confirmed",
             method="guided",
         )
-    return estimate_relative_pose(pixels, points, intrinsics, config, rng, keypoint_scales)
+    return estimate_relative_pose(pixels, points, intrinsics, config, rng)

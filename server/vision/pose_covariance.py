@@ -23,8 +23,9 @@ and one found on level L (scale s = 1.2^L) is placed to within about s px of the
 full-resolution image. Given the keypoints' scales, each point's rows are weighed by
 1 / s^2 (J^T W J), so that pixel_std_px is the noise of a full-resolution keypoint.
 Night frames take more of their matches from the coarse levels (35 % from levels 5-7
-against 17 % by day on the held-out city, ``bench/pnp_scale.py``), which this puts into
-their covariance instead of leaving it to a larger pixel noise fitted for all.
+against 17 % by day on the held-out city, measured by the former bench/pnp_scale.py,
+docs/notebook), which this puts into their covariance instead of leaving it to a larger
+pixel noise fitted for all.
 """
 
 from __future__ import annotations

@@ -4,14 +4,14 @@ pose says they should appear.
 Global matching (``vision.matching``) compares every query descriptor with every
 reference descriptor, and its ratio test rejects a match whenever the reference holds a
 second descriptor almost as close anywhere in the image: repeated facades by day, and at
-night most of the lamp-lit scene (bench/pnp_scale.py). An entry's PnP pose then rests on
-a fraction of the points it sees. Given a pose of the query relative to the reference,
-each reference point is projected into the query image and only the query keypoints
-within ``radius_px`` of it compete, so the ratio test compares it with the few
-descriptors nearby instead of the whole image (the search tracking front ends such as
-ORB-SLAM run against their local map).
+night most of the lamp-lit scene (measured by the former bench/pnp_scale.py,
+docs/notebook). An entry's PnP pose then rests on a fraction of the points it sees.
+Given a pose of the query relative to the reference, each reference point is projected
+into the query image and only the query keypoints within ``radius_px`` of it compete, so
+the ratio test compares it with the few descriptors nearby instead of the whole image
+(the search tracking front ends such as ORB-SLAM run against their local map).
 
-The localizer uses it to refine each entry's pose (``LocalizeConfig.refine_by_projection``):
+The localizer uses it to refine each entry's pose (``PoseConfig.refine``):
 the entry's own RANSAC or guided pose chooses where to look, the entry's points found
 there are refit (inlier selection and LM), so the pose still comes from that entry's
 correspondences only. The pose only decides which keypoints compete: one that is off by
@@ -161,13 +161,10 @@ def refine_by_projection(
     rel: RelativePose,
     pnp: PnpConfig,
     config: ProjectionMatchConfig,
-    keypoint_scales: np.ndarray | None = None,
 ) -> tuple[np.ndarray, RelativePose] | None:
     """An accepted entry pose ``rel`` refit on the entry's points (M, 3) matched by
     projection from it: (the (K, 2) matches, the refit pose), or None when the matches
-    or the refit keep no more inliers than ``rel`` or the refit fails its checks.
-    ``keypoint_scales`` (N,): the query keypoints' pyramid scales, for
-    ``PnpConfig.scale_weighting``."""
+    or the refit keep no more inliers than ``rel`` or the refit fails its checks."""
     pairs = match_by_projection(
         grid, ref_descriptors, points_ref_cam, invert_rigid(rel.T_ref_from_query), config
     )
@@ -180,7 +177,6 @@ def refine_by_projection(
         grid.intrinsics,
         pnp,
         rel.method,
-        keypoint_scales=None if keypoint_scales is None else keypoint_scales[pairs[:, 0]],
     )
     if not refit.accepted or refit.n_inliers <= rel.n_inliers:
         return None

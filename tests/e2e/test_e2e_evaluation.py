@@ -60,7 +60,7 @@ def test_every_variant_localizes_the_query_run(memory_map, sim_city):
 
 def test_the_in_process_localizer_takes_png_bytes_or_arrays(memory_map, sim_city):
     from monoloc.server.ingest.sources import read_kitti_sequence
-    from monoloc.server.localizer import InProcessLocalizer
+    from monoloc.server.localize.in_process import InProcessLocalizer
 
     query = read_kitti_sequence(sim_city, QUERY_SEQ)
     frame = query.frames[5]

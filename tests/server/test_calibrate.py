@@ -152,31 +152,35 @@ def test_exact_geometry_gives_a_small_sigma1(exact_run):
 
 
 def test_the_pnp_covariance_model_can_be_selected_and_needs_the_covariances(exact_run):
-    from monoloc.server.localize import PnpStrategy
+    from bench.lab.paper import independent_pose_hypotheses
 
     model = _calibrate(exact_run, CalibrationConfig(k=3, covariance="pnp")).model
     assert model.covariance == "pnp" and model.pnp is not None
-    without = PnpStrategy(guess_from_prior=False, covariance=False)
-    config = CalibrationConfig(k=3, strategy=without, covariance="paper")
-    assert _calibrate(exact_run, config).model.pnp is None
+    # a pose stage that gives no pose covariances: the paper's independent PnP (bench/)
+    without = independent_pose_hypotheses
+    config = CalibrationConfig(k=3, pose_stage=without, covariance="paper")
+    paper = _calibrate(exact_run, config)
+    assert paper.model.pnp is None and paper.provenance["pnp_model"].startswith("none")
+    assert paper.provenance["pnp"] != "guided"
     with pytest.raises(InvalidInputError, match="pnp covariance model"):
-        CalibrationConfig(k=3, covariance="pnp", strategy=without)
-    with pytest.raises(InvalidInputError, match="pnp covariance model"):
-        CalibrationConfig(k=3, strategy=without)  # "pnp" is the default
+        _calibrate(exact_run, CalibrationConfig(k=3, pose_stage=without))  # "pnp" by default
 
 
 def test_the_pnp_model_is_fitted_on_covariances_with_the_keypoints_pyramid_scales(exact_run):
-    """The calibration reads the query keypoints' scales when the covariance weighs by
-    them: each inlier's noise is then at least the 1 px of a full-resolution keypoint, the
-    covariances grow, and the fitted pixel noise (of a full-resolution keypoint) falls;
-    the paper's model does not move."""
-    from monoloc.server.localize import PnpStrategy
+    """The calibration gives the pose stage the query keypoints' scales, which weigh the
+    covariances: each inlier's noise is then at least the 1 px of a full-resolution
+    keypoint, the covariances grow, and the fitted pixel noise (of a full-resolution
+    keypoint) falls; the paper's model does not move."""
+    from monoloc.server.localize import pose_hypotheses
 
-    def fitted(scales: bool):
-        strategy = PnpStrategy(guess_from_prior=False, covariance=True, covariance_scales=scales)
-        return _calibrate(exact_run, CalibrationConfig(k=3, strategy=strategy)).model
+    def full_resolution(*args, keypoint_scales=None, **kwargs):
+        """The pose stage told nothing of the scales: every keypoint at full resolution."""
+        return pose_hypotheses(*args, **kwargs)
 
-    weighed, plain = fitted(True), fitted(False)
+    def fitted(pose_stage):
+        return _calibrate(exact_run, CalibrationConfig(k=3, pose_stage=pose_stage)).model
+
+    weighed, plain = fitted(pose_hypotheses), fitted(full_resolution)
     assert weighed.pnp.pixel_std_px < 0.95 * plain.pnp.pixel_std_px, (weighed.pnp, plain.pnp)
     np.testing.assert_allclose(weighed.Sigma1, plain.Sigma1)
 

@@ -114,14 +114,14 @@ def test_every_stage_is_timed(city_outcome):
 
 def test_refinement_by_projection_keeps_more_of_each_entrys_points(city):
     """Each entry's pose refit on its points matched around where that pose projects them
-    (``LocalizeConfig.refine_by_projection``, the default) keeps more inliers than the
-    global matches gave, and the entries' poses come closer to the truth."""
-    from monoloc.server.localize import LocalizeConfig
+    (``PoseConfig.refine``, the default) keeps more inliers than the global matches gave,
+    and the entries' poses come closer to the truth."""
+    from monoloc.server.localize import LocalizeConfig, PoseConfig
 
     # the entries' own poses only: no alternative pose (it comes on poorly pinned frames)
     configs = {
-        "refined": LocalizeConfig(alternative=None),
-        "plain": LocalizeConfig(refine_by_projection=None, alternative=None),
+        "refined": LocalizeConfig(poses=PoseConfig(alternative=None)),
+        "plain": LocalizeConfig(poses=PoseConfig(refine=None, alternative=None)),
     }
     inliers = {name: [] for name in configs}
     errors = {name: [] for name in configs}  # every per-entry hypothesis's position error
@@ -136,7 +136,7 @@ def test_refinement_by_projection_keeps_more_of_each_entrys_points(city):
     assert np.median(inliers["refined"]) >= 1.2 * np.median(inliers["plain"])
     # no worse than a centimetre: the median of these ~100 poses moves by millimetres with
     # the features (0.060 vs 0.065 m when written; 0.067 vs 0.062 m since flat frames are
-    # described at FAST 12, docs/decisions.md, "Two FAST thresholds on the grid")
+    # described at FAST 12, docs/notebook/features.md, "Two FAST thresholds on the grid")
     assert np.median(refined) <= np.median(plain) + 0.01
     # measured when written: 104 poses either way, inliers median 29 vs 23, error median
     # 0.060 vs 0.065 m, 86.5 vs 88.5 % within 0.3 m (two poses of entries seeing little)

@@ -79,7 +79,6 @@ from monoloc.server.vision import (
 )
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.matching import match_against_references
-from monoloc.server.vision.pnp import PnpConfig
 from monoloc.server.vision.warmup import warm_up as warm_up_vision
 
 def signatures():
@@ -123,17 +122,16 @@ for j in range(4):
     points_ref = (points_query @ R.T + t).astype(np.float32)
     refs.append(ReferenceEntry(j, T_world_from_ref, descriptors.copy(), points_ref))
 matches = match_against_references(descriptors, [r.descriptors for r in refs])
-# as the localizer runs it (pose covariances from keypoint scales) and with the defaults
-scales = np.ones(300)
-for strategy in (LocalizeConfig().pnp_strategy, None):
+# as the localizer runs it (pose covariances weighed by keypoint scales, or without scales)
+for scales in (np.ones(300), None):
     for prior in (None, RetrievalPrior(10.0, 2.0, 5.0, 0.3, 0.5)):
-        extra = {{}} if strategy is None else {{"strategy": strategy, "keypoint_scales": scales}}
         hyps, _ = pose_hypotheses(
             pixels.astype(np.float32), refs, matches, {{j: 0.5 for j in range(4)}}, CAM,
-            PnpConfig(), rng, prior=prior, descriptors=descriptors, **extra,
+            LocalizeConfig().poses, rng, prior=prior, keypoint_scales=scales,
+            descriptors=descriptors,
         )
         assert len(hyps) == 5, len(hyps)
-        assert strategy is None or all(h.covariance_px1 is not None for h in hyps)
+        assert all(h.covariance_px1 is not None for h in hyps)
 after = signatures()
 print(json.dumps({{k: [before[k], after[k]] for k in after}}))
 """

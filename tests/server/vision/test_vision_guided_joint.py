@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from bench.lab.paper import independent_pose_hypotheses
 from monoloc.core.camera import KITTI_CAM0 as CAM
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import (
@@ -16,7 +17,7 @@ from monoloc.core.geometry import (
     wrap_angle,
 )
 from monoloc.core.prior import RetrievalPrior
-from monoloc.server.localize import PnpStrategy, ReferenceEntry, pose_hypotheses
+from monoloc.server.localize import AlternativeConfig, PoseConfig, ReferenceEntry, pose_hypotheses
 from monoloc.server.vision.joint import (
     EntryInliers,
     JointConfig,
@@ -33,11 +34,14 @@ from monoloc.server.vision.pnp import (
 )
 from monoloc.server.vision.pose_covariance import position_spread_m
 
+# "always its own RANSAC": a confirmation no frame of these scenes reaches
+NEVER_CONFIRMED = 10**6
+
 
 def _no_descriptors(**fields):
-    """The PnP strategy for these scenes: correspondences without descriptors, so no
+    """The pose stage for these scenes: correspondences without descriptors, so no
     refinement by projection (it needs the query's descriptors)."""
-    return PnpStrategy(**{"refine": None, **fields})
+    return PoseConfig(**{"refine": None, **fields})
 
 
 def _pose_error(T_a, T_b):
@@ -115,27 +119,14 @@ def _scene(seed, n_refs=5, noise_px=0.5, outlier_fraction=0.3):
 @pytest.mark.parametrize("seed", range(6))
 def test_guided_pnp_matches_full_ransac_on_clean_data(seed):
     T_world_from_query, refs, matches, keypoints = _scene(seed)
-    config = PnpConfig()
+    config = _no_descriptors(joint=None)
     e_vlad = {r.entry_id: 0.8 for r in refs}
     guided, rej_g = pose_hypotheses(
-        keypoints,
-        refs,
-        matches,
-        e_vlad,
-        CAM,
-        config,
-        np.random.default_rng(0),
-        _no_descriptors(joint=None),
+        keypoints, refs, matches, e_vlad, CAM, config, np.random.default_rng(0)
     )
-    full, rej_f = pose_hypotheses(
-        keypoints,
-        refs,
-        matches,
-        e_vlad,
-        CAM,
-        config,
-        np.random.default_rng(0),
-        _no_descriptors(guided=False, joint=None),
+    # the paper's PnP (a bench baseline): every entry its own RANSAC
+    full, rej_f = independent_pose_hypotheses(
+        keypoints, refs, matches, e_vlad, CAM, config, np.random.default_rng(0)
     )
     assert not rej_g and not rej_f
     assert [h.entry_id for h in guided] == [h.entry_id for h in full] == list(range(len(refs)))
@@ -201,9 +192,8 @@ def test_joint_pose_round_trip_recovers_the_query_pose(seed):
         )
         e_vlad = {r.entry_id: 0.8 for r in refs}
         hyps, _ = pose_hypotheses(
-            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(seed),
-            _no_descriptors(),
-        )  # fmt: skip
+            keypoints, refs, matches, e_vlad, CAM, _no_descriptors(), np.random.default_rng(seed)
+        )
         joint = [h for h in hyps if h.joint]
         assert len(joint) == 1 and hyps[-1].joint and hyps[-1].method == "joint"
         joint = joint[0]
@@ -274,18 +264,10 @@ def _with_mislabelled_entry(seed, subset):
     )
 
 
-def _solve(refs, matches, keypoints, strategy, prior=None):
+def _solve(refs, matches, keypoints, config, prior=None):
     e_vlad = {r.entry_id: 0.8 for r in refs}
     return pose_hypotheses(
-        keypoints,
-        refs,
-        matches,
-        e_vlad,
-        CAM,
-        PnpConfig(),
-        np.random.default_rng(0),
-        strategy,
-        prior,
+        keypoints, refs, matches, e_vlad, CAM, config, np.random.default_rng(0), prior
     )
 
 
@@ -294,7 +276,10 @@ def test_no_fallback_ransac_once_two_entries_confirm_the_pose():
     T_world_from_query, refs, matches, keypoints = _with_mislabelled_entry(7, subset=0.15)
     assert len(matches[-1]) == min(len(m) for m in matches)
     always, _ = _solve(
-        refs, matches, keypoints, _no_descriptors(joint=None, fallback_until_confirmed=None)
+        refs,
+        matches,
+        keypoints,
+        _no_descriptors(joint=None, fallback_until_confirmed=NEVER_CONFIRMED),
     )
     odd = [h for h in always if h.entry_id == refs[-1].entry_id]
     assert len(odd) == 1 and odd[0].method == "ransac"
@@ -344,7 +329,7 @@ def test_a_prior_with_a_heading_is_one_confirming_vote():
         refs[:1] + refs[-1:],
         matches[:1] + matches[-1:],
         keypoints,
-        _no_descriptors(joint=None, fallback_until_confirmed=None),
+        _no_descriptors(joint=None, fallback_until_confirmed=NEVER_CONFIRMED),
         prior,
     )
     assert not rejected and sorted(h.method for h in hyps) == ["guided", "ransac"]
@@ -393,7 +378,8 @@ def test_a_frame_whose_entries_are_each_too_sparse_gets_one_pooled_pose(seed):
         _scene(seed, n_refs=5, outlier_fraction=0.3), per_entry=12
     )
     assert all(len(m) < PnpConfig().min_inliers for m in matches)
-    without, rejected = _solve(refs, matches, keypoints, _no_descriptors(pooled=None))
+    no_pooled = _no_descriptors(pooled=None, alternative=None)
+    without, rejected = _solve(refs, matches, keypoints, no_pooled)
     assert without == [] and len(rejected) == len(refs)
     hypotheses, _ = _solve(refs, matches, keypoints, _no_descriptors())
     assert [h.method for h in hypotheses] == ["pooled"]
@@ -402,11 +388,8 @@ def test_a_frame_whose_entries_are_each_too_sparse_gets_one_pooled_pose(seed):
     assert pooled.n_inliers >= PnpConfig().min_inliers
     position_m, angle_deg = _pose_error(pooled.T_world_from_cam, T_world_from_query)
     assert position_m < 0.15 and angle_deg < 0.5
-    assert pooled.covariance_px1 is None
     # its covariance, from the inliers of every member entry, describes its error
-    (with_covariance,), _ = _solve(refs, matches, keypoints, _no_descriptors(covariance=True))
-    np.testing.assert_allclose(with_covariance.pose_world, pooled.pose_world)
-    assert _mahalanobis_sq(with_covariance, T_world_from_query, 0.5) < 16.3
+    assert _mahalanobis_sq(pooled, T_world_from_query, 0.5) < 16.3
 
 
 def test_pooled_pnp_runs_only_for_a_frame_without_any_other_hypothesis():
@@ -482,49 +465,55 @@ def test_only_the_neighbours_of_the_entry_with_most_matches_are_pooled():
         assert position_m < 0.15 and angle_deg < 0.5
 
 
-def test_keypoint_scales_reach_every_pose_and_are_checked():
-    from monoloc.core.errors import InvalidInputError
-
+def test_keypoint_scales_weigh_the_joint_pose_not_the_entries_poses_and_are_checked():
+    """The query keypoints' pyramid scales weigh the joint pose's Cauchy refit and every
+    pose's covariance; each entry's own pose counts every correspondence alike, so the
+    scales leave it as it is."""
     T_world_from_query, refs, matches, keypoints = _scene(8)
     e_vlad = {r.entry_id: 0.8 for r in refs}
 
     def solve(scales):
         return pose_hypotheses(
-            keypoints, refs, matches, e_vlad, CAM, PnpConfig(scale_weighting=True),
-            np.random.default_rng(0), _no_descriptors(), None, scales,
+            keypoints, refs, matches, e_vlad, CAM, _no_descriptors(), np.random.default_rng(0),
+            None, scales,
         )[0]  # fmt: skip
 
     plain = solve(None)
     assert any(h.joint for h in plain)
-    # Unit scales are full resolution: the very same poses.
+    # Unit scales are full resolution: the very same poses and covariances.
     same = solve(np.ones(len(keypoints)))
     assert [h.T_world_from_cam.tolist() for h in same] == [
         h.T_world_from_cam.tolist() for h in plain
     ]
-    # Varied scales change the weights of the per-entry and the joint fits, not their truth.
+    for h_s, h_p in zip(same, plain, strict=True):
+        np.testing.assert_array_equal(h_s.covariance_px1, h_p.covariance_px1)
+    # Varied scales change the joint fit's weights and the covariances, not the truth.
     scales = 1.2 ** np.random.default_rng(1).integers(0, 8, len(keypoints))
     weighted = solve(scales)
     assert [h.method for h in weighted] == [h.method for h in plain]
     for h_w, h_p in zip(weighted, plain, strict=True):
-        assert not np.array_equal(h_w.T_world_from_cam, h_p.T_world_from_cam)
+        moved = not np.array_equal(h_w.T_world_from_cam, h_p.T_world_from_cam)
+        assert moved == h_p.joint, h_p.method
+        assert not np.allclose(h_w.covariance_px1, h_p.covariance_px1)
         assert _pose_error(h_w.T_world_from_cam, T_world_from_query)[0] < 0.1
     with pytest.raises(InvalidInputError, match="keypoint scales"):
         solve(np.ones(len(keypoints) - 1))
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_a_near_miss_pose_guides_the_pooled_pose_without_its_ransac(seed):
-    """Each entry's own pose fell short of min_inliers; the best of them chooses the pooled
-    consensus (no RANSAC on the pooled matches: rng None would fail if one ran), and the
-    result matches what the RANSAC finds. A wrong guess falls back to the RANSAC."""
+def test_a_guess_guides_the_pooled_pose_without_its_ransac(seed):
+    """A pose of the query found elsewhere (the pooled pose itself, when it is refit on
+    matches by projection) chooses the pooled consensus (no RANSAC on the pooled matches:
+    rng None would fail if one ran), and the result matches what the RANSAC finds. A
+    wrong guess falls back to the RANSAC."""
     T_world_from_query, refs, matches, keypoints = _sparse(
         _scene(seed, n_refs=5, outlier_fraction=0.3), per_entry=12
     )
     args = ([r.T_world_from_cam for r in refs], [r.points_cam for r in refs], matches, CAM)
-    near_miss = T_world_from_query.copy()
-    near_miss[:3, 3] += [0.05, -0.04, 0.03]  # an entry's own pose on its few inliers
+    guess = T_world_from_query.copy()
+    guess[:3, 3] += [0.05, -0.04, 0.03]  # a pose found on fewer matches
     guided = estimate_pooled_pose(
-        keypoints, *args, PnpConfig(), None, PooledConfig(), guesses_T_world_from_cam=[near_miss]
+        keypoints, *args, PnpConfig(), None, PooledConfig(), guesses_T_world_from_cam=[guess]
     )
     assert guided is not None and len(guided.members) >= 2
     ransac = estimate_pooled_pose(
@@ -547,35 +536,6 @@ def test_a_near_miss_pose_guides_the_pooled_pose_without_its_ransac(seed):
         estimate_pooled_pose(
             keypoints, *args, PnpConfig(), None, PooledConfig(), guesses_T_world_from_cam=[wrong]
         )
-
-
-def test_pose_hypotheses_offer_the_entries_near_misses_to_pooled_pnp(monkeypatch):
-    import monoloc.server.localize as localize_module
-
-    # 17 matches each, 30 % wrong: every entry's RANSAC finds a pose short of 15 inliers
-    T_world_from_query, refs, matches, keypoints = _sparse(
-        _scene(1, n_refs=5, outlier_fraction=0.3), per_entry=17
-    )
-    offered = []
-    real = localize_module.estimate_pooled_pose
-
-    def spy(*args, **kwargs):
-        offered.append(list(args[9]))  # guesses_T_world_from_cam
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(localize_module, "estimate_pooled_pose", spy)
-    hypotheses, rejected = _solve(refs, matches, keypoints, _no_descriptors())
-    assert [h.method for h in hypotheses] == ["pooled"]
-    assert offered == [[]]  # off by default
-    offered.clear()
-    opted_in = _no_descriptors(pooled=PooledConfig(near_miss_guesses=True))
-    hypotheses, rejected = _solve(refs, matches, keypoints, opted_in)
-    assert [h.method for h in hypotheses] == ["pooled"]
-    (guesses,) = offered
-    short = [reason for _, reason in rejected if "inliers < min_inliers" in reason]
-    assert len(short) == len(refs) == len(guesses)
-    assert all(g.shape == (4, 4) and np.all(np.isfinite(g)) for g in guesses)
-    assert min(_pose_error(g, T_world_from_query)[0] for g in guesses) < 0.5
 
 
 def test_pooled_pnp_runs_usac_by_default_and_the_classic_ransac_finds_the_same_pose():
@@ -608,18 +568,16 @@ def _mahalanobis_sq(hypothesis, T_world_from_query, noise_px):
     return float(e @ np.linalg.solve(C, e))
 
 
-def test_each_hypothesis_carries_its_pose_covariance_when_asked():
-    """PnpStrategy.covariance: every per-entry hypothesis gets the planar covariance of
-    its own inliers (at 1 px), the joint pose that of the union's inliers, and with the
-    scene's 0.5 px noise both describe the hypotheses' actual errors (squared Mahalanobis
-    distances around chi-square, 3 dof: median 2.4); the joint pose, on more inliers, is
-    pinned down better than any of its members; without the flag, no covariance."""
+def test_each_hypothesis_carries_its_pose_covariance():
+    """Every per-entry hypothesis gets the planar covariance of its own inliers (at 1 px),
+    the joint pose that of the union's inliers, and with the scene's 0.5 px noise both
+    describe the hypotheses' actual errors (squared Mahalanobis distances around
+    chi-square, 3 dof: median 2.4); the joint pose, on more inliers, is pinned down
+    better than any of its members."""
     per_entry, joint = [], []
     for seed in range(6):
         T_world_from_query, refs, matches, keypoints = _scene(seed, noise_px=0.5)
-        plain, _ = _solve(refs, matches, keypoints, _no_descriptors())
-        assert all(h.covariance_px1 is None for h in plain)
-        hyps, _ = _solve(refs, matches, keypoints, _no_descriptors(covariance=True))
+        hyps, _ = _solve(refs, matches, keypoints, _no_descriptors())
         for h in hyps:
             distance = _mahalanobis_sq(h, T_world_from_query, 0.5)
             (joint if h.joint else per_entry).append(distance)
@@ -634,31 +592,28 @@ def test_each_hypothesis_carries_its_pose_covariance_when_asked():
 
 
 def test_pose_covariance_weighs_each_inlier_by_its_keypoint_scale():
-    """PnpStrategy.covariance_scales: an inlier from pyramid scale s counts as s px of
-    noise (every keypoint at scale 2: four times the covariance at 1 px); off, the scales
-    leave the covariance alone; either way they leave the poses alone (PnpConfig's
-    scale_weighting is off; the joint pose's Cauchy refit measures its loss's scale in
-    the errors divided by the scales, so one scale for every keypoint changes nothing)."""
+    """An inlier from pyramid scale s counts as s px of noise (every keypoint at scale 2:
+    four times the covariance at 1 px); the scales leave the poses alone (each entry's
+    pose counts every correspondence alike; the joint pose's Cauchy refit measures its
+    loss's scale in the errors divided by the scales, so one scale for every keypoint
+    changes nothing)."""
     T_world_from_query, refs, matches, keypoints = _scene(3, noise_px=0.5)
     scales = np.full(len(keypoints), 2.0)
 
-    def solve(covariance_scales, keypoint_scales):
-        strategy = _no_descriptors(covariance=True, covariance_scales=covariance_scales)
+    def solve(keypoint_scales):
         e_vlad = {r.entry_id: 0.8 for r in refs}
         return pose_hypotheses(
-            keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(0),
-            strategy, keypoint_scales=keypoint_scales,
+            keypoints, refs, matches, e_vlad, CAM, _no_descriptors(), np.random.default_rng(0),
+            keypoint_scales=keypoint_scales,
         )  # fmt: skip
 
-    plain, _ = solve(True, None)
-    weighed, _ = solve(True, scales)
-    ignored, _ = solve(False, scales)
-    pairs = list(zip(plain, weighed, ignored, strict=True))
-    assert len(pairs) >= 4 and any(p.joint for p, _, _ in pairs)
-    for p, w, i in pairs:
+    plain, _ = solve(None)
+    weighed, _ = solve(scales)
+    pairs = list(zip(plain, weighed, strict=True))
+    assert len(pairs) >= 4 and any(p.joint for p, _ in pairs)
+    for p, w in pairs:
         np.testing.assert_allclose(w.pose_world, p.pose_world)
         np.testing.assert_allclose(w.covariance_px1, 4 * p.covariance_px1, rtol=1e-9)
-        np.testing.assert_allclose(i.covariance_px1, p.covariance_px1, rtol=1e-12)
 
 
 def _moved_car_scene(seed, n_refs=5, street_per_entry=10, car_per_entry=40, shift_m=1.0):
@@ -719,14 +674,11 @@ def test_alternative_pose_for_a_frame_whose_entries_agree_on_a_moved_car():
     down: its inliers on one patch); a pooled RANSAC on the matches that pose leaves finds
     the true pose from the street matches no entry had enough of. Without it, no
     hypothesis near the truth; on an ordinary frame it adds nothing."""
-    from monoloc.server.localize import AlternativeConfig
-
     T_world_from_query, refs, matches, keypoints = _moved_car_scene(0)
     truth = planar_from_T_world_from_cam(T_world_from_query)
 
     def solve(alternative, scene=(refs, matches, keypoints)):
-        strategy = _no_descriptors(covariance=True, alternative=alternative)
-        return _solve(*scene, strategy)[0]
+        return _solve(*scene, _no_descriptors(alternative=alternative))[0]
 
     def off_m(h):
         return float(np.hypot(*(h.pose_world[:2] - truth[:2])))
@@ -747,20 +699,19 @@ def test_alternative_pose_for_a_frame_whose_entries_agree_on_a_moved_car():
     assert [h.method for h in solve(AlternativeConfig(), ordinary)] == [h.method for h in base]
 
 
-def test_alternative_pose_needs_pooled_pnp_and_the_covariances():
-    from monoloc.server.localize import AlternativeConfig
-
-    with pytest.raises(InvalidInputError):
-        PnpStrategy(covariance=False, alternative=AlternativeConfig())
-    with pytest.raises(InvalidInputError):
-        PnpStrategy(covariance=True, pooled=None, alternative=AlternativeConfig())
+def test_alternative_pose_needs_pooled_pnp_and_bad_pose_configs_are_refused():
+    with pytest.raises(InvalidInputError, match="pooled"):
+        PoseConfig(pooled=None, alternative=AlternativeConfig())
+    assert PoseConfig(pooled=None, alternative=None).pooled is None
     with pytest.raises(InvalidInputError):
         AlternativeConfig(residual_px=0.0)
+    with pytest.raises(InvalidInputError, match="fallback_until_confirmed"):
+        PoseConfig(fallback_until_confirmed=0)
 
 
-def test_joint_pose_cauchy_refit_is_the_default_and_can_be_turned_off():
-    """JointConfig's Cauchy refit: on by default, None gives the least-squares pose of the
-    inlier rounds alone (as before it), and bad settings are refused."""
+def test_joint_pose_cauchy_refit_is_the_default_and_moves_the_least_squares_pose():
+    """JointConfig's Cauchy refit: on by default; cauchy_rounds=0 (a bench baseline) gives
+    the least-squares pose of the inlier rounds alone, and bad settings are refused."""
     from monoloc.server.vision.pnp import refine_from_pose
 
     T_world_from_query, refs, matches, keypoints = _scene(4, noise_px=0.7, outlier_fraction=0.2)
@@ -769,12 +720,12 @@ def test_joint_pose_cauchy_refit_is_the_default_and_can_be_turned_off():
         for r, m in zip(refs, matches, strict=True)
     ]
     plain = estimate_joint_pose(
-        union, T_world_from_query, CAM, PnpConfig(), JointConfig(cauchy_scale_sigmas=None)
+        union, T_world_from_query, CAM, PnpConfig(), JointConfig(cauchy_rounds=0)
     )
     robust = estimate_joint_pose(union, T_world_from_query, CAM, PnpConfig(), JointConfig())
     assert plain is not None and robust is not None
-    assert JointConfig().cauchy_scale_sigmas is not None
-    # None: the rounds' own pose, written out here in the union's world frame
+    assert JointConfig().cauchy_rounds > 0
+    # no Cauchy rounds: the inlier rounds' own pose, written out here in the union's world frame
     points = np.concatenate(
         [e.points_ref @ e.T_world_from_ref[:3, :3].T + e.T_world_from_ref[:3, 3] for e in union]
     )
@@ -791,6 +742,6 @@ def test_joint_pose_cauchy_refit_is_the_default_and_can_be_turned_off():
     moved = np.linalg.norm(robust.T_world_from_cam[:3, 3] - plain.T_world_from_cam[:3, 3])
     assert 0.0 < moved < 0.05
     assert robust.n_inliers == plain.n_inliers
-    for bad in ({"cauchy_scale_sigmas": 0.0}, {"cauchy_scale_sigmas": -1.0}, {"cauchy_rounds": 0}):
+    for bad in ({"cauchy_scale_sigmas": 0.0}, {"cauchy_scale_sigmas": -1.0}, {"cauchy_rounds": -1}):
         with pytest.raises(InvalidInputError):
             JointConfig(**bad)

@@ -208,61 +208,6 @@ def test_compiled_lm_reaches_opencvs_lm_optimum_and_scores_like_projectpoints():
     assert np.degrees(rotation_angle_rad(R2 @ R.T)) < 0.05
 
 
-def _scaled_scene(rng, n=200, noise_px_at_full_resolution=0.4):
-    """A scene whose keypoints come from ORB pyramid levels 0-7 (scale 1.2 ** level) and
-    are located to noise proportional to their scale, 10 % outliers; returns it with
-    the scales (n,)."""
-    observed, points_ref, T_true, outliers = _scene(rng, n=n, outlier_fraction=0.1, noise_px=0.0)
-    scales = 1.2 ** rng.integers(0, 8, n)
-    observed = (
-        observed
-        + rng.normal(0.0, 1.0, observed.shape)
-        * (noise_px_at_full_resolution * scales[:, None])
-        * ~outliers[:, None]
-    )
-    return observed, points_ref, T_true, scales
-
-
-WEIGHTED = PnpConfig(scale_weighting=True)
-
-
-def test_keypoint_scales_weigh_the_fit_and_make_it_more_accurate():
-    weighted, unweighted = [], []
-    for seed in range(20):
-        observed, points_ref, T_true, scales = _scaled_scene(np.random.default_rng(seed))
-        results = []
-        for errors, given in ((weighted, scales), (unweighted, None)):
-            result = estimate_relative_pose(
-                observed, points_ref, CAM, WEIGHTED, np.random.default_rng(seed), given
-            )
-            assert result.accepted, result.reject_reason
-            errors.append(_errors(T_true, result.T_ref_from_query)[0])
-            results.append(result)
-        # The weights move the pose, not the choice of inliers.
-        assert np.array_equal(results[0].inlier_mask, results[1].inlier_mask)
-    # Same RANSAC samples, same inlier threshold: only the LM weights differ.
-    assert np.median(weighted) < 0.85 * np.median(unweighted)
-    assert np.mean(weighted) < 0.85 * np.mean(unweighted)
-    # Switched off in the config (the default), the scales change nothing.
-    observed, points_ref, _, scales = _scaled_scene(np.random.default_rng(3))
-    off = PnpConfig()
-    assert not off.scale_weighting
-    a = estimate_relative_pose(observed, points_ref, CAM, off, np.random.default_rng(3), scales)
-    b = estimate_relative_pose(observed, points_ref, CAM, off, np.random.default_rng(3))
-    assert np.array_equal(a.T_ref_from_query, b.T_ref_from_query)
-
-
-@pytest.mark.parametrize(
-    "scales", [np.ones(5), np.zeros(200), np.full(200, np.nan), -np.ones(200), np.ones((200, 2))]
-)
-def test_wrong_keypoint_scales_raise(scales):
-    observed, points_ref, _, _ = _scene(np.random.default_rng(0), n=200)
-    with pytest.raises(InvalidInputError, match="keypoint scales"):
-        estimate_relative_pose(
-            observed, points_ref, CAM, WEIGHTED, np.random.default_rng(0), scales
-        )
-
-
 def test_lm_weights_are_inverse_variances():
     from monoloc.server.vision._pnp_kernel import refine_lm
 

@@ -16,7 +16,7 @@ from monoloc.core.geometry import (
     invert_rigid,
     planar_from_T_world_from_cam,
 )
-from monoloc.server.localize import PnpStrategy, ReferenceEntry, pose_hypotheses
+from monoloc.server.localize import PoseConfig, ReferenceEntry, pose_hypotheses
 from monoloc.server.vision.joint import PooledConfig, estimate_pooled_pose
 from monoloc.server.vision.matching import MatchConfig, match_against_references, match_descriptors
 from monoloc.server.vision.pnp import PnpConfig
@@ -124,7 +124,7 @@ def test_projected_matches_give_the_pose_and_a_wrong_prediction_gives_none():
 
 
 def test_each_entrys_pose_refined_by_projection_keeps_more_inliers_and_comes_closer():
-    """pose_hypotheses with the default strategy refits every entry's pose on the entry's
+    """pose_hypotheses with the default pose stage refits every entry's pose on the entry's
     points matched around where that pose projects them; same hypotheses, more inliers,
     smaller errors than the poses from the aliased global matches alone."""
     gains, plain_errors, refined_errors = [], [], []
@@ -134,15 +134,16 @@ def test_each_entrys_pose_refined_by_projection_keeps_more_inliers_and_comes_clo
         matches = match_against_references(descriptors, [r.descriptors for r in refs])
         e_vlad = {r.entry_id: 0.5 for r in refs}
         solved = {}
-        for name, strategy in (
-            ("plain", PnpStrategy(joint=None, refine=None)),
-            ("refined", PnpStrategy(joint=None)),
+        for name, config in (
+            ("plain", PoseConfig(joint=None, refine=None)),
+            ("refined", PoseConfig(joint=None)),
         ):
             hypotheses, _ = pose_hypotheses(
-                keypoints, refs, matches, e_vlad, CAM, PnpConfig(), np.random.default_rng(seed),
-                strategy, descriptors=descriptors,
+                keypoints, refs, matches, e_vlad, CAM, config, np.random.default_rng(seed),
+                descriptors=descriptors,
             )  # fmt: skip
             solved[name] = {h.entry_id: h for h in hypotheses}
+            assert len(solved[name]) == len(hypotheses)  # one per entry, no pose of several
         assert solved["plain"].keys() == solved["refined"].keys() and solved["plain"]
         for entry_id, plain in solved["plain"].items():
             refined = solved["refined"][entry_id]
@@ -155,7 +156,7 @@ def test_each_entrys_pose_refined_by_projection_keeps_more_inliers_and_comes_clo
 
 def test_a_pooled_pose_is_refined_by_projection_too():
     """Entries each too sparse for a pose of their own (a PnP config asking 40 inliers)
-    give one pooled pose; with the default strategy it is refit on every entry's points
+    give one pooled pose; with the default pose stage it is refit on every entry's points
     matched by projection from it: more inliers, closer to the truth, still pooled."""
     pnp = PnpConfig(min_inliers=40)
     plain_errors, refined_errors = [], []
@@ -167,10 +168,13 @@ def test_a_pooled_pose_is_refined_by_projection_too():
         matches = match_against_references(descriptors, [r.descriptors for r in refs])
         e_vlad = {r.entry_id: 0.5 for r in refs}
         pooled = {}
-        for name, strategy in (("plain", PnpStrategy(refine=None)), ("refined", PnpStrategy())):
+        for name, config in (
+            ("plain", PoseConfig(pnp=pnp, refine=None)),
+            ("refined", PoseConfig(pnp=pnp)),
+        ):
             hypotheses, _ = pose_hypotheses(
-                keypoints, refs, matches, e_vlad, CAM, pnp, np.random.default_rng(seed),
-                strategy, descriptors=descriptors,
+                keypoints, refs, matches, e_vlad, CAM, config, np.random.default_rng(seed),
+                descriptors=descriptors,
             )  # fmt: skip
             assert [h.method for h in hypotheses] == ["pooled"]
             pooled[name] = hypotheses[0]
@@ -188,8 +192,8 @@ def test_refinement_needs_the_query_descriptors():
     matches = match_against_references(descriptors, [r.descriptors for r in refs])
     with pytest.raises(InvalidInputError, match="descriptors"):
         pose_hypotheses(
-            keypoints, refs, matches, {j: 0.5 for j in range(3)}, CAM, PnpConfig(),
-            np.random.default_rng(0), PnpStrategy(),
+            keypoints, refs, matches, {j: 0.5 for j in range(3)}, CAM, PoseConfig(),
+            np.random.default_rng(0),
         )  # fmt: skip
 
 

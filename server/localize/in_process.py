@@ -15,12 +15,9 @@ from monoloc.core.errors import InvalidInputError
 from monoloc.core.measurement import Hypotheses
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.index.retrieval import RetrievalIndex
-from monoloc.server.localize import (
-    EntryLookup,
-    LocalizationResult,
-    LocalizeConfig,
-    localize_frame,
-)
+from monoloc.server.localize.config import LocalizeConfig
+from monoloc.server.localize.frame import PRODUCT_STAGES, FrameStages, localize_frame
+from monoloc.server.localize.results import EntryLookup, LocalizationResult
 from monoloc.server.vision.vocabulary import Vocabulary
 
 
@@ -67,7 +64,8 @@ def hypotheses_of(result: LocalizationResult) -> Hypotheses:
 
 class InProcessLocalizer:
     """Localize frames taken with ``intrinsics`` against ``index`` + ``lookup``; RANSAC
-    draws from ``rng``, one generator for every call (so answers depend on call order)."""
+    draws from ``rng``, one generator for every call (so answers depend on call order).
+    ``stages``: the product's unless a benchmark compares a baseline (bench/lab)."""
 
     def __init__(
         self,
@@ -77,6 +75,7 @@ class InProcessLocalizer:
         intrinsics: CameraIntrinsics,
         rng: np.random.Generator,
         config: LocalizeConfig = LocalizeConfig(),
+        stages: FrameStages = PRODUCT_STAGES,
     ) -> None:
         self.index = index
         self.lookup = lookup
@@ -84,6 +83,7 @@ class InProcessLocalizer:
         self.intrinsics = intrinsics
         self.rng = rng
         self.config = config
+        self.stages = stages
 
     def localize(
         self,
@@ -103,6 +103,7 @@ class InProcessLocalizer:
             self.rng,
             prior,
             k,
+            self.stages,
         )
         return InProcessAnswer(hypotheses_of(result), None, result.timings_ms, {}, result=result)
 
