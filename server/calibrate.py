@@ -37,6 +37,7 @@ from monoloc.core.calibration import (
     fit_measurement_model,
     fit_pnp_covariance_model,
     fit_quality_model,
+    fit_relative_vlad,
     pose_errors,
     retrieval_vectors,
 )
@@ -46,9 +47,11 @@ from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
 from monoloc.core.measurement import (
     DEFAULT_COVARIANCE,
     DEFAULT_RETRIEVAL_FRAME,
+    DEFAULT_VLAD_EVIDENCE,
     CovarianceModel,
     MeasurementModel,
     RetrievalFrame,
+    VladEvidence,
 )
 from monoloc.server.entry_builder import (
     BuildConfig,
@@ -94,6 +97,9 @@ class CalibrationConfig:
     # the product's choices; bench/ sets the variants it measures (monoloc.core.measurement)
     covariance: CovarianceModel = DEFAULT_COVARIANCE
     retrieval_frame: RetrievalFrame = DEFAULT_RETRIEVAL_FRAME
+    # how the retrieval term reads the VLAD distance (monoloc.core.measurement); the
+    # relative one's (mean, std) is fitted and stored either way
+    vlad_evidence: VladEvidence = DEFAULT_VLAD_EVIDENCE
     # the paper covariance's tail (monoloc.core.calibration.PAPER_TAIL_WEIGHT): set, not
     # fitted; tail_weight 0 stores the paper's single Gaussian
     tail_weight: float = PAPER_TAIL_WEIGHT
@@ -162,6 +168,8 @@ class CalibrationSamples:
     truth: list = field(default_factory=list)
     hypothesis: list = field(default_factory=list)
     e_vlad: list = field(default_factory=list)
+    # the smallest VLAD distance among the sample's frame's hypotheses (gated ones too)
+    e_vlad_best: list = field(default_factory=list)
     entry_pose: list = field(default_factory=list)
     n_inliers: list = field(default_factory=list)
     error_px: list = field(default_factory=list)
@@ -247,6 +255,7 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         keypoint_scales=query.keypoint_scales,
         descriptors=query.descriptors,
     )
+    vlad_best = min((h.e_vlad for h in hypotheses), default=math.nan)
     for h in hypotheses:
         samples.n_hypotheses += int(not h.joint)
         samples.n_joint += int(h.joint)
@@ -259,6 +268,7 @@ def _query_samples(query, entries, entry_pose, intrinsics, config, rng, samples)
         samples.truth.append(truth)
         samples.hypothesis.append(h.pose_world)
         samples.e_vlad.append(h.e_vlad)
+        samples.e_vlad_best.append(vlad_best)
         samples.entry_pose.append(h.entry_pose_world)
         samples.n_inliers.append(h.n_inliers)
         samples.error_px.append(h.reprojection_error_px)
@@ -356,7 +366,15 @@ def calibrate_runs(
             f"{MIN_GOOD_HYPOTHESES} hypotheses with a pose covariance (the pose stage must "
             "give them)"
         )
-    model = dataclasses.replace(paper, quality=quality, pnp=pnp, covariance=config.covariance)
+    relative = np.array(samples.e_vlad)[~joint] - np.array(samples.e_vlad_best)[~joint]
+    model = dataclasses.replace(
+        paper,
+        quality=quality,
+        pnp=pnp,
+        covariance=config.covariance,
+        vlad_evidence=config.vlad_evidence,
+        relative_vlad=fit_relative_vlad(relative, config.unbiased),
+    )
     counts = {key: sum(c[key] for c in per_run) for key in per_run[0] if key != "used"}
     provenance = _provenance(" + ".join(names), counts, samples, config, vocabulary)
     if len(runs) > 1:

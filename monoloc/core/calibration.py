@@ -11,6 +11,7 @@ import numpy as np
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
 from monoloc.core.measurement import (
+    DEFAULT_RELATIVE_VLAD,
     DEFAULT_RETRIEVAL_FRAME,
     MeasurementModel,
     PnpCovarianceModel,
@@ -107,6 +108,23 @@ def _clamp_retrieval_spread(Sigma2: np.ndarray) -> np.ndarray:
 # 0 switches it off (the paper's single Gaussian).
 PAPER_TAIL_WEIGHT = 0.3
 PAPER_TAIL_SCALE = 10.0
+
+
+def fit_relative_vlad(relative_e_vlad: np.ndarray, unbiased: bool = True) -> tuple[float, float]:
+    """(mean, std) of the relative VLAD distances (N,) (e_vlad minus its frame's best;
+    ``MeasurementModel.relative_vlad``), the std at least ``RELATIVE_VLAD_MIN_STD``; the
+    documented default when fewer than two samples are given."""
+    values = np.asarray(relative_e_vlad, dtype=np.float64).reshape(-1)
+    values = values[np.isfinite(values)]
+    if len(values) < 2:
+        return DEFAULT_RELATIVE_VLAD
+    std = float(values.std(ddof=1 if unbiased else 0))
+    return float(values.mean()), max(std, RELATIVE_VLAD_MIN_STD)
+
+
+# A frame's best hypothesis has relative distance 0 by construction; a floor keeps a
+# training run of near-identical distances from making the term a spike.
+RELATIVE_VLAD_MIN_STD = 0.01
 
 
 def fit_measurement_model(

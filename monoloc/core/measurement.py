@@ -349,6 +349,14 @@ DEFAULT_COVARIANCE: CovarianceModel = "pnp"
 parameters (the documented defaults, a calibration stored before it) uses the paper's."""
 DEFAULT_RETRIEVAL_FRAME: RetrievalFrame = "world"
 """The frame of the retrieval vector's offset: the paper's (X_i - X, Y_i - Y)."""
+VladEvidence = Literal["absolute", "relative"]
+DEFAULT_VLAD_EVIDENCE: VladEvidence = "absolute"
+"""How the retrieval term reads a hypothesis's VLAD distance: "absolute" (the paper's
+e_vlad_i) or "relative" (e_vlad_i minus the smallest of its frame's hypotheses, which
+does not move with a street's overall VLAD distances; ``MeasurementModel.vlad_evidence``)."""
+DEFAULT_RELATIVE_VLAD = (0.0, 0.25)
+"""(mean, std) of the relative VLAD distance for a model without a calibrated one: as
+loose as the default absolute term's spread."""
 
 
 @dataclass(frozen=True)
@@ -374,6 +382,12 @@ class MeasurementModel:
     them. ``retrieval_frame``: the frame of the retrieval vector's offset, "world" (the
     paper's; calibrations stored before the choice existed) or "vehicle" (along and
     across the particle's heading).
+    ``vlad_evidence``: "absolute" (the paper's e_vlad term, mu2[0] and Sigma2's first
+    row) or "relative": the retrieval weight is N(e_vlad_i - min_j e_vlad_j;
+    ``relative_vlad`` (mean, std)) times the offsets' Gaussian (mu2[1:], Sigma2[1:, 1:]),
+    the VLAD distance read against the frame's own best (a street whose every VLAD
+    distance is larger than the training street's no longer pushes every hypothesis
+    under the outlier floor).
     ``conditions``: models calibrated on a training run of one condition, by the entry tag
     that names it (e.g. "night": a night training run against its own night map). A
     hypothesis whose entry carries that tag (``Hypotheses.entry_tags``) is weighed by that
@@ -397,6 +411,8 @@ class MeasurementModel:
     covariance: CovarianceModel | None = None
     pnp: PnpCovarianceModel | None = None
     retrieval_frame: RetrievalFrame = DEFAULT_RETRIEVAL_FRAME
+    vlad_evidence: VladEvidence = DEFAULT_VLAD_EVIDENCE
+    relative_vlad: tuple[float, float] = DEFAULT_RELATIVE_VLAD
     tail_weight: float = 0.0
     tail_scale: float = 1.0
     conditions: dict[str, MeasurementModel] = field(default_factory=dict)
@@ -430,6 +446,16 @@ class MeasurementModel:
             raise InvalidInputError(
                 f"retrieval_frame must be 'world' or 'vehicle', got {self.retrieval_frame!r}"
             )
+        if self.vlad_evidence not in ("absolute", "relative"):
+            raise InvalidInputError(
+                f"vlad_evidence must be 'absolute' or 'relative', got {self.vlad_evidence!r}"
+            )
+        mean_rel, std_rel = (float(v) for v in self.relative_vlad)
+        if not (math.isfinite(mean_rel) and math.isfinite(std_rel) and std_rel > 0):
+            raise InvalidInputError(
+                f"relative_vlad must be a finite (mean, std > 0), got {self.relative_vlad!r}"
+            )
+        object.__setattr__(self, "relative_vlad", (mean_rel, std_rel))
         if self.covariance == "quality" and self.quality is None:
             raise InvalidInputError("the quality covariance model needs quality parameters")
         if self.covariance == "pnp" and self.pnp is None:
@@ -444,6 +470,13 @@ class MeasurementModel:
         object.__setattr__(self, "_whiten2", _whitening(self.Sigma2))
         object.__setattr__(self, "_log_norm1", _log_normaliser(self.Sigma1))
         object.__setattr__(self, "_log_norm2", _log_normaliser(self.Sigma2))
+        offsets = self.Sigma2[1:, 1:]
+        object.__setattr__(self, "_whiten2_offsets", _whitening(offsets))
+        object.__setattr__(
+            self,
+            "_log_norm2_relative",
+            _log_normaliser(offsets) - math.log(std_rel) - 0.5 * math.log(2.0 * math.pi),
+        )
 
     def to_dict(self) -> dict:
         return {
@@ -457,6 +490,8 @@ class MeasurementModel:
             "covariance": self.covariance,
             "pnp": None if self.pnp is None else self.pnp.to_dict(),
             "retrieval_frame": self.retrieval_frame,
+            "vlad_evidence": self.vlad_evidence,
+            "relative_vlad": list(self.relative_vlad),
             "tail_weight": self.tail_weight,
             "tail_scale": self.tail_scale,
             "conditions": {name: model.to_dict() for name, model in self.conditions.items()},
@@ -535,12 +570,25 @@ class MeasurementModel:
             },
         )
 
+    def with_vlad_evidence(self, vlad_evidence: VladEvidence) -> MeasurementModel:
+        """The same parameters reading the VLAD distance the other way (in every
+        condition's model too)."""
+        return dataclasses.replace(
+            self,
+            vlad_evidence=vlad_evidence,
+            conditions={
+                name: dataclasses.replace(model, vlad_evidence=vlad_evidence)
+                for name, model in self.conditions.items()
+            },
+        )
+
     @classmethod
     def from_dict(cls, data: dict) -> MeasurementModel:
         """Parameters from :meth:`to_dict` output; a calibration stored before the quality
         model existed (no ``quality`` / ``covariance``) loads as the paper's model, one
         stored before the PnP covariance model without it (``pnp`` None), one stored
-        before the retrieval frame was a choice in the world frame."""
+        before the retrieval frame was a choice in the world frame, one stored before the
+        VLAD evidence was a choice with the absolute term."""
         try:
             quality = data.get("quality")
             return cls(
@@ -554,6 +602,8 @@ class MeasurementModel:
                 covariance=data.get("covariance"),
                 pnp=None if data.get("pnp") is None else PnpCovarianceModel.from_dict(data["pnp"]),
                 retrieval_frame=data.get("retrieval_frame") or "world",
+                vlad_evidence=data.get("vlad_evidence") or "absolute",
+                relative_vlad=tuple(data.get("relative_vlad") or DEFAULT_RELATIVE_VLAD),
                 tail_weight=float(data.get("tail_weight") or 0.0),
                 tail_scale=float(data.get("tail_scale") or 1.0),
                 conditions={
@@ -623,10 +673,12 @@ def log_likelihood_and_distance(
     if len(hypotheses) == 0:
         raise InvalidInputError("log_likelihood needs at least one hypothesis")
     groups = model.by_condition(hypotheses)
+    # the frame's best VLAD distance, over all its hypotheses (the relative evidence)
+    vlad_best = float(np.min(hypotheses.e_vlad))
     if len(groups) == 1:
-        terms, closest = _mixture_terms(particles, hypotheses, groups[0][0])
+        terms, closest = _mixture_terms(particles, hypotheses, groups[0][0], vlad_best)
     else:
-        parts = [_mixture_terms(particles, hypotheses.subset(i), m) for m, i in groups]
+        parts = [_mixture_terms(particles, hypotheses.subset(i), m, vlad_best) for m, i in groups]
         terms = np.concatenate([t for t, _ in parts], axis=1)
         closest = min(c for _, c in parts)
     peak = terms.max(axis=1)
@@ -639,7 +691,7 @@ def log_likelihood_and_distance(
 
 
 def _mixture_terms(
-    particles: np.ndarray, hypotheses: Hypotheses, model: MeasurementModel
+    particles: np.ndarray, hypotheses: Hypotheses, model: MeasurementModel, vlad_best: float
 ) -> tuple[np.ndarray, float]:
     """The mixture's log terms (P, H') of ``model`` (pose error plus retrieval vector; H'
     leaves the joint poses out unless the model weighs them), and the smallest squared
@@ -684,11 +736,15 @@ def _mixture_terms(
             cos_psi * dx + sin_psi * dy - model.mu2[1],
             cos_psi * dy - sin_psi * dx - model.mu2[2],
         ]
-    r2 = [
-        np.broadcast_to(hypotheses.e_vlad - model.mu2[0], terms.shape),
-        *offset,
-        _wrap_residual(entries[:, 2] - model.mu2[3] - psi),
-    ]
+    heading = _wrap_residual(entries[:, 2] - model.mu2[3] - psi)
+    if model.vlad_evidence == "relative":
+        mean_rel, std_rel = model.relative_vlad
+        z_rel = (hypotheses.e_vlad - vlad_best - mean_rel) / std_rel  # (H,), per frame
+        terms += model._log_norm2_relative - 0.5 * (
+            z_rel * z_rel + _mahalanobis([*offset, heading], model._whiten2_offsets)
+        )
+        return terms, closest
+    r2 = [np.broadcast_to(hypotheses.e_vlad - model.mu2[0], terms.shape), *offset, heading]
     terms += model._log_norm2 - 0.5 * _mahalanobis(r2, model._whiten2)
     return terms, closest
 

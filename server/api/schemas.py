@@ -13,7 +13,12 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from monoloc.core.measurement import DEFAULT_COVARIANCE, DEFAULT_RETRIEVAL_FRAME
+from monoloc.core.measurement import (
+    DEFAULT_COVARIANCE,
+    DEFAULT_RELATIVE_VLAD,
+    DEFAULT_RETRIEVAL_FRAME,
+    DEFAULT_VLAD_EVIDENCE,
+)
 from monoloc.server.api.errors import PATTERN_RULES
 
 # The server's own rules, as patterns in the OpenAPI description (storage checks them too):
@@ -487,6 +492,14 @@ class _MeasurementModelFields(BaseModel):
         "+ w times the paper covariance's density, C its pose_covariance from the localize "
         "answer; monoloc.core.measurement.PnpCovarianceModel); null: none.",
     )
+    relative_vlad: list[float] = Field(
+        default_factory=lambda: list(DEFAULT_RELATIVE_VLAD),
+        min_length=2,
+        max_length=2,
+        description="(mean, std > 0) of a hypothesis's VLAD distance minus its frame's "
+        "smallest, fitted by a calibration job: the retrieval term's VLAD evidence when "
+        "vlad_evidence is relative.",
+    )
     tail_weight: float = Field(
         default=0.0,
         ge=0.0,
@@ -516,6 +529,7 @@ def _check_choices(values: dict[str, Any], where: str) -> None:
     offered = {
         "covariance": (None, "paper", DEFAULT_COVARIANCE),
         "retrieval_frame": (None, DEFAULT_RETRIEVAL_FRAME),
+        "vlad_evidence": (None, DEFAULT_VLAD_EVIDENCE),
     }
     for name, allowed in offered.items():
         if values.get(name) not in allowed:
@@ -571,6 +585,11 @@ class CalibrationPublic(_MeasurementModelFields):
         description="Frame of the retrieval vector's offset (mu2[1:3], Sigma2): world, "
         "X_i - X and Y_i - Y (as stored: a calibration stored by an older server may name "
         "another).",
+    )
+    vlad_evidence: str = Field(
+        default=DEFAULT_VLAD_EVIDENCE,
+        description="How the retrieval term reads a hypothesis's VLAD distance: absolute "
+        "(e_vlad against mu2[0]) or relative (against the frame's smallest, relative_vlad).",
     )
     calibrated: bool = Field(description="False: these are the documented defaults.")
     source: str

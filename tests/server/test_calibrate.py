@@ -119,6 +119,11 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     # one selected. More inliers must not widen a hypothesis.
     assert model.covariance == "pnp" and model.pnp is not None and model.quality is not None
     assert model.retrieval_frame == "world"
+    # the relative VLAD evidence is fitted beside the absolute one: a frame's hypotheses
+    # lie a few hundredths above its best, well inside the absolute spread
+    mean_rel, std_rel = model.relative_vlad
+    assert model.vlad_evidence == "absolute" and (mean_rel, std_rel) != (0.0, 0.25)
+    assert 0.0 <= mean_rel < model.mu2[0] and 0.01 <= std_rel < 0.5
     assert (
         np.sqrt(model.Sigma2[3, 3]) >= 0.05
         and np.linalg.eigvalsh(model.Sigma2[1:3, 1:3]).min() >= 1.0 - 1e-9
