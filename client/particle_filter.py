@@ -43,6 +43,50 @@ from monoloc.core.measurement import Hypotheses, MeasurementModel, log_likelihoo
 
 
 @dataclass(frozen=True)
+class GuardConfig:
+    """The innovation check on the particles' mode (``ParticleFilter`` guard).
+
+    A frame's own estimate is its joint pose, else its hypothesis with the most inliers,
+    with the measurement model's covariance for it (``hypothesis_gaussians``). It is
+    confident when that covariance's position spread sqrt(var X + var Y) is at most
+    ``max_spread_m`` and the server flagged no poorly pinned pose in the frame (no
+    "alternative" hypothesis: a moved car carries every entry the same wrong way). When
+    ``frames`` confident frames in a row put the pose more than ``min_offset_m`` and
+    ``mahalanobis_sq`` (under the estimate's covariance plus ``min_mode_std_m`` of the
+    mode's own error) from the mode, at most ``max_offset_m`` away
+    (farther is the re-seed rule's to judge: an aliased street), and agree with each
+    other (moved by the measured motion, within ``agree_m`` plus the odometry's drift
+    ``FilterConfig.drift_per_m`` since, and ``agree_rad``), the
+    particles move to the last of them. Why: a measurement model calibrated on another
+    street can weigh every hypothesis of a street under the outlier floor; the particles
+    then dead-reckon away from poses the server gets right on every frame."""
+
+    frames: int = 3
+    max_spread_m: float = 0.06
+    min_offset_m: float = 0.15
+    max_offset_m: float = 3.0
+    mahalanobis_sq: float = 16.0
+    min_mode_std_m: float = 0.02
+    agree_m: float = 0.1
+    agree_rad: float = math.radians(1.0)
+
+    def __post_init__(self) -> None:
+        if self.frames < 2:
+            raise InvalidInputError(f"GuardConfig.frames must be >= 2: {self}")
+        positive = (
+            self.max_spread_m,
+            self.min_offset_m,
+            self.max_offset_m,
+            self.mahalanobis_sq,
+            self.min_mode_std_m,
+            self.agree_m,
+            self.agree_rad,
+        )
+        if min(positive) <= 0 or self.max_offset_m <= self.min_offset_m:
+            raise InvalidInputError(f"GuardConfig bounds must be positive and ordered: {self}")
+
+
+@dataclass(frozen=True)
 class FilterConfig:
     """Settings of the particle filter (docs/method.md sections 7-8)."""
 
@@ -118,6 +162,8 @@ class FilterConfig:
     # averages the hypotheses over time with the measured motion and the speed signal's
     # scale; None reports the particles' mode itself (docs/method.md's filter).
     refine: RefineConfig | None = field(default_factory=RefineConfig)
+    # Never worse than the frame's own estimate for long (GuardConfig).
+    guard: GuardConfig = field(default_factory=GuardConfig)
 
 
 @dataclass(frozen=True)
@@ -221,6 +267,11 @@ class ParticleFilter:
         self.driven_since_support_m = 0.0
         self.refiner = ModeRefiner(config.refine) if config.refine is not None else None
         self._refiner_disagreeing = 0  # consecutive frames the refiner and the mode disagree
+        # The guard's evidence: confident frame estimates (K, 3) that disagreed with the
+        # mode in a row, each moved to the current frame by the measured motion.
+        self._guard_world = np.zeros((0, 3))
+        self._guard_driven_m = np.zeros(0)  # distance driven since each was seen
+        self.n_guard_moves = 0
 
     @property
     def initialised(self) -> bool:
@@ -266,6 +317,11 @@ class ParticleFilter:
             self._recent_world = advance(
                 self._recent_world, speed_mps, yaw_rate_radps, dt_s, motion.lever_arm_m
             )
+        if len(self._guard_world):
+            self._guard_world = advance(
+                self._guard_world, speed_mps, yaw_rate_radps, dt_s, motion.lever_arm_m
+            )
+            self._guard_driven_m = self._guard_driven_m + abs(float(speed_mps)) * float(dt_s)
 
     def update(self, hypotheses: Hypotheses) -> None:
         """Weigh the particles by the mixture; no hypotheses means no update. An unlikely
@@ -447,9 +503,69 @@ class ParticleFilter:
                 return None
         else:
             self.predict(dt_s, speed_mps, yaw_rate_radps)
+            reseeds = self.n_reseeds
             self.update(hypotheses)
+            if self.n_reseeds == reseeds:
+                self._guard(hypotheses)
         self._refine(hypotheses)
         return self.estimate(n_hypotheses=len(hypotheses))
+
+    def _guard(self, hypotheses: Hypotheses) -> None:
+        """The innovation check on the mode (``GuardConfig``): after ``frames`` confident,
+        mutually consistent frame estimates in a row that the mode contradicts, move the
+        particles to the last one (and the refinement with them)."""
+        cfg = self.config.guard
+        own = _frame_estimate(hypotheses, self.model, cfg)
+        if own is None:
+            self._guard_reset()
+            return
+        pose, cov = own
+        mode = self._mode()
+        floor = np.diag([cfg.min_mode_std_m**2, cfg.min_mode_std_m**2, 0.0])
+        diff = pose - mode
+        diff[2] = wrap_angle(diff[2])
+        offset_m = math.hypot(diff[0], diff[1])
+        try:
+            squared = float(diff @ np.linalg.solve(cov + floor, diff))
+        except np.linalg.LinAlgError:
+            squared = 0.0
+        if not (cfg.min_offset_m < offset_m <= cfg.max_offset_m and squared > cfg.mahalanobis_sq):
+            self._guard_reset()
+            return
+        if len(self._guard_world):
+            # the odometry may have drifted since each was seen (FilterConfig.drift_per_m)
+            apart = self._guard_world - pose
+            tolerance_m = cfg.agree_m + self.config.drift_per_m * self._guard_driven_m
+            consistent = bool(
+                np.all(np.hypot(apart[:, 0], apart[:, 1]) <= tolerance_m)
+                and np.all(np.abs(wrap_angle(apart[:, 2])) <= cfg.agree_rad)
+            )
+            if not consistent:
+                self._guard_reset()
+        self._guard_world = np.vstack([self._guard_world, pose])
+        self._guard_driven_m = np.append(self._guard_driven_m, 0.0)
+        if len(self._guard_world) < cfg.frames:
+            return
+        # move the cloud to the frame's estimate, keeping the track's history (this is
+        # the same place, measured better than the mode holds it)
+        self.particles = sample_around(
+            pose[None],
+            self.config.n_particles,
+            max(cfg.min_offset_m / 3.0, math.sqrt(cov[0, 0] + cov[1, 1])),
+            max(math.radians(0.2), math.sqrt(cov[2, 2])),
+            self.rng,
+        )
+        self.log_weights = np.zeros(self.config.n_particles)
+        log_lik, _ = log_likelihood_and_distance(self.particles, hypotheses, self.model)
+        self._weigh(log_lik)
+        if self.refiner is not None:
+            self.refiner.stop()
+        self._guard_reset()
+        self.n_guard_moves += 1
+
+    def _guard_reset(self) -> None:
+        self._guard_world = np.zeros((0, 3))
+        self._guard_driven_m = np.zeros(0)
 
     def _refine(self, hypotheses: Hypotheses) -> None:
         """Correct the mode's Gaussian filter with this frame's hypotheses; (re)start it
@@ -523,6 +639,28 @@ class ParticleFilter:
             frames_since_support=self.frames_since_support,
             mode_world=mode,
         )
+
+
+def _frame_estimate(
+    hypotheses: Hypotheses, model: MeasurementModel, config: GuardConfig
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The frame's own estimate (3,) and its covariance (3, 3) under ``model``: the joint
+    pose, else the hypothesis with the most inliers (the first without inlier counts);
+    None when the frame has none, or it is not confident (``GuardConfig``)."""
+    n = len(hypotheses)
+    if n == 0 or (hypotheses.method is not None and "alternative" in hypotheses.method):
+        return None
+    if hypotheses.joint is not None and hypotheses.joint.any():
+        pick = int(np.flatnonzero(hypotheses.joint)[0])
+    elif hypotheses.n_inliers is not None:
+        pick = int(np.argmax(hypotheses.n_inliers))
+    else:
+        pick = 0
+    centres, covs = model.hypothesis_gaussians(hypotheses)
+    cov = 0.5 * (covs[pick] + covs[pick].T)
+    if not np.all(np.isfinite(cov)) or math.sqrt(cov[0, 0] + cov[1, 1]) > config.max_spread_m:
+        return None
+    return centres[pick], cov
 
 
 def _agrees(a_world: np.ndarray, b_world: np.ndarray, config: FilterConfig) -> np.ndarray:
