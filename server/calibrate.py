@@ -28,6 +28,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterable, Sequence, Sized
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -178,6 +179,8 @@ class CalibrationSamples:
     pose_covariance: list = field(default_factory=list)
     query_index: list = field(default_factory=list)
     entry_index: list = field(default_factory=list)
+    # VLAD distances between the training maps' entries VLAD_BAND_M apart (the fit check)
+    neighbour_e_vlad: list = field(default_factory=list)
     n_hypotheses: int = 0
     n_joint: int = 0
     n_joint_gated: int = 0
@@ -439,6 +442,10 @@ def _run_samples(run, intrinsics, vocabulary, config, rng, ticker, samples) -> d
             f"from {seen} frames"
         )
     entry_pose = np.array([planar_from_T_world_from_cam(e.T_world_from_cam) for e in entries])
+    vlads = np.stack([e.vlad for e in entries])
+    samples.neighbour_e_vlad.extend(
+        neighbour_vlad_distances(entry_pose, lambda rows: vlads[rows]).tolist()
+    )
     before = samples.n_queries_with_hypotheses
     used_before = len(samples.joint) - int(np.sum(samples.joint))
     for query in queries:
@@ -466,6 +473,88 @@ class _Ticker:
             self.progress(self.done, max(self.total, self.done))
 
 
+# Entries this far apart (m, planar) give the VLAD distances a map is described by: the
+# span of a query and the entries it matches, at any mapping density.
+VLAD_BAND_M = (2.0, 6.0)
+VLAD_FIT_MAX_ENTRIES = 1000
+
+
+def neighbour_vlad_distances(
+    poses_world: np.ndarray,
+    vlads_at: Callable[[np.ndarray], np.ndarray],
+    band_m: tuple[float, float] = VLAD_BAND_M,
+    max_entries: int = VLAD_FIT_MAX_ENTRIES,
+    seed: int = 0,
+) -> np.ndarray:
+    """VLAD distances (M,) between map entries whose planar positions lie ``band_m``
+    apart: for up to ``max_entries`` entries (a seeded sample of larger maps), to each
+    other entry in the band. ``poses_world`` (N, 3); ``vlads_at(rows)`` -> (R, D) VLADs."""
+    from scipy.spatial import cKDTree
+
+    poses = np.asarray(poses_world, dtype=np.float64).reshape(-1, 3)
+    if len(poses) < 2:
+        return np.zeros(0)
+    rng = np.random.default_rng(seed)
+    rows = np.arange(len(poses))
+    if len(rows) > max_entries:
+        rows = np.sort(rng.choice(rows, max_entries, replace=False))
+    tree = cKDTree(poses[:, :2])
+    lo, hi = band_m
+    pairs = [
+        (i, j)
+        for i, near in zip(rows, tree.query_ball_point(poses[rows, :2], hi), strict=True)
+        for j in near
+        if j != i and np.hypot(*(poses[j, :2] - poses[i, :2])) >= lo
+    ]
+    if not pairs:
+        return np.zeros(0)
+    first, second = np.array(pairs).T
+    needed, inverse = np.unique(np.concatenate([first, second]), return_inverse=True)
+    vlads = np.asarray(vlads_at(needed), dtype=np.float64)
+    a, b = vlads[inverse[: len(first)]], vlads[inverse[len(first) :]]
+    return np.linalg.norm(a - b, axis=1)
+
+
+def vlad_statistics(distances: np.ndarray) -> dict[str, Any]:
+    """Mean, std and count of VLAD distances, as stored in a calibration's provenance."""
+    d = np.asarray(distances, dtype=np.float64)
+    return {
+        "band_m": list(VLAD_BAND_M),
+        "mean": float(d.mean()) if len(d) else None,
+        "std": float(d.std(ddof=1)) if len(d) > 1 else None,
+        "n": int(len(d)),
+    }
+
+
+def calibration_fit(provenance: dict[str, Any], map_distances: np.ndarray) -> dict[str, Any]:
+    """How a calibration matches the map it is applied to: the VLAD distances between the
+    map's entries ``VLAD_BAND_M`` apart against those of the calibration's training maps
+    (``provenance["vlad_neighbours"]``), the shift in the training spread, and a warning
+    when it exceeds one spread (the calibration's VLAD term then weighs this map's
+    hypotheses as it never saw them: docs/method.md section 7)."""
+    training = provenance.get("vlad_neighbours") or {}
+    here = vlad_statistics(map_distances)
+    fit: dict[str, Any] = {"training": training or None, "map": here}
+    if training.get("mean") is None or not training.get("std") or here["mean"] is None:
+        fit.update(shift_in_training_std=None, fits=None, warning=None)
+        return fit
+    shift = (here["mean"] - training["mean"]) / training["std"]
+    fits = abs(shift) <= 1.0
+    fit.update(
+        shift_in_training_std=float(shift),
+        fits=bool(fits),
+        warning=None
+        if fits
+        else (
+            f"this map's VLAD distances ({here['mean']:.3f} +- {here['std'] or 0:.3f} between "
+            f"entries {VLAD_BAND_M[0]:g}-{VLAD_BAND_M[1]:g} m apart) lie {shift:+.1f} training "
+            f"spreads from the calibration run's ({training['mean']:.3f} +- "
+            f"{training['std']:.3f}): calibrate on a run that looks like this map's streets"
+        ),
+    )
+    return fit
+
+
 def _has_covariances(samples: CalibrationSamples) -> bool:
     covariances = np.asarray(samples.pose_covariance, dtype=np.float64)
     return bool(covariances.size) and bool(np.isfinite(covariances).any())
@@ -481,6 +570,7 @@ def _provenance(source_name, counts, samples: CalibrationSamples, config, vocabu
         "joint_used": int(np.sum(samples.joint)),
         "joint_gated_outliers": samples.n_joint_gated,
         "gated_outliers": samples.n_gated,
+        "vlad_neighbours": vlad_statistics(np.array(samples.neighbour_e_vlad)),
         "pnp": "guided"
         if config.pose_stage is pose_hypotheses
         else (config.pose_stage.__doc__ or config.pose_stage.__name__).split("\n")[0],

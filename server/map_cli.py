@@ -348,7 +348,7 @@ def map_calibrate(
         seed=seed,
         condition=condition,
     )
-    _, factory = open_database(ctx)
+    settings, factory = open_database(ctx)
     source = open_source(
         params.format,
         run,
@@ -367,6 +367,7 @@ def map_calibrate(
         calibration = calibration["conditions"][condition]
     for line in describe_calibration(calibration):
         typer.echo(line)
+    _echo_fit(settings, factory, job.map_id, calibration)
 
 
 @map_app.command("add-image")
@@ -551,3 +552,24 @@ def map_export(
     _, factory = open_database(ctx)
     record, n = export_map(factory, map_ref, fmt, out)
     typer.echo(f"wrote map {record.name} ({n} entries, version {record.version}) as {fmt} to {out}")
+
+def _echo_fit(settings, factory, map_id: int, calibration: dict) -> None:
+    """Say how the calibration matches the map's own entries (``calibrate.calibration_fit``):
+    a warning when its training run's VLAD distances do not fit this map's."""
+    from monoloc.server.calibrate import calibration_fit, neighbour_vlad_distances
+    from monoloc.server.map_registry import MapRegistry
+
+    index = MapRegistry(factory, settings.index_dir).get(map_id).index
+    fit = calibration_fit(
+        dict(calibration.get("provenance") or {}),
+        neighbour_vlad_distances(index.poses_world(), index.vlads_at),
+    )
+    if fit["fits"] is None:
+        typer.echo("fit to this map: not known (no entries 2-6 m apart, or no training figure)")
+    elif fit["fits"]:
+        typer.echo(
+            f"fit to this map: VLAD distances {fit['map']['mean']:.3f} vs the training run's "
+            f"{fit['training']['mean']:.3f} ({fit['shift_in_training_std']:+.1f} spreads): fits"
+        )
+    else:
+        typer.secho(f"warning: {fit['warning']}", err=True, fg=typer.colors.YELLOW)

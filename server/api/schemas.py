@@ -592,6 +592,14 @@ class CalibrationPublic(_MeasurementModelFields):
         "(e_vlad against mu2[0]) or relative (against the frame's smallest, relative_vlad).",
     )
     calibrated: bool = Field(description="False: these are the documented defaults.")
+    fit: dict[str, Any] | None = Field(
+        default=None,
+        description="How the calibration matches this map: the VLAD distances between "
+        "entries 2-6 m apart on this map (map: mean, std, n) against those of the "
+        "calibration's training run (training), the shift in training spreads, fits "
+        "(|shift| <= 1) and a warning when it does not fit; null for the defaults (or a "
+        "calibration stored before the check).",
+    )
     source: str
     updated_at: datetime | None = None
 

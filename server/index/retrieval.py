@@ -219,6 +219,20 @@ class RetrievalIndex:
         return SearchResult(self._ids[rows[order]].copy(), dist[order].astype(np.float32))
 
     # ---- snapshot (for persistence) ---------------------------------------------------
+    def poses_world(self) -> np.ndarray:
+        """A copy (N, 3) of the entries' planar poses, in row order."""
+        with self._lock.read():
+            return self._poses[: self._size].copy()
+
+    def vlads_at(self, rows: np.ndarray) -> np.ndarray:
+        """The float32 VLADs (R, 2048) of rows ``rows`` (R,) (indices into
+        :meth:`poses_world`), without copying the whole index."""
+        rows = np.asarray(rows, dtype=np.intp)
+        with self._lock.read():
+            if len(rows) and (rows.min() < 0 or rows.max() >= self._size):
+                raise InvalidInputError(f"rows outside the index's {self._size} entries")
+            return self._vlads[rows].copy()
+
     def snapshot(self) -> dict[str, np.ndarray]:
         """Copies of the live arrays: ids, codes, float32 vlads, poses, sketches."""
         with self._lock.read():

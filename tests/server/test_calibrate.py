@@ -292,6 +292,8 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert "sigma " in out and " px" in out and "floor  X" in out
     assert "outliers 30 % of hypotheses, as the paper covariance's" in out
     assert "used:" in out and "gated_outliers:" in out and "vocabulary_hash:" in out
+    # an empty map: how the calibration fits it cannot be told yet
+    assert "fit to this map: not known" in out
 
     short = runner.invoke(cli.app, [*args, "--frames", "0:10"], env=env)
     assert isinstance(short.exception, InvalidInputError)

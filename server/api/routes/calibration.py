@@ -49,7 +49,12 @@ from monoloc.server.api.uploads import (
     store_upload,
     upload_name,
 )
-from monoloc.server.calibrate import CalibrationConfig, check_run_length
+from monoloc.server.calibrate import (
+    CalibrationConfig,
+    calibration_fit,
+    check_run_length,
+    neighbour_vlad_distances,
+)
 from monoloc.server.jobs import store as jobs_repo
 from monoloc.server.jobs.calibration import JOB_KIND, CalibrationParams
 from monoloc.server.storage import maps as maps_repo
@@ -99,7 +104,9 @@ class CalibrationJobAccepted(BaseModel):
     total_bytes: int
 
 
-def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
+def _public(
+    calibration: dict[str, Any] | None, fit: dict[str, Any] | None = None
+) -> CalibrationPublic:
     if not calibration:
         model = MeasurementModel()
         return CalibrationPublic(
@@ -116,7 +123,18 @@ def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
         calibrated=True,
         source=str(calibration.get("source", "calibrated")),
         updated_at=calibration.get("updated_at"),
+        fit=fit,
     )
+
+
+def _fit(state: AppState, map_id: int, calibration: dict[str, Any] | None) -> dict | None:
+    """How the calibration matches this map's entries (``calibrate.calibration_fit``);
+    None without a calibration or entries."""
+    if not calibration:
+        return None
+    index = state.registry.get(map_id).index
+    distances = neighbour_vlad_distances(index.poses_world(), index.vlads_at)
+    return calibration_fit(dict(calibration.get("provenance") or {}), distances)
 
 
 @router.get(
@@ -125,9 +143,13 @@ def _public(calibration: dict[str, Any] | None) -> CalibrationPublic:
     responses={**AUTH_ERRORS, **error_responses(404)},
     summary="Get the calibration",
 )
-def get_calibration(map_id: MapId, session: SessionDep, _key: ReadKey) -> CalibrationPublic:
-    """mu1, Sigma1, mu2, Sigma2 (and the outlier floor) with their provenance."""
-    return _public(maps_repo.get_map(session, map_id).calibration)
+def get_calibration(
+    map_id: MapId, session: SessionDep, state: StateDep, _key: ReadKey
+) -> CalibrationPublic:
+    """mu1, Sigma1, mu2, Sigma2 (and the outlier floor) with their provenance, and how
+    they fit this map (``fit``: its VLAD distances against the training run's)."""
+    calibration = maps_repo.get_map(session, map_id).calibration
+    return _public(calibration, _fit(state, map_id, calibration))
 
 
 @router.put(

@@ -75,6 +75,10 @@ def test_uploaded_training_run_calibrates_the_map(app, sim_dataset):
     std_m = np.sqrt(np.diag(Sigma1)[:2])
     assert np.all((std_m > 0.01) & (std_m < 1.0)) and np.hypot(*got["mu1"][:2]) < 0.2
     assert job["result"]["mu1"] == got["mu1"] and job["result"]["provenance"] == prov
+    # the training maps' VLAD distances between entries 2-6 m apart, for the fit check;
+    # this map has no entries yet, so how the calibration fits it is not known
+    assert prov["vlad_neighbours"]["n"] > 0 and 0.0 < prov["vlad_neighbours"]["mean"] < 2.0
+    assert got["fit"]["map"]["n"] == 0 and got["fit"]["fits"] is None
     # the paper covariance's tail is set, not fitted, and recorded as such
     assert (got["tail_weight"], got["tail_scale"]) == (0.3, 10.0)
     assert job["result"]["tail_weight"] == 0.3 and "set, not fitted" in prov["paper_tail"]
