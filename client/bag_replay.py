@@ -9,13 +9,21 @@ the bag has exactly one topic of that type):
   BGR, RGBA, BGRA); topics whose name holds "depth" are not taken for it;
 - ``odometry``: ``nav_msgs/Odometry``, whose twist gives the speed
   (``linear.x``, m/s) and yaw rate (``angular.z``, rad/s), interpolated at each image's
-  stamp. Without one, both are differentiated from the one moving ``/tf`` transform;
-- ``truth`` (optional, never guessed): a ``nav_msgs/Odometry`` topic with the true
-  poses of a body frame; with the static transform from that frame to the camera's it
-  gives the planar ground truth the drive is scored against.
+  stamp; or a ``PoseStamped`` / ``PoseWithCovarianceStamped`` topic, whose poses both are
+  differentiated from. Without one, they are differentiated from the moving ``/tf``
+  transforms above the camera (``map -> odom -> base_link`` composed);
+- ``truth`` (optional, never guessed): a pose topic (Odometry, PoseStamped) with the
+  true poses of a body frame; with the static transform from that frame to the camera's
+  it gives the planar ground truth the drive is scored against.
+
+The camera's mounting: ``/tf_static`` from the speed reference frame (the odometry's
+child frame, e.g. ``base_link``) to the camera's gives its lever arm (``lever_arm_m``:
+how far ahead of that frame's origin the camera sits, the x of ``T_body_from_cam``). The
+vehicle's motion model has no fuller mounting model: lateral and height offsets and the
+rotation are not used (the server's poses are the camera's own).
 
 Frame times are the images' header stamps. Reading the bag needs ``rosbags`` (and
-``Pillow`` for raw images): ``pip install 'monoloc[formats]'``.
+``Pillow`` for raw images): ``pip install 'monoloc[bags]'``.
 """
 
 from __future__ import annotations
@@ -32,7 +40,7 @@ from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 ROLES = ("image", "odometry", "truth")
-MISSING_PILLOW = "replaying raw ROS images needs Pillow: pip install 'monoloc[formats]'"
+MISSING_PILLOW = "replaying raw ROS images needs Pillow: pip install 'monoloc[bags]'"
 
 
 def is_bag(path: Path) -> bool:
@@ -98,13 +106,13 @@ def signals_from_pose_rows(rows: np.ndarray, times_s: np.ndarray) -> np.ndarray:
     return np.column_stack([np.interp(times_s, mid, speed), np.interp(times_s, mid, yaw_rate)])
 
 
-def _truth(track: bag.OdometryTrack, tree: bag.FrameTree, camera_frame: str, times_s):
+def _truth(track: bag.PoseTrack, tree: bag.FrameTree, camera_frame: str, times_s):
     """Planar ground truth (N, 3) of the camera at ``times_s``."""
-    T_body_from_cam = tree.static_between(track.body, camera_frame)
+    body = bag.pose_body(track, tree, camera_frame)
+    T_body_from_cam = tree.static_between(body, camera_frame)
     if T_body_from_cam is None:
         raise InvalidInputError(
-            f"no static transform from the truth's frame {track.body!r} to the camera's "
-            f"{camera_frame!r}"
+            f"no static transform from the truth's frame {body!r} to the camera's {camera_frame!r}"
         )
     planar = []
     for row in track.pose_rows:
@@ -122,8 +130,22 @@ def _truth(track: bag.OdometryTrack, tree: bag.FrameTree, camera_frame: str, tim
     )
 
 
+def _lever_arm(tree: bag.FrameTree, body: str, camera_frame: str) -> tuple[float | None, str]:
+    """(the camera's distance ahead of ``body``'s origin from /tf_static, a note), or
+    (None, "") when no static transform joins them."""
+    T_body_from_cam = tree.static_between(body, camera_frame)
+    if T_body_from_cam is None or body == camera_frame.lstrip("/"):
+        return None, ""
+    lever_arm_m = float(T_body_from_cam[0, 3])
+    return lever_arm_m, (
+        f"camera {lever_arm_m:.2f} m ahead of {body} (/tf_static; its lateral and height "
+        "offsets are not modelled)"
+    )
+
+
 def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
-    """The bag's camera frames with speed, yaw rate and optional truth (module docstring)."""
+    """The bag's camera frames with speed, yaw rate, the camera's lever arm from
+    /tf_static and optional truth (module docstring)."""
     root = Path(path).expanduser().resolve()
     given = dict(topics or {})
     unknown = sorted(set(given) - set(ROLES))
@@ -139,31 +161,46 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
                 f"{root}: no image topic (sensor_msgs/Image or CompressedImage)"
             )
         # the truth topic is not the vehicle's odometry unless named as both
-        odometry_types = {
+        candidates = {
             t: k for t, k in types.items() if t != given.get("truth") or "odometry" in given
         }
-        odometry = bag.choose_topic(
-            odometry_types, (bag.ODOMETRY,), given.get("odometry"), "odometry", root
-        )
+        odometry = given.get("odometry")
+        if odometry is None:  # an Odometry topic first, else one pose topic
+            odometry = bag.choose_topic(candidates, (bag.ODOMETRY,), None, "odometry", root)
+        if odometry is None:
+            odometry = bag.choose_topic(candidates, bag.POSE_TYPES, None, "odometry", root)
+        else:
+            bag.choose_topic(candidates, bag.POSE_TYPES, odometry, "odometry", root)
         truth_track = None
         if "truth" in given:
-            bag.choose_topic(types, (bag.ODOMETRY,), given["truth"], "truth", root)
-            truth_track = bag.read_odometry(reader, given["truth"])
+            bag.choose_topic(types, bag.POSE_TYPES, given["truth"], "truth", root)
+            truth_track = bag.read_pose_track(reader, given["truth"])
         images = bag.list_images(reader, image)
         if not images:
             raise InvalidInputError(f"{root}: topic {image!r} holds no image")
+        camera_frame = images[0].frame_id.lstrip("/")
         times = np.array([i.stamp_s for i in images])
         tree = bag.read_frame_tree(reader)
         if odometry is not None:
-            signals = bag.signals_at(bag.read_odometry(reader, odometry).signal_rows, times)
-            notes.append(f"speed and yaw rate from {odometry} (twist)")
+            track = bag.read_pose_track(reader, odometry)
+            body = bag.pose_body(track, tree, camera_frame)
+            if track.signal_rows is not None:
+                signals = bag.signals_at(track.signal_rows, times)
+                notes.append(f"speed and yaw rate from {odometry} (twist)")
+            else:
+                signals = signals_from_pose_rows(track.pose_rows, times)
+                notes.append(f"speed and yaw rate differentiated from {odometry} ({body})")
         else:
-            _, body, rows = tree.dynamic_rows(None, root)
+            hint = "name an Odometry or pose topic (--topic odometry=...)"
+            _, body, rows = tree.body_track(camera_frame, root, hint)
             signals = signals_from_pose_rows(rows, times)
             notes.append(f"no Odometry topic: speed and yaw rate differentiated from /tf ({body})")
+    lever_arm_m, note = _lever_arm(tree, body, camera_frame)
+    if note:
+        notes.append(note)
     truth = None
     if truth_track is not None:
-        truth = _truth(truth_track, tree, images[0].frame_id, times)
+        truth = _truth(truth_track, tree, camera_frame, times)
     keys = [Path(f"{root}#{image}@{i.bag_time_ns}") for i in images]
     reader_fn = _BagImages(
         root, image, {k: i.bag_time_ns for k, i in zip(keys, images, strict=True)}
@@ -175,7 +212,7 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
         signals,
         truth,
         notes,
-        None,
+        lever_arm_m,
         reader_fn,
-        images[0].frame_id or None,
+        camera_frame or None,
     )

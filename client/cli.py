@@ -128,7 +128,7 @@ def _check_bag_out(path: Path, storage: str) -> None:
         import rosbags.rosbag2  # noqa: F401
     except ModuleNotFoundError:
         raise typer.BadParameter(
-            "writing a bag needs rosbags: pip install 'monoloc[formats]'", param_hint="--bag-out"
+            "writing a bag needs rosbags: pip install 'monoloc[bags]'", param_hint="--bag-out"
         ) from None
 
 

@@ -179,12 +179,21 @@ def map_ingest(
     from monoloc.core.registration import RegistrationConfig
     from monoloc.server.entry_builder import BuildConfig
     from monoloc.server.ingest.common import parse_frame_range
-    from monoloc.server.ingest.manage import CameraOverrides, ingest_source, open_source
+    from monoloc.server.ingest.manage import (
+        CameraOverrides,
+        find_map,
+        ingest_source,
+        open_source,
+    )
     from monoloc.server.ingest.pipeline import IngestConfig
     from monoloc.server.ingest.report import print_ingest_summary, progress_bar
 
     _, factory = open_database(ctx)
     intrinsics = CameraOverrides(fx, fy, cx, cy, width, height).complete()
+    if depth_from == "none":
+        raise typer.BadParameter("a mapping run needs depth: lidar or stereo", "--depth-from")
+    # a bag without CameraInfo was recorded by the map's camera
+    map_camera = find_map(factory, map_ref).camera if fmt == "rosbag" else None
     source = open_source(
         fmt,
         path,
@@ -194,6 +203,7 @@ def map_ingest(
         tum_camera=camera,
         topics=parse_topics(topic),
         depth_from=depth_from,
+        map_camera=map_camera,
     )
     config = IngestConfig(
         build=BuildConfig(),
@@ -283,6 +293,7 @@ def map_vocab(
             sequence=sequence,
             frames=parse_frame_range(frames),
             tum_camera="default",
+            depth_from="none",  # a vocabulary is trained on images only
         )
     with progress_bar("recomputing VLADs") as update:
         job, change = run_vocabulary_job(factory, map_ref, params, source=source, progress=update)
@@ -552,6 +563,7 @@ def map_export(
     _, factory = open_database(ctx)
     record, n = export_map(factory, map_ref, fmt, out)
     typer.echo(f"wrote map {record.name} ({n} entries, version {record.version}) as {fmt} to {out}")
+
 
 def _echo_fit(settings, factory, map_id: int, calibration: dict) -> None:
     """Say how the calibration matches the map's own entries (``calibrate.calibration_fit``):

@@ -1,8 +1,19 @@
-"""Write a ROS 2 bag (rosbags' writer, sqlite3 storage) from a sim run in KITTI layout, the
-way a car would record it: camera images (raw mono8 or PNG CompressedImage), CameraInfo,
-a LiDAR PointCloud2 in the velodyne frame (or a 32FC1 depth image), the ground-truth
-poses and the vehicle's speed and yaw rate as nav_msgs/Odometry of ``base_link`` (or the
-poses as a moving /tf transform), and the rig in /tf_static."""
+"""Write a ROS bag (rosbags' writers: ROS 2 sqlite3 or mcap, ROS 1) from a sim run in KITTI
+layout, the way a car would record it: camera images (raw mono8 or PNG CompressedImage),
+CameraInfo (or none), a LiDAR PointCloud2 in the velodyne frame (or a 32FC1 depth image),
+the ground-truth poses and the vehicle's speed and yaw rate in one of the layouts
+recorders produce (``poses``):
+
+- ``odometry``: nav_msgs/Odometry of ``base_link`` in ``map``;
+- ``odometry_camera``: Odometry of the camera's own frame; /tf_static holds only the
+  LiDAR's mounting on the camera (none without a cloud);
+- ``pose_stamped``: geometry_msgs/PoseStamped of ``base_link`` (unnamed, as PoseStamped
+  is) in ``map``, no /tf;
+- ``tf``: one moving /tf transform map -> base_link;
+- ``tf_chain``: /tf map -> odom (a slow drift correction, 2 Hz) and odom -> base_link;
+- ``none``: no poses;
+
+and the rig in /tf_static (base_link -> camera_optical, base_link -> velodyne)."""
 
 from __future__ import annotations
 
@@ -64,6 +75,8 @@ def _time(typestore, t_s: float):
 
 def _header(typestore, t_s: float, frame_id: str):
     Header = typestore.types["std_msgs/msg/Header"]
+    if "seq" in Header.__dataclass_fields__:  # ROS 1
+        return Header(seq=0, stamp=_time(typestore, t_s), frame_id=frame_id)
     return Header(stamp=_time(typestore, t_s), frame_id=frame_id)
 
 
@@ -86,13 +99,20 @@ def _transform(typestore, t_s: float, parent: str, child: str, T: np.ndarray):
     )
 
 
-def _odometry(typestore, t_s: float, T_world_from_base: np.ndarray, speed: float, yaw_rate: float):
+def _odometry(
+    typestore,
+    t_s: float,
+    T_world_from_base: np.ndarray,
+    speed: float,
+    yaw_rate: float,
+    child: str = "base_link",
+):
     types = typestore.types
     position, orientation = _pose_parts(typestore, T_world_from_base)
     vec = types["geometry_msgs/msg/Vector3"]
     return types["nav_msgs/msg/Odometry"](
         header=_header(typestore, t_s, "map"),
-        child_frame_id="base_link",
+        child_frame_id=child,
         pose=types["geometry_msgs/msg/PoseWithCovariance"](
             pose=types["geometry_msgs/msg/Pose"](
                 position=types["geometry_msgs/msg/Point"](*position), orientation=orientation
@@ -104,6 +124,17 @@ def _odometry(typestore, t_s: float, T_world_from_base: np.ndarray, speed: float
                 linear=vec(speed, 0.0, 0.0), angular=vec(0.0, 0.0, yaw_rate)
             ),
             covariance=np.zeros(36),
+        ),
+    )
+
+
+def _pose_stamped(typestore, t_s: float, T_world_from_base: np.ndarray):
+    types = typestore.types
+    position, orientation = _pose_parts(typestore, T_world_from_base)
+    return types["geometry_msgs/msg/PoseStamped"](
+        header=_header(typestore, t_s, "map"),
+        pose=types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](*position), orientation=orientation
         ),
     )
 
@@ -144,15 +175,17 @@ def _camera_info(typestore, t_s: float, K: np.ndarray, width: int, height: int):
     types = typestore.types
     P = np.zeros((3, 4))
     P[:, :3] = K
-    return types["sensor_msgs/msg/CameraInfo"](
+    CameraInfo = types["sensor_msgs/msg/CameraInfo"]
+    matrices = {"d": np.zeros(5), "k": K.ravel().astype(np.float64), "r": np.eye(3).ravel()}
+    matrices["p"] = P.ravel()
+    if "K" in CameraInfo.__dataclass_fields__:  # ROS 1 spells them D, K, R, P
+        matrices = {name.upper(): value for name, value in matrices.items()}
+    return CameraInfo(
         header=_header(typestore, t_s, "camera_optical"),
         height=height,
         width=width,
         distortion_model="plumb_bob",
-        d=np.zeros(5),
-        k=K.ravel().astype(np.float64),
-        r=np.eye(3).ravel(),
-        p=P.ravel(),
+        **matrices,
         binning_x=0,
         binning_y=0,
         roi=types["sensor_msgs/msg/RegionOfInterest"](
@@ -167,27 +200,44 @@ def write_sim_bag(
     *,
     image: str = "raw",  # raw | compressed
     three_d: str = "cloud",  # cloud | depth | none
-    poses: str = "odometry",  # odometry | tf | none
+    poses: str = "odometry",  # odometry | odometry_camera | pose_stamped | tf | tf_chain | none
+    storage: str = "sqlite3",  # sqlite3 | mcap (ROS 2) | ros1 (``out`` is then a .bag file)
+    camera_info: bool = True,
 ) -> Path:
-    """Write the bag folder ``out`` (see the module docstring); returns it."""
+    """Write the bag ``out`` (see the module docstring); returns it."""
     import cv2
-    from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    store = get_typestore(Stores.ROS2_HUMBLE)
     first = cv2.imread(str(run.images[0]), cv2.IMREAD_GRAYSCALE)
     height, width = first.shape
-    with Writer(out, version=8) as writer:
+    if storage == "ros1":
+        from rosbags.rosbag1 import Writer
+        from rosbags.typesys import get_types_from_msg
+
+        store = get_typestore(Stores.ROS1_NOETIC)
+        # noetic's store leaves tf2_msgs out; its definition, as a ROS 1 recorder writes it
+        tf_msg = "geometry_msgs/TransformStamped[] transforms"
+        store.register(get_types_from_msg(tf_msg, "tf2_msgs/msg/TFMessage"))
+        bag_writer, serialize = Writer(out), store.serialize_ros1
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        store = get_typestore(Stores.ROS2_HUMBLE)
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        bag_writer = Writer(out, version=8, storage_plugin=plugin)
+        serialize = store.serialize_cdr
+    with bag_writer as writer:
 
         def connection(topic: str, msgtype: str):
             return writer.add_connection(topic, msgtype, typestore=store)
 
         def write(conn, t_s: float, msg, latency_s: float = 0.003) -> None:
-            data = store.serialize_cdr(msg, conn.msgtype)
-            writer.write(conn, round((t_s + latency_s) * 1e9), data)
+            writer.write(conn, round((t_s + latency_s) * 1e9), serialize(msg, conn.msgtype))
 
-        tf_static = connection("/tf_static", "tf2_msgs/msg/TFMessage")
-        info = connection("/camera/camera_info", "sensor_msgs/msg/CameraInfo")
+        if poses != "odometry_camera" or three_d == "cloud":
+            tf_static = connection("/tf_static", "tf2_msgs/msg/TFMessage")
+        if camera_info:
+            info = connection("/camera/camera_info", "sensor_msgs/msg/CameraInfo")
         if image == "raw":
             camera = connection("/camera/image_raw", "sensor_msgs/msg/Image")
         else:
@@ -196,9 +246,11 @@ def write_sim_bag(
             cloud = connection("/velodyne_points", "sensor_msgs/msg/PointCloud2")
         elif three_d == "depth":
             depth = connection("/camera/depth/image", "sensor_msgs/msg/Image")
-        if poses == "odometry":
+        if poses in ("odometry", "odometry_camera"):
             odom = connection("/odom", "nav_msgs/msg/Odometry")
-        elif poses == "tf":
+        elif poses == "pose_stamped":
+            pose_topic = connection("/vehicle/pose", "geometry_msgs/msg/PoseStamped")
+        elif poses in ("tf", "tf_chain"):
             tf = connection("/tf", "tf2_msgs/msg/TFMessage")
         TFMessage = store.types["tf2_msgs/msg/TFMessage"]
         t_first = T0_S + float(run.times_s[0])
@@ -207,17 +259,32 @@ def write_sim_bag(
             _transform(store, t_first, "base_link", "camera_optical", T_BASE_FROM_CAM),
             _transform(store, t_first, "base_link", "velodyne", _orthonormal(T_base_from_velo)),
         ]
-        write(tf_static, t_first, TFMessage(transforms=statics), latency_s=0.0)
+        if poses == "odometry_camera" and three_d == "cloud":
+            T_cam_from_velo = _orthonormal(run.T_cam_from_lidar)
+            statics = [_transform(store, t_first, "camera_optical", "velodyne", T_cam_from_velo)]
+        if poses != "odometry_camera" or three_d == "cloud":
+            write(tf_static, t_first, TFMessage(transforms=statics), latency_s=0.0)
         for i, path in enumerate(run.images):
             t = T0_S + float(run.times_s[i])
             T_world_from_base = run.T_world_from_cam[i] @ invert_rigid(T_BASE_FROM_CAM)
+            speed, yaw_rate = run.signals[i]
             if poses == "odometry":
-                speed, yaw_rate = run.signals[i]
                 write(odom, t, _odometry(store, t, T_world_from_base, speed, yaw_rate))
+            elif poses == "odometry_camera":
+                T = run.T_world_from_cam[i]
+                msg = _odometry(store, t, T, speed, yaw_rate, child="camera_optical")
+                write(odom, t, msg)
+            elif poses == "pose_stamped":
+                write(pose_topic, t, _pose_stamped(store, t, T_world_from_base))
             elif poses == "tf":
                 moving = _transform(store, t, "map", "base_link", T_world_from_base)
                 write(tf, t, TFMessage(transforms=[moving]))
-            write(info, t, _camera_info(store, t, run.K, width, height))
+            elif poses == "tf_chain":
+                last = i == len(run.images) - 1
+                for edge in _chain(store, t, i, last, T_world_from_base):
+                    write(tf, t, TFMessage(transforms=[edge]))
+            if camera_info:
+                write(info, t, _camera_info(store, t, run.K, width, height))
             gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
             if image == "raw":
                 write(camera, t, _image(store, t, gray, "mono8", "camera_optical"))
@@ -236,6 +303,29 @@ def write_sim_bag(
                 depth_m = raw.astype(np.float32) / 256.0  # the sim's KITTI depth encoding
                 write(depth, t, _image(store, t, depth_m, "32FC1", "camera_optical"))
     return out
+
+
+# map -> odom: a drift correction that grows along the run, published at 2 Hz (every
+# other frame of the sim's 10 Hz), as a localization node does; odom -> base_link carries
+# the rest.
+def _T_map_from_odom(k: int) -> np.ndarray:
+    yaw = 0.002 * k
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    T[:3, 3] = [0.3 + 0.01 * k, -0.2 + 0.005 * k, 0.0]
+    return T
+
+
+def _chain(store, t_s: float, i: int, last: bool, T_map_from_base: np.ndarray) -> list:
+    """The /tf transforms of frame ``i``: odom -> base_link every frame; map -> odom on even
+    frames and the last one. In between, odom -> base_link is written against the
+    correction a reader interpolates there (linear in k, so the midpoint's)."""
+    T_map_from_odom = _T_map_from_odom(i)
+    T_odom_from_base = invert_rigid(T_map_from_odom) @ T_map_from_base
+    edges = [_transform(store, t_s, "odom", "base_link", T_odom_from_base)]
+    if i % 2 == 0 or last:
+        edges.append(_transform(store, t_s, "map", "odom", T_map_from_odom))
+    return edges
 
 
 def _orthonormal(T: np.ndarray) -> np.ndarray:

@@ -132,16 +132,18 @@ def open_source(
     tum_camera: str | None = None,
     topics: dict[str, str] | None = None,
     depth_from: str = "lidar",
+    map_camera: CameraIntrinsics | None = None,
 ):
     """Open (and validate) a KITTI sequence, a TUM run or a ROS bag (``topics``: role ->
-    topic, see ``monoloc.core.formats.rosbag``). ``depth_from``: where a KITTI sequence's
-    keypoint depth comes from, ``lidar`` (velodyne/) or ``stereo`` (image_1/ and P1); a
-    TUM run has its depth camera."""
+    topic, see ``monoloc.core.formats.rosbag``; ``map_camera``: the camera of a bag
+    without CameraInfo). ``depth_from``: where a KITTI sequence's keypoint depth comes
+    from, ``lidar`` (velodyne/) or ``stereo`` (image_1/ and P1), or ``none`` to read its
+    images only (a vocabulary's training); a TUM run has its depth camera."""
     if fmt == "kitti":
         from monoloc.server.ingest.sources import read_kitti_sequence
 
         return read_kitti_sequence(path, sequence, frames, depth_from=depth_from)
-    if depth_from != "lidar":
+    if depth_from not in ("lidar", "none"):
         raise InvalidInputError(
             f"--depth-from {depth_from} is for KITTI sequences; a {fmt} run brings its own "
             "depth (depth images or point clouds)"
@@ -153,7 +155,9 @@ def open_source(
     if fmt == "rosbag":
         from monoloc.server.ingest.sources import read_rosbag_run
 
-        return read_rosbag_run(path, topics=topics, intrinsics=camera, frames=frames)
+        return read_rosbag_run(
+            path, topics=topics, intrinsics=camera, fallback_intrinsics=map_camera, frames=frames
+        )
     raise InvalidInputError(f"unknown format {fmt!r}: kitti, tum or rosbag")
 
 

@@ -51,6 +51,8 @@ class KittiSource(kitti.KittiSequence):
                     f"{image.shape[1]}x{image.shape[0]}: a rectified pair has one size",
                 )
             return LoadedFrame(data, image, StereoSource(right, self.stereo_baseline_m))
+        if self.depth_from != "lidar":
+            raise InvalidInputError(f"{self.name}: opened for its images only, no 3D source")
         scan = kitti.read_scan(frame.scan_path)
         return LoadedFrame(data, image, LidarSource(scan, self.T_cam_from_lidar))
 
@@ -170,17 +172,20 @@ def read_rosbag_run(
     *,
     topics: dict[str, str] | None = None,
     intrinsics: CameraIntrinsics | None = None,
+    fallback_intrinsics: CameraIntrinsics | None = None,
     frames: slice | None = None,
     max_difference_s: float = 0.02,
     cloud_max_difference_s: float = 0.05,
     pose_max_gap_s: float = 0.5,
 ) -> RosbagSource:
-    """A ROS bag (``rosbag.read_mapping_run``: topics, poses, pairing) as a source; the
-    messages are read again, lazily, when a frame is loaded."""
+    """A ROS bag (``rosbag.read_mapping_run``: topics, poses, pairing; the map's camera
+    ``fallback_intrinsics`` when the bag has no CameraInfo) as a source; the messages are
+    read again, lazily, when a frame is loaded."""
     run = rosbag.read_mapping_run(
         root,
         topics=topics,
         intrinsics=intrinsics,
+        fallback_intrinsics=fallback_intrinsics,
         frames=frames,
         max_difference_s=max_difference_s,
         cloud_max_difference_s=cloud_max_difference_s,

@@ -4,19 +4,25 @@ opened as a mapping run (``read_mapping_run``, what the map server ingests) and 
 bag ``monoloc drive`` writes (``write_pose_bag``).
 
 ``rosbags`` is not part of the bare vehicle install: it is imported when a bag is opened,
-and its absence is one error naming ``pip install 'monoloc[formats]'``.
+and its absence is one error naming ``pip install 'monoloc[bags]'`` (rosbags and Pillow,
+no server).
 
 Messages understood (ROS 2 names; REP-103 frames):
 
 - ``sensor_msgs/msg/Image`` (mono8, mono16, 8UC1, 16UC1, 32FC1, rgb8, bgr8, rgba8, bgra8)
   and ``sensor_msgs/msg/CompressedImage`` (JPEG/PNG bytes): camera and depth images;
-- ``sensor_msgs/msg/CameraInfo``: the pinhole K (distortion is not applied: rectified
-  images are expected);
+- ``sensor_msgs/msg/CameraInfo``: the pinhole K (ROS 1's ``K``; distortion is not
+  applied: rectified images are expected);
 - ``sensor_msgs/msg/PointCloud2`` with float32 x, y, z fields: LiDAR scans;
 - ``nav_msgs/msg/Odometry``: poses (``pose.pose``: ``T_<header.frame_id>_from_<child>``)
   and the vehicle's speed and yaw rate (``twist.twist.linear.x``, ``angular.z`` in the
   child frame);
-- ``tf2_msgs/msg/TFMessage`` on ``/tf`` and ``/tf_static``: transforms.
+- ``geometry_msgs/msg/PoseStamped`` and ``PoseWithCovarianceStamped``: poses
+  ``T_<header.frame_id>_from_<body>``; they do not name their body, which is taken to be
+  the root of the camera's static tree (``base_link`` when ``/tf_static`` mounts the
+  camera on it, REP-105), else the camera's own frame;
+- ``tf2_msgs/msg/TFMessage`` on ``/tf`` and ``/tf_static``: transforms; a chain of moving
+  ones (``map -> odom -> base_link``) is composed (``FrameTree.body_track``).
 
 Frames: ROS worlds (``map``, ``odom``) are z-up like monoloc's, and a camera's optical
 frame (``*_optical_frame``: x right, y down, z forward) is OpenCV's, so
@@ -40,16 +46,19 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InputFileError, InvalidInputError, MonolocError
 from monoloc.core.formats.tum import associate, ground_truth_at
-from monoloc.core.geometry import R_from_quaternion_xyzw, invert_rigid
+from monoloc.core.geometry import R_from_quaternion_xyzw, invert_rigid, quaternion_xyzw_from_R
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POINT_CLOUD = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED)
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
-MISSING_ROSBAGS = "reading ROS bags needs the 'rosbags' package: pip install 'monoloc[formats]'"
+MISSING_ROSBAGS = "reading ROS bags needs the 'rosbags' package: pip install 'monoloc[bags]'"
 
 # encoding -> (numpy dtype, channels)
 _RAW_ENCODINGS = {
@@ -120,6 +129,25 @@ def open_bag(path: Path) -> Iterator:
         reader.close()
 
 
+def messages(reader, topics: Sequence[str] | None = None, types: Sequence[str] = (), **kwargs):
+    """``reader.messages`` of the connections on ``topics`` or of ``types``; nothing when
+    none matches (rosbags reads an empty connection list as every connection)."""
+    connections = [
+        c
+        for c in reader.connections
+        if (topics is not None and c.topic in topics) or (c.msgtype in types)
+    ]
+    if not connections:
+        return iter(())
+    return reader.messages(connections=connections, **kwargs)
+
+
+def _field(msg, name: str):
+    """A message field by its ROS 2 name, or its ROS 1 spelling (CameraInfo's ``K``)."""
+    value = getattr(msg, name, None)
+    return getattr(msg, name.upper()) if value is None else value
+
+
 def topic_types(reader) -> dict[str, str]:
     """topic -> message type of every connection of the bag."""
     return {c.topic: c.msgtype for c in reader.connections}
@@ -183,7 +211,7 @@ def image_encoding(msg) -> str:
 
 def intrinsics_from_camera_info(msg) -> CameraIntrinsics:
     """Pinhole intrinsics from a ``CameraInfo``'s K (row-major 3x3) and image size."""
-    K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
+    K = np.asarray(_field(msg, "k"), dtype=np.float64).reshape(3, 3)
     if K[0, 0] <= 0 or K[1, 1] <= 0 or msg.width <= 0 or msg.height <= 0:
         raise InvalidInputError(
             f"CameraInfo without a valid K or size (fx={K[0, 0]}, fy={K[1, 1]}, "
@@ -284,58 +312,116 @@ class FrameTree:
                 queue.append((nxt, T))
         return None
 
-    def dynamic_rows(self, parent: str | None, bag: Path) -> tuple[str, str, np.ndarray]:
-        """(world, body, rows (N, 8) sorted by time) of the one dynamic edge from
-        ``parent`` (any parent when None). Chains of dynamic transforms (map -> odom ->
-        base_link) are not composed: give an Odometry topic for those bags."""
-        edges = [k for k in self.dynamic if parent is None or k[0] == parent.lstrip("/")]
-        if len(edges) != 1:
-            raise InvalidInputError(
-                f"{bag}: poses from /tf need exactly one moving transform"
-                f"{'' if parent is None else f' from {parent!r}'}, found {sorted(edges)}: "
-                "name an Odometry topic instead (--topic pose=...)"
-            )
-        rows = np.asarray(self.dynamic[edges[0]], dtype=np.float64)
-        return edges[0][0], edges[0][1], rows[np.argsort(rows[:, 0], kind="stable")]
+    def static_root(self, frame: str) -> str:
+        """The top of ``frame``'s static tree: its static parents followed up (``base_link``
+        for a camera mounted on it), ``frame`` itself when it has none."""
+        parents = {child: parent for parent, child in self.static}
+        frame, seen = frame.lstrip("/"), set()
+        while frame in parents and frame not in seen:
+            seen.add(frame)
+            frame = parents[frame]
+        return frame
+
+    def body_track(self, camera_frame: str, bag: Path, hint: str) -> tuple[str, str, np.ndarray]:
+        """(world, body, rows (N, 8) ``t x y z qx qy qz qw`` of ``T_world_from_body``) from
+        the moving transforms above ``camera_frame``: its parents followed up to the root
+        (the world, e.g. ``map``); the body is the child of the lowest moving edge (e.g.
+        ``base_link``), sampled at that edge's stamps; moving edges higher up (``map ->
+        odom``, often slower) are interpolated there and held beyond their ends. A bag
+        whose camera frame is not in the tree falls back to its one moving transform.
+        ``hint`` names the option that gives poses another way, for the error."""
+        parent_of: dict[str, str] = {c: p for p, c in self.static}
+        parent_of.update({c: p for p, c in self.dynamic})
+        chain, frame = [], camera_frame.lstrip("/")
+        while frame in parent_of and len(chain) < 64:
+            chain.append((parent_of[frame], frame))
+            frame = parent_of[frame]
+        moving = [edge for edge in chain if edge in self.dynamic]
+        if not moving:
+            if len(self.dynamic) != 1:
+                raise InvalidInputError(
+                    f"{bag}: no poses: no moving transform (/tf) above the camera's frame "
+                    f"{camera_frame!r} (moving: {sorted(self.dynamic)}) and no pose topic: "
+                    f"{hint}"
+                )
+            (edge,) = self.dynamic
+            rows = self._rows(edge)
+            return edge[0], edge[1], rows
+        body = moving[0][1]
+        rows = self._rows(moving[0])
+        above = chain[chain.index(moving[0]) + 1 :]
+        T_world_from_body = [T_from_pose_row(row) for row in rows]
+        for edge in above:  # compose upwards: T_parent_from_child @ T_child_from_body
+            if edge in self.dynamic:
+                edge_rows = self._rows(edge)
+                T_edge = [ground_truth_at(edge_rows, t, np.inf, np.inf) for t in rows[:, 0]]
+            else:
+                T_edge = [self.static[edge]] * len(rows)
+            T_world_from_body = [Te @ T for Te, T in zip(T_edge, T_world_from_body, strict=True)]
+        world = chain[-1][0]
+        out = np.array([[t, *T[:3, 3], *quaternion_xyzw_from_R(T[:3, :3])]
+                        for t, T in zip(rows[:, 0], T_world_from_body, strict=True)])  # fmt: skip
+        return world, body, out
+
+    def _rows(self, edge: tuple[str, str]) -> np.ndarray:
+        rows = np.asarray(self.dynamic[edge], dtype=np.float64)
+        return rows[np.argsort(rows[:, 0], kind="stable")]
 
 
 def read_frame_tree(reader) -> FrameTree:
-    """Every ``/tf`` and ``/tf_static`` message of the bag."""
+    """Every ``/tf`` and ``/tf_static`` message of the bag (an empty tree without them)."""
     tree = FrameTree()
-    connections = [c for c in reader.connections if c.msgtype == TF_MESSAGE]
-    for connection, _, raw in reader.messages(connections=connections):
+    for connection, _, raw in messages(reader, types=(TF_MESSAGE,)):
         msg = reader.deserialize(raw, connection.msgtype)
         tree.add(msg, is_static=connection.topic.rstrip("/").endswith("tf_static"))
     return tree
 
 
 @dataclass(frozen=True)
-class OdometryTrack:
-    """An Odometry topic: poses as rows ``t x y z qx qy qz qw`` of
-    ``T_world_from_body`` (N, 8), and signals (N, 3) ``t speed_mps yaw_rate_radps``;
-    ``world``/``body`` are the header and child frame ids."""
+class PoseTrack:
+    """A pose topic (Odometry, PoseStamped, PoseWithCovarianceStamped): rows ``t x y z qx
+    qy qz qw`` of ``T_world_from_body`` (N, 8), and for Odometry its signals (N, 3) ``t
+    speed_mps yaw_rate_radps`` (None otherwise); ``world`` is the header's frame id,
+    ``body`` the child frame id ("" when the message names none)."""
 
     world: str
     body: str
     pose_rows: np.ndarray
-    signal_rows: np.ndarray
+    signal_rows: np.ndarray | None
 
 
-def read_odometry(reader, topic: str) -> OdometryTrack:
-    """All messages of the ``nav_msgs/Odometry`` topic, sorted by stamp."""
-    connections = [c for c in reader.connections if c.topic == topic]
+def read_pose_track(reader, topic: str) -> PoseTrack:
+    """All messages of the pose topic ``topic``, sorted by stamp."""
     poses, signals, world, body = [], [], "", ""
-    for connection, _, raw in reader.messages(connections=connections):
+    for connection, _, raw in messages(reader, [topic]):
         msg = reader.deserialize(raw, connection.msgtype)
         t = stamp_s(msg.header)
-        world, body = msg.header.frame_id.lstrip("/"), msg.child_frame_id.lstrip("/")
-        poses.append(_pose_row(t, msg.pose.pose.position, msg.pose.pose.orientation))
-        signals.append([t, msg.twist.twist.linear.x, msg.twist.twist.angular.z])
+        world = msg.header.frame_id.lstrip("/")
+        pose = msg.pose if connection.msgtype == POSE_STAMPED else msg.pose.pose
+        poses.append(_pose_row(t, pose.position, pose.orientation))
+        if connection.msgtype == ODOMETRY:
+            body = msg.child_frame_id.lstrip("/")
+            signals.append([t, msg.twist.twist.linear.x, msg.twist.twist.angular.z])
     if not poses:
-        raise InvalidInputError(f"topic {topic!r} holds no Odometry message")
-    pose_rows, signal_rows = np.asarray(poses), np.asarray(signals)
+        raise InvalidInputError(f"topic {topic!r} holds no pose message")
+    pose_rows = np.asarray(poses)
     order = np.argsort(pose_rows[:, 0], kind="stable")
-    return OdometryTrack(world, body, pose_rows[order], signal_rows[order])
+    signal_rows = np.asarray(signals)[order] if signals else None
+    return PoseTrack(world, body, pose_rows[order], signal_rows)
+
+
+def read_odometry(reader, topic: str) -> PoseTrack:
+    """``read_pose_track`` of a ``nav_msgs/Odometry`` topic (its signals are set)."""
+    track = read_pose_track(reader, topic)
+    if track.signal_rows is None:
+        raise InvalidInputError(f"topic {topic!r} is not Odometry: it has no twist")
+    return track
+
+
+def pose_body(track: PoseTrack, tree: FrameTree, camera_frame: str) -> str:
+    """The frame a pose topic's poses are of: the Odometry's child frame, else (a
+    PoseStamped names none) the root of the camera's static tree."""
+    return track.body or tree.static_root(camera_frame)
 
 
 @dataclass(frozen=True)
@@ -351,9 +437,8 @@ class BagImage:
 
 def list_images(reader, topic: str) -> list[BagImage]:
     """Every message of an image topic, in bag order (only headers are kept)."""
-    connections = [c for c in reader.connections if c.topic == topic]
     images = []
-    for connection, t_ns, raw in reader.messages(connections=connections):
+    for connection, t_ns, raw in messages(reader, [topic]):
         msg = reader.deserialize(raw, connection.msgtype)
         images.append(BagImage(topic, int(t_ns), stamp_s(msg.header), msg.header.frame_id))
     return images
@@ -362,10 +447,7 @@ def list_images(reader, topic: str) -> list[BagImage]:
 def read_message(reader, topic: str, bag_time_ns: int):
     """(message type, message) of the first message of ``topic`` at bag time
     ``bag_time_ns``; InvalidInputError if there is none."""
-    connections = [c for c in reader.connections if c.topic == topic]
-    for connection, t_ns, raw in reader.messages(
-        connections=connections, start=bag_time_ns, stop=bag_time_ns + 1
-    ):
+    for connection, t_ns, raw in messages(reader, [topic], start=bag_time_ns, stop=bag_time_ns + 1):
         if t_ns == bag_time_ns:
             return connection.msgtype, reader.deserialize(raw, connection.msgtype)
     raise InvalidInputError(f"no message of {topic!r} at bag time {bag_time_ns} ns")
@@ -430,7 +512,6 @@ def write_pose_bag(
     if path.exists():
         raise InputFileError(path, "already exists; a bag is written to a new folder")
     Writer, StoragePlugin, store = _writer_parts()
-    from monoloc.core.geometry import quaternion_xyzw_from_R
 
     types = store.types
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
@@ -491,12 +572,15 @@ class MessageReader:
 # bag has exactly one topic of that type):
 #
 # - ``image``: ``sensor_msgs/Image`` or ``CompressedImage``, the reference images;
-# - ``camera_info``: ``sensor_msgs/CameraInfo`` of that camera (or ``intrinsics`` given);
+# - ``camera_info``: ``sensor_msgs/CameraInfo`` of that camera (or ``intrinsics`` given;
+#   without either, the map's camera, ``fallback_intrinsics``);
 # - ``depth`` (a registered depth ``Image``: 16UC1/mono16 in millimetres, 32FC1 in metres)
 #   or ``cloud`` (``PointCloud2``): the 3D source. When both exist, the depth image wins
 #   unless ``cloud`` is named;
-# - ``pose``: ``nav_msgs/Odometry`` (its pose is ``T_<frame_id>_from_<child_frame_id>``);
-#   without one, the one moving transform of ``/tf``.
+# - ``pose``: ``nav_msgs/Odometry`` (its pose is ``T_<frame_id>_from_<child_frame_id>``)
+#   or ``PoseStamped`` / ``PoseWithCovarianceStamped`` (of the root of the camera's static
+#   tree: ``pose_body``); without one, the moving transforms of ``/tf`` above the camera
+#   (``FrameTree.body_track``: ``map -> odom -> base_link`` composed).
 #
 # The camera's pose at an image's stamp: the body pose interpolated (translation linearly,
 # rotation by slerp: ``tum.ground_truth_at``) between the two samples bracketing the stamp
@@ -606,22 +690,25 @@ def _mapping_topics(reader, root: Path, given: dict[str, str]) -> dict[str, str]
                 f"{root}: no 3D source: a depth image topic or a PointCloud2 topic is needed"
             )
         topics["cloud"] = found
-    found = choose_topic(types, (ODOMETRY,), given.get("pose"), "pose", root)
+    found = choose_topic(types, POSE_TYPES, given.get("pose"), "pose", root)
     if found is not None:
         topics["pose"] = found
     return topics
 
 
-def _camera(reader, topics, given: CameraIntrinsics | None, root: Path) -> CameraIntrinsics:
+def _camera(
+    reader, topics, given: CameraIntrinsics | None, fallback: CameraIntrinsics | None, root: Path
+) -> CameraIntrinsics:
     if given is not None:
         return given
     if "camera_info" not in topics:
+        if fallback is not None:
+            return fallback
         raise InvalidInputError(
             f"{root}: no CameraInfo topic: name one (--topic camera_info=...) or give "
             "the intrinsics"
         )
-    connections = [c for c in reader.connections if c.topic == topics["camera_info"]]
-    for connection, _, raw in reader.messages(connections=connections):
+    for connection, _, raw in messages(reader, [topics["camera_info"]]):
         return intrinsics_from_camera_info(reader.deserialize(raw, connection.msgtype))
     raise InvalidInputError(f"{root}: topic {topics['camera_info']!r} holds no message")
 
@@ -638,29 +725,33 @@ def read_mapping_run(
     *,
     topics: dict[str, str] | None = None,
     intrinsics: CameraIntrinsics | None = None,
+    fallback_intrinsics: CameraIntrinsics | None = None,
     frames: slice | None = None,
     max_difference_s: float = 0.02,
     cloud_max_difference_s: float = 0.05,
     pose_max_gap_s: float = 0.5,
 ) -> RosbagRun:
-    """Open and index a bag as a mapping run (see the comment above). ``frames`` selects
-    frames (images with a pose and a 3D partner) with Python slice semantics."""
+    """Open and index a bag as a mapping run (see the comment above). ``intrinsics``
+    overrides the bag's CameraInfo; ``fallback_intrinsics`` (the map's camera) is used
+    when the bag has none. ``frames`` selects frames (images with a pose and a 3D
+    partner) with Python slice semantics."""
     root = Path(root).expanduser().resolve()
     with open_bag(root) as reader:
         chosen = _mapping_topics(reader, root, dict(topics or {}))
-        camera = _camera(reader, chosen, intrinsics, root)
+        camera = _camera(reader, chosen, intrinsics, fallback_intrinsics, root)
         tree = read_frame_tree(reader)
-        if "pose" in chosen:
-            track = read_odometry(reader, chosen["pose"])
-            body, pose_rows = track.body, track.pose_rows
-        else:
-            _, body, pose_rows = tree.dynamic_rows(None, root)
         images = list_images(reader, chosen["image"])
+        if not images:
+            raise InvalidInputError(f"{root}: topic {chosen['image']!r} holds no image")
+        camera_frame = images[0].frame_id.lstrip("/")
+        if "pose" in chosen:
+            track = read_pose_track(reader, chosen["pose"])
+            body, pose_rows = pose_body(track, tree, camera_frame), track.pose_rows
+        else:
+            hint = "name an Odometry or PoseStamped topic (--topic pose=...)"
+            _, body, pose_rows = tree.body_track(camera_frame, root, hint)
         role = "depth" if "depth" in chosen else "cloud"
         partners = list_images(reader, chosen[role])
-    if not images:
-        raise InvalidInputError(f"{root}: topic {chosen['image']!r} holds no image")
-    camera_frame = images[0].frame_id
     T_body_from_cam = tree.static_between(body, camera_frame)
     if T_body_from_cam is None:
         raise InvalidInputError(

@@ -194,3 +194,122 @@ def test_the_vehicle_replays_a_raw_image_bag_with_tf_and_truth(sim_run, tmp_path
     np.testing.assert_allclose(replay.truth_world, truth, atol=1e-9)
     with pytest.raises(InvalidInputError, match="unknown topic role"):
         read_bag_run(bag, {"camera": "/camera/image_raw/compressed"})
+
+
+# The layouts recorders produce (rosbag_helpers' ``poses``), in ROS 2 sqlite3 and mcap
+# storage and ROS 1 bags: each gives back the camera's true poses.
+LAYOUTS = [
+    ("sqlite3", "pose_stamped", "raw"),
+    ("mcap", "odometry_camera", "compressed"),
+    ("ros1", "odometry", "compressed"),
+    ("sqlite3", "tf_chain", "raw"),
+    ("ros1", "tf_chain", "raw"),
+    ("mcap", "tf", "compressed"),
+]
+
+
+def _bag_path(tmp_path: Path, storage: str, name: str) -> Path:
+    return tmp_path / (f"{name}.bag" if storage == "ros1" else name)
+
+
+@pytest.mark.parametrize(("storage", "poses", "image"), LAYOUTS)
+def test_every_recorded_layout_gives_the_camera_poses(sim_run, tmp_path, storage, poses, image):
+    root, run = sim_run
+    out = _bag_path(tmp_path, storage, f"{poses}_{image}")
+    bag = write_sim_bag(run, out, image=image, poses=poses, storage=storage)
+    source = read_rosbag_run(bag)
+    assert len(source.frames) == len(run.images) and not source.read_skips
+    T = np.stack([f.T_world_from_cam for f in source.frames])
+    np.testing.assert_allclose(T, run.T_world_from_cam, atol=1e-6)
+    assert source.intrinsics == read_kitti_sequence(root, "00").intrinsics
+
+
+def test_a_ros1_bag_is_ingested_like_the_kitti_run(sim_run, tmp_path, factory, make_map, make_run):
+    root, run = sim_run
+    bag = write_sim_bag(run, tmp_path / "car.bag", image="compressed", storage="ros1")
+    source = read_rosbag_run(bag)
+    _, summary = _ingest(factory, make_map, make_run, source, "ros1")
+    _, kitti_summary = _ingest(factory, make_map, make_run, read_kitti_sequence(root, "00"), "k")
+    assert summary.entries_added == kitti_summary.entries_added >= 4
+
+
+def test_a_bag_without_camera_info_takes_the_maps_camera(sim_run, tmp_path):
+    root, run = sim_run
+    bag = write_sim_bag(run, tmp_path / "no_info", camera_info=False)
+    with pytest.raises(InvalidInputError, match="no CameraInfo topic"):
+        read_rosbag_run(bag)
+    camera = read_kitti_sequence(root, "00").intrinsics
+    source = read_rosbag_run(bag, fallback_intrinsics=camera)
+    assert source.intrinsics == camera and len(source.frames) == len(run.images)
+
+
+def _cli(monkeypatch, *args) -> int:
+    from monoloc.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["monoloc", *args])
+    try:
+        main()
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+def test_cli_ingests_a_bag_without_camera_info_and_refuses_one_without_poses(
+    sim_run, tmp_path, monkeypatch, capsys
+):
+    root, run = sim_run
+    monkeypatch.setenv("MONOLOC_DATA_DIR", str(tmp_path / "data"))
+    camera = read_kitti_sequence(root, "00").intrinsics
+    spec = ["--fx", str(camera.fx), "--fy", str(camera.fy), "--cx", str(camera.cx)]
+    spec += ["--cy", str(camera.cy), "--width", str(camera.width_px)]
+    spec += ["--height", str(camera.height_px)]
+    assert _cli(monkeypatch, "map", "create", "street", *spec) == 0
+    no_info = write_sim_bag(run, tmp_path / "no_info", camera_info=False, poses="pose_stamped")
+    code = _cli(monkeypatch, "map", "ingest", "--map", "street", "--format", "rosbag", str(no_info))
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "entries added" in out.out
+    no_poses = write_sim_bag(run, tmp_path / "no_poses.bag", poses="none", storage="ros1")
+    code = _cli(
+        monkeypatch, "map", "ingest", "--map", "street", "--format", "rosbag", str(no_poses)
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and "\n" not in err and "Traceback" not in err
+    assert err.startswith("error:") and "no poses" in err and "--topic pose=" in err
+
+
+def test_the_vehicle_replays_every_layout_with_the_mounting_of_tf_static(sim_run, tmp_path):
+    from rosbag_helpers import T_BASE_FROM_CAM
+
+    from monoloc.client.bag_replay import read_bag_run
+    from monoloc.client.drive import run_filter_config
+    from monoloc.client.particle_filter import FilterConfig
+
+    _, run = sim_run
+    lever_arm_m = T_BASE_FROM_CAM[0, 3]
+    for storage, poses, image in LAYOUTS:
+        out = _bag_path(tmp_path, storage, f"replay_{poses}_{image}")
+        bag = write_sim_bag(run, out, image=image, poses=poses, storage=storage, three_d="none")
+        replay = read_bag_run(bag)
+        assert len(replay) == len(run.images), (storage, poses)
+        assert len(replay.image_bytes(0)) > 0
+        # speed and yaw rate: the twist, or differentiated from the poses
+        np.testing.assert_allclose(replay.signals[:, 0], run.signals[:, 0], atol=0.05)
+        np.testing.assert_allclose(replay.signals[:, 1], run.signals[:, 1], atol=0.01)
+        if poses == "odometry_camera":  # the speeds are the camera's own: no lever arm
+            assert replay.lever_arm_m is None
+        else:  # base_link -> camera of /tf_static, used by the motion model
+            assert replay.lever_arm_m == pytest.approx(lever_arm_m, abs=1e-9), (storage, poses)
+            assert run_filter_config(FilterConfig(), replay).motion.lever_arm_m == pytest.approx(
+                lever_arm_m, abs=1e-9
+            )
+    # a truth named, and nothing else to take speeds from: the hint names the drive's role
+    bag = write_sim_bag(run, tmp_path / "truth_only", three_d="none")
+    with pytest.raises(InvalidInputError, match=r"no poses.*--topic odometry="):
+        read_bag_run(bag, {"truth": "/odom"})
+    replay = read_bag_run(
+        write_sim_bag(run, tmp_path / "ps_truth", poses="pose_stamped", three_d="none"),
+        {"truth": "/vehicle/pose", "odometry": "/vehicle/pose"},
+    )
+    truth = planar_from_T_world_from_cam(run.T_world_from_cam)
+    np.testing.assert_allclose(replay.truth_world, truth, atol=1e-6)
