@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 
+from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
 from monoloc.core.geo import GeoReference
 from monoloc.core.measurement import Hypotheses, MeasurementModel
@@ -306,6 +307,7 @@ class MonolocClient:
         filename: str = "frame.png",
         seed: int | None = None,
         *,
+        intrinsics: CameraIntrinsics | None = None,
         retries: int | None = None,
         deadline_ms: int | None = None,
         min_map_version: int | None = None,
@@ -315,8 +317,11 @@ class MonolocClient:
         long the answer is worth waiting for (the server drops the frame uncomputed
         after it); ``min_map_version``: answer from a map at least this new (after one's
         own write; the server waits briefly for its replica, else 503); ``retries``:
-        this call's retries (a vehicle sends 0: a frame is stale by the next one)."""
+        this call's retries (a vehicle sends 0: a frame is stale by the next one);
+        ``intrinsics``: the camera that took the frame (None: the map's camera)."""
         data: dict[str, str] = {}
+        if intrinsics is not None:
+            data.update({key: repr(float(v)) for key, v in _focal(intrinsics).items()})
         if prior is not None:
             data.update({key: repr(float(v)) for key, v in prior.to_fields().items()})
         if k is not None:
@@ -378,6 +383,16 @@ class MonolocClient:
         raise AssertionError("unreachable")
 
 
+def _focal(intrinsics: CameraIntrinsics) -> dict[str, float]:
+    """fx, fy, cx, cy (px) as the localize form and the stream header take them."""
+    return {
+        "fx": float(intrinsics.fx),
+        "fy": float(intrinsics.fy),
+        "cx": float(intrinsics.cx),
+        "cy": float(intrinsics.cy),
+    }
+
+
 def encode_frame(header: dict, image_bytes: bytes) -> bytes:
     """One stream message: 4-byte big-endian header length, JSON header, image bytes."""
     head = json.dumps(header, separators=(",", ":")).encode()
@@ -422,9 +437,13 @@ class FrameStream:
         prior: RetrievalPrior | None = None,
         k: int | None = None,
         seed: int | None = None,
+        intrinsics: CameraIntrinsics | None = None,
     ) -> None:
-        """Send one frame (PNG/JPEG bytes) with its sequence number and time (s)."""
+        """Send one frame (PNG/JPEG bytes) with its sequence number and time (s), and the
+        camera that took it (None: the map's)."""
         header: dict = {"seq": seq, "t": t_s}
+        if intrinsics is not None:
+            header["intrinsics"] = _focal(intrinsics)
         if prior is not None:
             header["prior"] = prior.to_json()
         if k is not None:

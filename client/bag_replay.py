@@ -39,7 +39,7 @@ from monoloc.core.formats import rosbag as bag
 from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
-ROLES = ("image", "odometry", "truth")
+ROLES = ("image", "camera_info", "odometry", "truth")
 MISSING_PILLOW = "replaying raw ROS images needs Pillow: pip install 'monoloc[bags]'"
 
 
@@ -179,6 +179,7 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
         if not images:
             raise InvalidInputError(f"{root}: topic {image!r} holds no image")
         camera_frame = images[0].frame_id.lstrip("/")
+        intrinsics = _camera_info(reader, types, image, given.get("camera_info"), root)
         times = np.array([i.stamp_s for i in images])
         tree = bag.read_frame_tree(reader)
         if odometry is not None:
@@ -215,4 +216,19 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
         lever_arm_m,
         reader_fn,
         camera_frame or None,
+        intrinsics,
     )
+
+
+def _camera_info(reader, types: dict[str, str], image: str, given: str | None, root: Path):
+    """The camera's intrinsics from its CameraInfo (the topic named, the image topic's
+    sibling ``camera_info``, else the bag's only one), or None without one."""
+    sibling = image.rsplit("/", 1)[0] + "/camera_info"
+    if given is None and types.get(sibling) == bag.CAMERA_INFO:
+        given = sibling
+    topic = bag.choose_topic(types, (bag.CAMERA_INFO,), given, "camera_info", root)
+    if topic is None:
+        return None
+    for connection, _, raw in bag.messages(reader, [topic]):
+        return bag.intrinsics_from_camera_info(reader.deserialize(raw, connection.msgtype))
+    raise InvalidInputError(f"{root}: topic {topic!r} holds no message")

@@ -32,8 +32,8 @@ def drive(
     out: Path = typer.Option(Path("out/drive"), help="prefix of the trajectory files"),
     topic: list[str] | None = typer.Option(
         None,
-        help="ROS bag: ROLE=TOPIC (roles image, odometry, truth), repeatable; image and "
-        "odometry are found by type when the bag has one of each",
+        help="ROS bag: ROLE=TOPIC (roles image, camera_info, odometry, truth), repeatable; "
+        "image and odometry are found by type when the bag has one of each",
     ),
     bag_out: Path | None = typer.Option(
         None,
@@ -41,6 +41,11 @@ def drive(
         "/monoloc/odometry; needs the formats extra)",
     ),
     bag_storage: str = typer.Option("sqlite3", help="storage of --bag-out: sqlite3 or mcap"),
+    camera: Path | None = typer.Option(
+        None,
+        help="the camera that took the frames, when the run does not say: a camera.json "
+        "(fx, fy, cx, cy, width, height) or a KITTI calib.txt (P0)",
+    ),
 ) -> None:
     """Stream a run's frames, run the filter, write TUM + KITTI trajectories, print metrics."""
     from rich.console import Console
@@ -54,7 +59,7 @@ def drive(
     from monoloc.client.particle_filter import FilterConfig
     from monoloc.client.replay import parse_frames, read_run
     from monoloc.client.report import metrics_table
-    from monoloc.core.errors import InvalidInputError
+    from monoloc.core.errors import InvalidInputError, MonolocError
 
     console = Console(stderr=True)
     if bag_out is not None:  # refused before the drive, not after it
@@ -63,6 +68,8 @@ def drive(
         run = read_bag_run(run_dir, _topics(topic)).select(parse_frames(frames))
     else:
         run = read_run(run_dir, sequence).select(parse_frames(frames))
+    if camera is not None:
+        run = run.with_intrinsics(_camera_file(camera, run))
     for note in run.notes:
         console.print(f"[yellow]note:[/] {note}")
     if lever_arm_m is None and lever_arm_from is not None:
@@ -104,6 +111,12 @@ def drive(
             )
     for note in result.notes[len(run.notes) :]:
         console.print(f"[yellow]note:[/] {note}")
+    if result.all_refused:
+        first = min(result.errors)
+        raise MonolocError(
+            f"the server refused every one of the {len(run)} frames; frame {first}: "
+            f"{result.errors[first]}"
+        )
     tum, kitti = write_outputs(result, out)
     geojson = write_geojson(result, out)
     bag_path = write_bag(result, bag_out, bag_storage) if bag_out is not None else None
@@ -140,3 +153,38 @@ def _topics(items: list[str] | None) -> dict[str, str]:
         return parse_topic_options(items)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
+
+
+def _camera_file(path: Path, run):
+    """The intrinsics in a camera.json (its size, else the run's first image's) or a KITTI
+    calib.txt (P0, with the run's first image's size)."""
+    import json
+
+    from monoloc.core.camera import CameraIntrinsics
+    from monoloc.core.errors import InputFileError
+    from monoloc.core.formats import kitti
+    from monoloc.core.formats.png import png_size
+
+    def first_image_size() -> tuple[int, int]:
+        if not len(run) or run.read_image is not None:
+            raise InputFileError(
+                path, "give the camera's width and height (the run's frames are no files)"
+            )
+        return png_size(run.image_paths[0])
+
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text())
+            fx, fy, cx, cy = (float(data[k]) for k in ("fx", "fy", "cx", "cy"))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise InputFileError(
+                path, f"needs a JSON object with numeric fx, fy, cx, cy ({exc})"
+            ) from exc
+        width, height = (
+            data.get("width_px", data.get("width")),
+            data.get("height_px", data.get("height")),
+        )
+        if width is None or height is None:
+            width, height = first_image_size()
+        return CameraIntrinsics(fx, fy, cx, cy, int(width), int(height))
+    return kitti.read_calib_file(path).intrinsics(*first_image_size())

@@ -71,6 +71,11 @@ class DriveResult:
     geo_reference: GeoReference | None = None
 
     @property
+    def all_refused(self) -> bool:
+        """Whether the server answered every frame with an error."""
+        return bool(len(self.estimates_world)) and len(self.errors) == len(self.estimates_world)
+
+    @property
     def frames_per_s(self) -> float:
         return len(self.estimates_world) / self.wall_s if self.wall_s > 0 else math.inf
 
@@ -158,6 +163,12 @@ def drive(
     the map's geographic reference, read first, when it has one)."""
     if len(run) == 0:
         raise InvalidInputError(f"{run.name}: no frames to replay (check the frame range)")
+    if run.intrinsics is None:
+        raise InvalidInputError(
+            f"{run.name}: the camera that took the frames is unknown (KITTI calib.txt, a TUM "
+            "run's camera.json or a bag's CameraInfo; or --camera): the vehicle does not "
+            "assume the map's camera"
+        )
     geo = client.geo_reference(map_id)
     tracker = Tracker(
         run_filter_config(config.filter, run),
@@ -180,7 +191,7 @@ def drive(
             _drive_realtime(stream, run, tracker, log, config.k, recorded)
         else:
             images = (run.image_bytes(i) for i in range(len(run)))
-            localizer = _Timed(StreamLocalizer(stream, run.timestamps_s), log)
+            localizer = _Timed(StreamLocalizer(stream, run.timestamps_s, run.intrinsics), log)
             track(tracker, localizer, images, config.k, recorded)
     return log.result(run, tracker.estimates_world, geo)
 
@@ -224,7 +235,9 @@ def _drive_realtime(
                     time.sleep(delay)
                 prior = tracker.prior(i)
                 log.sent(i)
-                stream.send(i, float(run.timestamps_s[i]), image, prior, k)
+                stream.send(
+                    i, float(run.timestamps_s[i]), image, prior, k, intrinsics=run.intrinsics
+                )
         except BaseException as exc:  # noqa: BLE001 - re-raised on the main thread
             errors.append(exc)
 

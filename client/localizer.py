@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, ServerError
+from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.measurement import Hypotheses
 from monoloc.core.prior import RetrievalPrior
 
@@ -50,7 +51,8 @@ class HttpLocalizer:
     only), and the frames inside the server's ``Retry-After`` window are not sent at all
     (dropped too): an overloaded server is given the time it asked for. ``counts`` keeps
     the tally. ``deadline_ms`` (X-Request-Deadline-Ms) tells the server when an answer
-    is no longer worth computing. Other errors raise (ServerError)."""
+    is no longer worth computing; ``intrinsics``: the camera that took the frames (None:
+    the map's). Other errors raise (ServerError)."""
 
     def __init__(
         self,
@@ -58,10 +60,12 @@ class HttpLocalizer:
         map_id: int,
         deadline_ms: int | None = None,
         clock: Callable[[], float] = time.monotonic,
+        intrinsics: CameraIntrinsics | None = None,
     ) -> None:
         self.client = client
         self.map_id = map_id
         self.deadline_ms = deadline_ms
+        self.intrinsics = intrinsics
         self.counts = ShedCounts()
         self._clock = clock
         self._hold_until_s = -math.inf
@@ -76,7 +80,13 @@ class HttpLocalizer:
         self.counts.sent += 1
         try:
             answer = self.client.localize(
-                self.map_id, image, prior, k, retries=0, deadline_ms=self.deadline_ms
+                self.map_id,
+                image,
+                prior,
+                k,
+                retries=0,
+                deadline_ms=self.deadline_ms,
+                intrinsics=self.intrinsics,
             )
         except ServerError as exc:
             if exc.status_code != 503:
@@ -110,9 +120,15 @@ class StreamLocalizer:
     its answer. The frame's time ``t`` is ``timestamps_s[seq]`` when given, else seconds
     since the first frame. A dropped or failed frame is an answer without hypotheses."""
 
-    def __init__(self, stream: FrameStream, timestamps_s: Sequence[float] | None = None) -> None:
+    def __init__(
+        self,
+        stream: FrameStream,
+        timestamps_s: Sequence[float] | None = None,
+        intrinsics: CameraIntrinsics | None = None,
+    ) -> None:
         self.stream = stream
         self.timestamps_s = timestamps_s
+        self.intrinsics = intrinsics
         self.seq = 0
         self._t0: float | None = None
 
@@ -125,7 +141,7 @@ class StreamLocalizer:
         else:
             self._t0 = time.perf_counter() if self._t0 is None else self._t0
             t_s = time.perf_counter() - self._t0
-        self.stream.send(seq, t_s, image, prior, k)
+        self.stream.send(seq, t_s, image, prior, k, intrinsics=self.intrinsics)
         self.seq += 1
         answer = self.stream.receive()
         check_answer_seq(answer, seq)

@@ -10,14 +10,17 @@ holds); this module aligns them into a run.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError, NotFoundError
 from monoloc.core.formats import kitti, tum, vehicle
+from monoloc.core.formats.png import png_size
 from monoloc.core.geometry import (
     kitti_to_zup,
     planar_from_T_world_from_cam,
@@ -52,6 +55,10 @@ class ReplayRun:
     read_image: Callable[[Path], bytes] | None = field(default=None, repr=False)
     # The camera's frame id when the recording names it (a ROS bag's image frame_id).
     camera_frame: str | None = None
+    # The camera that took the frames, when the recording says (KITTI calib.txt's P0 with
+    # the images' size, a TUM run's camera.json, a bag's CameraInfo): the vehicle sends it
+    # with every frame, never assuming the map's.
+    intrinsics: CameraIntrinsics | None = None
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -79,7 +86,12 @@ class ReplayRun:
             self.lever_arm_m,
             self.read_image,
             self.camera_frame,
+            self.intrinsics,
         )
+
+    def with_intrinsics(self, intrinsics: CameraIntrinsics) -> ReplayRun:
+        """The same run taken with ``intrinsics`` (a camera given on the command line)."""
+        return dataclasses.replace(self, intrinsics=intrinsics)
 
 
 def parse_frames(text: str | None) -> slice:
@@ -169,7 +181,12 @@ def read_kitti_run(
         )
     else:
         raise InvalidInputError(f"{seq_dir}: neither vehicle.txt nor ground-truth poses")
-    return ReplayRun(f"kitti:{seq_name}", images, times, signals, truth, notes)
+    intrinsics = None
+    if (seq_dir / "calib.txt").is_file():
+        intrinsics = kitti.read_calib_file(seq_dir / "calib.txt").intrinsics(*png_size(images[0]))
+    return ReplayRun(
+        f"kitti:{seq_name}", images, times, signals, truth, notes, intrinsics=intrinsics
+    )
 
 
 def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
@@ -197,7 +214,10 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
     if not vehicle_path.exists():
         raise NotFoundError(f"{vehicle_path} does not exist")
     signals = _vehicle_signals(vehicle_path, times_arr)
-    return ReplayRun(f"tum:{root.name}", images, times_arr, signals, truth, [])
+    intrinsics = tum.read_run_camera(root, images[0]) if images else None
+    return ReplayRun(
+        f"tum:{root.name}", images, times_arr, signals, truth, [], intrinsics=intrinsics
+    )
 
 
 def rig_lever_arm_m(path: Path) -> float | None:
@@ -224,13 +244,6 @@ def read_run(path: Path, sequence: str | None = None) -> ReplayRun:
     run = read_tum_run(path) if (path / "rgb.txt").exists() else read_kitti_run(path, sequence)
     lever = rig_lever_arm_m(path)
     if lever is not None:
-        run = ReplayRun(
-            run.name,
-            run.image_paths,
-            run.timestamps_s,
-            run.signals,
-            run.truth_world,
-            [*run.notes, f"camera {lever:.2f} m ahead of the speed reference (dataset.json rig)"],
-            lever,
-        )
+        note = f"camera {lever:.2f} m ahead of the speed reference (dataset.json rig)"
+        run = dataclasses.replace(run, notes=[*run.notes, note], lever_arm_m=lever)
     return run

@@ -5,6 +5,7 @@ answer out of order is refused. The same loop against a live server: tests/e2e."
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import queue
@@ -19,10 +20,12 @@ from monoloc.client.drive import DriveConfig, PriorConfig, drive
 from monoloc.client.particle_filter import FilterConfig
 from monoloc.client.replay import ReplayRun
 from monoloc.client.report import summary_rows
+from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.measurement import MeasurementModel
 
 SPEED_MPS = 5.0
+CAMERA = CameraIntrinsics(640.0, 640.0, 511.5, 287.5, 1024, 576)  # a fleet camera
 
 
 def _run(tmp_path: Path, n: int = 20, dt: float = 0.1) -> ReplayRun:
@@ -35,7 +38,7 @@ def _run(tmp_path: Path, n: int = 20, dt: float = 0.1) -> ReplayRun:
         path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes([i]))
         paths.append(path)
     signals = np.tile([SPEED_MPS, 0.0], (n, 1))
-    return ReplayRun("synthetic", paths, t, signals, truth, ["a note"])
+    return ReplayRun("synthetic", paths, t, signals, truth, ["a note"], intrinsics=CAMERA)
 
 
 class FakeStream:
@@ -53,8 +56,17 @@ class FakeStream:
     def __exit__(self, *exc):
         return None
 
-    def send(self, seq, t_s, image_bytes, prior=None, k=None, seed=None):
-        self.sent.append({"seq": seq, "t": t_s, "prior": prior, "k": k, "at": time.perf_counter()})
+    def send(self, seq, t_s, image_bytes, prior=None, k=None, seed=None, intrinsics=None):
+        self.sent.append(
+            {
+                "seq": seq,
+                "t": t_s,
+                "prior": prior,
+                "k": k,
+                "intrinsics": intrinsics,
+                "at": time.perf_counter(),
+            }
+        )
         self.pending.put(seq)
 
     def _answer(self, seq):
@@ -151,3 +163,29 @@ def test_an_empty_selection_is_refused(tmp_path):
     run = _run(tmp_path, n=4).select(slice(4, None))
     with pytest.raises(InvalidInputError, match="no frames to replay"):
         drive(FakeClient(FakeStream(np.zeros((0, 3)))), 1, run, MeasurementModel(), CONFIG)
+
+
+def test_the_run_s_own_camera_goes_with_every_frame_in_both_modes(tmp_path):
+    run = _run(tmp_path, n=6)
+    for realtime in (False, True):
+        stream = FakeStream(run.truth_world)
+        drive(FakeClient(stream), 1, run, MeasurementModel(), DriveConfig(realtime=realtime))
+        assert [s["intrinsics"] for s in stream.sent] == [CAMERA] * 6
+
+
+def test_a_run_whose_camera_is_unknown_stops_before_the_first_frame(tmp_path):
+    run = dataclasses.replace(_run(tmp_path, n=4), intrinsics=None)
+    stream = FakeStream(run.truth_world)
+    with pytest.raises(InvalidInputError, match="camera that took the frames is unknown"):
+        drive(FakeClient(stream), 1, run, MeasurementModel(), CONFIG)
+    assert stream.sent == []
+
+
+def test_a_drive_whose_every_frame_was_refused_says_so(tmp_path):
+    run = _run(tmp_path, n=5)
+    everything = drive(
+        FakeClient(FakeStream(run.truth_world, errors=range(5))), 1, run, MeasurementModel()
+    )
+    assert everything.all_refused and len(everything.errors) == 5
+    some = drive(FakeClient(FakeStream(run.truth_world, errors={2})), 1, run, MeasurementModel())
+    assert not some.all_refused

@@ -177,3 +177,31 @@ def test_tum_run_matches_truth_by_nearest_time(tmp_path):
         read_tum_run(_write_tum(tmp_path / "tum2", missing_image=True))
     with pytest.raises(InvalidInputError, match="no ground truth within 0.001 s"):
         read_tum_run(tmp_path / "tum", max_dt_s=0.001)
+
+
+def test_a_run_knows_its_camera_from_its_own_files(sim_run, tmp_path):
+    """KITTI: calib.txt's P0 with the images' size; TUM: camera.json; neither: unknown
+    (the drive then stops before its first frame, never assuming the map's camera)."""
+    import json
+
+    from monoloc.core.formats.kitti import read_calib_file
+    from monoloc.core.formats.png import png_size
+
+    seq = sim_run / "sequences" / "00"
+    run = read_run(sim_run, "00")
+    width, height = png_size(run.image_paths[0])
+    fx, fy, cx, cy = read_calib_file(seq / "calib.txt").pinhole
+    cam = run.intrinsics
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (fx, fy, cx, cy)
+    assert (cam.width_px, cam.height_px) == (width, height) and width < 1241  # quarter size
+    assert run.select(slice(2, 5)).intrinsics == cam  # kept by a frame range
+    copy = _copy_dataset(sim_run, tmp_path / "kitti")
+    (copy / "sequences" / "00" / "calib.txt").unlink()
+    assert read_kitti_run(copy, "00").intrinsics is None
+    tum = _write_tum(tmp_path / "tum")
+    assert read_tum_run(tum).intrinsics is None
+    fields = {"fx": 500, "fy": 501, "cx": 319.5, "cy": 239.5, "width": 640, "height": 480}
+    (tum / "camera.json").write_text(json.dumps(fields))
+    cam = read_tum_run(tum).intrinsics
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500.0, 501.0, 319.5, 239.5)
+    assert (cam.width_px, cam.height_px) == (640, 480)

@@ -39,7 +39,8 @@ def _route():
 class Street:
     """Three per-entry poses (3 cm) and a joint pose (1 cm) of the true place per frame,
     every VLAD distance near ``e_vlad``; ``offset_world`` moves them all from frame
-    ``offset_from`` on (a place that is not the true one); ``alternative`` adds the server's poorly-pinned flag."""
+    ``offset_from`` on (a place that is not the true one); ``alternative`` adds the
+    server's poorly-pinned flag."""
 
     def __init__(
         self, truth, e_vlad, offset_world=(0.0, 0.0, 0.0), alternative=False, offset_from=0

@@ -337,6 +337,17 @@ def _intrinsics(root, intrinsics, camera, json_path, data, first_image) -> Camer
         raise InputFileError(json_path, str(exc)) from exc
 
 
+def read_run_camera(
+    root: str | os.PathLike, first_image: str | os.PathLike
+) -> CameraIntrinsics | None:
+    """The run's own camera from its camera JSON (``read_camera_json``; its size, else the
+    first image's), or None when the run has none (a vehicle must then say which)."""
+    json_path, data = read_camera_json(root)
+    if json_path is None:
+        return None
+    return _intrinsics(root, None, None, json_path, data, first_image)
+
+
 def read_run(
     root: str | os.PathLike,
     *,

@@ -194,6 +194,9 @@ def test_the_vehicle_replays_a_raw_image_bag_with_tf_and_truth(sim_run, tmp_path
     np.testing.assert_allclose(replay.truth_world, truth, atol=1e-9)
     with pytest.raises(InvalidInputError, match="unknown topic role"):
         read_bag_run(bag, {"camera": "/camera/image_raw/compressed"})
+    # without CameraInfo the camera is unknown: the drive refuses before its first frame
+    bag = write_sim_bag(run, tmp_path / "replay_no_info", camera_info=False, three_d="none")
+    assert read_bag_run(bag).intrinsics is None
 
 
 # The layouts recorders produce (rosbag_helpers' ``poses``), in ROS 2 sqlite3 and mcap
@@ -293,6 +296,11 @@ def test_the_vehicle_replays_every_layout_with_the_mounting_of_tf_static(sim_run
         replay = read_bag_run(bag)
         assert len(replay) == len(run.images), (storage, poses)
         assert len(replay.image_bytes(0)) > 0
+        # the camera's own intrinsics from its CameraInfo, sent with every frame
+        cam = replay.intrinsics
+        np.testing.assert_allclose(
+            [cam.fx, cam.fy, cam.cx, cam.cy], run.K[[0, 1, 0, 1], [0, 1, 2, 2]]
+        )
         # speed and yaw rate: the twist, or differentiated from the poses
         np.testing.assert_allclose(replay.signals[:, 0], run.signals[:, 0], atol=0.05)
         np.testing.assert_allclose(replay.signals[:, 1], run.signals[:, 1], atol=0.01)
