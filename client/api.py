@@ -322,6 +322,9 @@ class MonolocClient:
         data: dict[str, str] = {}
         if intrinsics is not None:
             data.update({key: repr(float(v)) for key, v in _focal(intrinsics).items()})
+            if intrinsics.distortion is not None:
+                data["distortion_model"] = intrinsics.distortion.model
+                data["distortion"] = ",".join(repr(v) for v in intrinsics.distortion.coefficients)
         if prior is not None:
             data.update({key: repr(float(v)) for key, v in prior.to_fields().items()})
         if k is not None:
@@ -393,6 +396,14 @@ def _focal(intrinsics: CameraIntrinsics) -> dict[str, float]:
     }
 
 
+def _lens_fields(intrinsics: CameraIntrinsics) -> dict:
+    """The lens distortion as the stream header takes it (model, coefficient list)."""
+    lens = intrinsics.distortion
+    if lens is None:
+        return {}
+    return {"distortion_model": lens.model, "distortion": list(lens.coefficients)}
+
+
 def encode_frame(header: dict, image_bytes: bytes) -> bytes:
     """One stream message: 4-byte big-endian header length, JSON header, image bytes."""
     head = json.dumps(header, separators=(",", ":")).encode()
@@ -443,7 +454,7 @@ class FrameStream:
         camera that took it (None: the map's)."""
         header: dict = {"seq": seq, "t": t_s}
         if intrinsics is not None:
-            header["intrinsics"] = _focal(intrinsics)
+            header["intrinsics"] = {**_focal(intrinsics), **_lens_fields(intrinsics)}
         if prior is not None:
             header["prior"] = prior.to_json()
         if k is not None:

@@ -160,7 +160,7 @@ def _camera_file(path: Path, run):
     calib.txt (P0, with the run's first image's size)."""
     import json
 
-    from monoloc.core.camera import CameraIntrinsics
+    from monoloc.core.camera import CameraIntrinsics, LensDistortion
     from monoloc.core.errors import InputFileError
     from monoloc.core.formats import kitti
     from monoloc.core.formats.png import png_size
@@ -186,5 +186,11 @@ def _camera_file(path: Path, run):
         )
         if width is None or height is None:
             width, height = first_image_size()
-        return CameraIntrinsics(fx, fy, cx, cy, int(width), int(height))
+        try:
+            lens = LensDistortion.parse(
+                data.get("distortion_model"), data.get("D", data.get("distortion"))
+            )
+        except (TypeError, ValueError) as exc:
+            raise InputFileError(path, f"bad distortion_model / D ({exc})") from exc
+        return CameraIntrinsics(fx, fy, cx, cy, int(width), int(height), lens)
     return kitti.read_calib_file(path).intrinsics(*first_image_size())

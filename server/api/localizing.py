@@ -37,7 +37,7 @@ def _intrinsics(
 ) -> CameraIntrinsics | None:
     if options.focal is not None:
         fx, fy, cx, cy = options.focal
-        return CameraIntrinsics(fx, fy, cx, cy, info.width_px, info.height_px)
+        return CameraIntrinsics(fx, fy, cx, cy, info.width_px, info.height_px, options.lens)
     camera = state.registry.get(map_id).record.camera
     if (camera.width_px, camera.height_px) != (info.width_px, info.height_px):
         raise InvalidInputError(

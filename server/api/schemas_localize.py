@@ -9,6 +9,7 @@ from typing import Any, Self
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
+from monoloc.core.camera import LensDistortion
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.api.errors import describe_validation
@@ -50,6 +51,19 @@ class LocalizeOptions(BaseModel):
     fy: float | None = Field(default=None, description="Focal length y (px).", examples=[718.856])
     cx: float | None = Field(default=None, description="Principal point x (px).", examples=[607.2])
     cy: float | None = Field(default=None, description="Principal point y (px).", examples=[185.2])
+    distortion_model: str | None = Field(
+        default=None,
+        description="The lens's distortion model, with fx, fy, cx, cy: plumb_bob (k1 k2 p1 "
+        "p2 [k3]), rational_polynomial (k1 k2 p1 p2 k3 k4 k5 k6) or equidistant (fisheye: "
+        "k1 k2 k3 k4), as ROS CameraInfo names them; none or pinhole: no distortion. The "
+        "query's keypoints are undistorted, not its image.",
+        examples=["plumb_bob"],
+    )
+    distortion: str | None = Field(
+        default=None,
+        description="The model's coefficients (ROS CameraInfo's D), comma-separated.",
+        examples=["-0.28,0.09,0.0006,-0.0004"],
+    )
     prior_x_m: float | None = Field(
         default=None,
         description="Prior position x (m); with prior_y_m and prior_radius_m.",
@@ -85,6 +99,12 @@ class LocalizeOptions(BaseModel):
         examples=[2718281828],
     )
     _prior: RetrievalPrior | None = PrivateAttr(default=None)
+    _lens: LensDistortion | None = PrivateAttr(default=None)
+
+    @property
+    def lens(self) -> LensDistortion | None:
+        """The lens distortion sent with the intrinsics, or None (a pinhole)."""
+        return self._lens
 
     @property
     def focal(self) -> tuple[float, float, float, float] | None:
@@ -101,6 +121,7 @@ class LocalizeOptions(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> Self:
         self._check_focal()
+        self._lens = self._build_lens()
         self._prior = self._build_prior()
         if self.k is not None and not 1 <= self.k <= MAX_K:
             raise InvalidInputError(f"k must be an integer in 1..{MAX_K}, got {self.k!r}")
@@ -119,6 +140,19 @@ class LocalizeOptions(BaseModel):
             fx, fy, _, _ = (_finite(n, getattr(self, n)) for n in _FOCAL)
             if fx <= 0 or fy <= 0:
                 raise InvalidInputError(f"fx and fy must be positive, got {fx}, {fy}")
+
+    def _build_lens(self) -> LensDistortion | None:
+        if self.distortion_model is None and self.distortion is None:
+            return None
+        if self.focal is None:
+            raise InvalidInputError("a lens distortion needs the camera's fx, fy, cx, cy")
+        try:
+            values = [float(v) for v in (self.distortion or "").split(",") if v.strip()]
+        except ValueError as exc:
+            raise InvalidInputError(
+                f"distortion must be comma-separated numbers, got {self.distortion!r}"
+            ) from exc
+        return LensDistortion.parse(self.distortion_model, values)
 
     def _build_prior(self) -> RetrievalPrior | None:
         got_pos, got_yaw = self._given(_PRIOR), self._given(_YAW)

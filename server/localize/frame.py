@@ -29,6 +29,7 @@ from monoloc.server.localize.results import (
 from monoloc.server.vision.binary_code import vlad_binary_code
 from monoloc.server.vision.features import extract_features
 from monoloc.server.vision.matching import MatchConfig, match_against_references
+from monoloc.server.vision.undistort import undistort_pixels
 from monoloc.server.vision.vlad import compute_vlad
 from monoloc.server.vision.vocabulary import Vocabulary
 
@@ -93,9 +94,15 @@ def localize_frame(
     k: int | None = None,
     stages: FrameStages = PRODUCT_STAGES,
 ) -> LocalizationResult:
-    """Hypotheses for one grayscale frame (H, W) uint8 taken with ``intrinsics``."""
+    """Hypotheses for one grayscale frame (H, W) uint8 taken with ``intrinsics`` (with a
+    lens distortion, its keypoints are undistorted before PnP)."""
     laps = _Laps()
     features = extract_features(image_gray, config.orb, scales=True)
+    keypoints_px = features.keypoints_px
+    if intrinsics.distortion is not None:
+        # the keypoints a pinhole camera with this K would have seen; the rest is pinhole
+        keypoints_px = undistort_pixels(keypoints_px, intrinsics)
+        intrinsics = intrinsics.pinhole
     laps.lap("features")
     vlad = compute_vlad(features.descriptors, vocabulary)
     code = vlad_binary_code(vlad)
@@ -109,7 +116,7 @@ def localize_frame(
     laps.lap("matching")
     e_vlad = dict(zip(found.entry_ids.tolist(), found.distances.tolist(), strict=True))
     hypotheses, rejected = stages.poses(
-        features.keypoints_px,
+        keypoints_px,
         refs,
         matches,
         e_vlad,

@@ -11,8 +11,8 @@ Messages understood (ROS 2 names; REP-103 frames):
 
 - ``sensor_msgs/msg/Image`` (mono8, mono16, 8UC1, 16UC1, 32FC1, rgb8, bgr8, rgba8, bgra8)
   and ``sensor_msgs/msg/CompressedImage`` (JPEG/PNG bytes): camera and depth images;
-- ``sensor_msgs/msg/CameraInfo``: the pinhole K (ROS 1's ``K``; distortion is not
-  applied: rectified images are expected);
+- ``sensor_msgs/msg/CameraInfo``: K and the lens distortion (distortion_model, D; ROS
+  1's ``K``, ``D``): a replayed query carries it, a mapping run must be rectified;
 - ``sensor_msgs/msg/PointCloud2`` with float32 x, y, z fields: LiDAR scans;
 - ``nav_msgs/msg/Odometry``: poses (``pose.pose``: ``T_<header.frame_id>_from_<child>``)
   and the vehicle's speed and yaw rate (``twist.twist.linear.x``, ``angular.z`` in the
@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.camera import CameraIntrinsics, LensDistortion
 from monoloc.core.errors import InputFileError, InvalidInputError, MonolocError
 from monoloc.core.formats.tum import associate, ground_truth_at
 from monoloc.core.geometry import R_from_quaternion_xyzw, invert_rigid, quaternion_xyzw_from_R
@@ -210,7 +210,8 @@ def image_encoding(msg) -> str:
 
 
 def intrinsics_from_camera_info(msg) -> CameraIntrinsics:
-    """Pinhole intrinsics from a ``CameraInfo``'s K (row-major 3x3) and image size."""
+    """Intrinsics from a ``CameraInfo``'s K (row-major 3x3), image size and lens
+    distortion (distortion_model and D; all-zero D: a pinhole)."""
     K = np.asarray(_field(msg, "k"), dtype=np.float64).reshape(3, 3)
     if K[0, 0] <= 0 or K[1, 1] <= 0 or msg.width <= 0 or msg.height <= 0:
         raise InvalidInputError(
@@ -218,7 +219,10 @@ def intrinsics_from_camera_info(msg) -> CameraIntrinsics:
             f"{msg.width}x{msg.height})"
         )
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    return CameraIntrinsics(fx, fy, cx, cy, int(msg.width), int(msg.height))
+    model = getattr(msg, "distortion_model", None)
+    coefficients = np.asarray(_field(msg, "d"), dtype=np.float64).reshape(-1).tolist()
+    lens = LensDistortion.parse(model or None, coefficients)
+    return CameraIntrinsics(fx, fy, cx, cy, int(msg.width), int(msg.height), lens)
 
 
 def pointcloud_xyz(msg) -> np.ndarray:
@@ -739,6 +743,11 @@ def read_mapping_run(
     with open_bag(root) as reader:
         chosen = _mapping_topics(reader, root, dict(topics or {}))
         camera = _camera(reader, chosen, intrinsics, fallback_intrinsics, root)
+        if camera.distortion is not None:
+            raise InvalidInputError(
+                f"{root}: the mapping camera has {camera.distortion.model} lens distortion; "
+                "maps are built from rectified images (a query may be distorted)"
+            )
         tree = read_frame_tree(reader)
         images = list_images(reader, chosen["image"])
         if not images:

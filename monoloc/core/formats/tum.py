@@ -33,7 +33,7 @@ from typing import TextIO
 
 import numpy as np
 
-from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.camera import CameraIntrinsics, LensDistortion
 from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.formats._text import Source, data_lines, finite_numbers, number_rows, read_lines
 from monoloc.core.formats.png import png_size
@@ -332,8 +332,11 @@ def _intrinsics(root, intrinsics, camera, json_path, data, first_image) -> Camer
     if width is None or height is None:
         width, height = png_size(first_image)
     try:
-        return CameraIntrinsics(fx, fy, cx, cy, int(width), int(height))
-    except InvalidInputError as exc:
+        lens = LensDistortion.parse(
+            data.get("distortion_model"), data.get("D", data.get("distortion"))
+        )
+        return CameraIntrinsics(fx, fy, cx, cy, int(width), int(height), lens)
+    except (InvalidInputError, TypeError, ValueError) as exc:
         raise InputFileError(json_path, str(exc)) from exc
 
 
@@ -387,6 +390,12 @@ def read_run(
     gt = read_ground_truth(root / "groundtruth.txt")
     json_path, data = read_camera_json(root)
     camera_model = _intrinsics(root, intrinsics, camera, json_path, data, rgb_files[0])
+    if camera_model.distortion is not None:
+        raise InputFileError(
+            json_path or root,
+            f"the mapping camera has {camera_model.distortion.model} lens distortion; maps "
+            "are built from rectified images (a query may be distorted)",
+        )
     scale = float(data.get("depth_scale", data.get("depth_scale_per_m", DEPTH_SCALE_PER_M)))
     if not np.isfinite(scale) or scale <= 0:
         raise InputFileError(json_path or root, f"depth_scale must be positive, got {scale}")

@@ -113,6 +113,14 @@ def _option_fields(header: dict[str, Any]) -> dict[str, Any]:
         raise InvalidInputError("'prior' and 'intrinsics' must be objects")
     fields = {f"prior_{k}": v for k, v in prior.items()}
     fields.update({k: intrinsics.get(k) for k in ("fx", "fy", "cx", "cy")})
+    fields["distortion_model"] = intrinsics.get("distortion_model")
+    coefficients = intrinsics.get("distortion")
+    if coefficients is not None:
+        if not isinstance(coefficients, list) or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in coefficients
+        ):
+            raise InvalidInputError("'intrinsics.distortion' must be a list of numbers")
+        fields["distortion"] = ",".join(repr(float(v)) for v in coefficients)
     fields.update(k=header.get("k"), seed=header.get("seed"))
     return fields
 
