@@ -191,7 +191,9 @@ def map_ingest(
     _, factory = open_database(ctx)
     intrinsics = CameraOverrides(fx, fy, cx, cy, width, height).complete()
     if depth_from == "none":
-        raise typer.BadParameter("a mapping run needs depth: lidar or stereo", "--depth-from")
+        raise typer.BadParameter(
+            "a mapping run needs depth: lidar or stereo", param_hint="--depth-from"
+        )
     # a bag without CameraInfo was recorded by the map's camera
     map_camera = find_map(factory, map_ref).camera if fmt == "rosbag" else None
     source = open_source(

@@ -48,7 +48,7 @@ RECTIFIED_TOL = 1e-6  # relative: P1's camera matrix must equal P0's
 KITTI_STEREO_BASELINE_M = 0.5371657
 KITTI_COLOUR_OFFSET_M = -0.0598  # camera 2 sits ~6 cm left of camera 0 in KITTI
 LIDAR_POINT_BYTES = 16  # float32 x, y, z, reflectance
-DEPTH_SOURCES = ("lidar", "stereo")
+DEPTH_SOURCES = ("lidar", "stereo", "none")
 
 
 def _rigid_4x4(top_3x4: np.ndarray) -> np.ndarray:
@@ -401,7 +401,8 @@ def read_sequence(
     ``depth_from`` says where the keypoints' depth comes from: ``lidar`` (the velodyne
     scans, which must all be there) or ``stereo`` (the right camera: image_1 must hold one
     image per frame, of image_0's size, and calib.txt a P1 that forms a rectified pair
-    with P0; velodyne/ is then not needed, so a fleet without LiDAR can map).
+    with P0; velodyne/ is then not needed, so a fleet without LiDAR can map) or ``none``
+    (the images only, for a vocabulary's training: neither velodyne/ nor image_1/ is read).
 
     Everything but the image and scan contents is validated: calib.txt (P0 a pinhole
     matrix, Tr rigid), one finite rigid pose per line, as many timestamps as poses, and
@@ -440,7 +441,7 @@ def read_sequence(
                 f"is {right_size[0]}x{right_size[1]}, image_0 is {width}x{height}: a "
                 "rectified pair has one size",
             )
-    else:
+    elif depth_from == "lidar":
         _check_scans(folder / "velodyne", n, poses_path)
     T_world_from_cam = kitti_to_zup(poses)
     indices = range(n)[frames] if frames is not None else range(n)

@@ -146,3 +146,23 @@ def test_bad_input_is_one_line_and_exit_code_1(kitti_copy, tmp_path):
     assert done.returncode == 1
     assert done.stderr.strip().count("\n") == 0
     assert "poses/00.txt:4: pose contains NaN" in done.stderr
+
+
+def test_a_vocabulary_trains_on_a_run_without_lidar(app, kitti_copy, tmp_path):
+    """`map vocab --train-from` reads the run's images only: a KITTI run without
+    velodyne/ (a stereo or camera-only fleet) trains a vocabulary; `map ingest` still
+    refuses to map from it without depth."""
+    import shutil
+
+    shutil.rmtree(kitti_copy.sequence_dir / "velodyne")
+    env = {"MONOLOC_DATA_DIR": str(tmp_path / "data")}
+    calib = kitti_copy.sequence_dir / "calib.txt"
+    _ok(app, "map", "create", "cams", "--camera", str(calib), env=env)
+    out = _ok(app, "map", "vocab", "--map", "cams", "--train-from", str(kitti_copy.root), env=env)
+    assert "job 1 done" in out and "now on vocabulary" in out
+    runner = CliRunner()
+    ingest = ["map", "ingest", "--map", "cams", str(kitti_copy.root)]
+    result = runner.invoke(app, ingest, env=env)
+    assert result.exit_code == 1 and "velodyne" in str(result.exception or result.output)
+    result = runner.invoke(app, [*ingest, "--depth-from", "none"], env=env)
+    assert result.exit_code == 2 and "needs depth" in result.output
