@@ -15,7 +15,8 @@ HOST="${MONOLOC_HOST:-0.0.0.0}"
 PORT="${MONOLOC_PORT:-8000}"
 
 # Multipart uploads are spooled to TMPDIR before they are unpacked: point it at a volume
-# with room for the largest upload (compose.yaml uses /data/tmp).
+# with room for the largest upload (compose.yaml uses /shared/tmp, the volume of
+# MONOLOC_UPLOADS_DIR; the image makes /data and /shared its user's).
 if [ -n "${TMPDIR:-}" ]; then mkdir -p "$TMPDIR"; fi
 
 # With several replicas the schema is migrated once, before they start (compose.yaml's
