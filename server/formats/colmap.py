@@ -73,6 +73,14 @@ def read_colmap_model(model_dir: Path, images_dir: Path) -> PosedImages:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises its own C++ errors as ValueError/RuntimeError
         raise InputFileError(model_dir, f"unreadable COLMAP model: {exc}") from exc
+    if reconstruction.num_reg_images() and not reconstruction.num_points3D():
+        # what a user has after mapping with known poses, before triangulating: monoloc
+        # needs the model's 3D points (its --points orb takes them by their observations)
+        raise InputFileError(
+            model_dir,
+            f"the COLMAP model has {reconstruction.num_reg_images()} posed images but no 3D "
+            "points: triangulate them first (colmap point_triangulator with these poses)",
+        )
     cameras = {
         cid: intrinsics_of(cam, str(model_dir)) for cid, cam in reconstruction.cameras.items()
     }

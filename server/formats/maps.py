@@ -8,10 +8,11 @@ from collections.abc import Callable
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from monoloc.core.errors import NotFoundError
+from monoloc.core.errors import InvalidInputError, NotFoundError
 from monoloc.server.formats.model import ImportSource, ModelView
 from monoloc.server.ingest.pipeline import IngestConfig, IngestSummary
 from monoloc.server.storage import entries as entries_repo
+from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.db import session_scope
 from monoloc.server.storage.records import MapRecord
 
@@ -31,29 +32,54 @@ def import_sources_into_map(
 ) -> tuple[MapRecord, list[IngestSummary], bool]:
     """Ingest each source (one per camera) as a run of the map, creating the map (default
     vocabulary, the first source's camera) if no map has that name. Idempotent like any
-    ingestion. Returns (map, summaries, created)."""
+    ingestion. Returns (map, summaries, created).
+
+    All or nothing for a new map: when the import fails, or adds no entry, a map it
+    created is deleted again (an empty map is never left behind). An import that adds
+    nothing and finds nothing already in the map is an InvalidInputError naming why each
+    image was skipped."""
     from monoloc.server.ingest.manage import create_map, find_map, ingest_source
 
+    if not sources:
+        raise InvalidInputError("nothing to import: the model has no usable image")
     created = False
     try:
         record = find_map(session_factory, map_ref)
     except NotFoundError:
         record = create_map(session_factory, map_ref, sources[0].intrinsics)
         created = True
-    summaries = [
-        ingest_source(
-            session_factory,
-            record.id,
-            source,
-            kind=kind,
-            tags=tags,
-            config=config,
-            registry=registry,
-            progress=progress,
-        )
-        for source in sources
-    ]
+    try:
+        summaries = [
+            ingest_source(
+                session_factory,
+                record.id,
+                source,
+                kind=kind,
+                tags=tags,
+                config=config,
+                registry=registry,
+                progress=progress,
+            )
+            for source in sources
+        ]
+        _check_something_imported(summaries)
+    except BaseException:
+        if created:
+            with session_scope(session_factory) as session:
+                maps_repo.delete_map(session, record.id)
+        raise
     return find_map(session_factory, record.id), summaries, created
+
+
+def _check_something_imported(summaries: list[IngestSummary]) -> None:
+    if any(s.entries_added or s.skip_reasons.get("already_in_map") for s in summaries):
+        return
+    reasons: dict[str, int] = {}
+    for summary in summaries:
+        for reason, n in summary.skip_reasons.items():
+            reasons[reason] = reasons.get(reason, 0) + n
+    why = ", ".join(f"{n} {reason}" for reason, n in sorted(reasons.items())) or "no image"
+    raise InvalidInputError(f"no entry imported (skipped: {why}); the map is unchanged")
 
 
 def entry_name(entry_id: int) -> str:

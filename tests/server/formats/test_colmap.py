@@ -229,3 +229,45 @@ def test_cli_import_export_and_errors(sift_model, tmp_path, monkeypatch, capsys)
         assert find_map(make_session_factory(engine), "city").n_entries == 8
     finally:
         engine.dispose()
+
+
+def _map_listed(monkeypatch, capsys, name: str) -> bool:
+    code, out, err = run_monoloc(monkeypatch, capsys, "map", "list")
+    assert code == 0, err
+    return f" {name} " in out
+
+
+def test_a_poses_only_model_or_a_failed_import_leaves_no_map(
+    sift_model, tmp_path, monkeypatch, capsys
+):
+    """A model with poses and no points3D (mapped with known poses, not yet triangulated)
+    is refused in one line; an import that fails half-way (unreadable images) deletes the
+    map it created. Neither leaves an empty map behind."""
+    import pycolmap
+
+    model_dir, images_dir, truth = sift_model
+    monkeypatch.setenv("MONOLOC_DATA_DIR", str(tmp_path / "data"))
+    poses_only = pycolmap.Reconstruction(str(model_dir))
+    for point_id in list(poses_only.point3D_ids()):
+        poses_only.delete_point3D(point_id)
+    assert poses_only.num_points3D() == 0 and poses_only.num_reg_images() == len(truth)
+    (tmp_path / "poses_only").mkdir()
+    poses_only.write(str(tmp_path / "poses_only"))
+    imported = ["map", "import", "--format", "colmap", "--map", "city"]
+    code, _, err = run_monoloc(
+        monkeypatch, capsys, *imported, str(tmp_path / "poses_only"), "--images", str(images_dir)
+    )
+    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
+    assert "no 3D points" in err and "triangulate" in err
+    assert not _map_listed(monkeypatch, capsys, "city")
+
+    junk = tmp_path / "junk_images"
+    junk.mkdir()
+    for image in images_dir.iterdir():
+        (junk / image.name).write_bytes(b"not a png")
+    code, _, err = run_monoloc(
+        monkeypatch, capsys, *imported, str(model_dir), "--images", str(junk)
+    )
+    assert code == 1 and "Traceback" not in err
+    assert err.strip().splitlines()[-1].endswith("unreadable image (not a valid PNG/JPEG)")
+    assert not _map_listed(monkeypatch, capsys, "city")
