@@ -87,7 +87,7 @@ def test_a_server_command_names_the_extra_it_needs(bare_venv, tmp_path):
     assert len(done.stderr.strip().splitlines()) == 1
 
 
-def test_driving_a_bag_names_the_formats_extra(bare_venv, tmp_path):
+def test_driving_a_bag_names_the_bags_extra(bare_venv, tmp_path):
     bag = tmp_path / "drive_bag"
     bag.mkdir()
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
@@ -96,7 +96,7 @@ def test_driving_a_bag_names_the_formats_extra(bare_venv, tmp_path):
     assert done.returncode == 1
     assert "Traceback" not in done.stderr
     assert done.stderr.strip().splitlines() == [
-        "error: reading ROS bags needs the 'rosbags' package: pip install 'monoloc[formats]'"
+        "error: reading ROS bags needs the 'rosbags' package: pip install 'monoloc[bags]'"
     ]
 
 
