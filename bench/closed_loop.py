@@ -155,7 +155,14 @@ def main() -> None:
         reference_xy=world.reference_path(min(laps, 1.0)).xy,
         spike_threshold_m=summary["cases"]["open"].get("spike_threshold_m"),
     )
-    summary["plots"] = [str(p) for p in plots]
+    # relative to the repository: a results file names no path outside it
+    root = Path(__file__).resolve().parent.parent
+    summary["plots"] = [
+        str(Path(p).resolve().relative_to(root))
+        if Path(p).resolve().is_relative_to(root)
+        else Path(p).name
+        for p in plots
+    ]
     summary["total_s"] = time.time() - started
     path = RESULTS / f"closed_loop_{args.scenario}.json"
     path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
