@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sim_city import ingested_city
 
 from monoloc.core.geometry import planar_from_T_world_from_cam
 
@@ -16,29 +17,7 @@ N_FRAMES = 5
 
 @pytest.fixture(scope="module")
 def city(tmp_path_factory):
-    from monoloc.server.ingest.manage import create_map, ingest_source
-    from monoloc.server.ingest.sources import read_kitti_sequence
-    from monoloc.server.map_registry import MapRegistry
-    from monoloc.server.settings import Settings
-    from monoloc.server.storage.db import create_engine_for, make_session_factory
-    from monoloc.server.storage.migrate import upgrade_database
-    from monoloc.sim.generate import GenerateConfig, generate_dataset
-    from monoloc.sim.lidar import LidarConfig
-
-    root = tmp_path_factory.mktemp("paper_city")
-    generate_dataset(
-        GenerateConfig(
-            seed=5, runs=("map", "query"), max_frames=40, lidar=LidarConfig(azimuth_steps=1500)
-        ),
-        root,
-    )
-    settings = Settings(data_dir=root / "data")
-    upgrade_database(settings.database_url)
-    factory = make_session_factory(create_engine_for(settings))
-    map_run, query_run = read_kitti_sequence(root, "00"), read_kitti_sequence(root, "01")
-    create_map(factory, "city", map_run.intrinsics)
-    ingest_source(factory, "city", map_run)
-    return MapRegistry(factory, settings.index_dir), query_run
+    return ingested_city(tmp_path_factory.mktemp("paper_city"), seed=5, frames=40)
 
 
 def _per_entry(result) -> dict[int, np.ndarray]:
