@@ -15,7 +15,7 @@ engine disposed. Any number of processes may serve one database: each is a repli
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -29,7 +29,7 @@ from monoloc.server.api.deps import AppState
 from monoloc.server.api.errors import install_error_handlers
 from monoloc.server.api.guard import document_body_limits
 from monoloc.server.api.limits import BodySizeLimitMiddleware
-from monoloc.server.api.metrics import Metrics, RequestMetricsMiddleware
+from monoloc.server.api.metrics import GaugeRefresher, Metrics, RequestMetricsMiddleware
 from monoloc.server.settings import Settings, get_settings
 from monoloc.server.threads import limit_threads
 
@@ -44,7 +44,8 @@ stream also takes `?key=`). Scopes: `localize` (vehicles), `map:write` (uploads,
 entries, calibration), `admin` (maps, keys, `/metrics`; implies every scope). Reading
 what a map looks like (maps, calibration, geo reference, poses, coverage, live vehicles,
 `GET /v1/keys/me`) takes a valid key of any scope. No key:
-401; wrong scope: 403. `/metrics` is open only with `MONOLOC_METRICS_PUBLIC=true`.
+401; wrong scope: 403. `/metrics` takes a `metrics` key (a scraper's) or an admin key,
+or none with `MONOLOC_METRICS_PUBLIC=true`.
 Create keys with `monoloc keys create --scope ... --name ...` (same data directory), or
 start the server with `MONOLOC_BOOTSTRAP_ADMIN_KEY` while no key exists yet.
 
@@ -179,12 +180,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         install_log_redaction()
         limiter = limit_threads(settings)
         state = await anyio.to_thread.run_sync(_start, settings, metrics, admission)
+        gauges = GaugeRefresher(
+            lambda: metrics.set_process_gauges(admission.gauges(), len(state.registry.loaded()))
+        )
+        gauges.start()
+        relay = _board_relay(app, state)
         state.ready = True
         app.state.monoloc = state
         try:
             yield
         finally:
             state.ready = False
+            gauges.stop()
+            if relay is not None:
+                relay.stop()
             await anyio.to_thread.run_sync(_stop, state)
             limiter.restore_original_limits()
 
@@ -209,8 +218,30 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_console(app)  # /ui, offline /docs and /redoc, the console's JSON routes
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     install_admission(app, admission)  # inside the metrics: shed requests are timed too
-    app.add_middleware(RequestMetricsMiddleware, metrics=metrics)
+    app.add_middleware(RequestMetricsMiddleware, metrics=metrics, known_map=_known_map(app))
     return app
+
+
+def _board_relay(app: FastAPI, state: AppState):
+    """On PostgreSQL, the live-vehicle board shared with the other replicas (started)."""
+    if state.engine.dialect.name != "postgresql":
+        return None
+    from monoloc.server.api.console.live import vehicle_board
+    from monoloc.server.api.console.relay import BoardRelay
+
+    relay = BoardRelay(vehicle_board(app), state.settings.database_url)
+    relay.start()
+    return relay
+
+
+def _known_map(app: FastAPI) -> Callable[[int], bool]:
+    """Whether ``map_id`` is loaded in ``app``'s registry (a metric label of real maps)."""
+
+    def known(map_id: int) -> bool:
+        state = getattr(app.state, "monoloc", None)
+        return state is not None and map_id in state.registry.loaded()
+
+    return known
 
 
 def create_app_from_env() -> FastAPI:

@@ -158,6 +158,13 @@ def serve(
         return
     # Worker processes build their app from the environment: pass the resolved settings.
     upgrade_database(settings.database_url)  # once, before the replicas start
+    # /metrics of any worker sums every worker's values (prometheus_client's multiprocess
+    # mode): their files go to an emptied directory, named to the workers by environment.
+    from monoloc.server.api.metrics import MULTIPROC_ENV, prepare_multiprocess_dir
+
+    prepare_multiprocess_dir(
+        Path(os.environ.get(MULTIPROC_ENV) or Path(settings.data_dir) / "metrics-multiproc")
+    )
     os.environ["MONOLOC_DATA_DIR"] = str(settings.data_dir)
     os.environ["MONOLOC_DATABASE_URL"] = settings.database_url
     uvicorn.run(

@@ -70,7 +70,9 @@ def localize_encoded(
     state.metrics.observe_localize(timings)
     stored = state.registry.get(map_id).record.geo_reference
     geo = GeoReference.from_dict(stored) if stored is not None else None
-    return localize_response(map_id, version, result, timings, seed, geo)
+    answer = localize_response(map_id, version, result, timings, seed, geo)
+    state.metrics.count_frame(map_id, "hypotheses" if answer.hypotheses else "no_hypothesis")
+    return answer
 
 
 async def localize_bytes(

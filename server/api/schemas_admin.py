@@ -12,8 +12,8 @@ from pydantic import BaseModel, Field, field_validator
 from monoloc.server.api.schemas import TIME_EXAMPLE, example, record_example, strict_example
 from monoloc.server.storage.keys import SCOPES
 
-Scope = Literal["localize", "map:write", "admin"]
-assert set(SCOPES) == {"localize", "map:write", "admin"}
+Scope = Literal["localize", "map:write", "metrics", "admin"]
+assert set(SCOPES) == {"localize", "map:write", "metrics", "admin"}
 
 
 class KeyCreate(BaseModel):

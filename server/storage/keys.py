@@ -8,8 +8,9 @@ request without adding security; a stolen database does not reveal usable keys.
 Verification looks the key up by its first 12 characters (the non-secret ``prefix``,
 also shown in listings) and compares the sha256 digests with ``hmac.compare_digest``,
 so neither the database lookup nor the comparison depends on the secret part.
-Scopes: ``localize`` (vehicles), ``map:write`` (uploads, entries), ``admin`` (maps,
-keys); ``ApiKeyRecord.has_scope`` treats ``admin`` as granting every scope.
+Scopes: ``localize`` (vehicles), ``map:write`` (uploads, entries), ``metrics`` (a
+Prometheus scraper: ``/metrics`` only), ``admin`` (maps, keys);
+``ApiKeyRecord.has_scope`` treats ``admin`` as granting every scope.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from monoloc.core.errors import InvalidInputError, NotFoundError
 from monoloc.server.storage.models import ApiKey, utc_now
 from monoloc.server.storage.records import ApiKeyRecord
 
-SCOPES = ("localize", "map:write", "admin")
+SCOPES = ("localize", "map:write", "metrics", "admin")
 KEY_PREFIX = "mlk_"
 PREFIX_CHARS = 12  # "mlk_" + 8 random characters: enough to tell keys apart in a listing
 _TOKEN_BYTES = 32

@@ -224,3 +224,42 @@ def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_pat
     log = (tmp_path / "access.log").read_text()
     for replica in fleet.replicas:
         assert f"upstream=127.0.0.1:{replica.port}" in log, log
+
+
+def _vehicles(fleet, replica) -> list[dict]:
+    r = httpx.get(
+        f"{replica.url}/v1/maps/{fleet.map_id}/vehicles",
+        headers=fleet.headers("localize"),
+        timeout=30,
+    )
+    assert r.status_code == 200, r.text
+    return r.json()["vehicles"]
+
+
+def test_the_live_board_of_one_replica_shows_vehicles_streaming_to_the_other(fleet, street):
+    from monoloc.client.api import FrameStream
+
+    a, b = fleet.replicas
+    stream = FrameStream(b.url, fleet.keys["localize"], fleet.map_id, timeout_s=60)
+    try:
+        for seq in range(3):
+            stream.send(seq, 0.1 * seq, _frame(street, "01", FRAME + seq), seed=1)
+            assert "hypotheses" in stream.receive()
+        (on_b,) = [v for v in _vehicles(fleet, b) if v["connected"]]
+        deadline = time.monotonic() + 10
+        while True:  # the relay sends within a quarter of a second
+            seen = [v for v in _vehicles(fleet, a) if v["replica"] == on_b["replica"]]
+            if seen and seen[0]["frames"] == 3:
+                break
+            assert time.monotonic() < deadline, _vehicles(fleet, a)
+            time.sleep(0.1)
+        (vehicle,) = seen
+        assert vehicle["connected"] and vehicle["name"] == "localize"
+        assert vehicle["vehicle_id"] == on_b["vehicle_id"]
+        assert vehicle["last_seq"] == 2 and vehicle["estimate"] is not None
+    finally:
+        stream.close()
+    deadline = time.monotonic() + 10
+    while any(v["connected"] for v in _vehicles(fleet, a) if v["replica"] == on_b["replica"]):
+        assert time.monotonic() < deadline, "a still shows the closed stream connected"
+        time.sleep(0.1)

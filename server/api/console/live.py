@@ -10,12 +10,19 @@ vehicle sent with the frame (the client builds it from its filter's estimate, se
 client/tracking.py), else the best hypothesis (most inliers) of the answer. Latency is
 the server's time from a frame's arrival to its answer being sent (queueing included).
 Poses are planar, in the z-up world (metres, radians).
+
+Replicas share their boards (server/api/console/relay.py): each vehicle's public state is
+sent to the other replicas when it changes (and every few seconds while connected), and
+a board shows the vehicles other replicas reported next to its own; every vehicle names
+its ``replica``. A vehicle whose replica stopped reporting is shown disconnected, then
+forgotten like a closed one.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+import uuid
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -40,6 +47,7 @@ class BoardConfig:
     rate_window_s: float = 5.0
     forget_after_s: float = 60.0
     max_hypotheses: int = 10
+    stale_after_s: float = 6.0  # another replica's vehicle without a report: disconnected
 
 
 @dataclass
@@ -60,6 +68,16 @@ class _Vehicle:
     hypotheses: list[dict[str, Any]] = field(default_factory=list)
     recent: deque[tuple[float, float]] = field(default_factory=deque)  # (arrival, latency)
     closed_at_s: float | None = None
+    revision: int = 0
+
+
+@dataclass
+class _Remote:
+    """A vehicle of another replica: its public state as sent, when it arrived here."""
+
+    map_id: int
+    public: dict[str, Any]
+    received_s: float
 
 
 class VehicleBoard:
@@ -73,6 +91,9 @@ class VehicleBoard:
         self._vehicles: dict[int, _Vehicle] = {}
         self._next_id = 1
         self.version = 0
+        self.replica_id = uuid.uuid4().hex[:12]
+        self._remote: dict[tuple[str, int], _Remote] = {}
+        self._sent: dict[int, tuple[int, float]] = {}  # vehicle -> (revision, sent at)
 
     def connect(self, map_id: int, name: str) -> VehicleFeed:
         """A feed for a new stream on ``map_id`` by the key named ``name``."""
@@ -88,15 +109,55 @@ class VehicleBoard:
             vehicle = self._vehicles.get(vehicle_id)
             if vehicle is not None:
                 change(vehicle, self.clock())
+                vehicle.revision += 1
                 self.version += 1
 
     def snapshot(self, map_id: int) -> dict[str, Any]:
-        """``{"version", "vehicles": [...]}`` for the vehicles of ``map_id``, oldest first."""
+        """``{"version", "vehicles": [...]}`` for the vehicles of ``map_id`` on every
+        replica: this one's, oldest first, then the others' as last reported."""
         now = self.clock()
         with self._lock:
             self._forget(now)
             vehicles = [self._public(v, now) for v in self._vehicles.values() if v.map_id == map_id]
+            vehicles += [
+                self._remote_public(r, now) for r in self._remote.values() if r.map_id == map_id
+            ]
             return {"version": self.version, "vehicles": vehicles}
+
+    def outgoing(self, heartbeat_s: float) -> list[tuple[int, dict[str, Any]]]:
+        """(map id, public state) of this replica's vehicles changed since last asked, or
+        connected and not sent for ``heartbeat_s``: what to tell the other replicas."""
+        now = self.clock()
+        out = []
+        with self._lock:
+            for i, v in self._vehicles.items():
+                revision, sent_s = self._sent.get(i, (-1, -float("inf")))
+                if v.revision != revision or (v.connected and now - sent_s >= heartbeat_s):
+                    out.append((v.map_id, self._public(v, now)))
+                    self._sent[i] = (v.revision, now)
+            for i in [i for i in self._sent if i not in self._vehicles]:
+                del self._sent[i]
+        return out
+
+    def merge(self, replica_id: str, map_id: int, public: dict[str, Any]) -> None:
+        """A vehicle's state reported by replica ``replica_id`` (this one's are ignored)."""
+        if replica_id == self.replica_id:
+            return
+        with self._lock:
+            key = (replica_id, int(public["vehicle_id"]))
+            self._remote[key] = _Remote(int(map_id), dict(public), self.clock())
+            self.version += 1
+
+    def _remote_public(self, r: _Remote, now: float) -> dict[str, Any]:
+        age_s = now - r.received_s
+        public = dict(r.public)
+        if public.get("connected") and age_s > self.config.stale_after_s:
+            public["connected"] = False  # its replica stopped reporting it
+        if public.get("connected"):
+            public["connected_for_s"] = round(public["connected_for_s"] + age_s, 3)
+            if public.get("since_last_frame_s") is not None:
+                public["since_last_frame_s"] = round(public["since_last_frame_s"] + age_s, 3)
+        return public
 
     def _forget(self, now: float) -> None:
         stale = [
@@ -106,6 +167,12 @@ class VehicleBoard:
         ]
         for i in stale:
             del self._vehicles[i]
+        # another replica's vehicle: forgotten as long after its last report
+        gone = [
+            k for k, r in self._remote.items() if now - r.received_s > self.config.forget_after_s
+        ]
+        for k in gone:
+            del self._remote[k]
 
     def _public(self, v: _Vehicle, now: float) -> dict[str, Any]:
         window = [(a, lat) for a, lat in v.recent if now - a <= self.config.rate_window_s]
@@ -117,6 +184,7 @@ class VehicleBoard:
         idle_s = None if v.last_frame_s is None else round(now - v.last_frame_s, 3)
         return {
             "vehicle_id": v.vehicle_id,
+            "replica": self.replica_id,
             "name": v.name,
             "connected": v.connected,
             "connected_for_s": round(now - v.connected_at_s, 3),

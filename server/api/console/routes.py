@@ -352,6 +352,6 @@ def vehicle_events(
                 yield f"data: {json.dumps(snapshot)}\n\n"
             await asyncio.sleep(SSE_PERIOD_S)
 
-    return StreamingResponse(
-        events(), media_type="text/event-stream", headers={"Cache-Control": "no-store"}
-    )
+    # X-Accel-Buffering: a proxy in front (nginx) passes each event on at once
+    headers = {"Cache-Control": "no-store", "X-Accel-Buffering": "no"}
+    return StreamingResponse(events(), media_type="text/event-stream", headers=headers)

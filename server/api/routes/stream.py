@@ -213,6 +213,7 @@ class _Session:
             # exclude_unset: an error answer leaves out the t it was not given
             body = answer.model_dump(mode="json", exclude_unset=isinstance(answer, StreamError))
             self.feed.report(body, item.received_s, item.options.prior if item.options else None)
+            self.state.metrics.count_stream_answer(self.map_id, body)
             try:
                 await self.ws.send_text(json.dumps(body))
             except Exception:  # the client went away: nobody to answer

@@ -102,14 +102,40 @@ def test_same_seed_same_answer_and_map_survives_restart(sim_dataset, map_copy):
     assert answers[0] == answers[1]
 
 
-def test_metrics_report_routes_stages_entries_and_jobs(sim_dataset, map_copy, client_on_copy):
+def _samples(text: str) -> dict[tuple[str, frozenset], float]:
+    """The exposition parsed by prometheus_client: (name, labels) -> value."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    return {
+        (s.name, frozenset(s.labels.items())): s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+    }
+
+
+def _sample(samples, name: str, **labels: str) -> float:
+    return samples.get((name, frozenset(labels.items())), 0.0)
+
+
+def test_metrics_report_routes_stages_entries_jobs_and_frames(
+    sim_dataset, map_copy, client_on_copy
+):
+    admin = map_copy.keys.header("admin")
     _localize(client_on_copy, map_copy.map_id, map_copy.keys, frame_png(sim_dataset, "01", 3))
-    text = client_on_copy.get("/metrics", headers=map_copy.keys.header("admin")).text
+    samples = _samples(client_on_copy.get("/metrics", headers=admin).text)
     n = map_copy.job["result"]["entries_added"]
-    assert f'monoloc_map_entries{{map_id="{map_copy.map_id}",map="street"}} {n}' in text
-    assert 'monoloc_jobs{kind="ingest",state="done"} 1' in text
-    assert (
-        'monoloc_http_request_duration_seconds_count{method="POST",'
-        'route="/v1/maps/{map_id}/localize",status="200"} 1'
-    ) in text
-    assert 'monoloc_localize_stage_duration_seconds_count{stage="pnp"} 1' in text
+    map_id = str(map_copy.map_id)
+    assert _sample(samples, "monoloc_map_entries", map_id=map_id, map="street") == n
+    assert _sample(samples, "monoloc_jobs", kind="ingest", state="done") == 1
+    route = {"method": "POST", "route": "/v1/maps/{map_id}/localize", "status": "200"}
+    assert _sample(samples, "monoloc_http_request_duration_seconds_count", **route) == 1
+    assert _sample(samples, "monoloc_localize_stage_duration_seconds_count", stage="pnp") == 1
+    frames = "monoloc_localize_frames_total"
+    outcomes = ("hypotheses", "no_hypothesis", "shed", "failed")
+    counted = {o: _sample(samples, frames, map_id=map_id, outcome=o) for o in outcomes}
+    assert counted == {"hypotheses": 1, "no_hypothesis": 0, "shed": 0, "failed": 0}
+    # a frame that is not an image fails, counted under its map
+    bad = _localize(client_on_copy, map_copy.map_id, map_copy.keys, b"not an image")
+    assert 400 <= bad.status_code < 500 and bad.status_code not in (401, 403, 404), bad.text
+    samples = _samples(client_on_copy.get("/metrics", headers=admin).text)
+    assert _sample(samples, frames, map_id=map_id, outcome="failed") == 1

@@ -18,6 +18,7 @@ EXEMPT |= {"/docs/assets", "/ui", "/ui/assets", "/ui/vendor/plotly.min.js"}
 WRONG_KEYS = {
     "localize": ["write"],
     "map:write": ["localize"],
+    "metrics": ["localize", "write"],
     "admin": ["localize", "write"],
     "read": [],
 }
@@ -87,7 +88,12 @@ def test_every_route_checks_its_scope(fresh):
             assert _status(client, method, path, headers) == 401, (method, path, headers)
         for wrong in WRONG_KEYS[scope]:
             assert _status(client, method, path, keys.header(wrong)) == 403, (method, path, wrong)
-        right = {"admin": {"admin"}, "localize": {"localize"}, "read": {"localize", "write"}}
+        right = {
+            "admin": {"admin"},
+            "metrics": {"admin"},
+            "localize": {"localize"},
+            "read": {"localize", "write"},
+        }
         for key in right.get(scope, {"write"}) | {"admin"}:
             status = _status(client, method, path, keys.header(key))
             assert status not in (401, 403), (method, path, key, status)
@@ -127,6 +133,23 @@ def test_metrics_can_be_made_public(tmp_path):
     with open_client(make_settings(tmp_path / "e")) as client:
         assert client.get("/metrics").status_code == 401
         assert client.get("/metrics", headers={"X-API-Key": ADMIN_KEY}).status_code == 200
+
+
+def test_a_metrics_key_scrapes_metrics_and_nothing_an_admin_does(fresh):
+    client, keys = fresh
+    admin = keys.header("admin")
+    made = client.post(
+        "/v1/keys", json={"name": "prometheus", "scopes": ["metrics"]}, headers=admin
+    )
+    assert made.status_code == 201, made.text
+    scraper = {"X-API-Key": made.json()["key"]}
+    scraped = client.get("/metrics", headers=scraper)
+    assert scraped.status_code == 200
+    assert scraped.headers["content-type"].startswith("text/plain")
+    assert "# TYPE monoloc_http_request_duration_seconds histogram" in scraped.text
+    assert client.get("/v1/keys", headers=scraper).status_code == 403
+    assert client.post("/v1/maps", json={"name": "x"}, headers=scraper).status_code == 403
+    assert client.get("/metrics", headers=keys.header("localize")).status_code == 403
 
 
 def test_bootstrap_key_is_used_only_on_an_empty_key_table(tmp_path):

@@ -471,13 +471,14 @@ async function livePage(mapId) {
     body.replaceChildren();
     snapshot.vehicles.forEach((v, k) => {
       const colour = VEHICLE_COLOURS[k % VEHICLE_COLOURS.length];
-      const trail = trails.get(v.vehicle_id) || [];
+      const key = `${v.replica}/${v.vehicle_id}`;  // ids are per replica
+      const trail = trails.get(key) || [];
       const e = v.estimate;
       if (e && (!trail.length || trail[trail.length - 1].seq !== v.last_seq)) {
         trail.push({ x: e.x_m, y: e.y_m, seq: v.last_seq });
         if (trail.length > 500) trail.shift();
       }
-      trails.set(v.vehicle_id, trail);
+      trails.set(key, trail);
       const label = `${v.name} #${v.vehicle_id}`;
       traces.push({ type: "scatter", mode: "lines", name: `${label} track`, showlegend: false,
         x: trail.map((p) => p.x), y: trail.map((p) => p.y), line: { color: colour, width: 2 } });
