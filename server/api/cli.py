@@ -40,7 +40,8 @@ def _sessions(data_dir: Path | None):
 @keys_app.command("create")
 def keys_create(
     scope: Annotated[
-        list[str], typer.Option(help="localize, map:write or admin (repeat or comma-separate).")
+        list[str],
+        typer.Option(help="localize, map:write, metrics or admin (repeat or comma-separate)."),
     ],
     name: Annotated[str, typer.Option(help="Who holds the key, e.g. car1.")],
     data_dir: DataDirOption = None,
