@@ -27,7 +27,7 @@ from monoloc.sim.recording import RecordingErrors
 from monoloc.sim.summary import DatasetSummary
 from monoloc.sim.urban.city import CityConfig
 from monoloc.sim.urban.generate import generate_urban_dataset
-from monoloc.sim.urban.runs import DEFAULT_RUNS, RUN_KINDS
+from monoloc.sim.urban.runs import DEFAULT_RUNS, RUN_KINDS, TrainRunConfig
 from monoloc.sim.vehicle import SensorRig, VehicleConfig
 
 SCENARIOS = ("urban", "indoor")
@@ -40,7 +40,9 @@ class GenerateConfig:
     ``write_stereo`` renders the right camera too (sequences/NN/image_1/, baseline
     ``rig.stereo_baseline_m``, P1 in calib.txt; urban only; off by default because it
     doubles the camera's rendering time); ``write_lidar=False`` leaves velodyne/ empty
-    (a fleet without LiDAR).
+    (a fleet without LiDAR). ``train_run`` (urban): how the training runs differ from the
+    map's street (route shape and length, direction, lighting, exposure, palette, speed,
+    frame rate; ``monoloc.sim.urban.runs.TrainRunConfig``); None: as the map's routes.
 
     Scenario ``indoor`` (TUM RGB-D layout, ``monoloc.sim.indoor.generate``) uses scenario, size,
     seed, runs (from map, query, train, offcenter; the default means all four),
@@ -68,6 +70,7 @@ class GenerateConfig:
     offcenter_steer_rad: float = 0.05
     workers: int = 1
     indoor: IndoorConfig | None = None
+    train_run: TrainRunConfig | None = None
 
     def city_config(self) -> CityConfig:
         return self.city or CityConfig.preset(self.size)
@@ -104,6 +107,8 @@ class GenerateConfig:
                 f"the stereo baseline must be > 0 m, got {self.rig.stereo_baseline_m}"
             )
         CityConfig.preset(self.size) if self.city is None else None
+        if self.train_run is not None:
+            self.train_run.validate()
         Lighting.preset(self.query_lighting)
 
 

@@ -30,7 +30,13 @@ class CityConfig:
 
     Aliasing: each district has ``building_designs`` recurring buildings; a lot starts a
     row of ``terrace_copies`` identical copies of one of them with probability
-    ``repeated_building_fraction`` (see ``monoloc.sim.urban.buildings``)."""
+    ``repeated_building_fraction`` (see ``monoloc.sim.urban.buildings``).
+
+    ``train_seed``: the training district drawn from its own seed (its streets,
+    buildings and textures another draw than the one the city's seed gives; None: the
+    city's), so a training run can see another street than any drawn with the map. The
+    main district's streets and buildings stay; its parked cars, one draw over all the
+    city's parking spots, are re-arranged."""
 
     blocks_x: int = 2
     blocks_y: int = 2
@@ -57,6 +63,7 @@ class CityConfig:
     terrace_copies: tuple[int, int] = (2, 4)
     facade_texels_per_m: float = 40.0
     ground_texels_per_m: float = 40.0
+    train_seed: int | None = None
 
     @classmethod
     def preset(cls, size: str) -> CityConfig:
@@ -89,13 +96,16 @@ def build_city(config: CityConfig, seed: int) -> City:
     """The whole city, deterministic in ``seed``: main district at the origin and the
     training district at ``config.train_offset_m``."""
     rng = np.random.default_rng([seed, 1])
+    main = make_grid(config, rng, "main", (config.blocks_x, config.blocks_y), (0.0, 0.0))
+    train_seed = seed if config.train_seed is None else config.train_seed
+    train_rng = rng if config.train_seed is None else np.random.default_rng([train_seed, 1])
     grids = {
-        "main": make_grid(config, rng, "main", (config.blocks_x, config.blocks_y), (0.0, 0.0)),
-        "train": make_grid(config, rng, "train", config.train_blocks, config.train_offset_m),
+        "main": main,
+        "train": make_grid(config, train_rng, "train", config.train_blocks, config.train_offset_m),
     }
     scenes, spots = [], []
-    for k, grid in enumerate(grids.values()):
-        scene, grid_spots = build_district_scene(grid, config, seed * 7919 + k * 104729)
+    for k, (grid, district_seed) in enumerate(zip(grids.values(), (seed, train_seed), strict=True)):
+        scene, grid_spots = build_district_scene(grid, config, district_seed * 7919 + k * 104729)
         scenes.append(scene)
         spots.append(grid_spots)
     return City(

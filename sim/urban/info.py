@@ -101,7 +101,21 @@ def dataset_info(config, plans, written, frames) -> dict:
                 "lidar_time_offset_mean_s": round(
                     float(np.mean(written[p.seq_id].draws.lidar_time_offsets_s)), 5
                 ),
+                **_train_run_keys(p, config),
             }
             for p in plans
         ],
+    }
+
+
+def _train_run_keys(plan, config) -> dict:
+    """What a training run's options changed (``GenerateConfig.train_run``; nothing
+    without them, so the datasets without them keep their bytes)."""
+    options = config.train_run
+    if options is None or plan.kind not in ("train", "trainnight"):
+        return {}
+    return {
+        "train_run": asdict(options),
+        "frame_period_s": options.frame_period_s,
+        "exposure_offset_ev": plan.exposure_offset_ev,
     }

@@ -4,7 +4,7 @@ texture cache)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -119,9 +119,12 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
     rig, errors = config.rig, config.errors
     intrinsics = config.intrinsics()
     draws = run_draws(plan, errors)
-    gains = material_gains(len(scene.textures), errors, np.random.default_rng([plan.seed, 5]))
+    palette = errors
+    if plan.material_gain is not None:
+        palette = replace(errors, material_gain=plan.material_gain)
+    gains = material_gains(len(scene.textures), palette, np.random.default_rng([plan.seed, 5]))
     cam_cfg = config.camera
-    bias = draws.exposure_bias_ev
+    bias = draws.exposure_bias_ev + plan.exposure_offset_ev
     cam_cfg = CameraConfig(
         **{**cam_cfg.__dict__, "exposure_bias_ev": cam_cfg.exposure_bias_ev + bias}
     )

@@ -23,6 +23,11 @@ run covered (fresh seed 3197: the last 100 m of its query had no map at all). Th
 where the run they are localized against ends instead (``query``: ``map``; ``night``:
 ``nightmap`` when generated, else ``map``; ``offcenter``, an addition to the map, is not
 cut).
+
+``GenerateConfig.train_run`` (a :class:`TrainRunConfig`) makes the training runs differ
+from the map's street: route shape and length, road direction, lighting and exposure,
+gray-level palette, speed and frame rate (the training district's buildings and
+textures: ``CityConfig.train_seed``). Unset, the training runs are as above, to the byte.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ import numpy as np
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.camera import Lighting
-from monoloc.sim.path import offset_path, wandering_offset
+from monoloc.sim.path import Path, offset_path, wandering_offset
 from monoloc.sim.urban.city import City
 from monoloc.sim.urban.routes import lane_path, plan_route
 from monoloc.sim.vehicle import SensorRig, VehicleStates, drive
@@ -52,6 +57,80 @@ SWERVE_WAVELENGTH_M = (60.0, 250.0)
 SWERVE_MAX_HEADING_RAD = math.radians(5.0) * 0.8
 
 
+TRAIN_ROUTES = ("loop", "straight")
+# A straight route's direction: along the district's x streets (east, west) or y streets.
+DIRECTIONS = {"east": (0, 1), "west": (0, -1), "north": (1, 1), "south": (1, -1)}
+
+
+@dataclass(frozen=True)
+class TrainRunConfig:
+    """How the training runs (``train``, ``trainnight``) differ from the map's street.
+
+    ``route``: ``loop`` (the covering walk of the map's routes) or ``straight`` (one
+    street across the training district, street index ``street`` counted from its west /
+    south edge, driven ``direction`` east, west, north or south); ``length_m`` cuts the
+    route (None: whole). ``lighting`` (None: day for ``train``, night for
+    ``trainnight``); ``exposure_ev`` is added to the run's drawn exposure offset;
+    ``material_gain`` (None: the recording errors') is the log-sigma of the run's
+    per-material gray levels (a larger one: another palette). ``speed_mps`` (None: the
+    vehicle's range) and ``frame_period_s`` (s; 0.1 = 10 Hz, 0.2 = 5 Hz)."""
+
+    route: str = "loop"
+    street: int = 0
+    direction: str = "east"
+    length_m: float | None = None
+    lighting: str | None = None
+    exposure_ev: float = 0.0
+    material_gain: float | None = None
+    speed_mps: tuple[float, float] | None = None
+    frame_period_s: float = FRAME_PERIOD_S
+
+    def validate(self) -> None:
+        if self.route not in TRAIN_ROUTES:
+            raise InvalidInputError(f"unknown route {self.route!r}; use one of {TRAIN_ROUTES}")
+        if self.direction not in DIRECTIONS:
+            raise InvalidInputError(
+                f"unknown direction {self.direction!r}; use one of {sorted(DIRECTIONS)}"
+            )
+        if self.length_m is not None and not self.length_m > 5.0:
+            raise InvalidInputError(f"length_m must be > 5 m, got {self.length_m}")
+        if not 0.01 <= self.frame_period_s <= 1.0:
+            raise InvalidInputError(
+                f"frame_period_s must be in [0.01, 1] s, got {self.frame_period_s}"
+            )
+        if self.speed_mps is not None and not 0 < self.speed_mps[0] <= self.speed_mps[1]:
+            raise InvalidInputError(f"speed_mps must be 0 < lo <= hi, got {self.speed_mps}")
+        if self.lighting is not None:
+            Lighting.preset(self.lighting)
+
+
+def train_path(grid, options: TrainRunConfig | None, seed: int) -> Path:
+    """The lane-centre path of a training run through ``grid`` (the training district)."""
+    if options is None or options.route == "loop":
+        max_length = 1e9 if options is None or options.length_m is None else options.length_m
+        route = plan_route(grid, np.random.default_rng([seed, 101]), max_length)
+        path = lane_path(grid, route)
+    else:
+        axis, sign = DIRECTIONS[options.direction]
+        n_along = len(grid.xs) if axis == 0 else len(grid.ys)
+        n_across = len(grid.ys) if axis == 0 else len(grid.xs)
+        if not 0 <= options.street < n_across:
+            raise InvalidInputError(
+                f"street {options.street} is not in the training district (0..{n_across - 1})"
+            )
+        along = range(n_along) if sign > 0 else range(n_along - 1, -1, -1)
+        route = [(i, options.street) if axis == 0 else (options.street, i) for i in along]
+        path = lane_path(grid, route)
+    if options is not None and options.length_m is not None:
+        path = _cut(path, options.length_m)
+    return path
+
+
+def _cut(path: Path, length_m: float) -> Path:
+    keep = path.s_m <= length_m
+    return Path(path.xy[keep], path.heading_rad[keep], path.curvature[keep], path.s_m[keep])
+
+
 @dataclass(frozen=True)
 class RunPlan:
     """One run, fully decided before rendering: its drive (true states) and settings."""
@@ -65,6 +144,9 @@ class RunPlan:
     states: VehicleStates
     frame_times_s: np.ndarray  # (n,) times in the drive
     route_length_m: float
+    # the training-run options' camera changes (TrainRunConfig); 0 / None: none
+    exposure_offset_ev: float = 0.0
+    material_gain: float | None = None
 
 
 def _run_rng(seed: int, kind: str, purpose: int) -> np.random.Generator:
@@ -78,15 +160,14 @@ def plan_runs(city: City, config) -> list[RunPlan]:
     main = city.grids["main"]
     route_rng = np.random.default_rng([seed, 100])
     main_path = lane_path(main, plan_route(main, route_rng))
-    max_duration = None
-    if config.max_frames is not None:
-        max_duration = (config.max_frames + 2) * FRAME_PERIOD_S
+    options = config.train_run
     plans = []
     map_lighting = Lighting.preset("day", _run_rng(seed, "map", 1))
     for n, kind in enumerate(config.runs):
         rng = _run_rng(seed, kind, 2)
         path, target, vehicle, district = main_path, None, config.vehicle, "main"
         lighting, variant = map_lighting, 0
+        period, extra = FRAME_PERIOD_S, {}
         if kind in ("query", "night"):
             offsets = wandering_offset(
                 path, rng, config.query_max_offset_m, SWERVE_MAX_HEADING_RAD, SWERVE_WAVELENGTH_M
@@ -102,14 +183,24 @@ def plan_runs(city: City, config) -> list[RunPlan]:
             variant = 3
             lighting = Lighting.preset("night", _run_rng(seed, kind, 1))
         elif kind in ("train", "trainnight"):
-            train = city.grids["train"]
-            path = lane_path(train, plan_route(train, np.random.default_rng([seed, 101])))
+            path = train_path(city.grids["train"], options, seed)
             district = "train"
             night = kind == "trainnight"
-            lighting = Lighting.preset("night" if night else "day", _run_rng(seed, kind, 1))
+            light = "night" if night else "day"
+            if options is not None:
+                light = options.lighting or light
+                period = options.frame_period_s
+                extra = {
+                    "exposure_offset_ev": options.exposure_ev,
+                    "material_gain": options.material_gain,
+                }
+                if options.speed_mps is not None:
+                    vehicle = replace(vehicle, speed_range_mps=tuple(options.speed_mps))
+            lighting = Lighting.preset(light, _run_rng(seed, kind, 1))
             variant = 4 if night else 0
+        max_duration = None if config.max_frames is None else (config.max_frames + 2) * period
         states = drive(path, vehicle, rng, max_duration_s=max_duration, target=target)
-        times = np.arange(FRAME_PERIOD_S, states.duration_s - FRAME_PERIOD_S, FRAME_PERIOD_S)
+        times = np.arange(period, states.duration_s - period, period)
         if config.max_frames is not None:
             times = times[: config.max_frames]
         if len(times) == 0:
@@ -125,6 +216,7 @@ def plan_runs(city: City, config) -> list[RunPlan]:
                 states,
                 times,
                 path.length_m,
+                **extra,
             )
         )
     if config.max_frames is not None:
