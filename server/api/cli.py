@@ -44,6 +44,10 @@ def keys_create(
         typer.Option(help="localize, map:write, metrics or admin (repeat or comma-separate)."),
     ],
     name: Annotated[str, typer.Option(help="Who holds the key, e.g. car1.")],
+    map_id: Annotated[
+        list[int] | None,
+        typer.Option("--map", help="Limit the key to this map id (repeat); default: all maps."),
+    ] = None,
     data_dir: DataDirOption = None,
 ) -> None:
     """Create a key and print it once (only its hash is stored)."""
@@ -51,7 +55,7 @@ def keys_create(
     from monoloc.server.storage.keys import create_api_key
 
     with session_scope(_sessions(data_dir)) as session:
-        record, plaintext = create_api_key(session, name, ",".join(scope))
+        record, plaintext = create_api_key(session, name, ",".join(scope), map_id or None)
     typer.echo(plaintext)
     typer.echo(
         f"key {record.id} '{record.name}' scopes {','.join(sorted(record.scopes))}: "

@@ -7,7 +7,9 @@ API keys (documented in the OpenAPI security schemes):
 * WebSocket: the same headers, or the query parameter ``?key=mlk_...`` (browsers cannot
   set headers on a WebSocket; prefer headers elsewhere: URLs end up in logs).
 
-No key, or an unknown/revoked one: 401. A valid key without the route's scope: 403.
+No key, or an unknown/revoked one: 401. A valid key without the route's scope: 403. A
+key limited to some maps (``ApiKeyRecord.maps``) asking for another map by the path's
+``{map_id}``: 403 (lists and jobs are filtered by the routes themselves).
 ``admin`` grants every scope. Exempt (no key): ``/healthz``, ``/readyz``, ``/docs``,
 ``/redoc`` and ``/openapi.json`` (the API description holds no data), and ``/metrics``
 only when ``MONOLOC_METRICS_PUBLIC=true`` (otherwise it needs ``admin``).
@@ -122,8 +124,26 @@ def presented_key(conn: HTTPConnection) -> str | None:
     return credentials.strip() or None if scheme.lower() == "bearer" else None
 
 
-def authenticate(state: AppState, presented: str | None, scope: str) -> ApiKeyRecord:
-    """The key record if ``presented`` is a valid key with ``scope``; 401/403 otherwise."""
+def path_map_id(conn: HTTPConnection) -> int | None:
+    """The ``{map_id}`` of the request's path, if it has one that is a number."""
+    value = str(conn.scope.get("path_params", {}).get("map_id", ""))
+    return int(value) if value.isdigit() else None
+
+
+def check_map_access(record: ApiKeyRecord, map_id: int | None) -> None:
+    """403 if ``record`` is limited to maps that do not include ``map_id``."""
+    if map_id is not None and not record.can_see_map(map_id):
+        raise ForbiddenError(
+            f"this API key ({record.prefix}...) is limited to maps {sorted(record.maps or ())}"
+            f" and may not touch map {map_id}"
+        )
+
+
+def authenticate(
+    state: AppState, presented: str | None, scope: str, map_id: int | None = None
+) -> ApiKeyRecord:
+    """The key record if ``presented`` is a valid key with ``scope`` that may touch
+    ``map_id`` (when given); 401/403 otherwise."""
     if not presented:
         raise UnauthorizedError(
             "missing API key: send it in the X-API-Key header (or Authorization: Bearer)"
@@ -140,6 +160,7 @@ def authenticate(state: AppState, presented: str | None, scope: str) -> ApiKeyRe
             f"this API key ({record.prefix}..., scopes {sorted(record.scopes)}) lacks the "
             f"'{scope}' scope this route needs"
         )
+    check_map_access(record, map_id)
     return record
 
 
@@ -153,18 +174,22 @@ def require_scope(scope: str, *, websocket: bool = False) -> Callable[..., ApiKe
         bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer_scheme)] = None,
     ) -> ApiKeyRecord:
         checked = conn.scope.get(KEY_RECORD_SCOPE)
+        map_id = path_map_id(conn)
         if isinstance(checked, ApiKeyRecord) and checked.has_scope(scope):
+            check_map_access(checked, map_id)
             return checked  # checked before the body was read (GuardedRoute)
-        return authenticate(state, header_key or (bearer.credentials if bearer else None), scope)
+        presented = header_key or (bearer.credentials if bearer else None)
+        return authenticate(state, presented, scope, map_id)
 
     def ws_dependency(
+        conn: HTTPConnection,
         state: StateDep,
         header_key: Annotated[str | None, Security(_header_scheme)] = None,
         bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer_scheme)] = None,
         query_key: Annotated[str | None, Security(_query_scheme)] = None,
     ) -> ApiKeyRecord:
         presented = header_key or (bearer.credentials if bearer else None) or query_key
-        return authenticate(state, presented, scope)
+        return authenticate(state, presented, scope, path_map_id(conn))
 
     dependency = ws_dependency if websocket else http_dependency
     dependency.__name__ = f"require_{scope.replace(':', '_')}"

@@ -37,7 +37,13 @@ from starlette.responses import Response
 from starlette.types import Message, Receive
 
 from monoloc.server.api.convert import error_responses
-from monoloc.server.api.deps import KEY_RECORD_SCOPE, authenticate, get_state, presented_key
+from monoloc.server.api.deps import (
+    KEY_RECORD_SCOPE,
+    authenticate,
+    get_state,
+    path_map_id,
+    presented_key,
+)
 from monoloc.server.api.errors import PayloadTooLargeError
 from monoloc.server.api.limits import BodyTooLargeError
 
@@ -118,7 +124,11 @@ class GuardedRoute(APIRoute):
             state = get_state(request)
             if self.key_scope is not None:
                 record = await anyio.to_thread.run_sync(
-                    authenticate, state, presented_key(request), self.key_scope
+                    authenticate,
+                    state,
+                    presented_key(request),
+                    self.key_scope,
+                    path_map_id(request),
                 )
                 request.scope[KEY_RECORD_SCOPE] = record
             limit = int(getattr(state.settings, LIMIT_SETTINGS[self.body_kind]))

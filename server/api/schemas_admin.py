@@ -5,10 +5,11 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field, field_validator
 
+from monoloc.server.api.params import DB_ID_MAX
 from monoloc.server.api.schemas import TIME_EXAMPLE, example, record_example, strict_example
 from monoloc.server.storage.keys import SCOPES
 
@@ -25,6 +26,14 @@ class KeyCreate(BaseModel):
         description="1-128 characters, not only spaces (stored without surrounding spaces).",
     )
     scopes: list[Scope] = Field(min_length=1)
+    maps: list[Annotated[int, Field(ge=1, le=DB_ID_MAX)]] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=1000,
+        description="Limit the key to these maps (ids of existing maps): every other map "
+        "is refused with 403, and lists show only these. Left out: every map. Not allowed "
+        "with the admin scope (an admin key sees every map).",
+    )
 
 
 _KEY_EXAMPLE = dict(
@@ -34,6 +43,7 @@ _KEY_EXAMPLE = dict(
     scopes=["localize"],
     created_at=TIME_EXAMPLE,
     revoked_at=None,
+    maps=None,
 )
 
 
@@ -45,11 +55,17 @@ class KeyPublic(BaseModel):
     scopes: list[str]
     created_at: datetime
     revoked_at: datetime | None
+    maps: list[int] | None = Field(description="The maps the key may touch; null: every map.")
 
     @field_validator("scopes", mode="before")
     @classmethod
     def _sorted(cls, scopes: Iterable[str]) -> list[str]:
         return sorted(scopes)  # a record holds them as a set
+
+    @field_validator("maps", mode="before")
+    @classmethod
+    def _sorted_maps(cls, maps: Iterable[int] | None) -> list[int] | None:
+        return None if maps is None else sorted(maps)
 
 
 class KeyCreated(KeyPublic):

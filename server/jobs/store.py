@@ -78,11 +78,15 @@ def list_jobs(
     states: Iterable[str] | None = None,
     limit: int = 100,
     offset: int = 0,
+    map_ids: Iterable[int] | None = None,
 ) -> list[JobRecord]:
-    """Jobs, newest first, optionally of one map and/or in the given states."""
+    """Jobs, newest first, optionally of one map, of some maps (``map_ids``) and/or in
+    the given states."""
     stmt = select(Job).execution_options(populate_existing=True)
     if map_id is not None:
         stmt = stmt.where(Job.map_id == map_id)
+    if map_ids is not None:
+        stmt = stmt.where(Job.map_id.in_(list(map_ids)))
     if states is not None:
         stmt = stmt.where(Job.state.in_(list(states)))
     stmt = stmt.order_by(Job.id.desc()).limit(max(0, limit)).offset(max(0, offset))

@@ -23,8 +23,8 @@ from collections.abc import Iterable
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from monoloc.core.errors import InvalidInputError, NotFoundError
-from monoloc.server.storage.models import ApiKey, utc_now
+from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
+from monoloc.server.storage.models import ApiKey, Map, utc_now
 from monoloc.server.storage.records import ApiKeyRecord
 
 SCOPES = ("localize", "map:write", "metrics", "admin")
@@ -58,24 +58,43 @@ def _record(row: ApiKey) -> ApiKeyRecord:
         scopes=frozenset(s for s in row.scopes.split(",") if s),
         created_at=row.created_at,
         revoked_at=row.revoked_at,
+        maps=None if row.maps is None else frozenset(int(m) for m in row.maps),
     )
 
 
+def _check_maps(session: Session, maps: Iterable[int], scopes: frozenset[str]) -> list[int]:
+    wanted = sorted({int(m) for m in maps})
+    if not wanted:
+        raise InvalidInputError("maps: give at least one map id, or leave maps out for all maps")
+    if "admin" in scopes:
+        raise InvalidInputError("maps: an admin key sees every map; limit only other keys")
+    found = set(session.scalars(select(Map.id).where(Map.id.in_(wanted))))
+    missing = [m for m in wanted if m not in found]
+    if missing:
+        raise InvalidInputError(f"maps: map(s) {missing} do not exist")
+    return wanted
+
+
 def create_api_key(
-    session: Session, name: str, scopes: Iterable[str] | str
+    session: Session,
+    name: str,
+    scopes: Iterable[str] | str,
+    maps: Iterable[int] | None = None,
 ) -> tuple[ApiKeyRecord, str]:
-    """Create a key; returns (record, plaintext). The plaintext is not stored anywhere:
-    show it to the user once."""
+    """Create a key, limited to ``maps`` (existing map ids) if given; returns (record,
+    plaintext). The plaintext is not stored anywhere: show it to the user once."""
     name = str(name).strip()
     if not 1 <= len(name) <= 128:
         raise InvalidInputError(f"API key name must be 1-128 characters, got {name!r}")
     clean = parse_scopes(scopes)
+    map_ids = None if maps is None else _check_maps(session, maps, clean)
     plaintext = KEY_PREFIX + secrets.token_urlsafe(_TOKEN_BYTES)
     row = ApiKey(
         name=name,
         prefix=plaintext[:PREFIX_CHARS],
         key_hash=hash_api_key(plaintext),
         scopes=",".join(sorted(clean)),
+        maps=map_ids,
     )
     session.add(row)
     session.flush()
@@ -99,11 +118,27 @@ def verify_api_key(session: Session, plaintext: str | None) -> ApiKeyRecord | No
     return _record(match)
 
 
+def _is_admin(row: ApiKey) -> bool:
+    return "admin" in row.scopes.split(",")
+
+
 def revoke_api_key(session: Session, key_id: int) -> ApiKeyRecord:
-    """Revoke a key (idempotent: revoking twice keeps the first revocation time)."""
+    """Revoke a key (idempotent: revoking twice keeps the first revocation time).
+    ConflictError if it is the last active admin key."""
     row = session.get(ApiKey, key_id)
     if row is None:
         raise NotFoundError(f"API key {key_id} does not exist")
+    if row.revoked_at is None and _is_admin(row):
+        # Lock every active key (PostgreSQL): two revocations of the last two admin
+        # keys run one after the other, the second sees the first's.
+        active = session.scalars(
+            select(ApiKey).where(ApiKey.revoked_at.is_(None), ApiKey.id != key_id).with_for_update()
+        )
+        if not any(_is_admin(other) for other in active):
+            raise ConflictError(
+                f"API key {key_id} is the last active admin key: create another admin key "
+                "before revoking it (no one could manage the server's keys and maps)"
+            )
     if row.revoked_at is None:
         row.revoked_at = utc_now()
         session.flush()

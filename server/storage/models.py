@@ -272,5 +272,7 @@ class ApiKey(Base):
     prefix: Mapped[str] = mapped_column(String(16), index=True)  # shown to humans
     key_hash: Mapped[str] = mapped_column(String(64), unique=True)
     scopes: Mapped[str] = mapped_column(String(256))  # comma-separated
+    # The map ids this key may touch (JSON list); NULL: every map (revision 0008)
+    maps: Mapped[list[int] | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     revoked_at: Mapped[datetime | None]

@@ -219,10 +219,15 @@ class ApiKeyRecord:
     scopes: frozenset[str]
     created_at: datetime
     revoked_at: datetime | None
+    maps: frozenset[int] | None = None  # the maps it may touch; None: every map
 
     @property
     def revoked(self) -> bool:
         return self.revoked_at is not None
+
+    def can_see_map(self, map_id: int) -> bool:
+        """True if the key may read or act on map ``map_id`` (keys without maps: all)."""
+        return self.maps is None or map_id in self.maps
 
     def has_scope(self, scope: str) -> bool:
         """True if the key grants ``scope`` (directly or through ``admin``). ``read`` (what

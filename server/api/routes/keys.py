@@ -23,8 +23,9 @@ router = APIRouter(prefix="/v1/keys", tags=["keys"], route_class=GuardedRoute)
     summary="Create an API key",
 )
 def create_key(body: KeyCreate, session: SessionDep, _key: AdminKey) -> KeyCreated:
-    """Only a hash is stored: copy ``key`` from this answer, it is not shown again."""
-    record, plaintext = keys_repo.create_api_key(session, body.name, body.scopes)
+    """Only a hash is stored: copy ``key`` from this answer, it is not shown again.
+    ``maps`` limits the key to those maps (422 if one does not exist, or with ``admin``)."""
+    record, plaintext = keys_repo.create_api_key(session, body.name, body.scopes, body.maps)
     session.commit()
     return KeyCreated(**KeyPublic.model_validate(record).model_dump(), key=plaintext)
 
@@ -46,13 +47,13 @@ def list_keys(session: SessionDep, _key: AdminKey, include_revoked: bool = True)
 @router.delete(
     "/{key_id}",
     response_model=KeyPublic,
-    responses={**AUTH_ERRORS, **error_responses(404)},
+    responses={**AUTH_ERRORS, **error_responses(404, 409)},
     summary="Revoke an API key",
 )
 def revoke_key(key_id: KeyId, session: SessionDep, state: StateDep, _key: AdminKey) -> KeyPublic:
     """Takes effect at once on this replica and within `MONOLOC_KEY_CACHE_S` (2 s by
     default: how long a replica trusts a key it has verified) on the others. Revoking a
-    revoked key changes nothing."""
+    revoked key changes nothing. The last active admin key cannot be revoked (409)."""
     record = keys_repo.revoke_api_key(session, key_id)
     session.commit()
     state.keys.forget(key_id)

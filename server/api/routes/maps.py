@@ -72,10 +72,13 @@ def create_map(
 
 
 @router.get("", response_model=MapList, responses=AUTH_ERRORS, summary="List maps")
-def list_maps(session: SessionDep, _key: ReadKey) -> MapList:
+def list_maps(session: SessionDep, key: ReadKey) -> MapList:
+    """Every map, or the maps the key is limited to."""
     vocabularies: dict[int, object] = {}
     items = []
     for record in maps_repo.list_maps(session):
+        if not key.can_see_map(record.id):
+            continue
         if record.vocabulary_id not in vocabularies:
             vocabularies[record.vocabulary_id] = maps_repo.get_vocabulary(
                 session, record.vocabulary_id

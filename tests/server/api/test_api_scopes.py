@@ -243,3 +243,110 @@ def test_the_key_cache_can_be_turned_off(tmp_path):
         for _ in range(3):
             assert client.get("/v1/maps", headers=keys.header("localize")).status_code == 200
         assert len(key_queries) == 3
+
+
+CAMERA = dict(fx=700.0, fy=700.0, cx=620.0, cy=188.0, width_px=1241, height_px=376)
+
+
+def _admin_key_ids(client, keys) -> list[int]:
+    listed = client.get("/v1/keys", headers=keys.header("admin")).json()["items"]
+    return [k["id"] for k in listed if "admin" in k["scopes"] and k["revoked_at"] is None]
+
+
+def test_the_last_active_admin_key_cannot_be_revoked(fresh):
+    client, keys = fresh
+    (bootstrap,) = _admin_key_ids(client, keys)
+    refused = client.delete(f"/v1/keys/{bootstrap}", headers=keys.header("admin"))
+    assert refused.status_code == 409, refused.text
+    assert "last active admin key" in refused.json()["error"]["message"]
+    assert client.get("/v1/keys", headers=keys.header("admin")).status_code == 200
+    made = client.post(
+        "/v1/keys", json={"name": "ops", "scopes": ["admin"]}, headers=keys.header("admin")
+    )
+    ops = {"X-API-Key": made.json()["key"]}
+    assert client.delete(f"/v1/keys/{bootstrap}", headers=ops).status_code == 200
+    assert client.get("/v1/keys", headers=keys.header("admin")).status_code == 401
+    again = client.delete(f"/v1/keys/{made.json()['id']}", headers=ops)
+    assert again.status_code == 409 and client.get("/v1/keys", headers=ops).status_code == 200
+
+
+def _two_maps_and_a_tenant(client, keys) -> tuple[int, int, dict]:
+    ids = []
+    for name in ("ours", "theirs"):
+        r = client.post(
+            "/v1/maps", json={"name": name, "camera": CAMERA}, headers=keys.header("admin")
+        )
+        assert r.status_code == 201, r.text
+        ids.append(r.json()["id"])
+    ours, theirs = ids
+    made = client.post(
+        "/v1/keys",
+        json={"name": "tenant", "scopes": ["localize", "map:write"], "maps": [ours]},
+        headers=keys.header("admin"),
+    )
+    assert made.status_code == 201, made.text
+    assert made.json()["maps"] == [ours]
+    return ours, theirs, {"X-API-Key": made.json()["key"]}
+
+
+def test_a_key_limited_to_maps_is_refused_every_other_map_on_every_route(fresh):
+    """Every route, the stream and the console's routes with a {map_id}: another map is
+    403 for the tenant's key; its own map passes the map check."""
+    client, keys = fresh
+    ours, theirs, tenant = _two_maps_and_a_tenant(client, keys)
+    checked = 0
+    for path, route, dependant, methods in _flat_routes(client.app):
+        if "{map_id}" not in path or path in EXEMPT:
+            continue
+        scope = _required_scope(path, dependant)
+        for method in sorted(methods) if isinstance(route, APIRoute) else ["WS"]:
+            for map_id, allowed in ((theirs, False), (ours, True)):
+                concrete = re.sub(r"\{[^}]+\}", "999999", path.replace("{map_id}", str(map_id)))
+                status = _status(client, method, concrete, tenant)
+                if not allowed:
+                    assert status == 403, (method, concrete, status)
+                elif scope != "admin":
+                    assert status != 403, (method, concrete, status)
+            checked += 1
+    assert checked >= 20
+    me = client.get("/v1/keys/me", headers=tenant).json()
+    assert me["maps"] == [ours]
+    listed = client.get("/v1/maps", headers=tenant).json()["items"]
+    assert [m["id"] for m in listed] == [ours]
+    assert len(client.get("/v1/maps", headers=keys.header("localize")).json()["items"]) == 2
+
+
+def test_a_key_limited_to_maps_sees_only_their_jobs(fresh):
+    client, keys = fresh
+    ours, theirs, tenant = _two_maps_and_a_tenant(client, keys)
+    job_ids = {}
+    for map_id in (ours, theirs):
+        r = client.post(
+            f"/v1/maps/{map_id}/vocabulary/jobs",
+            json={"vocabulary": "default"},
+            headers=keys.header("admin"),
+        )
+        assert r.status_code in (201, 202), r.text
+        job_ids[map_id] = r.json()["id"]
+    listed = client.get("/v1/jobs", headers=tenant).json()["items"]
+    assert {j["map_id"] for j in listed} == {ours}
+    assert client.get(f"/v1/jobs?map_id={theirs}", headers=tenant).status_code == 403
+    for suffix, method in (("", "GET"), ("/resume", "POST"), ("/cancel", "POST")):
+        path = f"/v1/jobs/{job_ids[theirs]}{suffix}"
+        assert client.request(method, path, headers=tenant).status_code == 403, path
+    assert client.get(f"/v1/jobs/{job_ids[ours]}", headers=tenant).status_code == 200
+
+
+def test_map_limits_are_checked_at_creation(fresh):
+    client, keys = fresh
+    ours, _, _ = _two_maps_and_a_tenant(client, keys)
+    admin = keys.header("admin")
+    for body in (
+        {"name": "x", "scopes": ["admin"], "maps": [ours]},
+        {"name": "x", "scopes": ["localize"], "maps": [999999]},
+        {"name": "x", "scopes": ["localize"], "maps": []},
+    ):
+        r = client.post("/v1/keys", json=body, headers=admin)
+        assert r.status_code == 422, (body, r.text)
+    plain = client.post("/v1/keys", json={"name": "all", "scopes": ["localize"]}, headers=admin)
+    assert plain.json()["maps"] is None

@@ -26,7 +26,7 @@ def test_upgrade_creates_exactly_the_models_schema(tmp_path):
     assert current_revision(url) is None
     upgrade_database(url)
     upgrade_database(url)  # idempotent
-    assert current_revision(url) == head_revision() == "0007"
+    assert current_revision(url) == head_revision() == "0008"
     engine = create_engine(url)
     with engine.connect() as conn:
         assert set(inspect(conn).get_table_names()) == TABLES | {"alembic_version"}
@@ -114,3 +114,33 @@ def test_maps_record_how_their_entries_picked_their_corners(settings, factory, m
     with session_scope(factory) as session:
         record = get_map(session, map_id)
     assert record.features == {"rule": "strongest"} and record.name == "m"
+
+
+def test_keys_from_before_revision_0008_see_every_map(tmp_path):
+    """0008 adds api_keys.maps; keys that existed before it see every map (NULL), and a
+    downgrade drops the column with the keys intact."""
+    from alembic import command
+
+    from monoloc.server.storage.db import make_session_factory, session_scope
+    from monoloc.server.storage.keys import create_api_key, list_api_keys
+    from monoloc.server.storage.migrate import alembic_config
+
+    url = f"sqlite:///{tmp_path / 'k.db'}"
+    command.upgrade(alembic_config(url), "0007")
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql(
+            "INSERT INTO api_keys (name, prefix, key_hash, scopes, created_at) "
+            "VALUES ('old', 'mlk_oldoldol', 'ab', 'localize', '2026-01-01 00:00:00')"
+        )
+    upgrade_database(url)
+    with session_scope(make_session_factory(engine)) as session:
+        (old,) = list_api_keys(session)
+        assert old.maps is None and old.can_see_map(12345)
+        create_api_key(session, "new", ["localize"])
+    command.downgrade(alembic_config(url), "0007")
+    with engine.connect() as conn:
+        columns = {c["name"] for c in inspect(conn).get_columns("api_keys")}
+        names = [r[0] for r in conn.exec_driver_sql("SELECT name FROM api_keys ORDER BY id")]
+    assert "maps" not in columns and names == ["old", "new"]
+    engine.dispose()
