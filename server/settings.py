@@ -171,6 +171,13 @@ class Settings(BaseSettings):
     write_deadline_ms: int = Field(
         default=30_000, ge=1, description="Default deadline of a map write."
     )
+    read_threads: int = Field(
+        default=1, ge=1, description="Costly reads (a map's poses, coverage) computed at a time."
+    )
+    read_queue_depth: int = Field(
+        default=32, ge=0, description="Reads allowed in flight beyond those; more are 503."
+    )
+    read_deadline_ms: int = Field(default=10_000, ge=1, description="Default deadline of a read.")
     job_queue_depth: int = Field(
         default=4,
         ge=0,

@@ -1,8 +1,10 @@
-"""Admission control: bounded lanes for localize, map writes and jobs.
+"""Admission control: bounded lanes for localize, map writes, jobs and reads.
 
-Every costly HTTP request belongs to one *lane* (:func:`lane_of`): ``localize``
+Every HTTP request of the API belongs to one *lane* (:func:`lane_of`): ``localize``
 (``POST .../localize``), ``write`` (entry adds, deletes, re-tags, calibration and other
-map edits) and ``jobs`` (run uploads, job resumes). A lane admits at most
+map edits), ``jobs`` (run uploads, job resumes) and ``read`` (every ``GET`` under
+``/v1/``: most are cheap, but a whole map's poses or coverage costs as much as a write,
+and any key may send them). A lane admits at most
 ``workers + queue_depth`` requests at a time; one more is answered at once with 503 and
 ``Retry-After`` (whole seconds, HTTP's unit; ``Retry-After-Ms`` gives the same wait to
 the millisecond), before its body is read, so it costs the server nothing (no upload
@@ -11,8 +13,9 @@ load. Each lane has its own worker threads (``workers``), which take the lane's 
 computations themselves, in arrival order: writes never queue behind a flood of frames
 and frames never behind an upload, and a free worker starts the next frame at once,
 without a hand-over through the event loop (which, busy reading requests under
-overload, waits for the GIL the workers hold). Reads (GET),
-``/healthz``, ``/readyz`` and ``/metrics`` take no lane: they always answer.
+overload, waits for the GIL the workers hold). ``/healthz``, ``/readyz``, ``/metrics``,
+the docs and the console's live event stream (``.../vehicles/events``, open for 30 s and
+cheap) take no lane: they always answer.
 
 An admitted request carries a deadline: ``X-Request-Deadline-Ms`` (milliseconds the
 client is willing to wait, counted from the server's receipt of the request), else the
@@ -64,9 +67,10 @@ from monoloc.core.errors import MonolocError
 T = TypeVar("T")
 
 DEADLINE_HEADER = b"x-request-deadline-ms"
-LANES = ("localize", "write", "jobs")
+LANES = ("localize", "write", "jobs", "read")
 
 _LOCALIZE = re.compile(r"^/v1/maps/[^/]+/localize/?$")
+_EVENTS = re.compile(r"^/v1/maps/[^/]+/vehicles/events/?$")
 _JOBS = re.compile(r"^/v1/(maps/[^/]+/(runs|calibration/runs)(/.*)?|jobs(/.*)?)$")
 
 
@@ -115,9 +119,11 @@ class LaneConfig:
 
 
 def lane_of(method: str, path: str) -> str | None:
-    """The lane of an HTTP request, or None (reads, health, metrics, docs: no lane)."""
-    if method in ("GET", "HEAD", "OPTIONS"):
+    """The lane of an HTTP request, or None (health, metrics, docs, OPTIONS: no lane)."""
+    if method == "OPTIONS" or not path.startswith("/v1/"):
         return None
+    if method in ("GET", "HEAD"):
+        return None if _EVENTS.match(path) else "read"
     if _LOCALIZE.match(path):
         return "localize"
     if _JOBS.match(path):

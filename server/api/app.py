@@ -100,6 +100,9 @@ def admission_for(settings: Settings, metrics: Metrics) -> Admission:
             # Uploads spool to disk and hand work to the job runner; the deadline only
             # bounds the wait for a slot, the stall timeout the upload.
             "jobs": LaneConfig(1, settings.job_queue_depth, 3_600_000, body_by_deadline=False),
+            "read": LaneConfig(
+                settings.read_threads, settings.read_queue_depth, settings.read_deadline_ms
+            ),
         },
         metrics,
         body_stall_s=settings.body_stall_timeout_s,

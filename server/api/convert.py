@@ -42,6 +42,7 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
         413: ("payload_too_large", "request body exceeds the limit of 536870912 bytes"),
         415: ("unsupported_media_type", "image is not a PNG or JPEG image"),
         422: ("invalid_input", "T_world_from_cam: expected 12 (3x4) or 16 (4x4) numbers"),
+        503: ("overloaded", "the read lane is full (33 requests in flight); retry after 1 s"),
     }
     return {
         status: {

@@ -75,7 +75,7 @@ def required_scope(dependant: Dependant) -> str | None:
     return None
 
 
-def _counting(receive: Receive, limit: int) -> Receive:
+def _counting(receive: Receive, limit: int, setting: str) -> Receive:
     received = 0
 
     async def counting_receive() -> Message:
@@ -84,7 +84,7 @@ def _counting(receive: Receive, limit: int) -> Receive:
         if message["type"] == "http.request":
             received += len(message.get("body", b""))
             if received > limit:
-                raise BodyTooLargeError(limit)
+                raise BodyTooLargeError(limit, f"this route's limit, {setting}")
         return message
 
     return counting_receive
@@ -105,11 +105,14 @@ class GuardedRoute(APIRoute):
 
     def __init__(self, path: str, endpoint: Callable[..., Any], **kwargs: Any) -> None:
         super().__init__(path, endpoint, **kwargs)
+        if self.body_field is not None and BODY_LIMIT_EXTRA not in (self.openapi_extra or {}):
+            self.openapi_extra = {**(self.openapi_extra or {}), **body_limit("json")}
         extra = (self.openapi_extra or {}).get(BODY_LIMIT_EXTRA) or {}
         self.body_kind: str = extra.get("kind", "json")
         if self.body_kind not in LIMIT_SETTINGS:
             raise ValueError(f"unknown body kind {self.body_kind!r} of route {path}")
         self.key_scope = required_scope(self.dependant)
+        self.limit_setting = f"MONOLOC_{LIMIT_SETTINGS[self.body_kind].upper()}"
         if self.body_field is not None:  # malformed and oversized bodies are answered too
             documented = error_responses(400, 408, 413)
             for status, response in documented.items():
@@ -135,18 +138,29 @@ class GuardedRoute(APIRoute):
             declared = _declared_length(request)
             if declared is not None and declared > limit:
                 raise PayloadTooLargeError(
-                    f"request body of {declared} bytes exceeds this route's limit of {limit} bytes"
+                    f"request body of {declared} bytes exceeds this route's limit of {limit} "
+                    f"bytes ({self.limit_setting})"
                 )
-            return await handler(Request(request.scope, _counting(request.receive, limit)))
+            counted = _counting(request.receive, limit, self.limit_setting)
+            return await handler(Request(request.scope, counted))
 
         return guarded
 
 
 def document_body_limits(openapi: dict[str, Any], settings: object) -> dict[str, Any]:
-    """Write each route's body limit in bytes into its OpenAPI operation (in place)."""
+    """Write each route's body limit in bytes into its OpenAPI operation (in place), in
+    the extension and in words in its description."""
     for operations in openapi.get("paths", {}).values():
         for operation in operations.values():
             extra = operation.get(BODY_LIMIT_EXTRA) if isinstance(operation, dict) else None
             if extra:
-                extra["max_bytes"] = int(getattr(settings, LIMIT_SETTINGS[extra["kind"]]))
+                setting = LIMIT_SETTINGS[extra["kind"]]
+                extra["max_bytes"] = int(getattr(settings, setting))
+                extra["setting"] = f"MONOLOC_{setting.upper()}"
+                rule = (
+                    f"Body limit: {extra['max_bytes']} bytes (`{extra['setting']}`); "
+                    "a larger body is answered 413 naming this limit."
+                )
+                description = operation.get("description", "")
+                operation["description"] = f"{description}\n\n{rule}".strip()
     return openapi

@@ -42,8 +42,8 @@ class BodyTooLargeError(HTTPException):
     """Raised from ``receive`` when the body passes the limit. An HTTPException so that
     FastAPI's body parsing lets it through to the JSON error handler unchanged."""
 
-    def __init__(self, limit: int) -> None:
-        super().__init__(413, f"request body exceeds the limit of {limit} bytes")
+    def __init__(self, limit: int, which: str = "MONOLOC_MAX_BODY_BYTES") -> None:
+        super().__init__(413, f"request body exceeds the limit of {limit} bytes ({which})")
 
 
 class BodySizeLimitMiddleware:

@@ -18,11 +18,21 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from monoloc.core.errors import NotFoundError
-from monoloc.server.api.console.coverage import CoverageConfig, route_gaps, route_length_m
+from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.server.api.console.coverage import (
+    MAX_POINTS,
+    MAX_SAMPLES,
+    MIN_RADIUS_M,
+    MIN_STEP_M,
+    CoverageConfig,
+    route_gaps,
+    route_length_m,
+    sample_count,
+    thin_gaps,
+)
 from monoloc.server.api.console.live import vehicle_board
 from monoloc.server.api.convert import AUTH_ERRORS, error_responses
-from monoloc.server.api.deps import MapWriteKey, ReadKey, SessionDep
+from monoloc.server.api.deps import MapWriteKey, ReadKey, SessionDep, StateDep
 from monoloc.server.api.params import DB_ID_MAX, EntryId, MapId
 from monoloc.server.api.schemas import TAG_PATTERN
 from monoloc.server.storage import entries as entries_repo
@@ -84,9 +94,15 @@ class Coverage(BaseModel):
         }
     )
     radius_m: float
+    step_m: float = Field(default=0.0, description="The route was sampled every step_m.")
     route_length_m: float = Field(description="Length of every run's route (all entries).")
     gap_length_m: float
     gaps: list[CoverageGap]
+    thinned: bool = Field(
+        default=False,
+        description=f"True when the gaps held more than {MAX_POINTS} points: every k-th "
+        "sample is answered (lengths are the whole gaps').",
+    )
 
 
 class EntryKeypoints(BaseModel):
@@ -168,16 +184,22 @@ def _all_entries(session, map_id: int, tag: str | None = None, run_id: int | Non
 @router.get(
     "/poses",
     response_model=MapPoses,
-    responses={**AUTH_ERRORS, **error_responses(404, 422)},
+    responses={**AUTH_ERRORS, **error_responses(404, 422, 503)},
     summary="Planar poses of every entry (the console's map plot)",
 )
-def map_poses(
+async def map_poses(
     map_id: MapId,
+    state: StateDep,
     session: SessionDep,
     _key: ReadKey,
     tag: TagFilter = None,
     run_id: RunFilter = None,
 ) -> MapPoses:
+    """Computed on the read lane (a whole map's entries; 503 + Retry-After when full)."""
+    return await state.run_cpu(_poses, session, map_id, tag, run_id)
+
+
+def _poses(session, map_id: int, tag: str | None, run_id: int | None) -> MapPoses:
     entries = _all_entries(session, map_id, tag, run_id)
     return MapPoses(
         entry_ids=[e.id for e in entries],
@@ -192,51 +214,86 @@ def map_poses(
 @router.get(
     "/coverage",
     response_model=Coverage,
-    responses={**AUTH_ERRORS, **error_responses(404, 422)},
+    responses={**AUTH_ERRORS, **error_responses(404, 422, 503)},
     summary="Coverage gaps of a selection of entries along the mapped route",
+    description=f"Bounded: `radius_m` >= {MIN_RADIUS_M} m, the route sampled every "
+    f"min(radius_m / 4, 1 m); a selection needing more than {MAX_SAMPLES} samples is "
+    f"refused with 422 (use a larger radius), and an answer holds at most {MAX_POINTS} "
+    "gap points (`thinned`). Computed on the read lane (503 + Retry-After when full).",
 )
-def coverage(
+async def coverage(
     map_id: MapId,
+    state: StateDep,
     session: SessionDep,
     _key: ReadKey,
     radius_m: Annotated[
-        float, Query(gt=0, le=1000, allow_inf_nan=False, description="Gap radius (m).")
+        float,
+        Query(ge=MIN_RADIUS_M, le=1000, allow_inf_nan=False, description="Gap radius (m)."),
     ] = CoverageConfig.radius_m,
     tag: TagFilter = None,
     run_id: RunFilter = None,
 ) -> Coverage:
     """The route is each run's entries in time order; a gap is a stretch of it with no
     entry of the selection (``tag``, ``run_id``) within ``radius_m``."""
-    config = CoverageConfig(radius_m=radius_m, step_m=min(radius_m / 4, 1.0))
+    return await state.run_cpu(_coverage, session, map_id, radius_m, tag, run_id)
+
+
+def _least_radius(routes) -> str:
+    """Advice: the smallest radius (3 significant digits, rounded up) within the limit."""
+    step_m = MIN_STEP_M
+    while step_m < 1.0 and sum(sample_count(r, step_m) for r in routes) > MAX_SAMPLES:
+        step_m *= 1.1
+    if sum(sample_count(r, min(step_m, 1.0)) for r in routes) > MAX_SAMPLES:
+        return "the route is too long for one request at any radius (filter by run_id)"
+    digits = 10 ** (np.floor(np.log10(4 * step_m)) - 2)
+    return f"use radius_m >= {np.ceil(4 * step_m / digits) * digits:.3g}"
+
+
+def _coverage(
+    session, map_id: int, radius_m: float, tag: str | None, run_id: int | None
+) -> Coverage:
+    config = CoverageConfig.for_radius(radius_m)
     everything = _all_entries(session, map_id)
     selected = everything if tag is None and run_id is None else None
     if selected is None:
         selected = _all_entries(session, map_id, tag, run_id)
     covered = np.array([(e.x_m, e.y_m) for e in selected], dtype=float).reshape(-1, 2)
-    routes: dict[int, list[EntrySummary]] = {}
+    routes: dict[int, np.ndarray] = {}
+    by_run: dict[int, list[EntrySummary]] = {}
     for e in everything:
         if e.run_id is not None:
-            routes.setdefault(e.run_id, []).append(e)
-    gaps, total_m = [], 0.0
-    for rid, members in sorted(routes.items()):
+            by_run.setdefault(e.run_id, []).append(e)
+    for rid, members in sorted(by_run.items()):
         members.sort(key=lambda e: (e.timestamp_s if e.timestamp_s is not None else 0.0, e.id))
-        route = np.array([(e.x_m, e.y_m) for e in members], dtype=float)
-        total_m += route_length_m(route)
-        for gap in route_gaps(route, covered, config, run_id=rid):
-            xy = np.round(gap.points_xy_m, 3)
-            gaps.append(
-                CoverageGap(
-                    run_id=rid,
-                    length_m=round(gap.length_m, 3),
-                    x_m=xy[:, 0].tolist(),
-                    y_m=xy[:, 1].tolist(),
-                )
+        routes[rid] = np.array([(e.x_m, e.y_m) for e in members], dtype=float)
+    total_m = sum(route_length_m(route) for route in routes.values())
+    samples = sum(sample_count(route, config.step_m) for route in routes.values())
+    if samples > MAX_SAMPLES:
+        raise InvalidInputError(
+            f"radius_m={radius_m:g}: the map's {total_m:.0f} m of route would take {samples} "
+            f"samples every {config.step_m:g} m, over the limit of {MAX_SAMPLES} samples per "
+            f"request; {_least_radius(routes.values())}"
+        )
+    found = [g for rid, route in routes.items() for g in route_gaps(route, covered, config, rid)]
+    answered, thinned = thin_gaps(found, MAX_POINTS)
+    gaps = []
+    for gap in answered:
+        xy = np.round(gap.points_xy_m, 3)
+        gaps.append(
+            CoverageGap(
+                run_id=gap.run_id,
+                length_m=round(gap.length_m, 3),
+                x_m=xy[:, 0].tolist(),
+                y_m=xy[:, 1].tolist(),
             )
+        )
     return Coverage(
         radius_m=radius_m,
+        step_m=config.step_m,
         route_length_m=round(total_m, 3),
-        gap_length_m=round(sum(g.length_m for g in gaps), 3),
+        gap_length_m=round(sum(g.length_m for g in found), 3),
         gaps=gaps,
+        thinned=thinned,
     )
 
 

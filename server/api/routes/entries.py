@@ -19,6 +19,7 @@ from monoloc.server.api.guard import GuardedRoute, body_limit
 from monoloc.server.api.params import DB_ID_MAX, EntryId, Limit, MapId, Offset
 from monoloc.server.api.schemas import (
     TAG_LIST_PATTERN,
+    TAG_PATTERN,
     EntryCreated,
     EntryDetail,
     EntryList,
@@ -30,6 +31,7 @@ from monoloc.server.storage import maps as maps_repo
 from monoloc.server.storage.entry_checks import normalise_tags
 from monoloc.server.storage.records import Area
 
+AREA_MAX_M = 1e7  # larger than any map's world frame (the Earth's radius is 6.4e6 m)
 router = APIRouter(prefix="/v1/maps/{map_id}/entries", tags=["entries"], route_class=GuardedRoute)
 
 
@@ -112,17 +114,25 @@ def list_entries(
     map_id: MapId,
     session: SessionDep,
     _key: MapWriteKey,
-    tag: str | None = None,
+    tag: Annotated[str | None, Query(pattern=TAG_PATTERN, description="Only this tag.")] = None,
     run_id: Annotated[int | None, Query(ge=1, le=DB_ID_MAX)] = None,
     x_m: Annotated[
         float | None,
-        Query(allow_inf_nan=False, description="Area centre x (m); with y_m, radius_m."),
+        Query(
+            ge=-AREA_MAX_M,
+            le=AREA_MAX_M,
+            allow_inf_nan=False,
+            description="Area centre x (m). The area filter takes x_m, y_m and radius_m "
+            "together (422 if only some are given).",
+        ),
     ] = None,
     y_m: Annotated[
-        float | None, Query(allow_inf_nan=False, description="Area centre y (m).")
+        float | None,
+        Query(ge=-AREA_MAX_M, le=AREA_MAX_M, allow_inf_nan=False, description="Area centre y (m)."),
     ] = None,
     radius_m: Annotated[
-        float | None, Query(gt=0, allow_inf_nan=False, description="Area radius (m).")
+        float | None,
+        Query(gt=0, le=AREA_MAX_M, allow_inf_nan=False, description="Area radius (m)."),
     ] = None,
     limit: Limit = 100,
     offset: Offset = 0,

@@ -19,6 +19,7 @@ from monoloc.server.storage.records import ApiKeyRecord, JobRecord
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=GuardedRoute)
 
+JOB_STATES = ("queued", "running", "done", "failed", "interrupted")
 JobState = Literal["queued", "running", "done", "failed", "interrupted"]
 
 
@@ -41,7 +42,7 @@ def list_jobs(
     session: SessionDep,
     key: MapWriteKey,
     map_id: Annotated[int | None, Query(ge=1, le=DB_ID_MAX)] = None,
-    state: Annotated[list[JobState] | None, Query()] = None,
+    state: Annotated[list[JobState] | None, Query(max_length=len(JOB_STATES))] = None,
     limit: Limit = 100,
     offset: Offset = 0,
 ) -> JobList:

@@ -60,7 +60,8 @@ def test_routes_fall_into_their_lanes():
     assert lane_of("PATCH", "/v1/maps/3/entries/9") == "write"
     assert lane_of("POST", "/v1/maps/3/runs") == "jobs"
     assert lane_of("POST", "/v1/jobs/4/resume") == "jobs"
-    assert lane_of("GET", "/v1/maps/3/entries") is None
+    assert lane_of("GET", "/v1/maps/3/entries") == "read"
+    assert lane_of("GET", "/v1/maps/3/vehicles/events") is None
     assert lane_of("GET", "/healthz") is None and lane_of("GET", "/readyz") is None
     assert parse_deadline_ms(None, 2000) == 2000 and parse_deadline_ms(b" 150 ", 2000) == 150
     for bad in (b"0", b"-5", b"1.5", b"soon", b"99999999"):

@@ -42,5 +42,28 @@ def test_no_selected_entry_leaves_the_whole_route_uncovered():
 
 
 def test_bad_radius_is_refused():
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match="radius_m must be"):
         route_gaps(np.zeros((2, 2)), np.zeros((1, 2)), CoverageConfig(radius_m=0.0))
+
+
+def test_sample_count_is_what_sampling_returns():
+    from monoloc.server.api.console.coverage import sample_count, sample_route
+
+    route = np.array([[0.0, 0.0], [3.0, 4.0], [3.0, 4.0], [10.0, 4.0]])
+    for step_m in (0.025, 0.3, 1.0, 50.0):
+        assert sample_count(route, step_m) == len(sample_route(route, step_m)[0])
+
+
+def test_thin_gaps_keeps_ends_lengths_and_the_limit():
+    from monoloc.server.api.console.coverage import Gap, thin_gaps
+
+    gaps = [Gap(1, np.c_[np.arange(n), np.zeros(n)].astype(float), float(n)) for n in (50, 7, 300)]
+    thinned, left_out = thin_gaps(gaps, max_points=40)
+    assert left_out and sum(len(g.points_xy_m) for g in thinned) <= 40
+    for before, after in zip(gaps, thinned, strict=True):
+        assert after.length_m == before.length_m
+        assert (after.points_xy_m[[0, -1]] == before.points_xy_m[[0, -1]]).all()
+    many = [Gap(1, np.zeros((3, 2)), float(i)) for i in range(100)]
+    kept, _ = thin_gaps(many, max_points=10)
+    assert sum(len(g.points_xy_m) for g in kept) <= 10 and kept[0].length_m == 99.0
+    assert thin_gaps(gaps, max_points=10_000) == (gaps, False)

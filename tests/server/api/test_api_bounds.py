@@ -1,0 +1,113 @@
+"""What one request may cost is bounded before work starts (issue 50): the rule walked
+over the whole OpenAPI description (every parameter bounded, every body limited, every
+API route on an admission lane), and the coverage route's own limits."""
+
+from __future__ import annotations
+
+import re
+import resource
+import time
+
+import pytest
+from api_helpers import make_settings, open_client
+
+from monoloc.server.api.admission import lane_of
+from monoloc.server.api.console import routes as console_routes
+
+NO_LANE = {"/healthz", "/readyz", "/metrics"}  # always answer: probes and scrapers
+
+
+def _branches(schema: dict) -> list[dict]:
+    options = schema.get("anyOf") or schema.get("oneOf") or [schema]
+    return [s for s in options if s.get("type") != "null"]
+
+
+def _unbounded(schema: dict) -> str | None:
+    for branch in _branches(schema):
+        kind = branch.get("type")
+        if kind in ("integer", "number"):
+            low = "minimum" in branch or "exclusiveMinimum" in branch
+            high = "maximum" in branch or "exclusiveMaximum" in branch
+            if not (low and high):
+                return f"{kind} without both bounds"
+        elif kind == "array":
+            if "maxItems" not in branch:
+                return "array without maxItems"
+            problem = _unbounded(branch.get("items", {}))
+            if problem:
+                return f"items: {problem}"
+        elif kind == "string":
+            if not ({"maxLength", "pattern", "enum", "const"} & set(branch)):
+                return "string without maxLength, pattern or enum"
+    return None
+
+
+def _operations(spec: dict):
+    for path, operations in spec["paths"].items():
+        for method, operation in operations.items():
+            yield path, method.upper(), operation
+
+
+def test_every_operation_is_bounded_before_its_work_starts(tmp_path):
+    with open_client(make_settings(tmp_path / "d")) as client:
+        spec = client.get("/openapi.json").json()
+    problems = []
+    for path, method, operation in _operations(spec):
+        concrete = re.sub(r"\{[^}]+\}", "1", path)
+        if path not in NO_LANE and lane_of(method, concrete) is None:
+            problems.append(f"{method} {path}: no admission lane")
+        for parameter in operation.get("parameters", []):
+            problem = _unbounded(parameter.get("schema", {}))
+            if problem:
+                problems.append(f"{method} {path} {parameter['name']}: {problem}")
+        if "requestBody" in operation:
+            limit = operation.get("x-monoloc-body-limit") or {}
+            if not isinstance(limit.get("max_bytes"), int):
+                problems.append(f"{method} {path}: body without a stated limit")
+    assert problems == [], "\n".join(problems)
+
+
+@pytest.mark.parametrize("radius", ["1e-6", "5e-324", "0", "-1", "0.09", "nan", "inf", "1e309"])
+def test_coverage_refuses_a_radius_below_its_minimum_at_once(client_on_copy, map_copy, radius):
+    """radius_m=1e-6 once sampled the route every 0.25 um (23.5 GB); 5e-324 made a zero
+    step and a 500. Both are 422 now, in milliseconds and without memory growth."""
+    headers = map_copy.keys.header("localize")
+    path = f"/v1/maps/{map_copy.map_id}/coverage"
+    rss_before_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    started = time.perf_counter()
+    answer = client_on_copy.get(path, params={"radius_m": radius}, headers=headers)
+    elapsed_s = time.perf_counter() - started
+    assert answer.status_code == 422, answer.text
+    assert elapsed_s < 1.0
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before_kb < 100_000
+    if radius in ("1e-6", "5e-324", "0.09"):
+        assert "0.1" in answer.json()["error"]["message"]
+
+
+def test_coverage_answers_within_its_sample_and_point_limits(client_on_copy, map_copy, monkeypatch):
+    headers = map_copy.keys.header("localize")
+    path = f"/v1/maps/{map_copy.map_id}/coverage"
+    # nothing selected: the whole route is one gap per run, sampled every 2.5 cm
+    params = {"radius_m": 0.1, "tag": "none-such"}
+    whole = client_on_copy.get(path, params=params, headers=headers)
+    assert whole.status_code == 200, whole.text
+    body = whole.json()
+    assert body["step_m"] == pytest.approx(0.025) and body["thinned"] is False
+    points = sum(len(g["x_m"]) for g in body["gaps"])
+    assert points > 40 and body["gap_length_m"] == pytest.approx(body["route_length_m"], 0.01)
+
+    monkeypatch.setattr(console_routes, "MAX_POINTS", 20)
+    thinned = client_on_copy.get(path, params=params, headers=headers).json()
+    assert thinned["thinned"] is True
+    assert sum(len(g["x_m"]) for g in thinned["gaps"]) <= 20
+    assert thinned["gap_length_m"] == body["gap_length_m"]
+
+    monkeypatch.setattr(console_routes, "MAX_SAMPLES", points // 2)
+    refused = client_on_copy.get(path, params=params, headers=headers)
+    assert refused.status_code == 422, refused.text
+    message = refused.json()["error"]["message"]
+    assert f"limit of {points // 2} samples" in message and "use radius_m >=" in message
+    # the radius it names is answered
+    least = float(message.rsplit(">=", 1)[1])
+    again = client_on_copy.get(path, params={**params, "radius_m": least}, headers=headers)
+    assert again.status_code == 200, again.text
