@@ -137,10 +137,17 @@ def allowed_methods(app: Any, path: str) -> list[str]:
     HEAD wherever GET is served): a 405's ``Allow`` header. Starlette's own names only the
     methods of the first route whose path matches."""
     allowed: set[str] = set()
-    for template, operations in app.openapi().get("paths", {}).items():
-        pattern = re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(template))
-        if re.fullmatch(pattern, path):
-            allowed.update(m.upper() for m in operations if m.upper() in _HTTP_METHODS)
+    paths = app.openapi().get("paths", {})
+    if path in paths:  # a literal path (/v1/keys/me) is not also its parametrised sibling's
+        matching = [paths[path]]
+    else:
+        matching = []
+        for template, operations in paths.items():
+            pattern = re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(template))
+            if re.fullmatch(pattern, path):
+                matching.append(operations)
+    for operations in matching:
+        allowed.update(m.upper() for m in operations if m.upper() in _HTTP_METHODS)
     if "GET" in allowed:
         allowed.add("HEAD")
     return [m for m in _HTTP_METHODS if m in allowed]

@@ -26,6 +26,7 @@ outer bound (``max_body_bytes``) for every request, routed or not.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Coroutine
 from typing import Any, Literal
 
@@ -90,6 +91,21 @@ def _counting(receive: Receive, limit: int, setting: str) -> Receive:
     return counting_receive
 
 
+def _refuse_constant(token: str) -> Any:
+    # a JSONDecodeError: FastAPI answers it as a malformed body (422 json_invalid)
+    raise json.JSONDecodeError(f"{token} is not JSON (RFC 8259 has no NaN or Infinity)", token, 0)
+
+
+class StrictJsonRequest(Request):
+    """A request whose JSON body is standard JSON: ``NaN``, ``Infinity`` and
+    ``-Infinity`` (which Python's parser accepts) are refused like any malformed body."""
+
+    async def json(self) -> Any:
+        if not hasattr(self, "_json"):
+            self._json = json.loads(await self.body(), parse_constant=_refuse_constant)
+        return self._json
+
+
 def _declared_length(request: Request) -> int | None:
     value = request.headers.get("content-length")
     if value is None:
@@ -142,7 +158,7 @@ class GuardedRoute(APIRoute):
                     f"bytes ({self.limit_setting})"
                 )
             counted = _counting(request.receive, limit, self.limit_setting)
-            return await handler(Request(request.scope, counted))
+            return await handler(StrictJsonRequest(request.scope, counted))
 
         return guarded
 

@@ -65,8 +65,9 @@ def example(**values: Any) -> ConfigDict:
 
 def strict_example(**values: Any) -> ConfigDict:
     """``example`` of a request body, validated strictly: ``false`` is not 0.0, ``"1"`` is
-    not 1 (so the body fits its JSON schema exactly when the server accepts it)."""
-    return ConfigDict(strict=True, json_schema_extra={"examples": [values]})
+    not 1, an unknown field is refused (so the body fits its JSON schema exactly when the
+    server accepts it)."""
+    return ConfigDict(strict=True, extra="forbid", json_schema_extra={"examples": [values]})
 
 
 def record_example(**values: Any) -> ConfigDict:

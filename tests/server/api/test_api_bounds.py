@@ -111,3 +111,29 @@ def test_coverage_answers_within_its_sample_and_point_limits(client_on_copy, map
     least = float(message.rsplit(">=", 1)[1])
     again = client_on_copy.get(path, params={**params, "radius_m": least}, headers=headers)
     assert again.status_code == 200, again.text
+
+
+def test_json_bodies_are_standard_json_with_known_fields_only(client_on_copy, map_copy):
+    """{"tags": ["a"], "x": Infinity} was answered 200: a non-standard token and an
+    unknown field, both ignored."""
+    headers = {**map_copy.keys.header("write"), "Content-Type": "application/json"}
+    listed = client_on_copy.get(f"/v1/maps/{map_copy.map_id}/entries", headers=headers).json()
+    path = f"/v1/maps/{map_copy.map_id}/entries/{listed['items'][0]['id']}"
+    for body in ('{"tags": ["a"], "x": Infinity}', '{"tags": ["a"], "x": 1}', '{"tags": NaN}'):
+        answer = client_on_copy.patch(path, content=body, headers=headers)
+        assert answer.status_code == 422, (body, answer.text)
+    assert client_on_copy.patch(path, content='{"tags": ["a"]}', headers=headers).status_code == 200
+    admin = {**map_copy.keys.header("admin"), "Content-Type": "application/json"}
+    key = client_on_copy.post(
+        "/v1/keys", content='{"name": "c", "scopes": ["localize"], "x": -Infinity}', headers=admin
+    )
+    assert key.status_code == 422, key.text
+
+
+def test_allow_lists_only_what_is_served(fresh):
+    client, keys = fresh
+    answer = client.request("PUT", "/v1/keys/me", headers=keys.header("admin"))
+    assert answer.status_code == 405
+    assert answer.headers["Allow"] == "GET, HEAD"
+    answer = client.request("PUT", "/v1/keys/5", headers=keys.header("admin"))
+    assert answer.headers["Allow"] == "DELETE"
