@@ -26,13 +26,16 @@ chromium:
 
 
 # The tests start a throwaway PostgreSQL (initdb/pg_ctl, tests/pg_cluster.py) and check the
-# nginx config of docker/ with `nginx -t`: install Debian's packages when missing.
+# nginx config of docker/ with `nginx -t`, and validate docker/compose.yaml with compose (the
+# docker plugin, else Debian's docker-compose): install Debian's packages when missing.
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 system-deps:
 	@need=""; \
 	command -v pg_ctl >/dev/null || ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 \
 	  || need="$$need postgresql"; \
 	command -v nginx >/dev/null || [ -x /usr/sbin/nginx ] || need="$$need nginx-light"; \
+	{ docker compose version >/dev/null 2>&1 || command -v docker-compose >/dev/null; } \
+	  || need="$$need docker-compose"; \
 	if [ -n "$$need" ]; then \
 	  echo "installing Debian packages:$$need"; \
 	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
