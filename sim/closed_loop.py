@@ -14,6 +14,11 @@ While a request is out, the frames that fall due are not sent (prediction-only s
 Modes: ``open`` (the controller acts on the ground truth; localization, if any, only
 watches) and ``closed`` (the controller acts on the estimate; before the first estimate
 arrives, on the known start pose dead-reckoned with the measured signals).
+
+Controllers: ``pid`` (``sim.control.TrackingController``) or ``mpc``
+(``sim.mpc.MpcController``), which is handed the localization's quality (the filter's
+position and yaw std, the known-feature share of the last answered frame) each time an
+estimate reaches it.
 """
 
 from __future__ import annotations
@@ -43,8 +48,10 @@ from monoloc.sim.control import (
     step_bicycle,
     tracking_error,
 )
+from monoloc.sim.mpc import LocalizationQuality, MpcConfig, MpcController
 
 MODES = ("open", "closed")
+CONTROLLERS = ("pid", "mpc")
 
 
 @dataclass(frozen=True)
@@ -54,7 +61,8 @@ class LoopConfig:
     world's sinusoidal steering disturbance (oscillating, off-center laps);
     ``recorded_latency_ms``: draw each answer's delay from these values instead of
     using the measured round trip; ``k``: entries the server retrieves (None: its
-    default); ``seed``: render noise, signal errors and the filter."""
+    default); ``seed``: render noise, signal errors and the filter; ``controller``:
+    pid|mpc (the disturbance is the PID's: the MPC drives undisturbed laps only)."""
 
     mode: str = "closed"
     laps: float = 1.0
@@ -65,10 +73,19 @@ class LoopConfig:
     k: int | None = None
     seed: int = 0
     first_frame_s: float = 0.1
+    controller: str = "pid"
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise InvalidInputError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.controller not in CONTROLLERS:
+            raise InvalidInputError(
+                f"controller must be one of {CONTROLLERS}, got {self.controller!r}"
+            )
+        if self.controller == "mpc" and self.disturbance:
+            raise InvalidInputError(
+                "the steering disturbance (oscillating laps) is the PID's; use controller='pid'"
+            )
         if self.laps <= 0:
             raise InvalidInputError("laps must be positive")
         if self.max_frames is not None and self.max_frames < 1:
@@ -217,10 +234,8 @@ def run_loop(
     encode = encode or encode_png
     rng = np.random.default_rng([config.seed, 16])
     path = world.reference_path(config.laps, config.lap.room)
-    controller = TrackingController(
-        path,
-        world.controller_config(config.disturbance, float(rng.uniform(0, 2 * math.pi))),
-        world.bicycle,
+    controller = make_controller(
+        config.controller, world, path, config.disturbance, float(rng.uniform(0, 2 * math.pi))
     )
     lighting = world.lighting(config.lap)
     e: SignalErrors = world.signal_errors
@@ -246,7 +261,8 @@ def run_loop(
     state = world.start_state(path)
     odom = _Odometry(state, dt)
     belief_anchor = (0.0, (state.x_m, state.y_m, state.yaw_rad))  # (t, pose at t)
-    pending: list[tuple[float, int, np.ndarray]] = []
+    pending: list[tuple[float, int, np.ndarray, LocalizationQuality]] = []
+    known_share = 0.0  # of the last frame that was sent
     busy_until = -math.inf
     log = FrameLog()
     trace: list[tuple[float, float, float, float, float]] = []
@@ -284,9 +300,12 @@ def run_loop(
                 if sent:
                     busy_until = t + latency_s
                 estimate = tracker.step(i, answer.hypotheses)
-                if estimate is not None:
-                    pending.append((t + latency_s, i, estimate.pose_world.copy()))
                 counts = answer_counts(answer)
+                if sent:
+                    known_share = counts[2] / counts[0] if counts[0] > 0 else 0.0
+                if estimate is not None:
+                    quality = quality_of(estimate, known_share)
+                    pending.append((t + latency_s, i, estimate.pose_world.copy(), quality))
                 log.sent.append(sent)
                 log.n_hypotheses.append(len(answer.hypotheses))
                 log.latency_ms.append(1e3 * latency_s if sent else math.nan)
@@ -306,8 +325,10 @@ def run_loop(
                 progress(i, n_alloc)
         # Estimates whose answer has arrived become the controller's new anchor.
         while pending and pending[0][0] <= t + 1e-12:
-            _, k, pose_cam = pending.pop(0)
+            _, k, pose_cam, quality = pending.pop(0)
             belief_anchor = (log.t_s[k], vehicle_from_planar(pose_cam, world.lever_arm_m))
+            if isinstance(controller, MpcController):
+                controller.set_quality(quality)
         if config.mode == "open":
             believed = (state.x_m, state.y_m, state.yaw_rad)
         else:
@@ -344,6 +365,36 @@ def run_loop(
         },
         lane_half_width_m=world.lane_half_width_m,
         wall_s=time.perf_counter() - started,
+    )
+
+
+def make_controller(
+    name: str, world, path, disturbance: bool = False, phase_rad: float = 0.0
+) -> TrackingController | MpcController:
+    """The world's ``pid`` (its ControllerConfig, with or without the disturbance) or
+    ``mpc`` (MpcConfig.for_vehicle at the world's reference speed; the mapped corridor's
+    half width is 40 % of the lane's: the centre-line laps' views, not the whole lane)."""
+    if name == "pid":
+        return TrackingController(
+            path, world.controller_config(disturbance, phase_rad), world.bicycle
+        )
+    if name == "mpc":
+        if disturbance:
+            raise InvalidInputError("the MPC drives no disturbed laps; use the pid controller")
+        config = MpcConfig.for_vehicle(
+            world.bicycle, world.reference_speed_mps, 0.4 * world.lane_half_width_m
+        )
+        return MpcController(path, config, world.bicycle)
+    raise InvalidInputError(f"controller must be one of {CONTROLLERS}, got {name!r}")
+
+
+def quality_of(estimate, known_share: float) -> LocalizationQuality:
+    """The MPC's view of a filter estimate (``FilterEstimate``) and a known-feature share."""
+    cov = np.asarray(estimate.covariance, dtype=np.float64)
+    return LocalizationQuality(
+        position_std_m=float(estimate.position_std_m),
+        yaw_std_rad=float(math.sqrt(max(cov[2, 2], 0.0))),
+        known_share=float(min(max(known_share, 0.0), 1.0)),
     )
 
 
