@@ -112,6 +112,7 @@ def admission_for(settings: Settings, metrics: Metrics) -> Admission:
 def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppState:
     """Blocking start-up work (run in a thread by the lifespan)."""
     from monoloc.server.api.bootstrap import clean_incoming_uploads, prepare_database
+    from monoloc.server.api.camera_cache import CameraCache
     from monoloc.server.api.key_cache import KeyCache
     from monoloc.server.index.warmup import warm_up as warm_up_index
     from monoloc.server.jobs.handlers import HANDLERS
@@ -144,6 +145,7 @@ def _start(settings: Settings, metrics: Metrics, admission: Admission) -> AppSta
         metrics=metrics,
         admission=admission,
         keys=KeyCache(settings.key_cache_s),
+        cameras=CameraCache(settings.key_cache_s),
         seeds=np.random.SeedSequence(settings.localize_seed),
     )
 

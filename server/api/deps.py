@@ -30,6 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from starlette.requests import HTTPConnection
 
 from monoloc.server.api.admission import Admission
+from monoloc.server.api.camera_cache import CameraCache
 from monoloc.server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
 from monoloc.server.api.key_cache import KeyCache
 from monoloc.server.api.metrics import Metrics
@@ -56,6 +57,7 @@ class AppState:
     seeds: np.random.SeedSequence
     admission: Admission
     keys: KeyCache = field(default_factory=lambda: KeyCache(0.0))
+    cameras: CameraCache = field(default_factory=lambda: CameraCache(0.0))
     ready: bool = False
     _seed_lock: threading.Lock = field(default_factory=threading.Lock)
 

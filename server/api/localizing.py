@@ -24,6 +24,8 @@ from monoloc.server.api.limits import ImageInfo, check_image, decode_gray
 from monoloc.server.api.schemas_localize import LocalizeOptions, LocalizeResponse
 from monoloc.server.localize import LocalizeConfig
 from monoloc.server.settings import Settings
+from monoloc.server.storage.cameras import CameraRecord, get_camera
+from monoloc.server.storage.db import session_scope
 
 
 def localize_config(settings: Settings) -> LocalizeConfig:
@@ -38,13 +40,29 @@ def _intrinsics(
     if options.focal is not None:
         fx, fy, cx, cy = options.focal
         return CameraIntrinsics(fx, fy, cx, cy, info.width_px, info.height_px, options.lens)
+    if options.camera_id is not None:
+        record = state.cameras.get(options.camera_id, lambda i: _load_camera(state, i))
+        camera = record.intrinsics
+        if (camera.width_px, camera.height_px) != (info.width_px, info.height_px):
+            raise InvalidInputError(
+                f"the image is {info.width_px}x{info.height_px} but camera {record.id} "
+                f"({record.name!r}) takes {camera.width_px}x{camera.height_px} images: "
+                "register this image size's camera"
+            )
+        return camera
     camera = state.registry.get(map_id).record.camera
     if (camera.width_px, camera.height_px) != (info.width_px, info.height_px):
         raise InvalidInputError(
             f"the image is {info.width_px}x{info.height_px} but the map's camera is "
-            f"{camera.width_px}x{camera.height_px}: send fx, fy, cx, cy for this image"
+            f"{camera.width_px}x{camera.height_px}: send fx, fy, cx, cy (or a registered "
+            "camera_id) for this image"
         )
     return None
+
+
+def _load_camera(state: AppState, camera_id: int) -> CameraRecord:
+    with session_scope(state.sessions) as session:
+        return get_camera(session, camera_id)
 
 
 def localize_encoded(

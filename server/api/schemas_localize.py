@@ -51,6 +51,14 @@ class LocalizeOptions(BaseModel):
     fy: float | None = Field(default=None, description="Focal length y (px).", examples=[718.856])
     cx: float | None = Field(default=None, description="Principal point x (px).", examples=[607.2])
     cy: float | None = Field(default=None, description="Principal point y (px).", examples=[185.2])
+    camera_id: int | None = Field(
+        default=None,
+        description="A camera registered with POST /v1/cameras (its intrinsics and lens), "
+        "instead of fx, fy, cx, cy (both: 422; an unknown id: 404). Neither: the map's "
+        "camera.",
+        json_schema_extra={"minimum": 1, "maximum": 2**63 - 1},
+        examples=[3],
+    )
     distortion_model: str | None = Field(
         default=None,
         description="The lens's distortion model, with fx, fy, cx, cy: plumb_bob (k1 k2 p1 "
@@ -134,6 +142,17 @@ class LocalizeOptions(BaseModel):
 
     def _check_focal(self) -> None:
         given = self._given(_FOCAL)
+        if self.camera_id is not None:
+            if not 1 <= self.camera_id <= 2**63 - 1:
+                raise InvalidInputError(
+                    f"camera_id must be a camera's id (1 to 2^63 - 1), got {self.camera_id!r}"
+                )
+            lens = self._given(("distortion_model", "distortion"))
+            if given or lens:
+                raise InvalidInputError(
+                    f"give camera_id or the camera's intrinsics, not both (got camera_id and "
+                    f"{given + lens})"
+                )
         if given and len(given) != 4:
             raise InvalidInputError(f"give all of fx, fy, cx, cy or none (got only {given})")
         if given:

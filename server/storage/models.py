@@ -276,3 +276,32 @@ class ApiKey(Base):
     maps: Mapped[list[int] | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     revoked_at: Mapped[datetime | None]
+
+
+class Camera(Base):
+    """A vehicle's camera, registered once (``POST /v1/cameras``) and named by its id in
+    every query after (revision 0009): pinhole intrinsics in pixels for images of
+    ``width_px`` x ``height_px``, and the lens distortion (ROS CameraInfo's model name
+    and D), NULL for a pinhole. Never changed after it is registered (delete and
+    register again); ``key_id`` is the key that registered it."""
+
+    __tablename__ = "cameras"
+    __table_args__ = (
+        CheckConstraint("fx > 0 AND fy > 0", name="focal_positive"),
+        CheckConstraint("width_px > 0 AND height_px > 0", name="size_positive"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(128))
+    fx: Mapped[float]
+    fy: Mapped[float]
+    cx: Mapped[float]
+    cy: Mapped[float]
+    width_px: Mapped[int]
+    height_px: Mapped[int]
+    distortion_model: Mapped[str | None] = mapped_column(String(32))
+    distortion: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
+    key_id: Mapped[int | None] = mapped_column(
+        ForeignKey("api_keys.id", ondelete="SET NULL"), index=True
+    )
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from monoloc.server.api.routes import (
     calibration,
+    cameras,
     entries,
     geo,
     health,
@@ -27,5 +28,6 @@ ROUTERS = [
     calibration.router,
     geo.router,
     keys.router,
+    cameras.router,
     health.router,
 ]

@@ -7,7 +7,10 @@ WebSocket headers). Refusals happen before the handshake completes, as HTTP answ
 In: binary messages, each = 4-byte big-endian header length + UTF-8 JSON header +
 encoded image (PNG/JPEG). Header: ``{"seq": int, "t": float, "prior": {"x_m", "y_m",
 "radius_m", "yaw_rad"?, "yaw_tolerance_rad"?}?, "k": int?, "seed": int?,
-"intrinsics": {"fx", "fy", "cx", "cy"}?}``.
+"intrinsics": {"fx", "fy", "cx", "cy", "distortion_model"?, "distortion"?}?,
+"camera_id": int?}`` (``camera_id``: a camera registered with ``POST /v1/cameras``,
+instead of ``intrinsics``; both: the frame is answered ``invalid_input``, an unknown
+id ``not_found``).
 
 Header fields are checked as the localize route's form (``LocalizeOptions``).
 
@@ -121,7 +124,7 @@ def _option_fields(header: dict[str, Any]) -> dict[str, Any]:
         ):
             raise InvalidInputError("'intrinsics.distortion' must be a list of numbers")
         fields["distortion"] = ",".join(repr(float(v)) for v in coefficients)
-    fields.update(k=header.get("k"), seed=header.get("seed"))
+    fields.update(k=header.get("k"), seed=header.get("seed"), camera_id=header.get("camera_id"))
     return fields
 
 

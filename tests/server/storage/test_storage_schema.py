@@ -18,7 +18,7 @@ from monoloc.server.storage.models import Base
 
 REPO = Path(__file__).resolve().parents[3]
 TABLES = {"vocabularies", "maps", "runs", "entries", "entry_tags", "jobs", "api_keys"}
-TABLES |= {"map_changes", "entry_images"}
+TABLES |= {"map_changes", "entry_images", "cameras"}
 
 
 def test_upgrade_creates_exactly_the_models_schema(tmp_path):
@@ -26,7 +26,7 @@ def test_upgrade_creates_exactly_the_models_schema(tmp_path):
     assert current_revision(url) is None
     upgrade_database(url)
     upgrade_database(url)  # idempotent
-    assert current_revision(url) == head_revision() == "0008"
+    assert current_revision(url) == head_revision() == "0009"
     engine = create_engine(url)
     with engine.connect() as conn:
         assert set(inspect(conn).get_table_names()) == TABLES | {"alembic_version"}
