@@ -264,13 +264,17 @@ class Plan:
 class MpcController:
     """Drop-in for ``TrackingController``: :meth:`command` at every integration step,
     re-planning every ``config.step_s``; :meth:`set_quality` with each estimate's quality.
-    ``solve_times_s`` keeps every solve's wall time."""
+    ``solve_times_s`` keeps every solve's wall time (``solve_cpu_s`` its CPU time: the
+    wall time less what other processes took of the core), ``failed_solves`` counts the solves
+    the SQP did not finish (their last iterate is used: it is within the bounds)."""
 
     path: Path
     config: MpcConfig
     bicycle: BicycleConfig
     quality: LocalizationQuality | None = None
     solve_times_s: list[float] = field(default_factory=list)
+    solve_cpu_s: list[float] = field(default_factory=list)
+    failed_solves: int = 0
     _problem: _Problem = field(init=False)
     _hint: int = field(init=False, default=0)
     _plan: Plan | None = field(init=False, default=None)
@@ -339,11 +343,12 @@ class MpcController:
             w0, lam_x0, lam_g0 = self._warm
             w0 = w0.copy()
             w0[:4] = x0
-        started = time.perf_counter()
+        started, started_cpu = time.perf_counter(), time.thread_time()
         out = prob.solver(
             x0=w0, p=p, lbx=prob.lbw, ubx=prob.ubw, lbg=0.0, ubg=0.0, lam_x0=lam_x0, lam_g0=lam_g0
         )
         solve_s = time.perf_counter() - started
+        self.solve_cpu_s.append(time.thread_time() - started_cpu)
         success = bool(prob.solver.stats().get("success", False))
         w = np.asarray(out["x"]).ravel()
         if not np.all(np.isfinite(w)):
@@ -359,5 +364,6 @@ class MpcController:
             np.asarray(out["lam_g"]).ravel(),
         )
         self.solve_times_s.append(solve_s)
+        self.failed_solves += not success
         self._plan = Plan(t_s, states, inputs, success, solve_s)
         return self._plan
