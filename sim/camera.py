@@ -18,6 +18,7 @@ import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
+from monoloc.sim.lens import lens_remap
 from monoloc.sim.render import Raster, RenderConfig, rasterize
 from monoloc.sim.scene import KIND_LAMP, KIND_ROAD, Scene
 from monoloc.sim.textures import TextureBank
@@ -317,12 +318,19 @@ def render(
     """One camera frame of ``scene`` from ``T_world_from_cam`` (OpenCV camera axes).
     ``exposure`` fixes the exposure instead of the auto-exposure (a stereo rig's second
     camera takes the first one's, as synchronised stereo heads do); ``material_gain`` as
-    in :func:`shade`."""
-    raster = rasterize(
-        scene, bank, T_world_from_cam, intrinsics, render_config, night=lighting.night
-    )
-    radiance = shade(raster, scene, T_world_from_cam, intrinsics, lighting, material_gain)
+    in :func:`shade`. A camera with lens distortion (``intrinsics.distortion``) is
+    drawn through its lens (``monoloc.sim.lens``): the scene's radiance on a wider
+    pinhole canvas, remapped to the distorted pixels before the sensor (blur, vignetting
+    and noise act on the sensor's own pixels); depth stays the z-depth of each pixel's
+    ray."""
+    lens = None if intrinsics.distortion is None else lens_remap(intrinsics)
+    pinhole = intrinsics if lens is None else lens.canvas
+    raster = rasterize(scene, bank, T_world_from_cam, pinhole, render_config, night=lighting.night)
+    radiance = shade(raster, scene, T_world_from_cam, pinhole, lighting, material_gain)
+    depth_m = raster.depth_m
+    if lens is not None:
+        radiance, depth_m = lens.apply(radiance), lens.apply(depth_m, nearest=True)
     if exposure is None:
         exposure = auto_exposure(radiance, config, previous_exposure)
     image = expose(radiance, exposure, config, rng)
-    return CameraFrame(image=image, depth_m=raster.depth_m, exposure=exposure)
+    return CameraFrame(image=image, depth_m=depth_m, exposure=exposure)

@@ -19,9 +19,11 @@ from pathlib import Path
 from monoloc.core.camera import KITTI_CAM0, CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.camera import CameraConfig, Lighting
+from monoloc.sim.fleet_camera import FleetCameraConfig
 from monoloc.sim.indoor.generate import generate_indoor_dataset
 from monoloc.sim.indoor.plan import INDOOR_RUN_KINDS, IndoorConfig, indoor_runs
 from monoloc.sim.indoor.room import room_configs
+from monoloc.sim.lens import lens_remap
 from monoloc.sim.lidar import LidarConfig
 from monoloc.sim.recording import RecordingErrors
 from monoloc.sim.summary import DatasetSummary
@@ -48,7 +50,11 @@ class GenerateConfig:
     seed, runs (from map, query, train, offcenter; the default means all four),
     max_frames, image_scale, workers and ``indoor`` (default: the size preset;
     ``errors=RecordingErrors.none()`` also turns every indoor error off); the
-    outdoor-only fields are ignored."""
+    outdoor-only fields are ignored.
+
+    ``fleet_camera`` (urban): the camera of the ``fleet`` run, the query's drive recorded
+    by a fleet car's own camera (size, focal length, lens, mounting;
+    ``monoloc.sim.fleet_camera``, issue 48's by default); ``image_scale`` resizes it too."""
 
     scenario: str = "urban"
     size: str = "small"
@@ -71,6 +77,7 @@ class GenerateConfig:
     workers: int = 1
     indoor: IndoorConfig | None = None
     train_run: TrainRunConfig | None = None
+    fleet_camera: FleetCameraConfig = field(default_factory=FleetCameraConfig)
 
     def city_config(self) -> CityConfig:
         return self.city or CityConfig.preset(self.size)
@@ -109,6 +116,11 @@ class GenerateConfig:
         CityConfig.preset(self.size) if self.city is None else None
         if self.train_run is not None:
             self.train_run.validate()
+        if "fleet" in self.runs:
+            self.fleet_camera.validate()
+            camera = self.fleet_camera.intrinsics(self.image_scale)
+            if camera.distortion is not None:
+                lens_remap(camera)  # a lens no pinhole canvas can hold is refused here
         Lighting.preset(self.query_lighting)
 
 

@@ -10,6 +10,9 @@ and ``monoloc.core.formats.vehicle``; here the images (OpenCV) and dataset.json.
 <root>/sequences/NN/calib.txt          P0..P3 (3x4), Tr (3x4, velodyne -> cam 0)
 <root>/sequences/NN/times.txt          one time in seconds per frame
 <root>/sequences/NN/vehicle.txt        t speed_mps yaw_rate_radps (measured)
+<root>/sequences/NN/camera.json        a run whose camera is not the mapping camera's (the
+                                       fleet run): fx fy cx cy width height distortion_model
+                                       D (ROS CameraInfo's names and D order), K beside P0
 <root>/poses/NN.txt                    3x4 T_world_from_cam0 row-major per line
 <root>/dataset.json                    what each sequence is (see monoloc.sim.generate)
 """
@@ -21,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.formats import kitti, vehicle
 
@@ -82,6 +86,29 @@ def read_depth(path: Path) -> np.ndarray:
     if raw is None:
         raise InvalidInputError(f"could not read depth image {path}")
     return np.where(raw > 0, raw.astype(np.float32) / 256.0, np.inf).astype(np.float32)
+
+
+def write_camera_json(
+    path: Path, intrinsics: CameraIntrinsics, T_vehicle_from_cam: np.ndarray | None = None
+) -> None:
+    """camera.json of a run's own camera: fx, fy, cx, cy, width, height (pixels),
+    distortion_model ("none" for a pinhole) and D, the 3x3 K, and where the camera sits
+    on the vehicle (``T_vehicle_from_cam``, 4x4, vehicle x forward, y left, z up)."""
+    k, lens = intrinsics, intrinsics.distortion
+    info = {
+        "fx": k.fx,
+        "fy": k.fy,
+        "cx": k.cx,
+        "cy": k.cy,
+        "width": k.width_px,
+        "height": k.height_px,
+        "distortion_model": "none" if lens is None else lens.model,
+        "D": [] if lens is None else list(lens.coefficients),
+        "K": k.K.tolist(),
+    }
+    if T_vehicle_from_cam is not None:
+        info["T_vehicle_from_cam"] = np.asarray(T_vehicle_from_cam, dtype=float).tolist()
+    Path(path).write_text(json.dumps(info, indent=2) + "\n")
 
 
 def write_dataset_json(root: Path, info: dict) -> None:

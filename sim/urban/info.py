@@ -13,7 +13,7 @@ from dataclasses import asdict
 import numpy as np
 
 from monoloc.core.geometry import T_ZUP_FROM_KITTI, invert_rigid
-from monoloc.sim.urban.runs import FRAME_PERIOD_S
+from monoloc.sim.urban.runs import FRAME_PERIOD_S, T_vehicle_from_run_cam
 
 
 def kitti_world(T_simworld_from_cam0: np.ndarray) -> dict[str, np.ndarray]:
@@ -102,9 +102,35 @@ def dataset_info(config, plans, written, frames) -> dict:
                     float(np.mean(written[p.seq_id].draws.lidar_time_offsets_s)), 5
                 ),
                 **_train_run_keys(p, config),
+                **_camera_keys(p, config),
             }
             for p in plans
         ],
+    }
+
+
+def _camera_keys(plan, config) -> dict:
+    """A run recorded by another camera than the mapping camera (the fleet run): its
+    camera, lens and mounting (nothing for the others, so their datasets keep their
+    bytes)."""
+    if plan.camera is None:
+        return {}
+    k = plan.camera.intrinsics(config.image_scale)
+    lens = k.distortion
+    return {
+        "camera": {
+            "name": plan.camera.name,
+            "fx": k.fx,
+            "fy": k.fy,
+            "cx": k.cx,
+            "cy": k.cy,
+            "width_px": k.width_px,
+            "height_px": k.height_px,
+            "distortion_model": "none" if lens is None else lens.model,
+            "D": [] if lens is None else list(lens.coefficients),
+        },
+        "fleet_camera": asdict(plan.camera),
+        "T_vehicle_from_cam": _matrix(T_vehicle_from_run_cam(plan, config.rig)),
     }
 
 

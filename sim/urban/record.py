@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.formats import kitti
 from monoloc.core.geometry import invert_rigid
 from monoloc.sim import kitti_writer as kw
@@ -25,7 +26,7 @@ from monoloc.sim.recording import (
 from monoloc.sim.scene import concat_scenes
 from monoloc.sim.textures import TextureBank
 from monoloc.sim.urban.city import build_city, parked_cars
-from monoloc.sim.urban.runs import true_camera_poses
+from monoloc.sim.urban.runs import T_vehicle_from_run_cam, true_camera_poses
 from monoloc.sim.urban.textures import URBAN_TEXTURES
 
 
@@ -67,21 +68,43 @@ def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
     errors = config.errors
     T_true = true_camera_poses(plan, config.rig)
     T_written = apply_pose_errors(T_true, plan.frame_times_s, errors, rng)
-    Tr_written = perturb_calibration(config.rig.T_cam_from_lidar(), errors, rng)
+    T_cam_from_lidar = invert_rigid(T_vehicle_from_run_cam(plan, config.rig)) @ (
+        config.rig.T_vehicle_from_lidar()
+    )
+    Tr_written = perturb_calibration(T_cam_from_lidar, errors, rng)
     st = plan.states.sample(plan.frame_times_s)
     speed, yaw_rate = measured_signals(st["speed_mps"], st["yaw_rate_radps"], errors, rng)
     return WrittenRun(T_written, Tr_written, speed, yaw_rate, run_draws(plan, errors))
 
 
+def run_intrinsics(plan, config) -> CameraIntrinsics:
+    """The camera that records ``plan``: the mapping camera, or the run's own (with its
+    lens), at the config's image scale."""
+    if plan.camera is None:
+        return config.intrinsics()
+    return plan.camera.intrinsics(config.image_scale)
+
+
+def writes_stereo(plan, config) -> bool:
+    """The stereo head is the mapping camera's: a fleet camera's run has no image_1/."""
+    return config.write_stereo and plan.camera is None
+
+
 def write_run_metadata(plan, written: WrittenRun, frames: dict, config, out_dir: Path) -> None:
-    """calib.txt, times.txt, vehicle.txt and poses/NN.txt of one run."""
+    """calib.txt, times.txt, vehicle.txt and poses/NN.txt of one run; camera.json for a
+    run whose camera is not the mapping camera."""
     seq = kitti.sequence_dir(out_dir, plan.seq_id)
     subs = ("image_0", "velodyne") + (("depth",) if config.write_depth else ())
-    for sub in subs + (("image_1",) if config.write_stereo else ()):
+    for sub in subs + (("image_1",) if writes_stereo(plan, config) else ()):
         (seq / sub).mkdir(parents=True, exist_ok=True)
+    intrinsics = run_intrinsics(plan, config)
     kw.write_calib(
-        seq / "calib.txt", config.intrinsics().K, written.Tr_written, config.rig.stereo_baseline_m
+        seq / "calib.txt", intrinsics.K, written.Tr_written, config.rig.stereo_baseline_m
     )
+    if plan.camera is not None:
+        kw.write_camera_json(
+            seq / "camera.json", intrinsics, T_vehicle_from_run_cam(plan, config.rig)
+        )
     times = plan.frame_times_s - plan.frame_times_s[0]
     kw.write_times(seq / "times.txt", times)
     kw.write_vehicle(seq / "vehicle.txt", times, written.speed_mps, written.yaw_rate_radps)
@@ -117,7 +140,7 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
     scene, bank = _world(config, plan)
     seq = kitti.sequence_dir(out_dir, plan.seq_id)
     rig, errors = config.rig, config.errors
-    intrinsics = config.intrinsics()
+    intrinsics = run_intrinsics(plan, config)
     draws = run_draws(plan, errors)
     palette = errors
     if plan.material_gain is not None:
@@ -130,7 +153,7 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
     )
     if not errors.sensor_noise:
         cam_cfg = CameraConfig(**{**cam_cfg.__dict__, "shot_noise": 0.0, "read_noise": 0.0})
-    T_v_cam, T_v_lidar = rig.T_vehicle_from_cam(), rig.T_vehicle_from_lidar()
+    T_v_cam, T_v_lidar = T_vehicle_from_run_cam(plan, rig), rig.T_vehicle_from_lidar()
     for k in range(first, last):
         t = float(plan.frame_times_s[k])
         rng = np.random.default_rng([plan.seed, 3, k])
@@ -146,7 +169,7 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
             material_gain=gains,
         )
         kw.write_image(seq / "image_0" / f"{k:06d}.png", frame.image)
-        if config.write_stereo:
+        if writes_stereo(plan, config):
             # Its own sensor noise (a stream of its own, so image_0 and the scan keep
             # their bytes), camera 0's exposure: a synchronised stereo head.
             right = render(
