@@ -30,6 +30,8 @@ from monoloc.server.api.errors import install_error_handlers
 from monoloc.server.api.guard import document_body_limits
 from monoloc.server.api.limits import BodySizeLimitMiddleware
 from monoloc.server.api.metrics import GaugeRefresher, Metrics, RequestMetricsMiddleware
+from monoloc.server.api.openapi_links import document_links
+from monoloc.server.api.openapi_rules import document_cross_field_rules
 from monoloc.server.settings import Settings, get_settings
 from monoloc.server.threads import limit_threads
 
@@ -161,12 +163,15 @@ def _stop(state: AppState) -> None:
 
 
 def _document_limits(app: FastAPI, settings: Settings) -> None:
-    """The OpenAPI description names each route's body limit in bytes (server/api/guard.py)."""
+    """The OpenAPI description names each route's body limit in bytes (server/api/guard.py),
+    the cross-field rules (server/api/openapi_rules.py) and the links between operations
+    (server/api/openapi_links.py)."""
     build = app.openapi
 
     def openapi() -> dict:
         if app.openapi_schema is None:
-            app.openapi_schema = document_body_limits(build(), settings)
+            spec = document_cross_field_rules(document_body_limits(build(), settings))
+            app.openapi_schema = document_links(spec)
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

@@ -20,6 +20,11 @@ from monoloc.core.measurement import (
     DEFAULT_VLAD_EVIDENCE,
 )
 from monoloc.server.api.errors import PATTERN_RULES
+from monoloc.server.api.openapi_rules import (
+    GEO_REFERENCE_ONE_OF,
+    PNP_COVARIANCE_NEEDS_PNP,
+    rules_extra,
+)
 
 # The server's own rules, as patterns in the OpenAPI description (storage checks them too):
 # map names (storage/maps.py MAP_NAME_RE), tags (storage/entry_checks.py TAG_RE; the API
@@ -63,11 +68,13 @@ def example(**values: Any) -> ConfigDict:
     return ConfigDict(json_schema_extra={"examples": [values]})
 
 
-def strict_example(**values: Any) -> ConfigDict:
+def strict_example(rules: dict[str, Any] | None = None, **values: Any) -> ConfigDict:
     """``example`` of a request body, validated strictly: ``false`` is not 0.0, ``"1"`` is
     not 1, an unknown field is refused (so the body fits its JSON schema exactly when the
-    server accepts it)."""
-    return ConfigDict(strict=True, extra="forbid", json_schema_extra={"examples": [values]})
+    server accepts it). ``rules``: the body's cross-field rules as JSON Schema
+    (``openapi_rules.rules_extra``)."""
+    extra = {"examples": [values], **(rules or {})}
+    return ConfigDict(strict=True, extra="forbid", json_schema_extra=extra)
 
 
 def record_example(**values: Any) -> ConfigDict:
@@ -160,7 +167,7 @@ class GeoReferenceUpdate(BaseModel):
     """A map's geographic reference: exactly one of ``origin`` and ``T_ecef_from_world``
     (422 otherwise, or when the transform is not rigid or not near the Earth's surface)."""
 
-    model_config = strict_example(origin=_GEO_ORIGIN_EXAMPLE)
+    model_config = strict_example(rules_extra(GEO_REFERENCE_ONE_OF), origin=_GEO_ORIGIN_EXAMPLE)
     origin: GeoOriginSpec | None = None
     T_ecef_from_world: list[Annotated[float, Field(allow_inf_nan=False)]] | None = Field(
         default=None,
@@ -544,7 +551,14 @@ class CalibrationUpdate(_MeasurementModelFields):
     """Measurement-model parameters computed elsewhere, and their provenance. The
     retrieval vector's offset is in the world frame (X_i - X, Y_i - Y)."""
 
-    model_config = ConfigDict(strict=True, allow_inf_nan=False, **example(**_CALIBRATION_EXAMPLE))
+    model_config = ConfigDict(
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra={
+            "examples": [_CALIBRATION_EXAMPLE],
+            **rules_extra(PNP_COVARIANCE_NEEDS_PNP),
+        },
+    )
     covariance: Literal["paper", "pnp"] | None = Field(
         default=None,
         description="Which pose-error model the vehicle uses: pnp (each hypothesis's own "

@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field, field_validator
 
+from monoloc.server.api.openapi_rules import ADMIN_KEY_ALL_MAPS, rules_extra
 from monoloc.server.api.params import DB_ID_MAX
 from monoloc.server.api.schemas import TIME_EXAMPLE, example, record_example, strict_example
 from monoloc.server.storage.keys import SCOPES
@@ -18,7 +19,7 @@ assert set(SCOPES) == {"localize", "map:write", "metrics", "admin"}
 
 
 class KeyCreate(BaseModel):
-    model_config = strict_example(name="car1", scopes=["localize"])
+    model_config = strict_example(rules_extra(ADMIN_KEY_ALL_MAPS), name="car1", scopes=["localize"])
     name: str = Field(
         min_length=1,
         max_length=128,

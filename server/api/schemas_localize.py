@@ -13,6 +13,7 @@ from monoloc.core.camera import LensDistortion
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.prior import RetrievalPrior
 from monoloc.server.api.errors import describe_validation
+from monoloc.server.api.openapi_rules import LOCALIZE_RULES, rules_extra
 from monoloc.server.api.schemas import ErrorDetail, PlanarPose
 
 MAX_K = 100
@@ -40,15 +41,22 @@ class LocalizeOptions(BaseModel):
         json_schema_extra={
             "examples": [
                 dict(prior_x_m=12.5, prior_y_m=3.2, prior_radius_m=20.0, k=10, seed=2718281828)
-            ]
+            ],
+            **rules_extra(*LOCALIZE_RULES),
         }
     )
     fx: float | None = Field(
         default=None,
         description="Focal length x (px); fx, fy, cx, cy all or none (none: the map's camera).",
         examples=[718.856],
+        json_schema_extra={"exclusiveMinimum": 0},
     )
-    fy: float | None = Field(default=None, description="Focal length y (px).", examples=[718.856])
+    fy: float | None = Field(
+        default=None,
+        description="Focal length y (px).",
+        examples=[718.856],
+        json_schema_extra={"exclusiveMinimum": 0},
+    )
     cx: float | None = Field(default=None, description="Principal point x (px).", examples=[607.2])
     cy: float | None = Field(default=None, description="Principal point y (px).", examples=[185.2])
     camera_id: int | None = Field(
@@ -84,6 +92,7 @@ class LocalizeOptions(BaseModel):
         default=None,
         description="Only entries within this distance (m, > 0) of the prior position compete.",
         examples=[20.0],
+        json_schema_extra={"exclusiveMinimum": 0},
     )
     prior_yaw_rad: float | None = Field(
         default=None, description="Prior heading; with prior_yaw_tolerance_rad.", examples=[0.0]
@@ -93,6 +102,7 @@ class LocalizeOptions(BaseModel):
         description="Only entries whose heading is within this (rad, > 0) of prior_yaw_rad "
         "compete.",
         examples=[0.5],
+        json_schema_extra={"exclusiveMinimum": 0},
     )
     k: int | None = Field(
         default=None,
@@ -103,7 +113,7 @@ class LocalizeOptions(BaseModel):
     seed: int | None = Field(
         default=None,
         description="RANSAC seed, below 2^63 (default: server draws one; the answer reports it).",
-        json_schema_extra={"minimum": 0},
+        json_schema_extra={"minimum": 0, "maximum": 2**63 - 1},
         examples=[2718281828],
     )
     _prior: RetrievalPrior | None = PrivateAttr(default=None)

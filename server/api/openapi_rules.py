@@ -1,0 +1,286 @@
+"""The cross-field rules the server enforces, stated in its OpenAPI description (issue 50).
+
+A request body can satisfy every field's own schema and still be refused for how its
+fields combine: a geographic reference with both ``origin`` and ``T_ecef_from_world``, a
+localize form with ``fx`` but not ``fy``, an entry with both a depth image and a LiDAR
+scan. Each such rule is written here once, as JSON Schema (OpenAPI 3.1 is JSON Schema
+2020-12): ``oneOf`` for "exactly one of", ``anyOf`` of "all present" / "all absent" for
+"all or none", ``anyOf`` of "absent" / "the others present" for "needs". Each rule's
+schema carries ``x-monoloc-rule`` (its name, the fields it binds, the words the server's
+422 uses), so a client, a fuzzer and the test that walks the description all find it.
+
+"Present" means given and not null: JSON bodies may send null for an optional field,
+which the server reads as absent.
+
+Request models carry their rules through ``json_schema_extra`` (``rules_extra``); the
+multipart forms FastAPI builds from a route's parameters, and the rules among query
+parameters (which JSON Schema cannot bind), are added to the description by
+:func:`document_cross_field_rules`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+RULE_EXTRA = "x-monoloc-rule"
+OPERATION_RULES_EXTRA = "x-monoloc-rules"
+RuleKind = Literal["exactly_one", "all_or_none", "needs", "only_with"]
+
+
+def _present(name: str, schema: dict[str, Any] | None = None) -> dict[str, Any]:
+    value = schema if schema is not None else {"not": {"type": "null"}}
+    return {"required": [name], "properties": {name: value}}
+
+
+def _absent(name: str) -> dict[str, Any]:
+    return {"properties": {name: {"type": "null"}}}  # left out, or null
+
+
+@dataclass(frozen=True)
+class CrossFieldRule:
+    """One rule among a request's fields.
+
+    ``exactly_one``: exactly one of ``fields`` is present. ``all_or_none``: all or none of
+    ``fields``. ``needs``: ``fields[0]``, when present, needs every other field.
+    ``only_with``: ``fields[0]`` may be present only when ``when`` (a schema of the whole
+    request) holds. ``present`` overrides what "present" means for a field (e.g. a
+    non-empty list). ``message`` is what the server's 422 says (a fragment of it)."""
+
+    name: str
+    kind: RuleKind
+    fields: tuple[str, ...]
+    description: str
+    message: str
+    when: dict[str, Any] | None = None
+    present: tuple[tuple[str, dict[str, Any]], ...] = ()
+
+    def _is_present(self, name: str) -> dict[str, Any]:
+        return _present(name, dict(self.present).get(name))
+
+    def schema(self) -> dict[str, Any]:
+        """This rule as JSON Schema, marked with ``x-monoloc-rule``."""
+        if self.kind == "exactly_one":
+            body: dict[str, Any] = {"oneOf": [self._is_present(f) for f in self.fields]}
+        elif self.kind == "all_or_none":
+            body = {
+                "anyOf": [
+                    {"allOf": [self._is_present(f) for f in self.fields]},
+                    {"allOf": [_absent(f) for f in self.fields]},
+                ]
+            }
+        elif self.kind == "needs":
+            first, *others = self.fields
+            body = {"anyOf": [_absent(first), {"allOf": [self._is_present(f) for f in others]}]}
+        else:
+            assert self.when is not None, f"rule {self.name}: only_with needs when"
+            body = {"anyOf": [_absent(self.fields[0]), self.when]}
+        marker = {
+            "name": self.name,
+            "kind": self.kind,
+            "fields": list(self.fields),
+            "message": self.message,
+        }
+        return {"description": self.description, **body, RULE_EXTRA: marker}
+
+    def query_statement(self) -> dict[str, Any]:
+        """This rule among query parameters (``x-monoloc-rules`` of the operation)."""
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "fields": list(self.fields),
+            "in": "query",
+            "description": self.description,
+            "message": self.message,
+        }
+
+
+def rules_extra(*rules: CrossFieldRule) -> dict[str, Any]:
+    """``json_schema_extra`` entries of a request model bound by ``rules``."""
+    return {"allOf": [rule.schema() for rule in rules]}
+
+
+# --- rules of the JSON request models (server/api/schemas*.py) ---------------------------
+
+GEO_REFERENCE_ONE_OF = CrossFieldRule(
+    "geo_reference_exactly_one",
+    "exactly_one",
+    ("origin", "T_ecef_from_world"),
+    "Exactly one of origin and T_ecef_from_world.",
+    "exactly one of origin and T_ecef_from_world",
+)
+ADMIN_KEY_ALL_MAPS = CrossFieldRule(
+    "admin_key_all_maps",
+    "only_with",
+    ("maps", "scopes"),
+    "maps only without the admin scope (an admin key sees every map).",
+    "an admin key sees every map",
+    when={
+        "required": ["scopes"],
+        "properties": {"scopes": {"not": {"contains": {"const": "admin"}}}},
+    },
+)
+PNP_COVARIANCE_NEEDS_PNP = CrossFieldRule(
+    "pnp_covariance_needs_pnp",
+    "only_with",
+    ("covariance", "pnp"),
+    "covariance pnp needs the pnp model's parameters (pnp).",
+    "the pnp covariance model needs its fitted parameters",
+    when={
+        "anyOf": [
+            {"properties": {"covariance": {"not": {"const": "pnp"}}}},
+            _present("pnp"),
+        ]
+    },
+)
+LOCALIZE_FOCAL = CrossFieldRule(
+    "localize_focal_all_or_none",
+    "all_or_none",
+    ("fx", "fy", "cx", "cy"),
+    "fx, fy, cx and cy together, or none of them (the map's camera).",
+    "give all of fx, fy, cx, cy or none",
+)
+LOCALIZE_PRIOR = CrossFieldRule(
+    "localize_prior_all_or_none",
+    "all_or_none",
+    ("prior_x_m", "prior_y_m", "prior_radius_m"),
+    "A retrieval prior takes prior_x_m, prior_y_m and prior_radius_m together.",
+    "a prior needs prior_x_m, prior_y_m and prior_radius_m",
+)
+LOCALIZE_YAW = CrossFieldRule(
+    "localize_yaw_all_or_none",
+    "all_or_none",
+    ("prior_yaw_rad", "prior_yaw_tolerance_rad"),
+    "prior_yaw_rad and prior_yaw_tolerance_rad together.",
+    "give prior_yaw_rad and prior_yaw_tolerance_rad together",
+)
+LOCALIZE_YAW_NEEDS_POSITION = CrossFieldRule(
+    "localize_yaw_needs_position",
+    "needs",
+    ("prior_yaw_rad", "prior_x_m", "prior_y_m", "prior_radius_m"),
+    "A heading prior needs the position prior (prior_x_m, prior_y_m, prior_radius_m).",
+    "a prior needs prior_x_m, prior_y_m and prior_radius_m",
+)
+LOCALIZE_DISTORTION_MODEL = CrossFieldRule(
+    "localize_distortion_model_needs_focal",
+    "needs",
+    ("distortion_model", "fx", "fy", "cx", "cy"),
+    "A lens distortion needs the camera's fx, fy, cx, cy.",
+    "a lens distortion needs the camera's fx, fy, cx, cy",
+)
+LOCALIZE_DISTORTION = CrossFieldRule(
+    "localize_distortion_needs_focal",
+    "needs",
+    ("distortion", "fx", "fy", "cx", "cy"),
+    "Distortion coefficients need the camera's fx, fy, cx, cy.",
+    "a lens distortion needs the camera's fx, fy, cx, cy",
+)
+LOCALIZE_RULES = (
+    LOCALIZE_FOCAL,
+    LOCALIZE_PRIOR,
+    LOCALIZE_YAW,
+    LOCALIZE_YAW_NEEDS_POSITION,
+    LOCALIZE_DISTORTION_MODEL,
+    LOCALIZE_DISTORTION,
+)
+
+# --- rules of the multipart forms and query parameters, by operation ---------------------
+
+_A_FILE = {"type": "string"}
+ENTRY_ONE_SOURCE = CrossFieldRule(
+    "entry_exactly_one_3d_source",
+    "exactly_one",
+    ("depth", "lidar"),
+    "Exactly one 3D source: depth (with depth_scale) or lidar (with T_cam_from_lidar).",
+    "send exactly one 3D source",
+    present=(("depth", _A_FILE), ("lidar", _A_FILE)),
+)
+ENTRY_DEPTH_SCALE = CrossFieldRule(
+    "entry_depth_needs_scale",
+    "needs",
+    ("depth", "depth_scale"),
+    "depth needs depth_scale.",
+    "depth needs a positive depth_scale",
+)
+ENTRY_LIDAR_EXTRINSICS = CrossFieldRule(
+    "entry_lidar_needs_extrinsics",
+    "needs",
+    ("lidar", "T_cam_from_lidar"),
+    "lidar needs T_cam_from_lidar.",
+    "lidar needs T_cam_from_lidar",
+)
+UPLOAD_ONE_PART = CrossFieldRule(
+    "upload_exactly_one_part",
+    "exactly_one",
+    ("archive", "files"),
+    "Exactly one of archive (one tar/zip) and files (a non-empty file set).",
+    "send either 'archive' (one tar/zip) or 'files', not both",
+    present=(("archive", _A_FILE), ("files", {"type": "array", "minItems": 1})),
+)
+STEREO_IS_KITTI = CrossFieldRule(
+    "run_stereo_depth_is_kitti",
+    "only_with",
+    ("depth_from", "format"),
+    "depth_from other than lidar only for KITTI runs (a TUM run has its depth images).",
+    "depth is for KITTI runs",
+    when={
+        "anyOf": [
+            {"properties": {"depth_from": {"const": "lidar"}}},
+            {"required": ["format"], "properties": {"format": {"const": "kitti"}}},
+        ]
+    },
+)
+ENTRY_AREA = CrossFieldRule(
+    "entries_area_all_or_none",
+    "all_or_none",
+    ("x_m", "y_m", "radius_m"),
+    "The area filter takes x_m, y_m and radius_m together.",
+    "an area filter needs x_m, y_m and radius_m together",
+)
+
+FORM_RULES: dict[tuple[str, str], tuple[CrossFieldRule, ...]] = {
+    ("post", "/v1/maps/{map_id}/entries"): (
+        ENTRY_ONE_SOURCE,
+        ENTRY_DEPTH_SCALE,
+        ENTRY_LIDAR_EXTRINSICS,
+    ),
+    ("post", "/v1/maps/{map_id}/runs"): (UPLOAD_ONE_PART, STEREO_IS_KITTI),
+    ("post", "/v1/maps/{map_id}/calibration/jobs"): (UPLOAD_ONE_PART,),
+}
+QUERY_RULES: dict[tuple[str, str], tuple[CrossFieldRule, ...]] = {
+    ("get", "/v1/maps/{map_id}/entries"): (ENTRY_AREA,),
+}
+
+
+def _resolve(openapi: dict[str, Any], schema: dict[str, Any]) -> dict[str, Any]:
+    ref = schema.get("$ref")
+    if not ref:
+        return schema
+    node: Any = openapi
+    for part in ref.removeprefix("#/").split("/"):
+        node = node[part]
+    return node
+
+
+def _add_words(operation: dict[str, Any], rules: tuple[CrossFieldRule, ...]) -> None:
+    words = " ".join(rule.description for rule in rules)
+    text = f"Cross-field rules (422 otherwise): {words}"
+    operation["description"] = f"{operation.get('description', '')}\n\n{text}".strip()
+
+
+def document_cross_field_rules(openapi: dict[str, Any]) -> dict[str, Any]:
+    """Add the forms' rules to their multipart schemas and the query parameters' rules to
+    their operations (``x-monoloc-rules``), each in words in the operation's description
+    too (in place)."""
+    paths = openapi.get("paths", {})
+    for (method, path), rules in FORM_RULES.items():
+        operation = paths[path][method]
+        content = operation["requestBody"]["content"]["multipart/form-data"]
+        schema = _resolve(openapi, content["schema"])
+        schema.setdefault("allOf", []).extend(rule.schema() for rule in rules)
+        _add_words(operation, rules)
+    for (method, path), rules in QUERY_RULES.items():
+        operation = paths[path][method]
+        operation[OPERATION_RULES_EXTRA] = [rule.query_statement() for rule in rules]
+        _add_words(operation, rules)
+    return openapi
