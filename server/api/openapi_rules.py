@@ -133,6 +133,7 @@ PNP_COVARIANCE_NEEDS_PNP = CrossFieldRule(
         ]
     },
 )
+_INTRINSICS = ("fx", "fy", "cx", "cy", "distortion_model", "distortion")
 LOCALIZE_FOCAL = CrossFieldRule(
     "localize_focal_all_or_none",
     "all_or_none",
@@ -175,6 +176,14 @@ LOCALIZE_DISTORTION = CrossFieldRule(
     "Distortion coefficients need the camera's fx, fy, cx, cy.",
     "a lens distortion needs the camera's fx, fy, cx, cy",
 )
+LOCALIZE_CAMERA_ID = CrossFieldRule(
+    "localize_camera_id_without_intrinsics",
+    "only_with",
+    ("camera_id", "fx", "fy", "cx", "cy", "distortion_model", "distortion"),
+    "camera_id (a registered camera) or the camera's intrinsics and lens, not both.",
+    "give camera_id or the camera's intrinsics, not both",
+    when={"allOf": [_absent(name) for name in _INTRINSICS]},
+)
 LOCALIZE_RULES = (
     LOCALIZE_FOCAL,
     LOCALIZE_PRIOR,
@@ -182,6 +191,7 @@ LOCALIZE_RULES = (
     LOCALIZE_YAW_NEEDS_POSITION,
     LOCALIZE_DISTORTION_MODEL,
     LOCALIZE_DISTORTION,
+    LOCALIZE_CAMERA_ID,
 )
 
 # --- rules of the multipart forms and query parameters, by operation ---------------------

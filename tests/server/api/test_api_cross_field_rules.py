@@ -156,6 +156,14 @@ VIOLATIONS = [
         valid_form={"image": "a"} | {**FOCAL, "distortion": "-0.2,0.05,0,0"},
     ),
     Violation(
+        "localize_camera_id_without_intrinsics",
+        "POST",
+        _LOCALIZE,
+        form={"camera_id": 1, **FOCAL},
+        files=(("image", IMAGE),),
+        valid_form={"image": "a", "camera_id": 1},
+    ),
+    Violation(
         "entry_exactly_one_3d_source",
         "POST",
         _ENTRIES,
