@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 
-from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.camera import CameraIntrinsics, LensDistortion
 from monoloc.core.errors import InvalidInputError, MonolocError, NotFoundError
 from monoloc.core.geo import GeoReference
 from monoloc.core.measurement import Hypotheses, MeasurementModel
@@ -308,6 +308,7 @@ class MonolocClient:
         seed: int | None = None,
         *,
         intrinsics: CameraIntrinsics | None = None,
+        camera_id: int | None = None,
         retries: int | None = None,
         deadline_ms: int | None = None,
         min_map_version: int | None = None,
@@ -318,8 +319,11 @@ class MonolocClient:
         after it); ``min_map_version``: answer from a map at least this new (after one's
         own write; the server waits briefly for its replica, else 503); ``retries``:
         this call's retries (a vehicle sends 0: a frame is stale by the next one);
-        ``intrinsics``: the camera that took the frame (None: the map's camera)."""
+        ``intrinsics``: the camera that took the frame, or ``camera_id`` the id it was
+        registered under (:meth:`camera_id`); neither: the map's camera."""
         data: dict[str, str] = {}
+        if camera_id is not None:
+            data["camera_id"] = str(int(camera_id))
         if intrinsics is not None:
             data.update({key: repr(float(v)) for key, v in _focal(intrinsics).items()})
             if intrinsics.distortion is not None:
@@ -346,6 +350,31 @@ class MonolocClient:
             headers=headers,
         )
         return LocalizeAnswer.from_json(response.json())
+
+    def register_camera(self, name: str, intrinsics: CameraIntrinsics) -> int:
+        """Register a camera (``POST /v1/cameras``, scope localize); its id, which frames
+        then send as ``camera_id`` instead of the intrinsics."""
+        body = {"name": name, **_focal(intrinsics), **_lens_fields(intrinsics)}
+        body.update(width_px=int(intrinsics.width_px), height_px=int(intrinsics.height_px))
+        return int(self.request("POST", "/v1/cameras", json=body).json()["id"])
+
+    def cameras(self) -> list[tuple[int, str, CameraIntrinsics]]:
+        """The registered cameras: (id, name, intrinsics) each."""
+        items = self.request("GET", "/v1/cameras").json()["items"]
+        return [(int(c["id"]), str(c["name"]), camera_from_json(c)) for c in items]
+
+    def delete_camera(self, camera_id: int) -> None:
+        self.request("DELETE", f"/v1/cameras/{int(camera_id)}")
+
+    def camera_id(self, intrinsics: CameraIntrinsics, name: str | None = None) -> int:
+        """The id of a registered camera equal to ``intrinsics`` (and named ``name``, by
+        default :func:`camera_name`), registering it first if there is none: a vehicle's
+        camera is registered once, not once per drive."""
+        name = camera_name(intrinsics) if name is None else name
+        for camera_id, other_name, other in self.cameras():
+            if other_name == name and other == intrinsics:
+                return camera_id
+        return self.register_camera(name, intrinsics)
 
     def measurement_model(self, map_id: int) -> tuple[MeasurementModel, bool]:
         """The map's calibrated measurement model, and whether it was calibrated."""
@@ -394,6 +423,29 @@ def _focal(intrinsics: CameraIntrinsics) -> dict[str, float]:
         "cx": float(intrinsics.cx),
         "cy": float(intrinsics.cy),
     }
+
+
+def camera_name(intrinsics: CameraIntrinsics) -> str:
+    """A name that describes a camera (size, focal length, lens), the same for equal ones."""
+    lens = intrinsics.distortion
+    return (
+        f"{intrinsics.width_px}x{intrinsics.height_px} f{intrinsics.fx:.1f}"
+        f"{'' if lens is None else ' ' + lens.model}"
+    )
+
+
+def camera_from_json(data: dict) -> CameraIntrinsics:
+    """A camera as the registry answers it (``CameraPublic``)."""
+    lens = LensDistortion.parse(data.get("distortion_model"), data.get("distortion"))
+    return CameraIntrinsics(
+        float(data["fx"]),
+        float(data["fy"]),
+        float(data["cx"]),
+        float(data["cy"]),
+        int(data["width_px"]),
+        int(data["height_px"]),
+        lens,
+    )
 
 
 def _lens_fields(intrinsics: CameraIntrinsics) -> dict:
@@ -449,10 +501,14 @@ class FrameStream:
         k: int | None = None,
         seed: int | None = None,
         intrinsics: CameraIntrinsics | None = None,
+        camera_id: int | None = None,
     ) -> None:
         """Send one frame (PNG/JPEG bytes) with its sequence number and time (s), and the
-        camera that took it (None: the map's)."""
+        camera that took it: its intrinsics, or the id it was registered under (neither:
+        the map's)."""
         header: dict = {"seq": seq, "t": t_s}
+        if camera_id is not None:
+            header["camera_id"] = int(camera_id)
         if intrinsics is not None:
             header["intrinsics"] = {**_focal(intrinsics), **_lens_fields(intrinsics)}
         if prior is not None:

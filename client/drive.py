@@ -7,7 +7,9 @@ In real-time mode frames are sent at their recorded times from a thread and the 
 may drop stale ones; a dropped frame, like a frame the server answered with an error, is
 a prediction-only step.
 
-The map's geographic reference is read once, before the first frame; with one, the
+The run's camera is registered with the server once (``MonolocClient.camera_id``: an
+equal camera registered before is reused) and every frame names it by its id. The
+map's geographic reference is read once, before the first frame; with one, the
 drive's track can also be written as GeoJSON (monoloc.client.geojson).
 """
 
@@ -169,6 +171,8 @@ def drive(
             "run's camera.json or a bag's CameraInfo; or --camera): the vehicle does not "
             "assume the map's camera"
         )
+    # the run's camera is registered once (or found registered) and named by its id
+    camera_id = client.camera_id(run.intrinsics)
     geo = client.geo_reference(map_id)
     tracker = Tracker(
         run_filter_config(config.filter, run),
@@ -188,10 +192,10 @@ def drive(
 
     with client.stream(map_id) as stream:
         if config.realtime:
-            _drive_realtime(stream, run, tracker, log, config.k, recorded)
+            _drive_realtime(stream, run, tracker, log, config.k, recorded, camera_id)
         else:
             images = (run.image_bytes(i) for i in range(len(run)))
-            localizer = _Timed(StreamLocalizer(stream, run.timestamps_s, run.intrinsics), log)
+            localizer = _Timed(StreamLocalizer(stream, run.timestamps_s, camera_id=camera_id), log)
             track(tracker, localizer, images, config.k, recorded)
     return log.result(run, tracker.estimates_world, geo)
 
@@ -219,9 +223,10 @@ def _drive_realtime(
     log: _DriveLog,
     k: int | None,
     recorded: Callable[[int, LocalizeAnswer], None],
+    camera_id: int,
 ) -> None:
-    """Send at recorded times from a thread; step the tracker with the answers in order
-    on this one."""
+    """Send at recorded times from a thread (each frame naming the registered camera
+    ``camera_id``); step the tracker with the answers in order on this one."""
     errors: list[BaseException] = []
 
     def sender() -> None:
@@ -235,9 +240,7 @@ def _drive_realtime(
                     time.sleep(delay)
                 prior = tracker.prior(i)
                 log.sent(i)
-                stream.send(
-                    i, float(run.timestamps_s[i]), image, prior, k, intrinsics=run.intrinsics
-                )
+                stream.send(i, float(run.timestamps_s[i]), image, prior, k, camera_id=camera_id)
         except BaseException as exc:  # noqa: BLE001 - re-raised on the main thread
             errors.append(exc)
 

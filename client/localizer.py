@@ -51,8 +51,8 @@ class HttpLocalizer:
     only), and the frames inside the server's ``Retry-After`` window are not sent at all
     (dropped too): an overloaded server is given the time it asked for. ``counts`` keeps
     the tally. ``deadline_ms`` (X-Request-Deadline-Ms) tells the server when an answer
-    is no longer worth computing; ``intrinsics``: the camera that took the frames (None:
-    the map's). Other errors raise (ServerError)."""
+    is no longer worth computing; ``intrinsics``: the camera that took the frames, or
+    ``camera_id`` its registered id (neither: the map's). Other errors raise (ServerError)."""
 
     def __init__(
         self,
@@ -61,11 +61,13 @@ class HttpLocalizer:
         deadline_ms: int | None = None,
         clock: Callable[[], float] = time.monotonic,
         intrinsics: CameraIntrinsics | None = None,
+        camera_id: int | None = None,
     ) -> None:
         self.client = client
         self.map_id = map_id
         self.deadline_ms = deadline_ms
         self.intrinsics = intrinsics
+        self.camera_id = camera_id
         self.counts = ShedCounts()
         self._clock = clock
         self._hold_until_s = -math.inf
@@ -87,6 +89,7 @@ class HttpLocalizer:
                 retries=0,
                 deadline_ms=self.deadline_ms,
                 intrinsics=self.intrinsics,
+                camera_id=self.camera_id,
             )
         except ServerError as exc:
             if exc.status_code != 503:
@@ -125,10 +128,12 @@ class StreamLocalizer:
         stream: FrameStream,
         timestamps_s: Sequence[float] | None = None,
         intrinsics: CameraIntrinsics | None = None,
+        camera_id: int | None = None,
     ) -> None:
         self.stream = stream
         self.timestamps_s = timestamps_s
         self.intrinsics = intrinsics
+        self.camera_id = camera_id
         self.seq = 0
         self._t0: float | None = None
 
@@ -141,7 +146,9 @@ class StreamLocalizer:
         else:
             self._t0 = time.perf_counter() if self._t0 is None else self._t0
             t_s = time.perf_counter() - self._t0
-        self.stream.send(seq, t_s, image, prior, k, intrinsics=self.intrinsics)
+        self.stream.send(
+            seq, t_s, image, prior, k, intrinsics=self.intrinsics, camera_id=self.camera_id
+        )
         self.seq += 1
         answer = self.stream.receive()
         check_answer_seq(answer, seq)

@@ -56,7 +56,9 @@ class FakeStream:
     def __exit__(self, *exc):
         return None
 
-    def send(self, seq, t_s, image_bytes, prior=None, k=None, seed=None, intrinsics=None):
+    def send(
+        self, seq, t_s, image_bytes, prior=None, k=None, seed=None, intrinsics=None, camera_id=None
+    ):
         self.sent.append(
             {
                 "seq": seq,
@@ -64,6 +66,7 @@ class FakeStream:
                 "prior": prior,
                 "k": k,
                 "intrinsics": intrinsics,
+                "camera_id": camera_id,
                 "at": time.perf_counter(),
             }
         )
@@ -91,8 +94,16 @@ class FakeStream:
 
 
 class FakeClient:
+    """The stream's client, with a camera registry: ``registered`` lists the cameras."""
+
     def __init__(self, stream):
         self._stream = stream
+        self.registered: list = []
+
+    def camera_id(self, intrinsics, name=None):
+        if intrinsics not in self.registered:
+            self.registered.append(intrinsics)
+        return 100 + self.registered.index(intrinsics)
 
     def stream(self, map_id, timeout_s=30.0):
         return self._stream
@@ -169,16 +180,20 @@ def test_the_run_s_own_camera_goes_with_every_frame_in_both_modes(tmp_path):
     run = _run(tmp_path, n=6)
     for realtime in (False, True):
         stream = FakeStream(run.truth_world)
-        drive(FakeClient(stream), 1, run, MeasurementModel(), DriveConfig(realtime=realtime))
-        assert [s["intrinsics"] for s in stream.sent] == [CAMERA] * 6
+        client = FakeClient(stream)
+        drive(client, 1, run, MeasurementModel(), DriveConfig(realtime=realtime))
+        # registered once, then named by its id in every frame
+        assert client.registered == [CAMERA]
+        assert [s["camera_id"] for s in stream.sent] == [100] * 6
 
 
 def test_a_run_whose_camera_is_unknown_stops_before_the_first_frame(tmp_path):
     run = dataclasses.replace(_run(tmp_path, n=4), intrinsics=None)
     stream = FakeStream(run.truth_world)
+    client = FakeClient(stream)
     with pytest.raises(InvalidInputError, match="camera that took the frames is unknown"):
-        drive(FakeClient(stream), 1, run, MeasurementModel(), CONFIG)
-    assert stream.sent == []
+        drive(client, 1, run, MeasurementModel(), CONFIG)
+    assert stream.sent == [] and client.registered == []
 
 
 def test_a_drive_whose_every_frame_was_refused_says_so(tmp_path):

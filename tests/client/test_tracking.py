@@ -191,7 +191,9 @@ class ScriptedStream:
         self.answers, self.swap = answers, swap
         self.sent: list[tuple] = []
 
-    def send(self, seq, t_s, image_bytes, prior=None, k=None, seed=None, intrinsics=None):
+    def send(
+        self, seq, t_s, image_bytes, prior=None, k=None, seed=None, intrinsics=None, camera_id=None
+    ):
         self.sent.append((seq, t_s, prior, k))
 
     def receive(self) -> dict:

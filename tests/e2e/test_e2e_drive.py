@@ -29,6 +29,11 @@ def test_replay_of_a_tiny_sim_run_ends_within_half_a_metre(live_map):
         map_id = client.find_map_id(live_map.map_name)
         model, calibrated = client.measurement_model(map_id)
         result = drive(client, map_id, run, model, DriveConfig())
+        # the run's camera was registered once; asking again finds it, registers nothing
+        same = [c for c in client.cameras() if c[2] == run.intrinsics]
+        assert len(same) == 1
+        assert client.camera_id(run.intrinsics) == same[0][0]
+        assert [c[2] for c in client.cameras()].count(run.intrinsics) == 1
     m = result.metrics
     assert not calibrated
     assert m.coverage >= 0.8, m
