@@ -450,7 +450,8 @@ def map_import(
     map_ref: Annotated[str, typer.Option("--map", "-m", help="Map name or id (created if new).")],
     fmt: Annotated[str, typer.Option("--format", help="colmap | kapture")] = "colmap",
     images: Annotated[
-        Path | None, typer.Option(help="COLMAP: the folder of the model's images.")
+        Path | None,
+        typer.Option(help="COLMAP: the folder of the model's images (default: its images/)."),
     ] = None,
     points: Annotated[
         str,
@@ -489,6 +490,8 @@ def map_import(
     if fmt == "colmap":
         from monoloc.server.formats.colmap import read_colmap_model
 
+        if images is None and (path / "images").is_dir():
+            images = path / "images"  # monoloc's own export keeps them there
         if images is None:
             raise typer.BadParameter("--format colmap needs --images DIR")
         model = read_colmap_model(path, images)
@@ -511,6 +514,8 @@ def map_import(
     _, factory = open_database(ctx)
     config = IngestConfig(build=build, workers=workers, skip_bad_frames=skip_bad_frames)
     tag_list = tuple(t.strip() for t in tags.split(",") if t.strip())
+    for note in model.notes:
+        typer.echo(note)
     with progress_bar(f"importing {model.name}") as update:
         record, summaries, created = import_sources_into_map(
             factory, map_ref, sources, kind=kind, tags=tag_list, config=config, progress=update

@@ -3,20 +3,32 @@ written through ``pycolmap``.
 
 Reading: every registered image becomes a :class:`PosedImage` with its observations that
 have a 3D point (conventions and the two point modes: ``monoloc.server.formats.model``).
-Cameras must be pinhole: ``SIMPLE_PINHOLE``, ``PINHOLE``, or a distortion model whose
-distortion parameters are all zero (undistort others first: ``colmap image_undistorter``).
+Cameras: ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``,
+``FULL_OPENCV``, ``OPENCV_FISHEYE`` (and the radial fisheye models), each read with its
+lens distortion, which the import takes off (``ImportSource``); another model (``FOV``,
+``THIN_PRISM_FISHEYE``) is refused naming it.
 
-Writing: one ``PINHOLE`` camera per distinct intrinsics, one image per entry (named
-``entry_<id>.png``; the server keeps no pixels, so no image files are written), its pose
-as COLMAP's ``cam_from_world``, its keypoints as the image's 2D points and each 3D point
-(the entry's point in the world) as a point with a track of that one observation: entries
-are built independently, so a point seen by two entries is two points. The world is
-monoloc's z-up world; ``monoloc.json`` beside the model says so, and the importer reads it.
+A **poses-only model** (registered images, no 3D points: what a user has after mapping
+with known poses) is triangulated from its poses with pycolmap (:func:`triangulate`):
+SIFT features on the images, exhaustive matching with two-view verification (sequential
+matching beyond ``TriangulationConfig.max_exhaustive_images``), then COLMAP's point
+triangulator with the poses and cameras held fixed. When that cannot be done (images
+missing, too few verified matches, no point triangulated) the model is refused naming why.
+
+Writing: one camera per distinct intrinsics (its model and distortion written back,
+``PINHOLE`` for a pinhole), one image per view, its pose as COLMAP's ``cam_from_world``,
+its keypoints as the image's 2D points, and its points: views that carry ``point_ids``
+share a 3D point per id (a multi-view track, as a map export merges them), else a point
+per keypoint. Views with ``image_bytes`` get their image file in ``images/`` beside the
+model. The world is the writer's (monoloc's export: the z-up world; ``monoloc.json``
+beside the model says so, and the importer reads it).
 """
 
 from __future__ import annotations
 
 import json
+import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,9 +42,13 @@ from monoloc.server.formats.model import (
     ModelView,
     PosedImage,
     PosedImages,
-    pinhole_intrinsics,
+    camera_intrinsics,
+    camera_model_of,
     read_marker_up,
+    tracks_of,
 )
+
+IMAGES_FOLDER = "images"  # an export's images, beside its model files
 
 
 def _import_pycolmap():
@@ -46,8 +62,8 @@ def _import_pycolmap():
 
 
 def intrinsics_of(camera, where: str) -> CameraIntrinsics:
-    """A pycolmap camera as monoloc intrinsics (OpenCV pixel convention)."""
-    return pinhole_intrinsics(
+    """A pycolmap camera as monoloc intrinsics (OpenCV pixel convention), with its lens."""
+    return camera_intrinsics(
         camera.model.name,
         camera.params,
         camera.width,
@@ -56,11 +72,152 @@ def intrinsics_of(camera, where: str) -> CameraIntrinsics:
     )
 
 
-def read_colmap_model(model_dir: Path, images_dir: Path) -> PosedImages:
+@dataclass(frozen=True)
+class TriangulationConfig:
+    """How a poses-only model is triangulated: SIFT features per image, matching (all
+    pairs up to ``max_exhaustive_images`` images, else each image with its
+    ``sequential_overlap`` successors in name order), and what the result needs: pairs
+    with at least ``min_pair_inliers`` verified matches, triangulated points per image."""
+
+    max_features: int = 4096
+    max_exhaustive_images: int = 150
+    sequential_overlap: int = 10
+    min_verified_pairs: int = 1
+    min_pair_inliers: int = 15
+    min_points_per_image: float = 20.0
+    num_threads: int = 2
+
+    def __post_init__(self) -> None:
+        if self.max_features < 100 or self.max_exhaustive_images < 2 or self.num_threads < 1:
+            raise InvalidInputError(f"invalid triangulation config {self}")
+
+
+class _QuietColmap:
+    """COLMAP's glog INFO lines off while it works (errors still shown)."""
+
+    def __init__(self, pycolmap) -> None:
+        self.logging = pycolmap.logging
+
+    def __enter__(self):
+        self.before = self.logging.minloglevel
+        self.logging.minloglevel = 2
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.logging.minloglevel = self.before
+
+
+def triangulate(reconstruction, images_dir: Path, where: Path, config=TriangulationConfig()):
+    """The poses-only ``reconstruction``'s points, triangulated from its fixed poses and
+    cameras with features of the images under ``images_dir`` (module doc). Returns the
+    triangulated pycolmap.Reconstruction; InputFileError naming why it cannot."""
+    pycolmap = _import_pycolmap()
+    names = {iid: reconstruction.images[iid].name for iid in reconstruction.reg_image_ids()}
+    missing = sorted(n for n in names.values() if not (images_dir / n).is_file())
+    if missing:
+        raise InputFileError(
+            where,
+            f"the COLMAP model has {len(names)} posed images but no 3D points, and "
+            f"{len(missing)} of its images are not under {images_dir} (first: {missing[0]}): "
+            "cannot triangulate it",
+        )
+    with tempfile.TemporaryDirectory(prefix="monoloc-triangulate-") as tmp, _QuietColmap(pycolmap):
+        database_path = Path(tmp) / "database.db"
+        database = pycolmap.Database.open(str(database_path))
+        try:  # the model's cameras, rigs, images and frames under their own ids
+            for camera in reconstruction.cameras.values():
+                database.write_camera(camera, use_camera_id=True)
+            for rig in reconstruction.rigs.values():
+                database.write_rig(rig, use_rig_id=True)
+            for image_id, name in names.items():
+                image = reconstruction.images[image_id]
+                bare = pycolmap.Image(name=name, camera_id=image.camera_id, image_id=image_id)
+                database.write_image(bare, use_image_id=True)
+            for frame_id, frame in reconstruction.frames.items():
+                bare = pycolmap.Frame()
+                bare.frame_id, bare.rig_id = frame_id, frame.rig_id
+                for data_id in frame.data_ids:
+                    bare.add_data_id(data_id)
+                database.write_frame(bare, use_frame_id=True)
+        finally:
+            database.close()
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = config.num_threads
+        extraction.sift.max_num_features = config.max_features
+        try:
+            pycolmap.extract_features(
+                str(database_path),
+                str(images_dir),
+                image_names=list(names.values()),
+                camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+            )
+            matching = pycolmap.FeatureMatchingOptions()
+            matching.num_threads = config.num_threads
+            if len(names) <= config.max_exhaustive_images:
+                pycolmap.match_exhaustive(
+                    str(database_path), matching_options=matching, device=pycolmap.Device.cpu
+                )
+            else:
+                pairing = pycolmap.SequentialPairingOptions()
+                pairing.overlap = config.sequential_overlap
+                pycolmap.match_sequential(
+                    str(database_path),
+                    matching_options=matching,
+                    pairing_options=pairing,
+                    device=pycolmap.Device.cpu,
+                )
+        except Exception as exc:  # pycolmap's C++ errors
+            raise InputFileError(where, f"pycolmap could not match the images: {exc}") from exc
+        database = pycolmap.Database.open(str(database_path))
+        try:
+            n_cameras = database.num_cameras()
+            _, pair_inliers = database.read_two_view_geometry_num_inliers()
+            verified = sum(n >= config.min_pair_inliers for n in pair_inliers)
+            inliers = int(sum(pair_inliers))
+        finally:
+            database.close()
+        if n_cameras != len(reconstruction.cameras):  # a camera the images did not fit
+            raise InputFileError(
+                where, "the images do not fit the model's cameras (size): cannot triangulate"
+            )
+        if verified < config.min_verified_pairs:
+            raise InputFileError(
+                where,
+                f"the COLMAP model has no 3D points and its {len(names)} images give "
+                f"{verified} verified image pairs ({inliers} matches): too few matches to "
+                "triangulate it",
+            )
+        options = pycolmap.IncrementalPipelineOptions()
+        options.num_threads = config.num_threads
+        output = Path(tmp) / "triangulated"
+        output.mkdir()
+        try:
+            result = pycolmap.triangulate_points(
+                reconstruction, str(database_path), str(images_dir), str(output), options=options
+            )
+        except Exception as exc:
+            raise InputFileError(where, f"pycolmap could not triangulate: {exc}") from exc
+    n_points = result.num_points3D()
+    if n_points < config.min_points_per_image * len(names):
+        raise InputFileError(
+            where,
+            f"triangulating the poses-only model gave {n_points} 3D points for {len(names)} "
+            f"images (at least {config.min_points_per_image:g} per image needed): too few "
+            "matches",
+        )
+    return result
+
+
+def read_colmap_model(
+    model_dir: Path, images_dir: Path, triangulation: TriangulationConfig = TriangulationConfig()
+) -> PosedImages:
     """Open a COLMAP sparse model (a folder with cameras/images/points3D .bin or .txt);
-    image files are looked up under ``images_dir`` by the model's image names. Raises
-    InputFileError (missing/unreadable model or images folder) and InvalidInputError
-    (an unsupported camera)."""
+    image files are looked up under ``images_dir`` by the model's image names. A
+    poses-only model is triangulated first (module doc). Raises InputFileError
+    (missing/unreadable model or images folder, a poses-only model that cannot be
+    triangulated) and InvalidInputError (an unsupported camera)."""
     pycolmap = _import_pycolmap()
     model_dir, images_dir = Path(model_dir).expanduser(), Path(images_dir).expanduser()
     if not model_dir.is_dir():
@@ -73,17 +230,16 @@ def read_colmap_model(model_dir: Path, images_dir: Path) -> PosedImages:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises its own C++ errors as ValueError/RuntimeError
         raise InputFileError(model_dir, f"unreadable COLMAP model: {exc}") from exc
-    if reconstruction.num_reg_images() and not reconstruction.num_points3D():
-        # what a user has after mapping with known poses, before triangulating: monoloc
-        # needs the model's 3D points (its --points orb takes them by their observations)
-        raise InputFileError(
-            model_dir,
-            f"the COLMAP model has {reconstruction.num_reg_images()} posed images but no 3D "
-            "points: triangulate them first (colmap point_triangulator with these poses)",
-        )
     cameras = {
         cid: intrinsics_of(cam, str(model_dir)) for cid, cam in reconstruction.cameras.items()
     }
+    notes: list[str] = []
+    if reconstruction.num_reg_images() and not reconstruction.num_points3D():
+        reconstruction = triangulate(reconstruction, images_dir, model_dir, triangulation)
+        notes.append(
+            f"triangulated {reconstruction.num_points3D()} points from the "
+            f"{reconstruction.num_reg_images()} posed images (pycolmap, poses fixed)"
+        )
     images, skipped = [], {}
     for image_id in sorted(reconstruction.reg_image_ids()):
         image = reconstruction.images[image_id]
@@ -115,13 +271,14 @@ def read_colmap_model(model_dir: Path, images_dir: Path) -> PosedImages:
         images=images,
         skipped=skipped,
         default_up=read_marker_up(model_dir) or "-y",
+        notes=tuple(notes),
     )
 
 
 def write_colmap_model(views: list[ModelView], out_dir: Path, marker: dict | None = None) -> Path:
-    """Write ``views`` as a binary COLMAP sparse model in ``out_dir`` (created), and the
-    ``marker`` dict as ``monoloc.json`` if given (monoloc's export: ``up`` z). Returns
-    ``out_dir``."""
+    """Write ``views`` as a binary COLMAP sparse model in ``out_dir`` (created), their
+    image files (if given) in ``out_dir/images``, and the ``marker`` dict as
+    ``monoloc.json`` if given (monoloc's export: ``up`` z). Returns ``out_dir``."""
     pycolmap = _import_pycolmap()
     out_dir = Path(out_dir).expanduser()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -131,15 +288,18 @@ def write_colmap_model(views: list[ModelView], out_dir: Path, marker: dict | Non
         c = view.intrinsics
         if c not in camera_ids:
             camera_ids[c] = len(camera_ids) + 1
+            model, params = camera_model_of(c)
             camera = pycolmap.Camera(
-                model="PINHOLE",
+                model=model,
                 width=c.width_px,
                 height=c.height_px,
-                params=[c.fx, c.fy, c.cx + PIXEL_SHIFT, c.cy + PIXEL_SHIFT],
+                params=params,
                 camera_id=camera_ids[c],
             )
             reconstruction.add_camera_with_trivial_rig(camera)
-    for image_id, view in enumerate(views, start=1):
+    points, point_index = tracks_of(views)
+    tracks = [pycolmap.Track() for _ in range(len(points))]
+    for image_id, (view, index) in enumerate(zip(views, point_index, strict=True), start=1):
         image = pycolmap.Image(
             name=view.name, camera_id=camera_ids[view.intrinsics], image_id=image_id
         )
@@ -150,10 +310,14 @@ def write_colmap_model(views: list[ModelView], out_dir: Path, marker: dict | Non
             pycolmap.Rotation3d(T_cam_from_world[:3, :3]), T_cam_from_world[:3, 3]
         )
         reconstruction.add_image_with_trivial_frame(image, cam_from_world)
-        for k, xyz in enumerate(np.asarray(view.points_world, dtype=np.float64).reshape(-1, 3)):
-            track = pycolmap.Track()
-            track.add_element(image_id, k)
-            reconstruction.add_point3D(xyz, track)
+        for k, p in enumerate(index.tolist()):
+            tracks[p].add_element(image_id, k)
+        if view.image_bytes is not None:
+            target = out_dir / IMAGES_FOLDER / view.name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(view.image_bytes)
+    for xyz, track in zip(points, tracks, strict=True):
+        reconstruction.add_point3D(xyz, track)
     reconstruction.write(str(out_dir))
     if marker is not None:
         (out_dir / MARKER_FILE).write_text(json.dumps(marker, indent=2) + "\n")

@@ -49,8 +49,10 @@ from monoloc.server.formats.model import (
     ModelView,
     PosedImage,
     PosedImages,
-    pinhole_intrinsics,
+    camera_intrinsics,
+    camera_model_of,
     read_marker_up,
+    tracks_of,
 )
 
 CAMERA_ID = "cam0"
@@ -105,7 +107,7 @@ class LidarFile:
 
 def _intrinsics(sensor, where: str) -> CameraIntrinsics:
     params = [float(v) for v in sensor.camera_params]  # width, height, then the model's
-    return pinhole_intrinsics(
+    return camera_intrinsics(
         sensor.camera_type.name,
         params[2:],
         int(params[0]),
@@ -155,6 +157,7 @@ def _observations(data, root: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
                 kps = image_keypoints_from_file(path, keypoints.dtype, keypoints.dsize)
             except (OSError, ValueError) as exc:
                 raise InputFileError(Path(path), f"unreadable keypoints: {exc}") from exc
+            pairs.sort()  # the image's keypoint order, not the points'
             index = np.array([k for k, _ in pairs], dtype=np.int64)
             ids = np.array([p for _, p in pairs], dtype=np.int64)
             if index.max() >= len(kps) or ids.max() >= len(points):
@@ -254,14 +257,16 @@ def read_kapture(root: Path) -> PosedImages:
     return PosedImages(str(root), images, skipped, default_up=read_marker_up(root) or "z")
 
 
-def _camera_sensor(kapture, c: CameraIntrinsics):
-    params = [c.width_px, c.height_px, c.fx, c.fy, c.cx + PIXEL_SHIFT, c.cy + PIXEL_SHIFT]
-    return kapture.Camera(kapture.CameraType.PINHOLE, params, name=CAMERA_ID)
+def _camera_sensor(kapture, c: CameraIntrinsics, name: str = CAMERA_ID):
+    model, params = camera_model_of(c)
+    return kapture.Camera(kapture.CameraType[model], [c.width_px, c.height_px, *params], name=name)
 
 
 def write_kapture_map(views: list[ModelView], out_dir: Path, marker: dict | None = None) -> Path:
-    """Write a map's entries (views with descriptors, one camera; ``record`` is the
-    timestamp) as a kapture dataset in ``out_dir`` (module doc)."""
+    """Write a map's entries (views with descriptors; ``record`` is the timestamp) as a
+    kapture dataset in ``out_dir`` (module doc): one camera sensor per distinct
+    intrinsics (``cam0``, ``cam1``, ...), the views' image files (if given) under
+    ``sensors/records_data``, shared points as multi-view observations."""
     kapture = _import_kapture()
     from kapture.io.csv import kapture_to_dir
     from kapture.io.features import (
@@ -270,25 +275,29 @@ def write_kapture_map(views: list[ModelView], out_dir: Path, marker: dict | None
         image_descriptors_to_file,
         image_keypoints_to_file,
     )
+    from kapture.io.records import get_image_fullpath
 
     out_dir = Path(out_dir).expanduser()
     out_dir.mkdir(parents=True, exist_ok=True)
-    cameras = {v.intrinsics for v in views}
-    if len(cameras) > 1:
-        raise InvalidInputError("a kapture export takes one camera")
     sensors = kapture.Sensors()
-    if views:
-        sensors[CAMERA_ID] = _camera_sensor(kapture, views[0].intrinsics)
+    sensor_of: dict[CameraIntrinsics, str] = {}
+    for view in views:
+        if view.intrinsics not in sensor_of:
+            sensor_id = f"cam{len(sensor_of)}"
+            sensor_of[view.intrinsics] = sensor_id
+            sensors[sensor_id] = _camera_sensor(kapture, view.intrinsics, sensor_id)
     trajectories, records = kapture.Trajectories(), kapture.RecordsCamera()
     keypoints = kapture.Keypoints(FEATURE_TYPE, np.float32, 2)
     descriptor_set = kapture.Descriptors(FEATURE_TYPE, np.uint8, 32, FEATURE_TYPE, "Hamming")
-    observations, points = kapture.Observations(), []
-    for view in views:
+    observations = kapture.Observations()
+    points, point_index = tracks_of(views)
+    for view, index in zip(views, point_index, strict=True):
         ts, desc = view.record, view.descriptors
+        sensor_id = sensor_of[view.intrinsics]
         if desc is None or len(desc) != len(view.keypoints_px):
             raise InvalidInputError(f"{view.name}: one descriptor per keypoint is needed")
-        trajectories[int(ts), CAMERA_ID] = _pose(invert_rigid(view.T_world_from_cam))
-        records[int(ts), CAMERA_ID] = view.name
+        trajectories[int(ts), sensor_id] = _pose(invert_rigid(view.T_world_from_cam))
+        records[int(ts), sensor_id] = view.name
         keypoints.add(view.name)
         descriptor_set.add(view.name)
         kps = (np.asarray(view.keypoints_px, dtype=np.float32) + PIXEL_SHIFT).reshape(-1, 2)
@@ -297,19 +306,20 @@ def write_kapture_map(views: list[ModelView], out_dir: Path, marker: dict | None
             get_descriptors_fullpath(FEATURE_TYPE, str(out_dir), view.name),
             np.ascontiguousarray(desc, dtype=np.uint8),
         )
-        for k, xyz in enumerate(np.asarray(view.points_world).reshape(-1, 3)):
-            observations.add(len(points), FEATURE_TYPE, view.name, k)
-            points.append(xyz)
+        for k, point in enumerate(index.tolist()):
+            observations.add(point, FEATURE_TYPE, view.name, k)
+        if view.image_bytes is not None:
+            target = Path(get_image_fullpath(str(out_dir), view.name))
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(view.image_bytes)
     data = kapture.Kapture(
         sensors=sensors,
         trajectories=trajectories,
         records_camera=records,
         keypoints={FEATURE_TYPE: keypoints},
         descriptors={FEATURE_TYPE: descriptor_set},
-        points3d=kapture.Points3d(np.asarray(points, dtype=np.float64).reshape(-1, 3), size=3)
-        if points
-        else None,
-        observations=observations if points else None,
+        points3d=kapture.Points3d(points, size=3) if len(points) else None,
+        observations=observations if len(points) else None,
     )
     kapture_to_dir(str(out_dir), data)
     if marker is not None:

@@ -4,10 +4,12 @@ map's entries as views for a writer."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
+from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError, NotFoundError
 from monoloc.server.formats.model import ImportSource, ModelView
 from monoloc.server.ingest.pipeline import IngestConfig, IngestSummary
@@ -83,38 +85,137 @@ def _check_something_imported(summaries: list[IngestSummary]) -> None:
 
 
 def entry_name(entry_id: int) -> str:
-    return f"entry_{entry_id:06d}.png"
+    return f"entry_{entry_id:06d}.jpg"
 
 
-def map_views(session_factory: sessionmaker[Session], map_ref: str | int):
+@dataclass(frozen=True)
+class TrackMerge:
+    """How an export joins the entries' points into multi-view tracks: two points of
+    different entries whose world positions are within ``radius_m`` and whose ORB
+    descriptors differ by at most ``max_hamming`` bits are one 3D point (closest pairs
+    first; a track never holds two keypoints of one entry), at the mean of its members."""
+
+    radius_m: float = 0.03
+    max_hamming: int = 40
+
+    def __post_init__(self) -> None:
+        if not self.radius_m >= 0 or not 0 <= self.max_hamming <= 256:
+            raise InvalidInputError(f"invalid track merge {self}")
+
+
+def merge_tracks(
+    points_world: list[np.ndarray], descriptors: list[np.ndarray], rule: TrackMerge = TrackMerge()
+) -> list[np.ndarray]:
+    """Per view the (N,) track id of each of its points (views' points (N, 3) world and
+    descriptors (N, 32) uint8), by the ``rule`` (:class:`TrackMerge`)."""
+    from scipy.spatial import cKDTree
+
+    counts = [len(p) for p in points_world]
+    if not sum(counts):
+        return [np.zeros(0, dtype=np.int64) for _ in counts]
+    xyz = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points_world])
+    desc = np.concatenate([np.asarray(d, dtype=np.uint8).reshape(-1, 32) for d in descriptors])
+    view = np.repeat(np.arange(len(counts)), counts)
+    parent = np.arange(len(xyz))
+    members: dict[int, set[int]] = {i: {int(view[i])} for i in range(len(xyz))}
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    if rule.radius_m > 0:
+        pairs = cKDTree(xyz).query_pairs(rule.radius_m, output_type="ndarray")
+        if len(pairs):
+            pairs = pairs[view[pairs[:, 0]] != view[pairs[:, 1]]]
+            bits = np.unpackbits(desc[pairs[:, 0]] ^ desc[pairs[:, 1]], axis=1).sum(axis=1)
+            pairs = pairs[bits <= rule.max_hamming]
+            distance = np.linalg.norm(xyz[pairs[:, 0]] - xyz[pairs[:, 1]], axis=1)
+            for a, b in pairs[np.argsort(distance, kind="stable")].tolist():
+                ra, rb = root(a), root(b)
+                if ra == rb or members[ra] & members[rb]:
+                    continue
+                parent[rb] = ra
+                members[ra] |= members.pop(rb)
+    roots = np.array([root(i) for i in range(len(xyz))], dtype=np.int64)
+    _, ids = np.unique(roots, return_inverse=True)
+    return np.split(ids.astype(np.int64), np.cumsum(counts)[:-1])
+
+
+def _preview_camera(camera: CameraIntrinsics, width_px: int, height_px: int) -> CameraIntrinsics:
+    """The map's camera for its image resized to width x height (pixel centres kept)."""
+    sx, sy = width_px / camera.width_px, height_px / camera.height_px
+    return CameraIntrinsics(
+        camera.fx * sx,
+        camera.fy * sy,
+        (camera.cx + 0.5) * sx - 0.5,
+        (camera.cy + 0.5) * sy - 0.5,
+        width_px,
+        height_px,
+        camera.distortion,
+    )
+
+
+def map_views(
+    session_factory: sessionmaker[Session], map_ref: str | int, merge: TrackMerge = TrackMerge()
+):
     """(map, views): every entry of the map as a :class:`ModelView` in the z-up world,
-    named ``entry_<id>.png``, with the map's camera; in entry id order."""
+    named ``entry_<id>.jpg``, in entry id order, with its stored image (the preview JPEG,
+    at most 640 px; the server keeps no full-size image) and the map's camera scaled to
+    it, its keypoints scaled likewise, and its points joined into multi-view tracks
+    (``merge``; each keypoint takes its track's mean position). An entry without a stored
+    image is exported at the camera's size without an image file."""
     from monoloc.server.ingest.manage import find_map
 
     record = find_map(session_factory, map_ref)
-    views: list[ModelView] = []
+    entries, images = [], []
     offset = 0
     while True:
         with session_scope(session_factory) as session:
             summaries = entries_repo.list_entries(session, record.id, limit=_BATCH, offset=offset)
             data = entries_repo.get_entry_data(session, [s.id for s in summaries])
-        for entry in data:
-            T = np.asarray(entry.T_world_from_cam, dtype=np.float64)
-            points_world = np.asarray(entry.points_cam, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-            views.append(
-                ModelView(
-                    name=entry_name(entry.id),
-                    intrinsics=record.camera,
-                    T_world_from_cam=T,
-                    keypoints_px=np.asarray(entry.keypoints_px, dtype=np.float64),
-                    points_world=points_world,
-                    descriptors=np.asarray(entry.descriptors, dtype=np.uint8),
-                    record=entry.id,
-                )
-            )
+            for entry in data:
+                entries.append(entry)
+                images.append(entries_repo.get_entry_image(session, entry.id))
         if len(summaries) < _BATCH:
-            return record, views
+            break
         offset += _BATCH
+    camera = record.camera
+    worlds = []
+    for entry in entries:
+        size = (entry.summary.image_width_px, entry.summary.image_height_px)
+        if size != (camera.width_px, camera.height_px):
+            raise InvalidInputError(
+                f"entry {entry.id} is {size[0]}x{size[1]} but map {record.name}'s camera is "
+                f"{camera.width_px}x{camera.height_px}: its intrinsics are not known"
+            )
+        T = np.asarray(entry.T_world_from_cam, dtype=np.float64)
+        worlds.append(np.asarray(entry.points_cam, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+    track_ids = merge_tracks(worlds, [e.descriptors for e in entries], merge)
+    views: list[ModelView] = []
+    for entry, image, world, ids in zip(entries, images, worlds, track_ids, strict=True):
+        keypoints = np.asarray(entry.keypoints_px, dtype=np.float64).reshape(-1, 2)
+        intrinsics, image_bytes = camera, None
+        if image is not None:
+            intrinsics = _preview_camera(camera, image.width_px, image.height_px)
+            scale = np.array([intrinsics.fx / camera.fx, intrinsics.fy / camera.fy])
+            keypoints = (keypoints + 0.5) * scale - 0.5
+            image_bytes = image.jpeg
+        views.append(
+            ModelView(
+                name=entry_name(entry.id),
+                intrinsics=intrinsics,
+                T_world_from_cam=np.asarray(entry.T_world_from_cam, dtype=np.float64),
+                keypoints_px=keypoints,
+                points_world=world,
+                descriptors=np.asarray(entry.descriptors, dtype=np.uint8),
+                record=entry.id,
+                point_ids=ids,
+                image_bytes=image_bytes,
+            )
+        )
+    return record, views
 
 
 def _marker(record: MapRecord) -> dict:

@@ -31,12 +31,14 @@ Two ways to give an entry its 3D points (``points``), both measured in bench/for
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from monoloc.core.camera import CameraIntrinsics
+from monoloc.core.camera import CameraIntrinsics, LensDistortion
 from monoloc.core.errors import InputFileError, InvalidInputError
 from monoloc.core.geometry import R_ZUP_FROM_KITTI, invert_rigid
 from monoloc.server.ingest.common import LoadedFrame, decode_gray, read_bytes
@@ -48,37 +50,57 @@ MARKER_FILE = "monoloc.json"  # written beside an export: {"up": "z", ...}
 # COLMAP and kapture put a pixel's centre at (0.5, 0.5) from the image corner; monoloc
 # (OpenCV) at (0, 0): imports subtract this, exports add it.
 PIXEL_SHIFT = 0.5
-# Camera models (COLMAP's names, which kapture shares) -> index of (fx, fy, cx, cy) in
-# their parameters (fy = fx with one focal); the others are distortion coefficients.
-_PINHOLE_PARAMS = {
-    "SIMPLE_PINHOLE": (0, 0, 1, 2),
-    "PINHOLE": (0, 1, 2, 3),
-    "SIMPLE_RADIAL": (0, 0, 1, 2),
-    "RADIAL": (0, 0, 1, 2),
-    "OPENCV": (0, 1, 2, 3),
-    "FULL_OPENCV": (0, 1, 2, 3),
+# Camera models (COLMAP's names, which kapture's CameraType shares): parameter layout as
+# (focal indices (fx, fy; one index twice for a single focal), principal point indices,
+# monoloc's LensDistortion model or None, how the remaining parameters fill its
+# coefficients: an index per coefficient, None for a coefficient the model lacks (0)).
+# COLMAP's OPENCV is OpenCV's k1 k2 p1 p2, FULL_OPENCV its k1 k2 p1 p2 k3 k4 k5 k6, and
+# OPENCV_FISHEYE / the *_FISHEYE models OpenCV's equidistant theta_d = theta (1 + k1
+# theta^2 + k2 theta^4 + ...); tests/server/formats/test_cameras.py checks each against
+# pycolmap's own projection.
+_CAMERA_MODELS: dict[str, tuple[tuple[int, int], tuple[int, int], str | None, tuple]] = {
+    "SIMPLE_PINHOLE": ((0, 0), (1, 2), None, ()),
+    "PINHOLE": ((0, 1), (2, 3), None, ()),
+    "SIMPLE_RADIAL": ((0, 0), (1, 2), "plumb_bob", (3, None, None, None)),
+    "RADIAL": ((0, 0), (1, 2), "plumb_bob", (3, 4, None, None)),
+    "OPENCV": ((0, 1), (2, 3), "plumb_bob", (4, 5, 6, 7)),
+    "FULL_OPENCV": ((0, 1), (2, 3), "rational_polynomial", (4, 5, 6, 7, 8, 9, 10, 11)),
+    "OPENCV_FISHEYE": ((0, 1), (2, 3), "equidistant", (4, 5, 6, 7)),
+    "SIMPLE_RADIAL_FISHEYE": ((0, 0), (1, 2), "equidistant", (3, None, None, None)),
+    "RADIAL_FISHEYE": ((0, 0), (1, 2), "equidistant", (3, 4, None, None)),
 }
+CAMERA_MODELS = tuple(_CAMERA_MODELS)
 
 
-def pinhole_intrinsics(
+def _n_params(model: str) -> int:
+    focal, centre, _, coefficients = _CAMERA_MODELS[model]
+    indices = [*focal, *centre, *(i for i in coefficients if i is not None)]
+    return max(indices) + 1
+
+
+def camera_intrinsics(
     model: str, params, width_px: int, height_px: int, where: str
 ) -> CameraIntrinsics:
     """Intrinsics (OpenCV pixel convention) of a camera given as a COLMAP/kapture model
-    name and its parameters; InvalidInputError for other models or any distortion (monoloc
-    imports pinhole cameras: undistort first, e.g. colmap image_undistorter)."""
-    if model not in _PINHOLE_PARAMS:
+    name and its parameters, with its lens distortion (None when every distortion
+    parameter is zero). InvalidInputError naming the model for one monoloc does not know
+    (FOV, THIN_PRISM_FISHEYE, ...) or a wrong number of parameters."""
+    if model not in _CAMERA_MODELS:
         raise InvalidInputError(
-            f"{where}: the camera is {model}; monoloc imports pinhole cameras "
-            "(undistort first, e.g. colmap image_undistorter)"
+            f"{where}: the camera model {model} is not one monoloc knows "
+            f"({', '.join(CAMERA_MODELS)})"
         )
-    values = np.asarray(params, dtype=np.float64)
-    ifx, ify, icx, icy = _PINHOLE_PARAMS[model]
-    distortion = np.delete(values, sorted({ifx, ify, icx, icy}))
-    if np.any(distortion != 0):
+    values = np.asarray(params, dtype=np.float64).ravel()
+    if len(values) != _n_params(model) or not np.all(np.isfinite(values)):
         raise InvalidInputError(
-            f"{where}: the camera ({model}) has distortion {distortion.tolist()}; undistort "
-            "first (colmap image_undistorter)"
+            f"{where}: a {model} camera takes {_n_params(model)} finite parameters, got "
+            f"{values.tolist()}"
         )
+    (ifx, ify), (icx, icy), lens, layout = _CAMERA_MODELS[model]
+    distortion = None
+    if lens is not None:
+        coefficients = [0.0 if i is None else float(values[i]) for i in layout]
+        distortion = LensDistortion.parse(lens, coefficients)
     return CameraIntrinsics(
         float(values[ifx]),
         float(values[ify]),
@@ -86,7 +108,24 @@ def pinhole_intrinsics(
         float(values[icy]) - PIXEL_SHIFT,
         int(width_px),
         int(height_px),
+        distortion,
     )
+
+
+def camera_model_of(c: CameraIntrinsics) -> tuple[str, list[float]]:
+    """The COLMAP/kapture model name and parameters (COLMAP's pixel convention) of
+    monoloc intrinsics: PINHOLE, OPENCV (plumb_bob without k3), FULL_OPENCV (plumb_bob
+    with k3, rational_polynomial) or OPENCV_FISHEYE (equidistant)."""
+    base = [float(c.fx), float(c.fy), float(c.cx) + PIXEL_SHIFT, float(c.cy) + PIXEL_SHIFT]
+    d = c.distortion
+    if d is None or d.is_zero:
+        return "PINHOLE", base
+    k = list(d.coefficients)
+    if d.model == "equidistant":
+        return "OPENCV_FISHEYE", base + k
+    if d.model == "plumb_bob" and (len(k) == 4 or k[4] == 0.0):
+        return "OPENCV", base + k[:4]
+    return "FULL_OPENCV", base + (k + [0.0, 0.0, 0.0] if len(k) == 5 else k)
 
 
 @dataclass(frozen=True)
@@ -128,13 +167,17 @@ class PosedImages:
     images: list[PosedImage]
     skipped: dict[str, int] = field(default_factory=dict)
     default_up: str = "z"
+    notes: tuple[str, ...] = ()  # what the reader did beyond reading (a triangulation)
 
 
 @dataclass(frozen=True)
 class ModelView:
     """What a writer needs of one image: name, camera, pose in the written world, its
     keypoints (N, 2) (OpenCV pixels), their points (N, 3) in that world, and optionally
-    their ORB descriptors (N, 32) uint8 and a record number (kapture's timestamp)."""
+    their ORB descriptors (N, 32) uint8, a record number (kapture's timestamp), the
+    points' track ids (N,) (keypoints of several views with one id are one 3D point with
+    a multi-view track; None: a point per keypoint) and the image file's bytes to write
+    under ``name`` (None: no file)."""
 
     name: str
     intrinsics: CameraIntrinsics
@@ -143,6 +186,35 @@ class ModelView:
     points_world: np.ndarray = field(repr=False)
     descriptors: np.ndarray | None = field(default=None, repr=False)
     record: int = 0
+    point_ids: np.ndarray | None = field(default=None, repr=False)
+    image_bytes: bytes | None = field(default=None, repr=False)
+
+
+def tracks_of(views: list[ModelView]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(points (P, 3), per view the (N,) index of each keypoint's point): views with
+    ``point_ids`` share a point per id (its mean position), the others get one each."""
+    rows: dict[int, list[np.ndarray]] = {}
+    index_of: dict[int, int] = {}
+    per_view = []
+    fresh = -1
+    for view in views:
+        xyz = np.asarray(view.points_world, dtype=np.float64).reshape(-1, 3)
+        if view.point_ids is None:
+            ids = np.arange(fresh, fresh - len(xyz), -1)  # negative: never shared
+            fresh -= len(xyz)
+        else:
+            ids = np.asarray(view.point_ids, dtype=np.int64).ravel()
+            if len(ids) != len(xyz) or (len(ids) and ids.min() < 0):
+                raise InvalidInputError(f"{view.name}: one non-negative point id per keypoint")
+        for i, p in zip(ids.tolist(), xyz, strict=True):
+            if i not in index_of:
+                index_of[i] = len(index_of)
+            rows.setdefault(i, []).append(p)
+        per_view.append(np.array([index_of[i] for i in ids.tolist()], dtype=np.int64))
+    points = np.zeros((len(index_of), 3))
+    for i, k in index_of.items():
+        points[k] = np.mean(rows[i], axis=0)
+    return points, per_view
 
 
 def rotation_taking(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -251,10 +323,46 @@ class ImportFrame:
     image: PosedImage = field(repr=False)
 
 
+@functools.lru_cache(maxsize=8)
+def _undistort_maps(lens: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps from the pinhole camera of the same K and size to the lens."""
+    import cv2
+
+    K = lens.K
+    D = np.asarray(lens.distortion.coefficients, dtype=np.float64)
+    size = (lens.width_px, lens.height_px)
+    if lens.distortion.model == "equidistant":
+        return cv2.fisheye.initUndistortRectifyMap(K, D, np.eye(3), K, size, cv2.CV_32FC1)
+    return cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1)
+
+
+def undistort_image(image: np.ndarray, lens: CameraIntrinsics, nearest: bool = False):
+    """The image (H, W) a pinhole camera with the lens's K and size would have taken
+    (``nearest``: no interpolation, for depth maps)."""
+    import cv2
+
+    if lens.distortion is None:
+        return image
+    map_x, map_y = _undistort_maps(lens)
+    interpolation = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.remap(image, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
+
+
 @dataclass(frozen=True)
 class ImportSource:
     """A reader's images as an ingestion source, for one camera (the pipeline builds a
-    run's entries with one camera): ``frames``, ``intrinsics``, ``load(frame)``."""
+    run's entries with one camera): ``frames``, ``intrinsics``, ``load(frame)``.
+
+    A camera with lens distortion (``lens``) is undistorted at import, once per image:
+    the image is remapped to the pinhole camera of the same K and size (``intrinsics``,
+    which the map and its entries then have) and the model's observations are
+    undistorted (``cv2.undistortPoints`` / ``cv2.fisheye.undistortPoints``), so every
+    stored keypoint, 3D point and preview is pinhole-consistent and the map is served,
+    exported and re-imported like any other; queries keep undistorting their own
+    keypoints only. The image rather than only the keypoints, because the entry's stored
+    preview must agree with its keypoints (an export writes both) and a map's camera has
+    no distortion; the cost is one remap per mapping image, and the lens's periphery that
+    falls outside the pinhole frame (a fisheye's most of all) is lost."""
 
     format: str
     name: str
@@ -265,31 +373,55 @@ class ImportSource:
     association: Association = field(default_factory=Association)
     orb: OrbConfig = field(default_factory=OrbConfig)  # the ingestion's (build_entry's)
     read_skips: dict[str, int] = field(default_factory=dict)
+    lens: CameraIntrinsics | None = None
+
+    def read_image(self, frame: ImportFrame) -> tuple[bytes, np.ndarray]:
+        """The image file's bytes and the (undistorted) grey image entries are built on."""
+        data = read_bytes(frame.image_path, "image")
+        gray = decode_gray(data, frame.image_path)
+        if self.lens is not None and gray.shape == (self.lens.height_px, self.lens.width_px):
+            gray = undistort_image(gray, self.lens)
+        return data, gray
 
     def load(self, frame: ImportFrame) -> LoadedFrame:
         """Read the image and give it its 3D source (thread-safe; no database access)."""
-        from monoloc.server.entry_builder import ObservedPoints
+        from monoloc.server.entry_builder import DepthSource, ObservedPoints
         from monoloc.server.vision.features import extract_features
+        from monoloc.server.vision.undistort import undistort_pixels
 
-        data = read_bytes(frame.image_path, "image")
-        gray = decode_gray(data, frame.image_path)
+        data, gray = self.read_image(frame)
         image = frame.image
         recorded = image.depth if image.depth is not None else image.lidar
         if recorded is not None:  # a kapture depth map or LiDAR scan: read it now
-            return LoadedFrame(data, gray, recorded.load())
+            source = recorded.load()
+            if self.lens is not None and isinstance(source, DepthSource):
+                depth = undistort_image(np.asarray(source.depth_raw), self.lens, nearest=True)
+                source = dataclasses.replace(source, depth_raw=depth)
+            return LoadedFrame(data, gray, source)
         scale = np.linalg.norm(self.T_world_from_model[:3, 0])
         # Points in the camera frame, in metres: the camera frame is rotated with the
         # world, so only the scale applies.
         T_cam_from_model = invert_rigid(image.T_model_from_cam)
         points_cam = image.points_model @ T_cam_from_model[:3, :3].T + T_cam_from_model[:3, 3]
         points_cam = points_cam * scale
+        observed_px = image.keypoints_px
+        if self.lens is not None:
+            observed_px = undistort_pixels(observed_px, self.lens)
+            c = self.intrinsics
+            inside = (
+                (observed_px[:, 0] >= 0)
+                & (observed_px[:, 0] <= c.width_px - 1)
+                & (observed_px[:, 1] >= 0)
+                & (observed_px[:, 1] <= c.height_px - 1)
+            )
+            observed_px, points_cam = observed_px[inside], points_cam[inside]
         if self.points == "model":
-            return LoadedFrame(data, gray, ObservedPoints(image.keypoints_px, points_cam))
+            return LoadedFrame(data, gray, ObservedPoints(observed_px, points_cam))
         if gray.shape != (self.intrinsics.height_px, self.intrinsics.width_px):
             return LoadedFrame(data, gray, np.zeros((0, 3)))  # build_entry names the size
         features = extract_features(gray, self.orb)
         explicit = associate_points(
-            features.keypoints_px, image.keypoints_px, points_cam, self.intrinsics, self.association
+            features.keypoints_px, observed_px, points_cam, self.intrinsics, self.association
         )
         return LoadedFrame(data, gray, explicit)
 
@@ -329,13 +461,14 @@ def import_sources(
             ImportSource(
                 fmt,
                 name,
-                intrinsics,
+                intrinsics.pinhole,
                 frames,
                 T,
                 points,
                 association,
                 orb or OrbConfig(),
                 dict(model.skipped) if k == 0 else {},
+                lens=intrinsics if intrinsics.distortion is not None else None,
             )
         )
     return sources

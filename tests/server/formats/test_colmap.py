@@ -4,7 +4,6 @@ localized against, exported, opened by pycolmap and imported again."""
 
 from __future__ import annotations
 
-import shutil
 from types import SimpleNamespace
 
 import numpy as np
@@ -112,10 +111,12 @@ def test_imported_map_localizes_a_query_frame(factory, settings, sift_model, que
     assert np.median(errors) < 0.3, errors
 
 
-def test_export_opens_in_colmap_and_imports_back(factory, sift_model, map_run, tmp_path):
+def test_export_opens_in_colmap_and_imports_back(factory, sift_model, tmp_path):
+    """A map imported from a SIFT model, exported (its previews as the images, points
+    merged into tracks) and imported again from the export alone."""
     import pycolmap
 
-    from monoloc.server.ingest.common import content_hash
+    from monoloc.server.formats.maps import TrackMerge
 
     model_dir, images_dir, _ = sift_model
     first, _ = _import(factory, "first", read_colmap_model(model_dir, images_dir), "model")
@@ -124,6 +125,7 @@ def test_export_opens_in_colmap_and_imports_back(factory, sift_model, map_run, t
     reconstruction = pycolmap.Reconstruction(str(tmp_path / "export"))
     assert reconstruction.num_reg_images() == 8
     entries = _entries(factory, first.id)
+    radius = TrackMerge().radius_m
     for entry in entries:
         image = reconstruction.find_image_with_name(entry_name(entry.id))
         T_cam_from_world = np.eye(4)
@@ -135,23 +137,15 @@ def test_export_opens_in_colmap_and_imports_back(factory, sift_model, map_run, t
             [reconstruction.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()]
         )
         world = entry.points_cam @ entry.T_world_from_cam[:3, :3].T + entry.T_world_from_cam[:3, 3]
-        np.testing.assert_allclose(xyz, world, atol=1e-9)
-    # The images, named as exported, for the second import (the server keeps no pixels).
-    again = tmp_path / "images_again"
-    again.mkdir()
-    by_hash = {e.summary.source_image_hash: e.id for e in entries}
-    for frame in map_run.frames:
-        gray = map_run.load(frame).image_gray
-        shutil.copyfile(frame.image_path, again / entry_name(by_hash[content_hash(gray)]))
-    model = read_colmap_model(tmp_path / "export", again)
+        assert np.linalg.norm(xyz - world, axis=1).max() <= radius + 1e-4
+    model = read_colmap_model(tmp_path / "export", tmp_path / "export" / "images")
     assert model.default_up == "z"  # monoloc.json beside the export
     second, summary = _import(factory, "second", model, "model")
     assert summary.entries_added == 8
     for a, b in zip(entries, _entries(factory, second.id), strict=True):
         np.testing.assert_allclose(b.T_world_from_cam, a.T_world_from_cam, atol=1e-9)
         np.testing.assert_allclose(b.keypoints_px, a.keypoints_px, atol=1e-4)
-        np.testing.assert_allclose(b.points_cam, a.points_cam, atol=1e-4)
-        assert np.array_equal(b.descriptors, a.descriptors)
+        assert np.linalg.norm(b.points_cam - a.points_cam, axis=1).max() <= radius + 1e-4
 
 
 def test_up_auto_matches_the_stated_axis_for_a_level_camera(sift_model):
@@ -229,45 +223,3 @@ def test_cli_import_export_and_errors(sift_model, tmp_path, monkeypatch, capsys)
         assert find_map(make_session_factory(engine), "city").n_entries == 8
     finally:
         engine.dispose()
-
-
-def _map_listed(monkeypatch, capsys, name: str) -> bool:
-    code, out, err = run_monoloc(monkeypatch, capsys, "map", "list")
-    assert code == 0, err
-    return f" {name} " in out
-
-
-def test_a_poses_only_model_or_a_failed_import_leaves_no_map(
-    sift_model, tmp_path, monkeypatch, capsys
-):
-    """A model with poses and no points3D (mapped with known poses, not yet triangulated)
-    is refused in one line; an import that fails half-way (unreadable images) deletes the
-    map it created. Neither leaves an empty map behind."""
-    import pycolmap
-
-    model_dir, images_dir, truth = sift_model
-    monkeypatch.setenv("MONOLOC_DATA_DIR", str(tmp_path / "data"))
-    poses_only = pycolmap.Reconstruction(str(model_dir))
-    for point_id in list(poses_only.point3D_ids()):
-        poses_only.delete_point3D(point_id)
-    assert poses_only.num_points3D() == 0 and poses_only.num_reg_images() == len(truth)
-    (tmp_path / "poses_only").mkdir()
-    poses_only.write(str(tmp_path / "poses_only"))
-    imported = ["map", "import", "--format", "colmap", "--map", "city"]
-    code, _, err = run_monoloc(
-        monkeypatch, capsys, *imported, str(tmp_path / "poses_only"), "--images", str(images_dir)
-    )
-    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
-    assert "no 3D points" in err and "triangulate" in err
-    assert not _map_listed(monkeypatch, capsys, "city")
-
-    junk = tmp_path / "junk_images"
-    junk.mkdir()
-    for image in images_dir.iterdir():
-        (junk / image.name).write_bytes(b"not a png")
-    code, _, err = run_monoloc(
-        monkeypatch, capsys, *imported, str(model_dir), "--images", str(junk)
-    )
-    assert code == 1 and "Traceback" not in err
-    assert err.strip().splitlines()[-1].endswith("unreadable image (not a valid PNG/JPEG)")
-    assert not _map_listed(monkeypatch, capsys, "city")

@@ -15,7 +15,7 @@ from cli_runner import run_monoloc
 
 from monoloc.core.geometry import R_from_quaternion_xyzw, invert_rigid, quaternion_xyzw_from_R
 from monoloc.server.formats.kapture_io import read_kapture
-from monoloc.server.formats.maps import entry_name, export_map, import_sources_into_map
+from monoloc.server.formats.maps import export_map, import_sources_into_map
 from monoloc.server.formats.model import import_sources
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage.db import session_scope
@@ -133,7 +133,7 @@ def test_import_depth_and_lidar_records_through_a_rig(factory, kapture_dir, map_
 def test_export_reads_back_in_kapture_and_imports_again(factory, kapture_dir, tmp_path):
     from kapture.io.csv import kapture_from_dir
 
-    from monoloc.server.ingest.common import content_hash, decode_gray, read_bytes
+    from monoloc.server.formats.maps import TrackMerge
 
     model = read_kapture(kapture_dir)
     first, _, _ = import_sources_into_map(
@@ -143,7 +143,7 @@ def test_export_reads_back_in_kapture_and_imports_again(factory, kapture_dir, tm
     data = kapture_from_dir(str(tmp_path / "export"))
     entries = _entries(factory, first.id)
     assert len(data.records_camera) == len(entries) == 8
-    n_points = 0
+    n_observations = 0
     for entry in entries:
         pose = data.trajectories[entry.id, "cam0"]  # kapture: cam_from_world
         w, x, y, z = pose.r_raw
@@ -153,25 +153,23 @@ def test_export_reads_back_in_kapture_and_imports_again(factory, kapture_dir, tm
         np.testing.assert_allclose(
             T_cam_from_world, invert_rigid(entry.T_world_from_cam), atol=1e-9
         )
-        n_points += len(entry.points_cam)
-    assert len(data.points3d) == n_points
-    # Images named as exported, then the export imported back, its observations as they are.
-    images = tmp_path / "export" / "sensors" / "records_data"
-    images.mkdir()
-    by_hash = {e.summary.source_image_hash: e.id for e in entries}
-    for image in model.images:
-        gray = decode_gray(read_bytes(image.image_path), image.image_path)
-        shutil.copyfile(image.image_path, images / entry_name(by_hash[content_hash(gray)]))
+        n_observations += len(entry.points_cam)
+    assert sum(len(data.observations[p, "orb"]) for p in range(len(data.points3d))) == (
+        n_observations
+    )
+    assert len(data.points3d) < n_observations  # points seen by several entries merged
+    # The export carries its images (the entries' previews): it imports back as it is.
     again = read_kapture(tmp_path / "export")
     assert again.default_up == "z" and all(len(im.keypoints_px) for im in again.images)
     second, summaries, _ = import_sources_into_map(
         factory, "second", import_sources(again, fmt="kapture", up=None, points="model")
     )
     assert summaries[0].entries_added == 8
+    radius = TrackMerge().radius_m
     for a, b in zip(entries, _entries(factory, second.id), strict=True):
         np.testing.assert_allclose(b.T_world_from_cam, a.T_world_from_cam, atol=1e-6)
         np.testing.assert_allclose(b.keypoints_px, a.keypoints_px, atol=1e-4)
-        np.testing.assert_allclose(b.points_cam, a.points_cam, atol=1e-4)
+        assert np.linalg.norm(b.points_cam - a.points_cam, axis=1).max() <= radius + 1e-4
 
 
 def test_driven_trajectory_as_kapture_and_cli_errors(tmp_path, map_run, monkeypatch, capsys):
