@@ -84,7 +84,36 @@ class Settings(BaseSettings):
         default=100_000, gt=0, description="Most files an uploaded tar/zip may contain."
     )
     max_archive_bytes: int = Field(
-        default=4 * GiB, gt=0, description="Largest total uncompressed size of an archive."
+        default=4 * GiB,
+        gt=0,
+        description="Largest total uncompressed size of an archive: declared (a zip's "
+        "central directory, before extracting; a tar's headers as they stream) and "
+        "written (413).",
+    )
+    max_archive_ratio: float = Field(
+        default=100.0,
+        ge=1.0,
+        description="Most an archive, and each zip member, may unpack to per compressed "
+        "byte (413; images and LiDAR scans compress 1-3x, a zip bomb 1000x).",
+    )
+    archive_ratio_allowance_bytes: int = Field(
+        default=1 * MiB,
+        ge=0,
+        description="Members up to this size, and this much of an archive's total, are "
+        "exempt from max_archive_ratio (small text files compress far better).",
+    )
+    upload_disk_quota_bytes: int = Field(
+        default=5 * GiB,
+        gt=0,
+        description="Disk one upload may occupy while it is unpacked: the received archive "
+        "plus its files, each in whole 4 KiB blocks (413).",
+    )
+    uploads_disk_quota_bytes: int = Field(
+        default=10 * GiB,
+        gt=0,
+        description="Disk all the uploads one server process unpacks at the same time may "
+        "occupy together; one more is answered 507 with Retry-After (stored uploads "
+        "waiting for their job are not counted).",
     )
     stream_max_pending_frames: int = Field(
         # 1: a vehicle's newest frame replaces the one still waiting (the freshest frame is

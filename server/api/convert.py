@@ -43,6 +43,12 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
         415: ("unsupported_media_type", "image is not a PNG or JPEG image"),
         422: ("invalid_input", "T_world_from_cam: expected 12 (3x4) or 16 (4x4) numbers"),
         503: ("overloaded", "the read lane is full (33 requests in flight); retry after 1 s"),
+        507: (
+            "insufficient_storage",
+            "run.tar needs 104857600 more bytes of disk, but the uploads being unpacked now "
+            "hold 10737418240 of MONOLOC_UPLOADS_DISK_QUOTA_BYTES=10737418240; retry after "
+            "the Retry-After seconds",
+        ),
     }
     return {
         status: {

@@ -38,6 +38,7 @@ STATUS_CODES = {
     500: "internal_error",
     501: "not_implemented",
     503: "unavailable",
+    507: "insufficient_storage",
 }
 
 
@@ -124,9 +125,12 @@ def describe_validation(errors: list[dict[str, Any]]) -> str:
 async def _monoloc_error(_conn: Request | WebSocket, exc: Exception) -> JSONResponse:
     assert isinstance(exc, MonolocError)
     status = int(getattr(exc, "http_status", 500) or 500)
-    if status >= 500:
+    if status >= 500 and status != 507:  # 507: a quota filled by other uploads, no fault
         log.error("request failed: %s", exc, exc_info=exc)
-    return error_response(status, error_code(exc), str(exc) or type(exc).__name__)
+    response = error_response(status, error_code(exc), str(exc) or type(exc).__name__)
+    for key, value in (getattr(exc, "headers", None) or {}).items():  # e.g. Retry-After
+        response.headers[key] = value
+    return response
 
 
 _HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")

@@ -4,14 +4,17 @@ turn one into a job: mapping runs (``routes/runs.py``, ingestion) and training r
 
 An upload is one archive (tar, tar.gz/bz2/xz, zip) or a multipart set of files whose
 names are their paths inside the run. It is unpacked into ``uploads/.incoming-<random>``
-with the archive limits, then opened and validated by the reader (422 naming the file,
-without the server's paths). Only then does the caller record its rows (a run, a job)
+with the archive limits and disk quotas (``monoloc.server.api.archives``: 413 for an
+upload too big in itself, 507 while the uploads unpacking at the same time hold the shared
+quota), then opened and validated by the reader (422 naming the file, without the
+server's paths). Only then does the caller record its rows (a run, a job)
 in one transaction, and the directory is renamed ``uploads/<job id>``: a rejected upload
 leaves nothing behind.
 """
 
 from __future__ import annotations
 
+import threading
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,7 +25,14 @@ from fastapi import File, Form, UploadFile
 from sqlalchemy.orm import Session
 
 from monoloc.core.errors import InvalidInputError
-from monoloc.server.api.archives import ArchiveLimits, Unpacked, save_file_set, unpack_archive
+from monoloc.server.api.archives import (
+    ArchiveLimits,
+    Reservation,
+    Unpacked,
+    UploadSpace,
+    save_file_set,
+    unpack_archive,
+)
 from monoloc.server.api.bootstrap import INCOMING_PREFIX, uploads_dir
 from monoloc.server.api.deps import AppState
 from monoloc.server.api.schemas import FRAME_RANGE_PATTERN
@@ -80,15 +90,40 @@ def upload_name(archive: UploadFile | None) -> str:
     return (archive.filename if archive is not None else "files") or "upload"
 
 
+_SPACES: dict[Path, UploadSpace] = {}
+_SPACES_LOCK = threading.Lock()
+
+
+def upload_space(uploads: Path) -> UploadSpace:
+    """The disk ledger of the uploads this process unpacks into ``uploads`` (one per
+    directory, so that apps on other data folders, tests among them, do not share it)."""
+    key = Path(uploads).resolve()
+    with _SPACES_LOCK:
+        return _SPACES.setdefault(key, UploadSpace())
+
+
 def unpack_upload(
-    state: AppState, staging: Path, archive: UploadFile | None, files: list[UploadFile] | None
+    state: AppState,
+    staging: Path,
+    archive: UploadFile | None,
+    files: list[UploadFile] | None,
+    reservation: Reservation | None = None,
 ) -> Unpacked:
-    """Write the archive's members (or the file set) under ``staging``, with the limits."""
-    limits = ArchiveLimits(state.settings.max_archive_members, state.settings.max_archive_bytes)
+    """Write the archive's members (or the file set) under ``staging``, with the limits,
+    taking the disk from ``reservation``."""
+    settings = state.settings
+    limits = ArchiveLimits(
+        settings.max_archive_members,
+        settings.max_archive_bytes,
+        settings.max_archive_ratio,
+        settings.archive_ratio_allowance_bytes,
+    )
     if archive is not None:
-        return unpack_archive(archive.file, staging, limits, archive.filename or "archive")
+        what = archive.filename or "archive"
+        return unpack_archive(archive.file, staging, limits, what, reservation)
     assert files is not None
-    return save_file_set([(f.filename or "", f.file) for f in files], staging, limits, "upload")
+    named = [(f.filename or "", f.file) for f in files]
+    return save_file_set(named, staging, limits, "upload", reservation)
 
 
 def open_uploaded_run(
@@ -119,8 +154,13 @@ def store_upload(
         maps_repo.get_map(session, up.map_id)
     staging = uploads_dir(state.settings) / f"{INCOMING_PREFIX}{uuid.uuid4().hex}"
     final: Path | None = None
+    reservation = Reservation(
+        upload_space(uploads_dir(state.settings)),
+        state.settings.upload_disk_quota_bytes,
+        state.settings.uploads_disk_quota_bytes,
+    )
     try:
-        unpacked = unpack_upload(state, staging, archive, files)
+        unpacked = unpack_upload(state, staging, archive, files, reservation)
         source = open_uploaded_run(staging, up.format, up.sequence, up.frames, up.depth_from)
         with session_scope(state.sessions) as session:
             job, extra = record(session, source)
@@ -131,4 +171,6 @@ def store_upload(
         if final is not None:
             remove_tree(final)  # renamed, but the transaction did not commit
         raise
+    finally:
+        reservation.release()  # stored (outside the quota of uploads in flight) or removed
     return job, extra, unpacked

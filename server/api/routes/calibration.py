@@ -241,7 +241,7 @@ def _store_job(
     response_model=CalibrationJobAccepted,
     openapi_extra=body_limit("archive"),
     status_code=status.HTTP_202_ACCEPTED,
-    responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422)},
+    responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422, 507)},
     summary="Calibrate from an uploaded training run (job)",
 )
 async def calibration_job(

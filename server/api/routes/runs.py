@@ -93,7 +93,7 @@ def _store(
     response_model=UploadAccepted,
     openapi_extra=body_limit("archive"),
     status_code=status.HTTP_202_ACCEPTED,
-    responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422)},
+    responses={**AUTH_ERRORS, **error_responses(400, 404, 413, 415, 422, 507)},
     summary="Upload a mapping run (ingested by a job)",
 )
 async def upload_run(
