@@ -100,7 +100,9 @@ def camera_intrinsics(
     distortion = None
     if lens is not None:
         coefficients = [0.0 if i is None else float(values[i]) for i in layout]
-        distortion = LensDistortion.parse(lens, coefficients)
+        # zero coefficients make a pinhole, except for a fisheye (theta_d = theta)
+        if lens == "equidistant" or any(coefficients):
+            distortion = LensDistortion(lens, tuple(coefficients))
     return CameraIntrinsics(
         float(values[ifx]),
         float(values[ify]),
@@ -118,7 +120,7 @@ def camera_model_of(c: CameraIntrinsics) -> tuple[str, list[float]]:
     with k3, rational_polynomial) or OPENCV_FISHEYE (equidistant)."""
     base = [float(c.fx), float(c.fy), float(c.cx) + PIXEL_SHIFT, float(c.cy) + PIXEL_SHIFT]
     d = c.distortion
-    if d is None or d.is_zero:
+    if d is None or (d.is_zero and d.model != "equidistant"):
         return "PINHOLE", base
     k = list(d.coefficients)
     if d.model == "equidistant":

@@ -15,6 +15,7 @@ LENSES = [
     ("OPENCV", [500.0, 505.0, 320.5, 240.5, -0.28, 0.09, 0.0006, -0.0004]),
     ("FULL_OPENCV", [500, 505, 320.5, 240.5, -0.2, 0.04, 0.001, -0.002, 0.01, 0.02, 0.003, 0.001]),
     ("OPENCV_FISHEYE", [300.0, 301.0, 320.5, 240.5, 0.05, -0.01, 0.002, -0.0005]),
+    ("OPENCV_FISHEYE", [300.0, 300.0, 320.5, 240.5, 0.0, 0.0, 0.0, 0.0]),  # still a fisheye
     ("SIMPLE_RADIAL_FISHEYE", [300.0, 320.5, 240.5, 0.04]),
     ("RADIAL_FISHEYE", [300.0, 320.5, 240.5, 0.04, -0.005]),
 ]
@@ -32,7 +33,9 @@ def test_pinhole_models_read_with_the_half_pixel_shift():
     assert camera_model_of(zero) == ("PINHOLE", [500.0, 501.0, 320.5, 240.5])
 
 
-@pytest.mark.parametrize("model, params", LENSES, ids=[m for m, _ in LENSES])
+@pytest.mark.parametrize(
+    "model, params", LENSES, ids=[f"{m}-{i}" for i, (m, _) in enumerate(LENSES)]
+)
 def test_lens_models_project_as_pycolmap_does_and_write_back(model, params):
     import pycolmap
 
