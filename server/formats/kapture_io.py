@@ -1,7 +1,8 @@
 """kapture datasets, read and written through the ``kapture`` package.
 
-Reading (a mapping run): ``sensors.txt`` cameras (pinhole: ``SIMPLE_PINHOLE``,
-``PINHOLE``, or a distortion model whose distortion is zero), ``rigs.txt`` (rig poses are
+Reading (a mapping run): ``sensors.txt`` cameras (kapture's camera types, read as
+COLMAP's models with their lens distortion, which the import takes off; ``FOV``,
+``THIN_PRISM_FISHEYE`` and ``UNKNOWN_CAMERA`` refused by name), ``rigs.txt`` (rig poses are
 resolved into sensor poses with kapture's own ``rigs_remove``), ``trajectories.txt``
 (kapture stores ``device_from_world``), ``records_camera.txt``, and per image one 3D
 source, first found of:
@@ -21,9 +22,12 @@ monoloc export says so in ``monoloc.json``); give ``--up -y`` for one converted 
 SfM model. Pixels: kapture's converters copy COLMAP's camera numbers as they are, so its
 convention is taken as COLMAP's (centre of pixel (0, 0) at (0.5, 0.5)).
 
-Writing (a map): a ``PINHOLE`` camera ``cam0``, one record and one pose per entry (the
-entry id as timestamp; image ``entry_<id>.png``, no pixels), the entries' ORB keypoints
-and descriptors (types ``orb``, Hamming), their 3D points and observations. A driven
+Writing (a map): a camera sensor per distinct intrinsics (``cam0``, ...; its kapture
+type from its distortion, ``PINHOLE`` for a map's camera), one record and one pose per
+entry (the entry id as timestamp; image ``entry_<id>.jpg`` under
+``sensors/records_data``, the entry's stored preview), the entries' ORB keypoints and
+descriptors (types ``orb``, Hamming), their 3D points (shared by several entries where
+the export merged them into one track) and observations. A driven
 trajectory (TUM or KITTI file of ``monoloc drive``) is written as ``trajectories.txt`` of
 device ``cam0`` with timestamps in microseconds.
 """

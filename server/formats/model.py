@@ -16,6 +16,9 @@ of the model's 3D points. Conventions, stated once here:
   up is the mean of the cameras' own up directions (-y of each camera): right for a
   vehicle camera held level, off by the mean camera pitch otherwise.
 - 3D points of an entry are in its camera frame, so they do not depend on ``up``.
+- Cameras: COLMAP's models (:func:`camera_intrinsics`) with their lens distortion; a
+  distorted camera is undistorted at import (:class:`ImportSource`), so a map's camera
+  and entries are pinhole.
 
 Two ways to give an entry its 3D points (``points``), both measured in bench/formats.py:
 
