@@ -62,7 +62,7 @@ demo: install
 
 # Benchmarks: slow test suites, then every bench script (each prints its figures beside a
 # baseline and writes bench/results/*.json), then bench/REPORT.md from those results.
-BENCHES := vision filter sim ingest localize pnp_calibration retrieval speed accuracy pose_covariance crash load footprint geopose hostile http_overhead formats joint joint_refit error_split transfer mpc
+BENCHES := vision filter sim ingest localize pnp_calibration retrieval speed accuracy pose_covariance crash load footprint geopose hostile http_overhead formats joint joint_refit error_split transfer mpc lens
 
 bench: install
 	$(PY) -m pytest -q -m slow
@@ -70,6 +70,7 @@ bench: install
 	  if [ -f bench/$$b.py ]; then echo "== bench/$$b.py"; $(PY) -m bench.$$b || exit 1; fi; \
 	done
 	$(PY) -m bench.accuracy --scenario indoor --size small
+	$(PY) -m bench.accuracy --scenario fleet --size small --frames 150
 	$(PY) -m bench.closed_loop --scenario indoor
 	$(PY) -m bench.closed_loop --scenario urban
 	$(PY) -m bench.report

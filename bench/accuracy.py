@@ -15,7 +15,11 @@ stereo depth against the LiDAR-built map of the same run, same query (bench/ster
 Indoor (`--scenario indoor`): the 1:10 car's query lap against the map lap, then against
 the map plus the off-center lap (the paper's augmentation), next to the paper's indoor
 open-loop figures.
-Usage: python -m bench.accuracy [--scenario urban|indoor] [--size medium] [--frames 300]
+A fleet car's camera (`--scenario fleet`, bench/fleet_camera.py): the query's drive
+recorded by another camera (size, focal length, lens, mounting; `--fleet-camera`), raw
+and undistorted, beside the mapping camera's lap (issue 48); writes
+bench/results/accuracy_fleet.json.
+Usage: python -m bench.accuracy [--scenario urban|indoor|fleet] [--size medium] [--frames 300]
 """
 
 from __future__ import annotations
@@ -200,7 +204,10 @@ def print_table(rows: list[tuple[str, dict]]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--scenario", default="urban", choices=("urban", "indoor"))
+    parser.add_argument("--scenario", default="urban", choices=("urban", "indoor", "fleet"))
+    parser.add_argument(
+        "--fleet-camera", default="issue48", help="--scenario fleet: a FLEET_CAMERAS preset"
+    )
     parser.add_argument("--size", default="medium")
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--seed", type=int, default=HELD_OUT_SEED)
@@ -224,6 +231,10 @@ def main() -> None:
     limit_threads()
     if args.scenario == "indoor":
         return main_indoor(args)
+    if args.scenario == "fleet":
+        from bench import fleet_camera
+
+        return fleet_camera.main(args)
     root = args.data / f"urban_{args.size}_{args.frames}_s{args.seed}"
     runs = ("map", "query", "train", "night", "nightmap", "trainnight")
     meta = ensure_dataset(root, args.size, args.frames, args.seed, runs)
