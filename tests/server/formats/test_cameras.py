@@ -77,3 +77,31 @@ def test_other_cameras_are_refused_by_name(model, params, message):
     with pytest.raises(InvalidInputError, match=message) as info:
         camera_intrinsics(model, params, 640, 480, "sparse/0 camera 1")
     assert str(info.value).startswith("sparse/0 camera 1")
+
+
+def test_a_colmap_model_with_an_unknown_camera_is_refused_in_one_line_leaving_no_map(
+    tmp_path, monkeypatch, capsys
+):
+    """A model written by pycolmap with a FOV camera: `map import` exits 1 naming it."""
+    import pycolmap
+    from cli_runner import run_monoloc
+
+    reconstruction = pycolmap.Reconstruction()
+    camera = pycolmap.Camera(
+        model="FOV", width=64, height=48, params=[50, 50, 32, 24, 0.9], camera_id=1
+    )
+    reconstruction.add_camera_with_trivial_rig(camera)
+    image = pycolmap.Image(name="a.png", camera_id=1, image_id=1)
+    reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d())
+    (tmp_path / "sparse").mkdir()
+    (tmp_path / "images").mkdir()
+    reconstruction.write(str(tmp_path / "sparse"))
+    monkeypatch.setenv("MONOLOC_DATA_DIR", str(tmp_path / "data"))
+    code, _, err = run_monoloc(
+        monkeypatch, capsys, "map", "import", "--format", "colmap", str(tmp_path / "sparse"),
+        "--images", str(tmp_path / "images"), "--map", "fov",
+    )  # fmt: skip
+    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
+    assert "camera 1: the camera model FOV is not one monoloc knows" in err
+    code, out, _ = run_monoloc(monkeypatch, capsys, "map", "list")
+    assert code == 0 and " fov " not in out
