@@ -63,9 +63,11 @@ class TumRecorder:
                 self.run_dir / "depth.txt", "depth maps", self.source, d,
                 [f"depth/{tum.stamp_text(t)}.png" for t in d],
             )  # fmt: skip
-        tw.write_ground_truth(
-            self.run_dir / "groundtruth.txt", self.source, stamps, np.stack(self.T_world_from_cam)
-        )
+        T_truth = np.stack(self.T_world_from_cam)
+        tracker = getattr(self.world, "tracker_poses", None)
+        if tracker is not None:  # what the room's tracker records, not the sim's truth
+            T_truth = tracker(T_truth, np.random.default_rng([result.config.seed, 41]))
+        tw.write_ground_truth(self.run_dir / "groundtruth.txt", self.source, stamps, T_truth)
         signals = result.frames["signals"]
         tw.write_vehicle(self.run_dir / "vehicle.txt", stamps, signals[:, 0], signals[:, 1])
         tum.write_camera_json(

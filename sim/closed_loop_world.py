@@ -103,6 +103,9 @@ class IndoorLoopWorld:
         )
         self._scenes: dict = {}
         self._bank = None
+        from monoloc.sim.indoor.camera_motion import CameraState
+
+        self.camera_state = CameraState()
 
     def reference_path(self, laps: float, room: str = "main") -> Path:
         """The track's centre line driven ``laps`` times from the start line, plus a
@@ -122,8 +125,11 @@ class IndoorLoopWorld:
         )
 
     def lighting(self, lap: Lap) -> Lighting:
+        """The lap's lighting; a drive asks for it once, at its start, so the camera's
+        frame-to-frame state (motion, exposure) starts afresh here."""
         from monoloc.sim.indoor.plan import lab_lighting
 
+        self.camera_state.reset()
         # Key 1 is the map run's lighting in monoloc.sim.indoor.plan (seed, 1000 + 0, 1).
         return lab_lighting(np.random.default_rng([self.seed, 1000, lap.lighting_key]))
 
@@ -165,7 +171,10 @@ class IndoorLoopWorld:
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Grayscale image (H, W) uint8 seen from ``T_world_from_cam``; with
         ``with_depth`` also the depth the RGB-D sensor reports (H, W) float32 m (0: none),
-        registered to the image."""
+        registered to the image. Frames of one drive come one frame period apart: the
+        exposure follows the scene's brightness with its lag, and the image is blurred
+        by the motion since the previous frame over the exposure time."""
+        from monoloc.sim.indoor.camera_motion import motion_blur
         from monoloc.sim.indoor.sensors import noisy_depth
 
         scene, bank = self._scene(lap)
@@ -174,10 +183,33 @@ class IndoorLoopWorld:
         )
         radiance = shade(raster, scene, T_world_from_cam, self.intrinsics, lighting)
         cam = self.camera_config()
-        image = expose(radiance, auto_exposure(radiance, cam), cam, rng)
+        state = self.camera_state
+        period_s = 1.0 / self.frame_rate_hz
+        cam = replace(cam, adaptation=state.adaptation(self.config.auto_exposure, period_s))
+        exposure = auto_exposure(radiance, cam, state.exposure)
+        blur = self.config.motion_blur
+        if blur.enabled and state.T_world_from_cam is not None:
+            time_s = blur.max_exposure_time_s * min(exposure, cam.max_exposure) / cam.max_exposure
+            T_prev_from_cur = np.linalg.inv(state.T_world_from_cam) @ T_world_from_cam
+            radiance = motion_blur(
+                radiance, raster.depth_m, T_prev_from_cur, self.intrinsics,
+                time_s / period_s, blur.samples,
+            )  # fmt: skip
+        state.T_world_from_cam, state.exposure = np.array(T_world_from_cam), exposure
+        image = expose(radiance, exposure, cam, rng)
         if not with_depth:
             return image, None
         return image, noisy_depth(raster.depth_m, image, self.config.errors.depth, rng)
+
+    def tracker_poses(self, T_world_from_cam: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """(n, 4, 4) the poses a run's ground truth records: the true camera poses with the
+        tracker's jitter and per-run bias (``IndoorErrors.mocap_*``; exact without sensor
+        noise)."""
+        from monoloc.sim.indoor.sensors import mocap_noise
+
+        if not self.sensor_noise:
+            return np.asarray(T_world_from_cam)
+        return mocap_noise(T_world_from_cam, self.config.errors, rng)
 
     def camera_json_extra(self) -> dict:
         return {

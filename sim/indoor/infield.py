@@ -30,6 +30,8 @@ def _free_spot(rng, config, loop, radius, inside, placed, margin=0.3, tries=200)
         )
         if inside_loop(p[None], loop)[0] != inside:
             continue
+        if p[0] + radius > x1 - config.featureless_end_m:  # the bare end stays bare
+            continue
         if distance_to_line(p[None], loop)[0] < config.track_width_m / 2 + margin + radius:
             continue
         if any(np.hypot(*(p - q[:2])) < radius + q[2] + 0.1 for q in placed):

@@ -28,6 +28,7 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.camera import CameraConfig, Lighting
+from monoloc.sim.indoor.camera_motion import AutoExposureConfig, MotionBlurConfig
 from monoloc.sim.indoor.room import SIZE_PRESETS, RoomConfig, room_configs
 from monoloc.sim.indoor.sensors import D435_COLOR, IndoorErrors, IndoorRig
 from monoloc.sim.indoor.track import lap_length_m, lap_path
@@ -68,7 +69,9 @@ SCALE_CAR = VehicleConfig(
 
 @dataclass(frozen=True)
 class IndoorConfig:
-    """Everything the indoor runs depend on besides the seed (see the module docstring)."""
+    """Everything the indoor runs depend on besides the seed (see the module docstring).
+    ``motion_blur`` and ``auto_exposure`` (its lag) act on closed-loop drives, which
+    render frame after frame (``monoloc.sim.closed_loop_world``)."""
 
     main_room: RoomConfig = field(default_factory=RoomConfig)
     train_room: RoomConfig = field(default_factory=lambda: room_configs("small")["train"])
@@ -86,6 +89,8 @@ class IndoorConfig:
     query_max_heading_rad: float = math.radians(6.0)
     offcenter_steer_rad: float = 0.25
     obstacle_change_fraction: float = 0.4
+    motion_blur: MotionBlurConfig = field(default_factory=MotionBlurConfig)
+    auto_exposure: AutoExposureConfig = field(default_factory=AutoExposureConfig)
 
     @classmethod
     def preset(cls, size: str, errors: IndoorErrors | None = None) -> IndoorConfig:

@@ -18,7 +18,12 @@ class RoomConfig:
     """One room: size (x, y) and height in metres, centre in the world; the track's
     width, its clearance from the walls, tightest turn and twistiness; how much of the
     wall perimeter is bare paint; numbers of furniture pieces, infield objects and
-    movable obstacles; texture resolutions (texels per metre)."""
+    movable obstacles; texture resolutions (texels per metre).
+
+    featureless_end_m: the room's +x end is bare over this depth (0: not): its wall plain
+    paint, its floor under a plain grey mat (over the tape), nothing standing on it. The
+    track's approach to that wall and the start of its turn see nothing to match, so the
+    localizer must dead-reckon, as the paper's car did along its featureless wall."""
 
     size_m: tuple[float, float] = (8.0, 6.0)
     height_m: float = 2.7
@@ -28,6 +33,7 @@ class RoomConfig:
     min_turn_radius_m: float = 0.8
     twist: float = 1.0
     plain_wall_fraction: float = 0.15
+    featureless_end_m: float = 2.2
     doors: int = 2
     furniture: int = 4
     infield_objects: int = 3

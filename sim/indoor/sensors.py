@@ -2,11 +2,15 @@
 capture, and the errors their recordings carry.
 
 Depth noise follows active stereo: the disparity ``d = f_d * b / z`` carries a subpixel
-error, so the depth error grows with z squared (``sigma_z = z^2 sigma_d / (f_d b)``,
-about 1 % at 2 m for the defaults, as D435 data sheets and measurements report). The
-error is spatially correlated (stereo matching works on windows). Depth is missing
-(0 in the PNG) closer than the minimum range, beyond the maximum range, in blobs at far
-range and on dark surfaces, and along depth discontinuities (stereo edge invalidation).
+error, so the RMS depth error grows with z squared (``sigma_z = z^2 sigma_d / (f_d b)``,
+the formula of Intel's white paper "Tuning depth cameras for best performance",
+Grunnet-Jepsen et al., RealSense D400 series); the defaults give 2 % at 2 m, the D435/D435i
+data sheet's bound on depth error ("< 2 % at 2 m"). The error is spatially correlated
+(stereo matching works on windows). Depth is missing (0 in the PNG) closer than the
+minimum range, beyond the maximum range, in blobs at far range, on dark surfaces and on
+shiny ones (specular highlights, glass: near-saturated image pixels), and along depth
+discontinuities (stereo edge invalidation). Depth is not perfectly registered to colour:
+a small residual of the depth-to-colour extrinsic shifts it in the image.
 """
 
 from __future__ import annotations
@@ -47,13 +51,23 @@ class DepthNoiseConfig:
     disparity_std_px: subpixel matching error; correlation_px: size of its spatial
     correlation; min/max_depth_m: valid range; far_dropout_*: fraction of pixels lost at
     far range (from start to full at 2x start); dark_level / dark_dropout: image values
-    below dark_level lose depth with that probability; edge_dropout: probability of
-    losing depth across a discontinuity larger than edge_ratio."""
+    below dark_level lose depth with that probability; shiny_level / shiny_dropout: the
+    same for near-saturated pixels (specular surfaces, glass); edge_dropout: probability of
+    losing depth across a discontinuity larger than edge_ratio.
+
+    disparity_std_px 0.19 makes sigma_z(2 m) = 4 * 0.19 / (385 * 0.05) = 0.039 m, 2 % of
+    2 m: the data sheet's bound (Intel's white paper measures ~0.08 px on good texture, so
+    this is the hard end). registration_rotation_rad (about the camera's x, y axes) and
+    registration_translation_m (x, y): the depth-to-colour extrinsic's residual error. Its
+    magnitude (0.25 deg, 2 mm) is an assumption of this sim, the order a factory
+    calibration drifts to after handling (Intel's D400 self-calibration white paper treats
+    sub-degree extrinsic drift as the usual case to correct); it moves depth by
+    fx * (angle + t / z), ~3 px at 615 px focal length."""
 
     enabled: bool = True
     depth_focal_px: float = 385.0
     baseline_m: float = 0.05
-    disparity_std_px: float = 0.1
+    disparity_std_px: float = 0.19
     correlation_px: float = 6.0
     min_depth_m: float = 0.2
     max_depth_m: float = 10.0
@@ -61,8 +75,13 @@ class DepthNoiseConfig:
     far_dropout_max: float = 0.5
     dark_level: int = 18
     dark_dropout: float = 0.6
+    shiny_level: int = 245
+    shiny_dropout: float = 0.8
     edge_ratio: float = 1.06
     edge_dropout: float = 0.6
+    registration_rotation_rad: tuple[float, float] = (0.0025, -0.0044)
+    registration_translation_m: tuple[float, float] = (0.002, 0.0)
+    registration_focal_px: float = 615.0
 
     def sigma_m(self, depth_m: np.ndarray) -> np.ndarray:
         """Standard deviation (m) of the depth error at ``depth_m``."""
@@ -118,6 +137,9 @@ def noisy_depth(
     if image is not None and config.dark_dropout > 0:
         dark = cv2.blur(image, (5, 5)) < config.dark_level
         lost |= dark & (_blobs(rng, (h, w), 8.0) < config.dark_dropout)
+    if image is not None and config.shiny_dropout > 0:
+        shiny = cv2.blur(image, (3, 3)) > config.shiny_level
+        lost |= shiny & (_blobs(rng, (h, w), 4.0) < config.shiny_dropout)
     if config.edge_dropout > 0:
         zf = np.where(valid, z, 1e4).astype(np.float32)
         kernel = np.ones((3, 3), np.uint8)
@@ -125,14 +147,43 @@ def noisy_depth(
         edge = ratio > config.edge_ratio
         lost |= edge & (rng.random((h, w), dtype=np.float32) < config.edge_dropout)
     out[lost] = 0.0
-    return out
+    return misregister(out, config)
+
+
+def misregister(depth_m: np.ndarray, config: DepthNoiseConfig) -> np.ndarray:
+    """(H, W) float32 depth as registered with the residual extrinsic error: the value
+    written at colour pixel (u, v) is the depth of pixel (u + du, v + dv), du = f * (ry +
+    tx / z), dv = f * (-rx + ty / z) (small angles; nearest neighbour, 0 stays 0)."""
+    import cv2
+
+    rx, ry = config.registration_rotation_rad
+    tx, ty = config.registration_translation_m
+    if rx == ry == tx == ty == 0.0:
+        return depth_m
+    h, w = depth_m.shape
+    f = config.registration_focal_px
+    inv_z = np.where(depth_m > 0, 1.0 / np.maximum(depth_m, 1e-6), 0.0).astype(np.float32)
+    inv_z = cv2.blur(inv_z, (9, 9))  # the parallax of the neighbourhood, holes included
+    u = np.arange(w, dtype=np.float32)[None, :] + np.float32(f * ry) + np.float32(f * tx) * inv_z
+    v = np.arange(h, dtype=np.float32)[:, None] - np.float32(f * rx) + np.float32(f * ty) * inv_z
+    u = np.broadcast_to(u, (h, w)).astype(np.float32)
+    v = np.broadcast_to(v, (h, w)).astype(np.float32)
+    return cv2.remap(
+        depth_m, u, v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0
+    )
 
 
 @dataclass(frozen=True)
 class IndoorErrors:
     """Errors of an indoor recording; ``IndoorErrors.none()`` makes everything exact.
 
-    mocap_*: white noise of the motion-capture poses (position m, rotation rad);
+    mocap_*: the tracker's (an HTC Vive tracker's, as the paper's truth) white noise
+    (jitter: position m, rotation rad) and a per-run bias of its position in x and y
+    (std, m): Niehorster, Li, Lappe 2017 ("The accuracy and precision of position and
+    orientation tracking in the HTC Vive virtual reality system for scientific research",
+    i-Perception 8(3)) measure sub-millimetre precision and offsets of a few millimetres
+    to centimetres; Borges et al. 2018 ("HTC Vive: analysis and accuracy improvement",
+    IROS) find millimetre-level jitter in motion. 1 mm jitter and 3 mm bias are used;
     depth_time_offset_max_s: the depth stream's stamps differ from the colour stream's
     by a per-run offset up to this (the depth image is rendered at its own stamp);
     stamp_jitter_s: per-frame jitter of both streams; speed_* / yaw_rate_*: wheel
@@ -141,6 +192,7 @@ class IndoorErrors:
 
     mocap_position_noise_m: float = 0.001
     mocap_rotation_noise_rad: float = math.radians(0.05)
+    mocap_bias_m: float = 0.003
     depth_time_offset_max_s: float = 0.008
     stamp_jitter_s: float = 0.0005
     speed_scale_error: float = 0.01
@@ -157,6 +209,7 @@ class IndoorErrors:
         return cls(
             mocap_position_noise_m=0.0,
             mocap_rotation_noise_rad=0.0,
+            mocap_bias_m=0.0,
             depth_time_offset_max_s=0.0,
             stamp_jitter_s=0.0,
             speed_scale_error=0.0,
@@ -176,10 +229,13 @@ class IndoorErrors:
 def mocap_noise(
     T_world_from_cam: np.ndarray, errors: IndoorErrors, rng: np.random.Generator
 ) -> np.ndarray:
-    """(n, 4, 4) poses with motion-capture noise: small random rotations about the
-    camera centre and position jitter (white, per sample)."""
+    """(n, 4, 4) poses of one run with the tracker's noise: small random rotations about
+    the camera centre, position jitter (white, per sample) and one horizontal position
+    bias for the whole run."""
     out = np.array(T_world_from_cam, dtype=np.float64, copy=True)
     n = len(out)
+    if errors.mocap_bias_m > 0:
+        out[:, :2, 3] += rng.standard_normal(2) * errors.mocap_bias_m
     if errors.mocap_rotation_noise_rad > 0:
         rotvec = rng.standard_normal((n, 3)) * errors.mocap_rotation_noise_rad
         for i in range(n):

@@ -42,7 +42,8 @@ def lamp_panel(spec: TextureSpec, rng: np.random.Generator) -> TextureLayers:
 
 
 def surface(spec: TextureSpec, rng: np.random.Generator) -> TextureLayers:
-    """Furniture sides and tops. params: ppm, style (wood|cardboard|metal|foam)."""
+    """Furniture sides and tops, and the bare end's floor mat. params: ppm, style
+    (wood|cardboard|metal|foam|mat)."""
     import cv2
 
     w, h = spec.width_px, spec.height_px
@@ -62,6 +63,8 @@ def surface(spec: TextureSpec, rng: np.random.Generator) -> TextureLayers:
             interpolation=cv2.INTER_LINEAR,
         )
         img = rng.uniform(0.4, 0.8) * (1.0 + 0.03 * brushed)
+    elif style == "mat":  # plain rubber: a faint, smooth unevenness, nothing to match
+        img = rng.uniform(0.35, 0.45) * (1.0 + 0.01 * smooth_noise(rng, w, h, 0.5 * ppm))
     elif style == "foam":
         img = rng.uniform(0.15, 0.85) * (1.0 + 0.05 * material(rng, ("moon",), w, h, 30))
     else:  # cardboard with tape, print, a shipping label

@@ -123,6 +123,8 @@ def _floor_and_ceiling(b: SceneBuilder, rng, config: RoomConfig, track, floor_st
     )
     # Texture x along +x, y along -y: the front face looks up.
     add_split_quad(b, (x0, y1, 0.0), (1, 0, 0), (0, -1, 0), w, d, spec, ppm, KIND_GROUND, 0.75)
+    if config.featureless_end_m > 0:
+        _featureless_mat(b, rng, config)
     lamps = lamp_positions(config)
     ceil = TextureSpec(
         "indoor_ceiling",
@@ -146,6 +148,23 @@ def _floor_and_ceiling(b: SceneBuilder, rng, config: RoomConfig, track, floor_st
         b.add_quad(
             (x - 0.3, y - 0.3, h - 0.01), (1, 0, 0), (0, 1, 0), 0.6, 0.6, lamp, 100.0, KIND_LAMP
         )
+
+
+def _featureless_mat(b: SceneBuilder, rng, config: RoomConfig) -> None:
+    """A plain grey mat over the floor of the room's bare +x end (see RoomConfig)."""
+    x0, y0, x1, y1 = room_bounds(config)
+    depth = min(config.featureless_end_m, x1 - x0)
+    ppm = 60.0
+    spec = TextureSpec(
+        "indoor_surface",
+        *texture_size_px(depth, y1 - y0, ppm),
+        seed=texture_seed(rng),
+        params=(("ppm", ppm), ("style", "mat")),
+    )
+    add_split_quad(
+        b, (x1 - depth, y1, 0.005), (1, 0, 0), (0, -1, 0), depth, y1 - y0, spec, ppm,
+        KIND_GROUND, 0.75,
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -211,6 +230,8 @@ def _walls(b: SceneBuilder, rng, config: RoomConfig) -> list[WallLayout]:
             span = min(length, config.plain_wall_fraction * perimeter)
             start = rng.uniform(0, length - span)
             plain = (round(start, 4), round(start + span, 4))
+        if k == 1 and config.featureless_end_m > 0:  # the +x wall, the bare end
+            plain = (0.0, round(length, 4))
         sections = _sections(rng, length, plain, doors)
         layout = WallLayout(a, c, sections)
         spec = TextureSpec(
