@@ -1,18 +1,26 @@
-"""The closed-loop study (issue 16; docs/method.md section 10, the paper's indoor closed loop).
+"""The closed-loop study (issues 16 and 51; docs/method.md section 10, the paper's indoor
+closed loop).
 
 Starts a map server, maps the track (indoor: the 1:10 track's centre line; urban: the
 lane centre of the city's map route) with laps recorded by the sim's own vehicle,
 calibrates on a training lap, then drives the query laps three ways: open loop (the
 controller on the ground truth: the baseline, measured in this run), closed loop on the
-centre-line map, and closed loop after adding oscillating off-center laps. Prints the
-table and the goals; writes bench/results/closed_loop_<scenario>.json and
-bench/results/closed_loop_<scenario>_{trajectories,errors,loc_vs_tracking}.png.
-The city route is no loop: there, "laps" is the share of the route driven, and each case
-drives that share ``--passes`` times from its start (fresh filter each pass; the figures
-pool the passes).
+centre-line map, and closed loop after adding oscillating off-center laps.
 
-Usage: python -m bench.closed_loop [--scenario indoor|urban] [--laps N] [--passes N]
-    [--size small]
+Indoor (the default) is the seeded study (``monoloc.sim.closed_loop_seeded``): every case
+driven with ``--seeds`` seeds by each of ``--controllers`` (pid, mpc) on one map; every
+metric with its bootstrap CI over seeds, the paper's two claims as paired permutation
+tests, the known-feature share against the tracking error, the open loop's share of
+frames within 0.06 / 0.1 m beside the paper's. Writes bench/results/closed_loop_indoor.json
+(after every drive, ``complete`` false until the end) and
+bench/results/closed_loop_indoor_{errors,per_seed,known_vs_lateral,...}.png.
+
+Urban is one seed: the city route is no loop, "laps" is the share of the route driven,
+and each case drives that share ``--passes`` times from its start (fresh filter each
+pass; the figures pool the passes).
+
+Usage: python -m bench.closed_loop [--scenario indoor|urban] [--seeds 10]
+    [--controllers pid,mpc] [--laps N] [--passes N] [--size small]
 """
 
 from __future__ import annotations
@@ -101,14 +109,20 @@ def goals(summary: dict) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--scenario", default="indoor", choices=("indoor", "urban"))
-    parser.add_argument("--laps", type=float, default=None, help="indoor 3, urban 0.25")
+    parser.add_argument("--laps", type=float, default=None, help="indoor 1, urban 0.25")
+    parser.add_argument("--passes", type=int, default=None, help="drives per case (urban): 3")
+    parser.add_argument("--seeds", type=int, default=10, help="indoor: seeds 0..N-1 per case")
+    parser.add_argument("--controllers", default="pid,mpc", help="indoor: pid, mpc or both")
     parser.add_argument(
-        "--passes", type=int, default=None, help="drives per case: indoor 1, urban 3"
+        "--mpc-seeds", type=int, default=None, help="indoor: the MPC drives only the first N seeds"
     )
     parser.add_argument("--size", default="small")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="the world's (and the map's) seed")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    if args.scenario == "indoor":
+        seeded_main(args)
+        return
 
     from monoloc.client.api import MonolocClient
     from monoloc.sim.closed_loop_plots import plot_cases
@@ -118,21 +132,17 @@ def main() -> None:
     started = time.time()
     out = args.out or Path(f"out/closed_loop_bench_{args.scenario}")
     world = build_loop_world(WorldSpec(args.scenario, args.size, args.seed))
-    if args.scenario == "indoor":
-        laps = args.laps or 3.0
-        passes = args.passes or 1
-        study = StudyConfig(laps=laps, offcenter_laps=2.0, seed=args.seed, passes=passes)
-    else:  # a share of the route: map, off-center and query drives cover the same stretch
-        laps = args.laps or 0.25
-        passes = args.passes or 3
-        study = StudyConfig(
-            laps=laps,
-            map_laps=laps,
-            offcenter_laps=laps,
-            train_laps=0.15,
-            seed=args.seed,
-            passes=passes,
-        )
+    # a share of the route: map, off-center and query drives cover the same stretch
+    laps = args.laps or 0.25
+    passes = args.passes or 3
+    study = StudyConfig(
+        laps=laps,
+        map_laps=laps,
+        offcenter_laps=laps,
+        train_laps=0.15,
+        seed=args.seed,
+        passes=passes,
+    )
 
     def log(text: str) -> None:
         print(f"[{time.time() - started:5.0f} s] {text}", flush=True)
@@ -155,18 +165,161 @@ def main() -> None:
         reference_xy=world.reference_path(min(laps, 1.0)).xy,
         spike_threshold_m=summary["cases"]["open"].get("spike_threshold_m"),
     )
-    # relative to the repository: a results file names no path outside it
+    summary["plots"] = _relative(plots)
+    summary["total_s"] = time.time() - started
+    path = RESULTS / f"closed_loop_{args.scenario}.json"
+    path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
+    print(f"wrote {path} and {len(plots)} plots ({summary['total_s']:.0f} s)")
+
+
+def _relative(plots) -> list[str]:
+    """Plot paths relative to the repository: a results file names no path outside it."""
     root = Path(__file__).resolve().parent.parent
-    summary["plots"] = [
+    return [
         str(Path(p).resolve().relative_to(root))
         if Path(p).resolve().is_relative_to(root)
         else Path(p).name
         for p in plots
     ]
-    summary["total_s"] = time.time() - started
-    path = RESULTS / f"closed_loop_{args.scenario}.json"
-    path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
-    print(f"wrote {path} and {len(plots)} plots ({summary['total_s']:.0f} s)")
+
+
+def seeded_main(args) -> None:
+    """The indoor seeded study (see the module docstring)."""
+    from monoloc.client.api import MonolocClient
+    from monoloc.sim.closed_loop_plots import plot_cases, plot_seeded
+    from monoloc.sim.closed_loop_seeded import SeededStudyConfig, run_seeded_study, summarize
+    from monoloc.sim.closed_loop_study import StudyConfig, serving
+    from monoloc.sim.closed_loop_world import WorldSpec, build_loop_world
+
+    started = time.time()
+    out = args.out or Path("out/closed_loop_bench_indoor")
+    world = build_loop_world(WorldSpec("indoor", args.size, args.seed))
+    laps = args.laps or 1.0
+    config = SeededStudyConfig(
+        seeds=tuple(range(args.seeds)),
+        controllers=tuple(c.strip() for c in args.controllers.split(",") if c.strip()),
+        max_seeds=() if args.mpc_seeds is None else (("mpc", args.mpc_seeds),),
+        study=StudyConfig(laps=laps, offcenter_laps=1.0, train_laps=1.0, seed=args.seed),
+        map_seed=args.seed,
+    )
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / "closed_loop_indoor.json"
+    planned = sum(len(config.seeds_of(c)) for c in config.controllers) * len(config.study.cases)
+    header = {
+        "scenario": "indoor",
+        "size": args.size,
+        "world_seed": args.seed,
+        "laps_per_drive": laps,
+        "seeds": {c: list(config.seeds_of(c)) for c in config.controllers},
+        "controllers": list(config.controllers),
+        "drives_planned": planned,
+    }
+
+    def log(text: str) -> None:
+        print(f"[{time.time() - started:5.0f} s] {text}", flush=True)
+
+    def save(drives, info=None, complete=False, plots=()) -> dict:
+        summary = summarize(drives, config.stats)
+        data = {
+            **header,
+            "complete": complete,
+            "drives_done": len(drives),
+            "map": info or {},
+            # flat means per case/controller (bench.report's table)
+            "cases": {
+                name: {k: v["mean"] for k, v in c.items() if isinstance(v, dict)}
+                for name, c in summary["cases"].items()
+            },
+            "seeded": summary,
+            "drives": [
+                {"case": d.case, "controller": d.controller, "seed": d.seed, **d.metrics}
+                for d in drives
+            ],
+            "plots": _relative(plots),
+            "total_s": time.time() - started,
+        }
+        path.write_text(json.dumps(data, indent=2, default=float) + "\n")
+        return data
+
+    with serving(out) as (url, key):
+        with MonolocClient(url, key, timeout_s=120.0) as client:
+            info, drives = run_seeded_study(
+                client, world, config, out, log=log, on_drive=lambda d: save(d)
+            )
+    plots = []
+    for controller in config.controllers:
+        kept = {d.case: d.result for d in drives if d.controller == controller and d.result}
+        if kept:
+            plots += plot_cases(
+                kept,
+                RESULTS,
+                prefix=f"closed_loop_indoor_{controller}",
+                reference_xy=world.reference_path(min(laps, 1.0)).xy,
+            )
+    summary = summarize(drives, config.stats)
+    plots += plot_seeded(drives, summary, RESULTS, "closed_loop_indoor")
+    data = save(drives, info, complete=True, plots=plots)
+    print_seeded(data)
+    print(f"wrote {path} and {len(plots)} plots ({data['total_s']:.0f} s)")
+
+
+def _ci(v: dict, scale: float = 100.0, digits: int = 2) -> str:
+    if v.get("mean") is None:
+        return "-"
+    mean, lo, hi = (scale * v[k] for k in ("mean", "lo", "hi"))
+    return f"{mean:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def print_seeded(data: dict) -> None:
+    """The seeded study's tables: per case and controller the means with 95 % CIs, the
+    open loop beside the paper, the claims' tests, the mechanism."""
+    s = data["seeded"]
+    print(f"indoor seeded study: {data['drives_done']} drives ({s['ci']})")
+    print(f"{'case/controller':<24}{'RMSE cm':>22}{'max cm':>22}{'< 6 cm %':>20}"
+          f"{'lat RMSE cm':>22}{'spikes':>18}{'known %':>20}")  # fmt: skip
+    for name, c in s["cases"].items():
+        print(
+            f"{name:<24}{_ci(c['loc_rmse_m']):>22}{_ci(c['loc_max_m']):>22}"
+            f"{_ci(c['within_0_06'], 100, 1):>20}{_ci(c['lateral_rmse_m']):>22}"
+            f"{_ci(c['spikes'], 1, 1):>18}{_ci(c['known_share_sent_mean'], 100, 1):>20}"
+        )
+    for name, c in s["cases"].items():
+        if name.startswith("open/"):
+            print(
+                f"open loop ({name}): {_ci(c['within_0_06'], 100, 1)} % of frames < 0.06 m "
+                f"(paper ~92 %), {_ci(c['within_0_1'], 100, 1)} % < 0.1 m (paper 100 %)"
+            )
+    for controller, claims in s["claims"].items():
+        for claim, t in claims.items():
+            if not t.get("seeds"):
+                continue
+            r = t["loc_rmse_m"]
+            print(
+                f"{controller}: {claim}: RMSE {t['worse']} - {t['better']} = "
+                f"{100 * r['mean_diff']:+.3f} cm [{100 * r['lo']:+.3f}, {100 * r['hi']:+.3f}], "
+                f"{r['n_positive']}/{r['n']} seeds, p = {r['p']:.3f}; max: p = "
+                f"{t['loc_max_m']['p']:.3f}; spikes: p = {t['spikes']['p']:.3f} -> "
+                f"{'supported' if t['supported'] else 'NOT supported'} (p < 0.05 on RMSE)"
+            )
+    for controller, cases in s["mechanism"].items():
+        for case, m in cases.items():
+            parts = []
+            for name, r in m.items():
+                if r.get("r") is None:
+                    continue
+                ci = "" if r.get("lo") is None else f" [{r['lo']:.2f}, {r['hi']:.2f}]"
+                parts.append(f"{name} r = {r['r']:.2f}{ci}")
+            print(f"mechanism {controller} {case}: " + "; ".join(parts))
+    for case, tests in s.get("controllers", {}).items():
+        if case == "note":
+            continue
+        r = tests["loc_rmse_m"]
+        lat = tests["lateral_rmse_m"]
+        if r.get("n"):
+            print(
+                f"pid - mpc, {case}: RMSE {100 * r['mean_diff']:+.3f} cm (p = {r['p']:.3f}), "
+                f"lateral RMSE {100 * lat['mean_diff']:+.3f} cm (p = {lat['p']:.3f})"
+            )
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ from monoloc.sim.closed_loop_metrics import episodes
 from monoloc.sim.closed_loop_record import localization_error_m
 
 COLOURS = {"open": "tab:blue", "closed": "tab:red", "closed+offcenter": "tab:green"}
+MARKERS = {"pid": "o", "mpc": "s"}
 
 
 def plot_cases(
@@ -82,6 +83,81 @@ def plot_cases(
     ax.legend()
     ax.set_title("localization error against tracking error")
     paths.append(_save(fig, out_dir / f"{prefix}_loc_vs_tracking.png"))
+    return paths
+
+
+def plot_seeded(drives, summary: dict, out_dir: Path, prefix: str) -> list[Path]:
+    """The seeded study's figures (``monoloc.sim.closed_loop_seeded``): per-seed
+    distributions of the localization RMSE, max and lateral RMSE per case and controller
+    (lines join one seed's drives), and the known-feature share against |lateral error|
+    (every sent frame, binned means)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    controllers = sorted({d.controller for d in drives})
+    cases = [c for c in COLOURS if any(d.case == c for d in drives)]
+    paths = []
+    metrics = (("loc_rmse_m", "localization RMSE (cm)"), ("loc_max_m", "largest error (cm)"),
+               ("lateral_rmse_m", "lateral tracking RMSE (cm)"))  # fmt: skip
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 4.2))
+    for ax, (name, label) in zip(np.atleast_1d(axes), metrics, strict=True):
+        for ci, controller in enumerate(controllers):
+            by_seed: dict[int, list[tuple[float, float]]] = {}
+            for k, case in enumerate(cases):
+                x0 = k + 0.18 * (ci - (len(controllers) - 1) / 2)
+                rows = [d for d in drives if d.case == case and d.controller == controller]
+                vals = [100 * d.metrics[name] for d in rows if d.metrics.get(name) is not None]
+                jitter = np.linspace(-0.05, 0.05, max(len(vals), 1))[: len(vals)]
+                ax.scatter(x0 + jitter, vals, s=14, color=COLOURS[case],
+                           marker=MARKERS.get(controller, "o"), alpha=0.8)  # fmt: skip
+                if vals:
+                    ax.hlines(np.mean(vals), x0 - 0.12, x0 + 0.12, color="k", lw=1.5)
+                for d in rows:
+                    if d.metrics.get(name) is not None:
+                        by_seed.setdefault(d.seed, []).append((x0, 100 * d.metrics[name]))
+            for points in by_seed.values():
+                xs, ys = zip(*points, strict=True)
+                ax.plot(xs, ys, color="0.6", lw=0.4, zorder=0)
+        ax.set_xticks(range(len(cases)), cases, fontsize=8)
+        ax.set_ylabel(label)
+    fig.suptitle(
+        "per-seed drives (" + ", ".join(f"{c}: {MARKERS.get(c, 'o')}" for c in controllers)
+        + "; bar: mean; lines join a seed)", fontsize=9,
+    )  # fmt: skip
+    paths.append(_save(fig, out_dir / f"{prefix}_per_seed.png"))
+
+    fig, axes = plt.subplots(1, len(controllers), figsize=(5.5 * len(controllers), 4.5),
+                             squeeze=False)  # fmt: skip
+    for ax, controller in zip(axes[0], controllers, strict=True):
+        for case in cases:
+            rows = [d for d in drives if d.case == case and d.controller == controller]
+            known = np.concatenate([d.known_share for d in rows])
+            lateral = np.concatenate([d.lateral_m for d in rows])
+            ok = np.isfinite(known)
+            ax.scatter(100 * lateral[ok], 100 * known[ok], s=2, alpha=0.15, color=COLOURS[case])
+            if ok.sum() > 20:
+                edges = np.quantile(lateral[ok], np.linspace(0, 1, 9))
+                idx = np.clip(np.searchsorted(edges, lateral[ok], side="right") - 1, 0, 7)
+                centres = [
+                    100 * np.median(lateral[ok][idx == b]) for b in range(8) if (idx == b).any()
+                ]
+                means = [100 * np.mean(known[ok][idx == b]) for b in range(8) if (idx == b).any()]
+                r = summary.get("mechanism", {}).get(controller, {}).get(case, {})
+                r = r.get("known_vs_lateral", {})
+                label = case if r.get("r") is None else (
+                    f"{case}: r = {r['r']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}]"
+                    if r.get("lo") is not None else f"{case}: r = {r['r']:.2f}"
+                )  # fmt: skip
+                ax.plot(centres, means, "-o", color=COLOURS[case], ms=3, label=label)
+        ax.set_xlabel("|lateral tracking error| (cm)")
+        ax.set_ylabel("known-feature share of the query (%)")
+        ax.set_title(f"{controller}: known features against tracking error", fontsize=9)
+        ax.legend(fontsize=7)
+    paths.append(_save(fig, out_dir / f"{prefix}_known_vs_lateral.png"))
     return paths
 
 

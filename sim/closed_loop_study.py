@@ -152,11 +152,14 @@ def drive_case(
     recorded_latency_ms: tuple[float, ...] | None = None,
     progress: Callable[[int, int], None] | None = None,
     record_dir: Path | None = None,
+    seed: int | None = None,
+    controller: str = "pid",
 ) -> LoopResult:
     """The localized drives of the query lap over HTTP (``mode`` open|closed), one per
     ``study.passes`` (concatenated, see ``concat_passes``); with ``record_dir``, each
     pass's frames are also written as a run (``record_dir``, then ``<record_dir>_pass2``,
-    ...)."""
+    ...). ``seed`` (default ``study.seed``) draws the drive's noise; ``controller``
+    pid|mpc steers it."""
     from monoloc.client.localizer import HttpLocalizer
     from monoloc.sim.closed_loop import concat_passes
 
@@ -169,7 +172,8 @@ def drive_case(
             max_frames=study.max_frames,
             lap=QUERY_LAP,
             recorded_latency_ms=recorded_latency_ms,
-            seed=study.seed + 100 + 1000 * index,
+            seed=(study.seed if seed is None else seed) + 100 + 1000 * index,
+            controller=controller,
         )
         recorder = None
         if record_dir is not None:
