@@ -191,7 +191,8 @@ def compare(root: Path, meta: dict) -> dict:
 
 
 def main(args) -> None:
-    """``python -m bench.accuracy --scenario fleet``: writes results/accuracy_fleet.json."""
+    """``python -m bench.accuracy --scenario fleet``: writes results/accuracy_fleet.json
+    (another ``--fleet-camera`` than issue48: accuracy_fleet_<camera>.json)."""
     from bench.accuracy import RESULTS
 
     root = args.data / f"fleet_{args.size}_{args.frames}_s{args.seed}_{args.fleet_camera}"
@@ -200,4 +201,5 @@ def main(args) -> None:
     out["frames_per_run"] = args.frames
     out.update(compare(root, meta))
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "accuracy_fleet.json").write_text(json.dumps(out, indent=2) + "\n")
+    name = "" if args.fleet_camera == "issue48" else f"_{args.fleet_camera}"
+    (RESULTS / f"accuracy_fleet{name}.json").write_text(json.dumps(out, indent=2) + "\n")
