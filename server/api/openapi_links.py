@@ -46,6 +46,7 @@ _ON_AN_ENTRY = (
     ("get", f"{_ENTRY}/image"),
 )
 _ON_A_JOB = (("get", _JOB), ("post", f"{_JOB}/resume"), ("post", f"{_JOB}/cancel"))
+_ON_A_CAMERA = (("get", "/v1/cameras/{camera_id}"), ("delete", "/v1/cameras/{camera_id}"))
 
 
 def _to(targets, parameters: dict[str, str]) -> list[tuple[str, str, dict[str, str]]]:
@@ -86,6 +87,8 @@ LINKS: dict[tuple[str, str, str], list[tuple[str, str, dict[str, str]]]] = {
     ("get", "/v1/keys", "200"): [
         ("delete", "/v1/keys/{key_id}", {"key_id": "$response.body#/items/0/id"})
     ],
+    ("post", "/v1/cameras", "201"): _to(_ON_A_CAMERA, {"camera_id": "$response.body#/id"}),
+    ("get", "/v1/cameras", "200"): _to(_ON_A_CAMERA, {"camera_id": "$response.body#/items/0/id"}),
 }
 
 

@@ -278,10 +278,38 @@ def _add_words(operation: dict[str, Any], rules: tuple[CrossFieldRule, ...]) -> 
     operation["description"] = f"{operation.get('description', '')}\n\n{text}".strip()
 
 
+def _without_null(schema: dict[str, Any]) -> dict[str, Any]:
+    """A form part's schema without its ``null`` branch: ``anyOf: [{file}, {null}]`` (an
+    optional part, as FastAPI writes it) becomes the file, so clients see it is a file."""
+    options = schema.get("anyOf")
+    if not options:
+        return schema
+    kept = [o for o in options if o.get("type") != "null"]
+    if len(kept) != 1 or len(kept) == len(options):
+        return schema
+    return {**{k: v for k, v in schema.items() if k != "anyOf"}, **kept[0]}
+
+
+def document_form_parts(openapi: dict[str, Any]) -> None:
+    """A multipart form has no null: an optional part is left out. Each form's optional
+    parts are described without their null branch (in place)."""
+    for operations in openapi.get("paths", {}).values():
+        for operation in operations.values():
+            content = operation.get("requestBody", {}).get("content", {})
+            form = content.get("multipart/form-data")
+            if form is None:
+                continue
+            schema = _resolve(openapi, form["schema"])
+            properties = schema.get("properties", {})
+            for name, part in properties.items():
+                properties[name] = _without_null(part)
+
+
 def document_cross_field_rules(openapi: dict[str, Any]) -> dict[str, Any]:
     """Add the forms' rules to their multipart schemas and the query parameters' rules to
     their operations (``x-monoloc-rules``), each in words in the operation's description
-    too (in place)."""
+    too; optional form parts without null (``document_form_parts``). In place."""
+    document_form_parts(openapi)
     paths = openapi.get("paths", {})
     for (method, path), rules in FORM_RULES.items():
         operation = paths[path][method]
