@@ -17,10 +17,10 @@ the bag has exactly one topic of that type):
   it gives the planar ground truth the drive is scored against.
 
 The camera's mounting: ``/tf_static`` from the speed reference frame (the odometry's
-child frame, e.g. ``base_link``) to the camera's gives its lever arm (``lever_arm_m``:
-how far ahead of that frame's origin the camera sits, the x of ``T_body_from_cam``). The
-vehicle's motion model has no fuller mounting model: lateral and height offsets and the
-rotation are not used (the server's poses are the camera's own).
+child frame, e.g. ``base_link``) to the camera's is the run's ``T_vehicle_from_cam``
+(``ReplayRun.mounting``, monoloc.core.mounting: lever arm, lateral offset, height, roll,
+pitch, yaw); the motion model moves the camera with that frame by its planar part, and
+the drive reports that frame's pose.
 
 Frame times are the images' header stamps. Reading the bag needs ``rosbags`` (and
 ``Pillow`` for raw images): ``pip install 'monoloc[bags]'``.
@@ -33,10 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from monoloc.client.replay import ReplayRun
+from monoloc.client.replay import ReplayRun, mounting_note
 from monoloc.core.errors import InvalidInputError, MonolocError
 from monoloc.core.formats import rosbag as bag
 from monoloc.core.geometry import planar_from_T_world_from_cam, wrap_angle
+from monoloc.core.mounting import CameraMounting
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 ROLES = ("image", "camera_info", "odometry", "truth")
@@ -130,17 +131,19 @@ def _truth(track: bag.PoseTrack, tree: bag.FrameTree, camera_frame: str, times_s
     )
 
 
-def _lever_arm(tree: bag.FrameTree, body: str, camera_frame: str) -> tuple[float | None, str]:
-    """(the camera's distance ahead of ``body``'s origin from /tf_static, a note), or
-    (None, "") when no static transform joins them."""
+def _mounting(
+    tree: bag.FrameTree, body: str, camera_frame: str
+) -> tuple[CameraMounting | None, str]:
+    """(where the camera sits on ``body``: the whole static transform body -> camera of
+    /tf_static, a note), or (None, "") when no static transform joins them."""
     T_body_from_cam = tree.static_between(body, camera_frame)
     if T_body_from_cam is None or body == camera_frame.lstrip("/"):
         return None, ""
-    lever_arm_m = float(T_body_from_cam[0, 3])
-    return lever_arm_m, (
-        f"camera {lever_arm_m:.2f} m ahead of {body} (/tf_static; its lateral and height "
-        "offsets are not modelled)"
-    )
+    try:
+        mounting = CameraMounting.from_T_vehicle_from_cam(T_body_from_cam)
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"/tf_static {body} -> {camera_frame}: {exc}") from exc
+    return mounting, mounting_note(mounting, f"/tf_static {body} -> {camera_frame}")
 
 
 def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
@@ -196,7 +199,7 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
             _, body, rows = tree.body_track(camera_frame, root, hint)
             signals = signals_from_pose_rows(rows, times)
             notes.append(f"no Odometry topic: speed and yaw rate differentiated from /tf ({body})")
-    lever_arm_m, note = _lever_arm(tree, body, camera_frame)
+    mounting, note = _mounting(tree, body, camera_frame)
     if note:
         notes.append(note)
     truth = None
@@ -213,10 +216,11 @@ def read_bag_run(path: Path, topics: dict[str, str] | None = None) -> ReplayRun:
         signals,
         truth,
         notes,
-        lever_arm_m,
+        None if mounting is None else mounting.lever_arm_m,
         reader_fn,
         camera_frame or None,
         intrinsics,
+        mounting,
     )
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import typer
@@ -24,10 +25,17 @@ def drive(
     k: int | None = typer.Option(None, help="retrieved entries per frame (server default 10)"),
     seed: int = typer.Option(0, help="seed of the filter's random generator"),
     lever_arm_m: float | None = typer.Option(
-        None, help="camera distance ahead of the speed reference point, m (default: the rig)"
+        None,
+        help="camera distance ahead of the speed reference point, m (default: the rig's "
+        "mounting; replaces only its lever arm)",
     ),
     lever_arm_from: Path | None = typer.Option(
         None, help="fit the lever arm on this recorded run with poses (e.g. the training run)"
+    ),
+    mount_from: Path | None = typer.Option(
+        None,
+        help="fit where the camera sits (lever arm, lateral offset, yaw offset) on this "
+        "recorded run with poses, taken by the same car; height, pitch and roll from the rig",
     ),
     out: Path = typer.Option(Path("out/drive"), help="prefix of the trajectory files"),
     topic: list[str] | None = typer.Option(
@@ -53,13 +61,20 @@ def drive(
 
     from monoloc.client.api import MonolocClient
     from monoloc.client.bag_replay import is_bag, read_bag_run
-    from monoloc.client.drive import DriveConfig, write_bag, write_geojson, write_outputs
+    from monoloc.client.drive import (
+        DriveConfig,
+        write_bag,
+        write_geojson,
+        write_outputs,
+        write_vehicle_track,
+    )
     from monoloc.client.drive import drive as run_drive
     from monoloc.client.motion import MotionConfig, fit_lever_arm_m
     from monoloc.client.particle_filter import FilterConfig
     from monoloc.client.replay import parse_frames, read_run
     from monoloc.client.report import metrics_table
     from monoloc.core.errors import InvalidInputError, MonolocError
+    from monoloc.core.mounting import CameraMounting
 
     console = Console(stderr=True)
     if bag_out is not None:  # refused before the drive, not after it
@@ -72,6 +87,9 @@ def drive(
         run = run.with_intrinsics(_camera_file(camera, run))
     for note in run.notes:
         console.print(f"[yellow]note:[/] {note}")
+    if mount_from is not None:
+        run = _fitted_mounting(mount_from, run)
+        console.print(f"[yellow]note:[/] {run.notes[-1]}")
     if lever_arm_m is None and lever_arm_from is not None:
         fit_run = read_run(lever_arm_from)
         if fit_run.truth_world is None:
@@ -80,15 +98,18 @@ def drive(
             fit_run.truth_world, fit_run.timestamps_s, fit_run.signals[:, 0]
         )
         console.print(f"[yellow]note:[/] lever arm {lever_arm_m:.3f} m fitted on {fit_run.name}")
-    elif lever_arm_m is None and run.lever_arm_m is None:
+    if lever_arm_m is not None:  # the shorthand: the rig's mounting with this lever arm
+        mounting = dataclasses.replace(run.mounting or CameraMounting(), lever_arm_m=lever_arm_m)
+        run = run.with_mounting(mounting)
+    elif run.mounting is None and run.lever_arm_m is None:
         console.print(
-            "[yellow]note:[/] lever arm unknown, 0 m: a camera ahead of the speed reference "
-            "then falls to the outside of turns (--lever-arm-m or --lever-arm-from)"
+            "[yellow]note:[/] camera mounting unknown, the camera taken for the speed "
+            "reference: a camera ahead of it then falls to the outside of turns "
+            "(--mount-from, --lever-arm-m or --lever-arm-from)"
         )
+    motion = MotionConfig(mounting=run.mounting, lever_arm_m=run.lever_arm_m or 0.0)
     config = DriveConfig(
-        filter=FilterConfig(
-            n_particles=particles, motion=MotionConfig(lever_arm_m=lever_arm_m or 0.0)
-        ),
+        filter=FilterConfig(n_particles=particles, motion=motion),
         k=k,
         realtime=realtime,
         use_prior=not no_prior,
@@ -118,15 +139,36 @@ def drive(
             f"{result.errors[first]}"
         )
     tum, kitti = write_outputs(result, out)
+    vehicle = write_vehicle_track(result, out)
     geojson = write_geojson(result, out)
     bag_path = write_bag(result, bag_out, bag_storage) if bag_out is not None else None
     Console().print(metrics_table(result))
-    written = [tum, kitti, *(p for p in (geojson, bag_path) if p is not None)]
+    written = [tum, kitti, *(p for p in (vehicle, geojson, bag_path) if p is not None)]
     console.print("trajectories: " + ", ".join(str(p) for p in written))
     if result.geo_reference is None:
         console.print(f"no GeoJSON track: map {map_ref} has no geographic reference")
     elif geojson is None:
         console.print("no GeoJSON track: the filter gave no estimate")
+
+
+def _fitted_mounting(path: Path, run):
+    """``run`` with the camera's planar mounting fitted on the recorded run ``path`` (its
+    poses and measured speed; ``fit_mount``) and the rest of the mounting (height,
+    pitch, roll) from the run's own rig, else ``path``'s."""
+    from monoloc.client.motion import fit_mount
+    from monoloc.client.replay import mounting_note, read_run
+    from monoloc.core.errors import InvalidInputError
+    from monoloc.core.mounting import CameraMounting
+
+    fit_run = read_run(path)
+    if fit_run.truth_world is None:
+        raise InvalidInputError(f"{path} has no poses to fit a camera mounting on")
+    planar = fit_mount(fit_run.truth_world, fit_run.timestamps_s, fit_run.signals[:, 0])
+    rig = run.mounting or fit_run.mounting or CameraMounting()
+    mounting = dataclasses.replace(
+        rig, lever_arm_m=planar.x_m, lateral_m=planar.y_m, yaw_rad=planar.yaw_rad
+    )
+    return run.with_mounting(mounting, mounting_note(mounting, f"fitted on {fit_run.name}"))
 
 
 def _check_bag_out(path: Path, storage: str) -> None:

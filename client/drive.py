@@ -34,6 +34,7 @@ from monoloc.client.trajectory import TrajectoryMetrics, trajectory_metrics, wri
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geo import GeoReference
 from monoloc.core.measurement import MeasurementModel
+from monoloc.core.mounting import PlanarMount
 from monoloc.core.prior import RetrievalPrior
 
 
@@ -71,6 +72,14 @@ class DriveResult:
     best_height_m: np.ndarray | None = None
     # The map's geographic reference when it has one (read once per drive).
     geo_reference: GeoReference | None = None
+    # Where the camera sat on the vehicle in the motion model (the reported vehicle pose).
+    mount: PlanarMount = field(default_factory=PlanarMount)
+
+    @property
+    def vehicle_world(self) -> np.ndarray:
+        """The vehicle's planar poses (N, 3) (its reference point, heading of its x axis):
+        the filter's camera estimates moved through the mounting (NaN where they are)."""
+        return self.mount.vehicle_from_camera(self.estimates_world)
 
     @property
     def all_refused(self) -> bool:
@@ -147,10 +156,16 @@ class _DriveLog:
 
 
 def run_filter_config(config: FilterConfig, run: ReplayRun) -> FilterConfig:
-    """``config`` with the run's camera lever arm unless the config sets one."""
-    if run.lever_arm_m is None or config.motion.lever_arm_m != 0.0:
+    """``config`` with the run's camera mounting (or only its lever arm, when that is all
+    the recording says) unless the config sets a mounting or a lever arm itself."""
+    motion = config.motion
+    if motion.mounting is not None or motion.lever_arm_m != 0.0:
         return config
-    return replace(config, motion=replace(config.motion, lever_arm_m=run.lever_arm_m))
+    if run.mounting is not None:
+        return replace(config, motion=replace(motion, mounting=run.mounting))
+    if run.lever_arm_m is not None:
+        return replace(config, motion=replace(motion, lever_arm_m=run.lever_arm_m))
+    return config
 
 
 def drive(
@@ -174,8 +189,9 @@ def drive(
     # the run's camera is registered once (or found registered) and named by its id
     camera_id = client.camera_id(run.intrinsics)
     geo = client.geo_reference(map_id)
+    filter_config = run_filter_config(config.filter, run)
     tracker = Tracker(
-        run_filter_config(config.filter, run),
+        filter_config,
         model,
         np.random.default_rng(config.seed),
         run.timestamps_s,
@@ -197,7 +213,7 @@ def drive(
             images = (run.image_bytes(i) for i in range(len(run)))
             localizer = _Timed(StreamLocalizer(stream, run.timestamps_s, camera_id=camera_id), log)
             track(tracker, localizer, images, config.k, recorded)
-    return log.result(run, tracker.estimates_world, geo)
+    return replace(log.result(run, tracker.estimates_world, geo), mount=filter_config.motion.mount)
 
 
 class _Timed:
@@ -315,8 +331,29 @@ def write_bag(result: DriveResult, path: Path, storage: str = "sqlite3") -> Path
 
 
 def write_outputs(result: DriveResult, out_prefix: Path) -> tuple[Path, Path]:
-    """Trajectory files of the frames that have an estimate."""
+    """Trajectory files of the frames that have an estimate (the camera's poses)."""
     ok = np.all(np.isfinite(result.estimates_world), axis=1)
     return write_trajectory_files(
         out_prefix, result.run.timestamps_s[ok], result.estimates_world[ok]
     )
+
+
+def write_vehicle_track(result: DriveResult, out_prefix: Path) -> Path | None:
+    """``<prefix>.vehicle.tum.txt``: the vehicle's poses (T_world_from_vehicle, x forward,
+    z up, on the ground plane) of the frames with an estimate, in TUM's format; None
+    without any."""
+    from monoloc.core.formats import tum
+
+    vehicle = result.vehicle_world
+    ok = np.all(np.isfinite(vehicle), axis=1)
+    if not ok.any():
+        return None
+    poses = np.tile(np.eye(4), (int(ok.sum()), 1, 1))
+    c, s = np.cos(vehicle[ok, 2]), np.sin(vehicle[ok, 2])
+    poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = c, -s, s, c
+    poses[:, :2, 3] = vehicle[ok, :2]
+    path = out_prefix.with_name(out_prefix.name + ".vehicle.tum.txt")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as fh:
+        tum.write_trajectory(fh, result.run.timestamps_s[ok], poses)
+    return path

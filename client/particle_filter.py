@@ -312,14 +312,14 @@ class ParticleFilter:
             )
             self.driven_since_support_m += abs(float(speed_mps)) * float(dt_s)
             if self.refiner is not None:
-                self.refiner.predict(dt_s, speed_mps, yaw_rate_radps, motion.lever_arm_m)
+                self.refiner.predict(dt_s, speed_mps, yaw_rate_radps, motion.mount)
         if len(self._recent_world):
             self._recent_world = advance(
-                self._recent_world, speed_mps, yaw_rate_radps, dt_s, motion.lever_arm_m
+                self._recent_world, speed_mps, yaw_rate_radps, dt_s, motion.mount
             )
         if len(self._guard_world):
             self._guard_world = advance(
-                self._guard_world, speed_mps, yaw_rate_radps, dt_s, motion.lever_arm_m
+                self._guard_world, speed_mps, yaw_rate_radps, dt_s, motion.mount
             )
             self._guard_driven_m = self._guard_driven_m + abs(float(speed_mps)) * float(dt_s)
 

@@ -40,6 +40,7 @@ from monoloc.client.motion import advance
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import wrap_angle
 from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.mounting import PlanarMount
 
 
 @dataclass(frozen=True)
@@ -237,10 +238,11 @@ class ModeRefiner:
         dt_s: float,
         speed_mps: float,
         yaw_rate_radps: float,
-        lever_arm_m: float = 0.0,
+        mount: PlanarMount | float = 0.0,
     ) -> None:
-        """One step of the measured signals; the covariance through the Jacobians of the
-        motion model in the state and in the two signals (forward differences)."""
+        """One step of the measured signals (the camera at ``mount`` on the vehicle, see
+        motion.advance); the covariance through the Jacobians of the motion model in the
+        state and in the two signals (forward differences)."""
         if self.state is None or dt_s <= 0:
             return
         cfg = self.config
@@ -254,7 +256,7 @@ class ModeRefiner:
         scale[4] += eps[3]
         speed[5] += eps[4]
         yaw_rate[6] += eps[5]
-        moved = advance(poses, scale * speed, yaw_rate, dt_s, lever_arm_m)
+        moved = advance(poses, scale * speed, yaw_rate, dt_s, mount)
         diff = moved[1:] - moved[0]
         diff[:, 2] = wrap_angle(diff[:, 2])
         jac = (diff / eps[:, None]).T  # (3, 6): d pose / d (X, Y, psi, k, speed, yaw rate)

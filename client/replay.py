@@ -11,6 +11,7 @@ holds); this module aligns them into a run.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,14 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.core.camera import CameraIntrinsics
-from monoloc.core.errors import InvalidInputError, NotFoundError
+from monoloc.core.errors import InputFileError, InvalidInputError, NotFoundError
 from monoloc.core.formats import kitti, tum, vehicle
+from monoloc.core.formats.camera_yaml import CAMERA_YAML, CameraFile, read_camera_yaml
 from monoloc.core.formats.png import png_size
 from monoloc.core.geometry import (
     kitti_to_zup,
     planar_from_T_world_from_cam,
     wrap_angle,
 )
+from monoloc.core.mounting import CameraMounting
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,10 @@ class ReplayRun:
     # the images' size, a TUM run's camera.json, a bag's CameraInfo): the vehicle sends it
     # with every frame, never assuming the map's.
     intrinsics: CameraIntrinsics | None = None
+    # Where the camera sits on the vehicle (T_vehicle_from_cam), when the rig says: a
+    # camera.yaml / camera.json beside the frames, dataset.json, a bag's /tf_static.
+    # ``lever_arm_m`` is then its lever arm.
+    mounting: CameraMounting | None = None
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -76,22 +83,24 @@ class ReplayRun:
         if len(idx) != len(self):
             first = f"{idx[0]}..{idx[-1]}" if len(idx) else "none"
             notes.append(f"frames {first} of {len(self)} selected ({len(idx)} frames)")
-        return ReplayRun(
-            self.name,
-            [self.image_paths[i] for i in idx],
-            self.timestamps_s[frames],
-            self.signals[frames],
-            truth,
-            notes,
-            self.lever_arm_m,
-            self.read_image,
-            self.camera_frame,
-            self.intrinsics,
+        return dataclasses.replace(
+            self,
+            image_paths=[self.image_paths[i] for i in idx],
+            timestamps_s=self.timestamps_s[frames],
+            signals=self.signals[frames],
+            truth_world=truth,
+            notes=notes,
         )
 
     def with_intrinsics(self, intrinsics: CameraIntrinsics) -> ReplayRun:
         """The same run taken with ``intrinsics`` (a camera given on the command line)."""
         return dataclasses.replace(self, intrinsics=intrinsics)
+
+    def with_mounting(self, mounting: CameraMounting | None, note: str | None = None) -> ReplayRun:
+        """The same run with the camera at ``mounting`` on the vehicle (its lever arm too)."""
+        notes = self.notes if note is None else [*self.notes, note]
+        lever = None if mounting is None else mounting.lever_arm_m
+        return dataclasses.replace(self, mounting=mounting, lever_arm_m=lever, notes=notes)
 
 
 def parse_frames(text: str | None) -> slice:
@@ -184,9 +193,59 @@ def read_kitti_run(
     intrinsics = None
     if (seq_dir / "calib.txt").is_file():
         intrinsics = kitti.read_calib_file(seq_dir / "calib.txt").intrinsics(*png_size(images[0]))
+    camera = read_run_camera_file(seq_dir, images[0])
+    mounting = None
+    if camera is not None:  # its lens and mounting; its K must be calib.txt's P0
+        if intrinsics is not None and not _same_pinhole(intrinsics, camera.intrinsics):
+            raise InputFileError(
+                camera.path,
+                f"its camera matrix {_focal_text(camera.intrinsics)} is not calib.txt's P0 "
+                f"{_focal_text(intrinsics)}",
+            )
+        intrinsics, mounting = camera.intrinsics, camera.mounting
     return ReplayRun(
-        f"kitti:{seq_name}", images, times, signals, truth, notes, intrinsics=intrinsics
+        f"kitti:{seq_name}",
+        images,
+        times,
+        signals,
+        truth,
+        notes,
+        intrinsics=intrinsics,
+        mounting=mounting,
     )
+
+
+def _same_pinhole(a: CameraIntrinsics, b: CameraIntrinsics, tol_px: float = 0.01) -> bool:
+    return (a.width_px, a.height_px) == (b.width_px, b.height_px) and all(
+        abs(x - y) <= tol_px for x, y in zip(a.K.ravel(), b.K.ravel(), strict=True)
+    )
+
+
+def _focal_text(k: CameraIntrinsics) -> str:
+    return f"(fx {k.fx:g}, fy {k.fy:g}, cx {k.cx:g}, cy {k.cy:g}, {k.width_px}x{k.height_px})"
+
+
+def read_run_camera_file(folder: Path, first_image: Path | None) -> CameraFile | None:
+    """The camera a run's folder describes: ``camera.yaml`` (ROS's calibration layout,
+    monoloc.core.formats.camera_yaml), else a camera JSON (``camera.json``,
+    ``intrinsics.json``: fx, fy, cx, cy, width, height, distortion_model, D), with its
+    mounting (``T_vehicle_from_cam`` or ``mounting``) when given; None without one."""
+    folder = Path(folder)
+    if (folder / CAMERA_YAML).is_file():
+        return read_camera_yaml(folder / CAMERA_YAML)
+    json_path, data = tum.read_camera_json(folder)
+    if json_path is None or first_image is None:
+        return None
+    intrinsics = tum.read_run_camera(folder, first_image)
+    mounting = None
+    try:
+        if data.get("T_vehicle_from_cam") is not None:
+            mounting = CameraMounting.from_dict({"T_vehicle_from_cam": data["T_vehicle_from_cam"]})
+        elif data.get("mounting") is not None:
+            mounting = CameraMounting.from_dict(data["mounting"])
+    except InvalidInputError as exc:
+        raise InputFileError(json_path, str(exc)) from exc
+    return CameraFile(json_path, intrinsics, mounting)
 
 
 def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
@@ -214,36 +273,83 @@ def read_tum_run(root: Path, max_dt_s: float = 0.02) -> ReplayRun:
     if not vehicle_path.exists():
         raise NotFoundError(f"{vehicle_path} does not exist")
     signals = _vehicle_signals(vehicle_path, times_arr)
-    intrinsics = tum.read_run_camera(root, images[0]) if images else None
+    camera = read_run_camera_file(root, images[0] if images else None)
     return ReplayRun(
-        f"tum:{root.name}", images, times_arr, signals, truth, [], intrinsics=intrinsics
+        f"tum:{root.name}",
+        images,
+        times_arr,
+        signals,
+        truth,
+        [],
+        intrinsics=None if camera is None else camera.intrinsics,
+        mounting=None if camera is None else camera.mounting,
     )
 
 
-def rig_lever_arm_m(path: Path) -> float | None:
-    """The camera's distance ahead of the speed reference point, from a ``dataset.json``
-    (monoloc's sim writes ``rig.T_vehicle_from_cam0``, indoors ``T_vehicle_from_cam``) at or
-    above ``path``; None if absent."""
+def rig_mounting(path: Path, sequence: str | None = None) -> CameraMounting | None:
+    """Where the camera sits on the vehicle, from a ``dataset.json`` at or above ``path``:
+    the sequence's own ``T_vehicle_from_cam`` (a run recorded by another camera), else
+    the rig's (monoloc's sim writes ``rig.T_vehicle_from_cam0``, indoors
+    ``T_vehicle_from_cam``), or a ``mounting`` mapping (CameraMounting's fields); None if
+    absent. A malformed one raises InputFileError."""
     import json
 
     for folder in [path, *path.parents][:4]:
         meta = folder / "dataset.json"
-        if meta.exists():
-            try:
-                rig = json.loads(meta.read_text()).get("rig") or {}
-                key = next(k for k in ("T_vehicle_from_cam0", "T_vehicle_from_cam") if k in rig)
-                return float(np.asarray(rig[key], dtype=float)[0, 3])
-            except (ValueError, KeyError, TypeError, IndexError, StopIteration):
-                return None
+        if not meta.exists():
+            continue
+        try:
+            info = json.loads(meta.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputFileError(meta, f"cannot read: {exc}") from exc
+        if not isinstance(info, dict):
+            return None
+        for entry in info.get("sequences") or []:
+            if isinstance(entry, dict) and sequence is not None and entry.get("id") == sequence:
+                if entry.get("T_vehicle_from_cam") is not None:
+                    return _mounting(meta, {"T_vehicle_from_cam": entry["T_vehicle_from_cam"]})
+        rig = info.get("rig") or {}
+        for key in ("T_vehicle_from_cam0", "T_vehicle_from_cam"):
+            if isinstance(rig, dict) and rig.get(key) is not None:
+                return _mounting(meta, {"T_vehicle_from_cam": rig[key]})
+        if isinstance(rig, dict) and rig.get("mounting") is not None:
+            return _mounting(meta, rig["mounting"])
+        return None
     return None
 
 
+def _mounting(path: Path, data: dict) -> CameraMounting:
+    try:
+        return CameraMounting.from_dict(data)
+    except InvalidInputError as exc:
+        raise InputFileError(path, str(exc)) from exc
+
+
+def rig_lever_arm_m(path: Path) -> float | None:
+    """The camera's distance ahead of the speed reference point (``rig_mounting``)."""
+    mounting = rig_mounting(path)
+    return None if mounting is None else mounting.lever_arm_m
+
+
+def mounting_note(mounting: CameraMounting, source: str) -> str:
+    """One line saying where the camera sits, for a drive's notes."""
+    return (
+        f"camera {mounting.lever_arm_m:.2f} m ahead, {mounting.lateral_m:.2f} m left, "
+        f"{mounting.height_m:.2f} m above the speed reference; yaw "
+        f"{math.degrees(mounting.yaw_rad):.2f} deg, pitch {math.degrees(mounting.pitch_rad):.2f} "
+        f"deg, roll {math.degrees(mounting.roll_rad):.2f} deg ({source})"
+    )
+
+
 def read_run(path: Path, sequence: str | None = None) -> ReplayRun:
-    """KITTI or TUM, recognised by its files; picks up the rig's lever arm if recorded."""
+    """KITTI or TUM, recognised by its files; picks up where the camera sits when the
+    recording says: its camera file (camera.yaml, camera.json) first, else dataset.json."""
     path = Path(path)
     run = read_tum_run(path) if (path / "rgb.txt").exists() else read_kitti_run(path, sequence)
-    lever = rig_lever_arm_m(path)
-    if lever is not None:
-        note = f"camera {lever:.2f} m ahead of the speed reference (dataset.json rig)"
-        run = dataclasses.replace(run, notes=[*run.notes, note], lever_arm_m=lever)
+    if run.mounting is not None:
+        return run.with_mounting(run.mounting, mounting_note(run.mounting, "the camera file"))
+    seq = sequence if sequence is not None else run.name.removeprefix("kitti:")
+    mounting = rig_mounting(path, seq)
+    if mounting is not None:
+        run = run.with_mounting(mounting, mounting_note(mounting, "dataset.json rig"))
     return run

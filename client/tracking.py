@@ -23,9 +23,11 @@ import numpy as np
 
 from monoloc.client.api import LocalizeAnswer
 from monoloc.client.localizer import Localizer
+from monoloc.client.motion import advance
 from monoloc.client.particle_filter import FilterConfig, FilterEstimate, ParticleFilter
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.measurement import Hypotheses, MeasurementModel
+from monoloc.core.mounting import PlanarMount
 from monoloc.core.prior import RetrievalPrior
 
 
@@ -89,23 +91,23 @@ def dead_reckon_prior(
     last: int,
     i: int,
     interpolate: bool = True,
+    mount: PlanarMount = PlanarMount(),
 ) -> RetrievalPrior:
-    """``prior`` (at frame ``last``) moved to frame i's time with the measured speed and
-    yaw rate (signals (N, 2)) of frames last .. i (:func:`step_signals`); radius and
-    tolerance unchanged."""
-    x, y = prior.x_m, prior.y_m
+    """``prior`` (the camera's, at frame ``last``) moved to frame i's time with the
+    measured speed and yaw rate (signals (N, 2)) of frames last .. i
+    (:func:`step_signals`) by the motion model, the camera at ``mount`` on the vehicle
+    (as the particles move); radius and tolerance unchanged."""
     yaw = prior.yaw_rad if prior.yaw_rad is not None else 0.0
+    pose = np.array([[prior.x_m, prior.y_m, yaw]])
     for j in range(last, i):
         dt = float(timestamps_s[j + 1] - timestamps_s[j])
         speed, yaw_rate = step_signals(signals, j, interpolate)
-        x += speed * math.cos(yaw) * dt
-        y += speed * math.sin(yaw) * dt
-        yaw += yaw_rate * dt
+        pose = advance(pose, speed, yaw_rate, dt, mount)
     return RetrievalPrior(
-        x_m=x,
-        y_m=y,
+        x_m=float(pose[0, 0]),
+        y_m=float(pose[0, 1]),
         radius_m=prior.radius_m,
-        yaw_rad=math.atan2(math.sin(yaw), math.cos(yaw)),
+        yaw_rad=float(pose[0, 2]),
         yaw_tolerance_rad=prior.yaw_tolerance_rad,
     )
 
@@ -152,7 +154,13 @@ class Tracker:
             if prior is None or not 0 <= self.last < i:
                 return prior
             return dead_reckon_prior(
-                prior, self.timestamps_s, self.signals, self.last, i, self.interpolate_signals
+                prior,
+                self.timestamps_s,
+                self.signals,
+                self.last,
+                i,
+                self.interpolate_signals,
+                self.filter.config.motion.mount,
             )
 
     def step(self, i: int, hypotheses: Hypotheses) -> FilterEstimate | None:

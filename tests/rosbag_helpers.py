@@ -203,8 +203,10 @@ def write_sim_bag(
     poses: str = "odometry",  # odometry | odometry_camera | pose_stamped | tf | tf_chain | none
     storage: str = "sqlite3",  # sqlite3 | mcap (ROS 2) | ros1 (``out`` is then a .bag file)
     camera_info: bool = True,
+    T_base_from_cam: np.ndarray = T_BASE_FROM_CAM,
 ) -> Path:
-    """Write the bag ``out`` (see the module docstring); returns it."""
+    """Write the bag ``out`` (see the module docstring), the camera mounted at
+    ``T_base_from_cam`` on base_link (/tf_static); returns it."""
     import cv2
     from rosbags.typesys import Stores, get_typestore
 
@@ -254,9 +256,9 @@ def write_sim_bag(
             tf = connection("/tf", "tf2_msgs/msg/TFMessage")
         TFMessage = store.types["tf2_msgs/msg/TFMessage"]
         t_first = T0_S + float(run.times_s[0])
-        T_base_from_velo = T_BASE_FROM_CAM @ run.T_cam_from_lidar
+        T_base_from_velo = T_base_from_cam @ run.T_cam_from_lidar
         statics = [
-            _transform(store, t_first, "base_link", "camera_optical", T_BASE_FROM_CAM),
+            _transform(store, t_first, "base_link", "camera_optical", T_base_from_cam),
             _transform(store, t_first, "base_link", "velodyne", _orthonormal(T_base_from_velo)),
         ]
         if poses == "odometry_camera" and three_d == "cloud":
@@ -266,7 +268,7 @@ def write_sim_bag(
             write(tf_static, t_first, TFMessage(transforms=statics), latency_s=0.0)
         for i, path in enumerate(run.images):
             t = T0_S + float(run.times_s[i])
-            T_world_from_base = run.T_world_from_cam[i] @ invert_rigid(T_BASE_FROM_CAM)
+            T_world_from_base = run.T_world_from_cam[i] @ invert_rigid(T_base_from_cam)
             speed, yaw_rate = run.signals[i]
             if poses == "odometry":
                 write(odom, t, _odometry(store, t, T_world_from_base, speed, yaw_rate))

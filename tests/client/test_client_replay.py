@@ -205,3 +205,52 @@ def test_a_run_knows_its_camera_from_its_own_files(sim_run, tmp_path):
     cam = read_tum_run(tum).intrinsics
     assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500.0, 501.0, 319.5, 239.5)
     assert (cam.width_px, cam.height_px) == (640, 480)
+
+
+def test_a_camera_yaml_beside_the_frames_gives_the_lens_and_the_mounting(sim_run, tmp_path):
+    """A KITTI-layout run (K also as calib.txt's P0) and a TUM run with a camera.yaml in
+    ROS's layout: the replay sends its lens, the motion model takes its mounting (over
+    dataset.json's rig); a camera.yaml whose K is not P0, or whose lens model monoloc
+    does not know, is refused naming it."""
+    import dataclasses
+
+    import yaml
+
+    from monoloc.core.camera import LensDistortion
+    from monoloc.core.errors import InputFileError
+    from monoloc.core.formats.camera_yaml import write_camera_yaml
+    from monoloc.core.mounting import CameraMounting
+
+    copy = _copy_dataset(sim_run, tmp_path / "kitti")
+    shutil.copy(sim_run / "dataset.json", copy / "dataset.json")
+    seq = copy / "sequences" / "00"
+    pinhole = read_run(copy, "00").intrinsics
+    assert read_run(copy, "00").mounting.lever_arm_m == pytest.approx(LEVER_ARM_M)  # the rig
+    lens = LensDistortion("plumb_bob", (-0.28, 0.09, 0.0006, -0.0004))
+    camera = dataclasses.replace(pinhole, distortion=lens)
+    mounting = CameraMounting(1.1, 0.2, 1.42, 0.0, 0.052, 0.014)
+    write_camera_yaml(seq / "camera.yaml", camera, mounting, "fleet_front")
+    run = read_run(copy, "00")
+    assert run.intrinsics == camera
+    np.testing.assert_allclose(run.mounting.T_vehicle_from_cam, mounting.T_vehicle_from_cam)
+    assert (
+        run.lever_arm_m == pytest.approx(1.1) and run.select(slice(1, 3)).mounting == run.mounting
+    )
+    assert any("0.20 m left" in note and "the camera file" in note for note in run.notes)
+
+    data = yaml.safe_load((seq / "camera.yaml").read_text())
+    data["camera_matrix"]["data"][0] += 5.0
+    (seq / "camera.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(InputFileError, match="is not calib.txt's P0"):
+        read_run(copy, "00")
+    data["camera_matrix"]["data"][0] -= 5.0
+    data["distortion_model"] = "kannala_brandt"
+    (seq / "camera.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(InputFileError, match="unknown lens distortion model 'kannala_brandt'"):
+        read_run(copy, "00")
+
+    tum = _write_tum(tmp_path / "tum")
+    tum_camera = dataclasses.replace(camera, width_px=640, height_px=480)
+    write_camera_yaml(tum / "camera.yaml", tum_camera)
+    tum_run = read_run(tum)
+    assert tum_run.intrinsics == tum_camera and tum_run.mounting is None

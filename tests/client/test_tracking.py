@@ -81,11 +81,15 @@ def test_the_prior_is_the_last_estimate_moved_to_the_frame_time():
     assert [call[0] for call in localizer.calls] == list(range(n))
     assert all(call[2] == 4 for call in localizer.calls)
     assert localizer.calls[0][1] is None  # nothing known yet: a global search
+    # moved as the particles are (client/motion.py): the exact arc of the step, the
+    # camera at the reference point (no mounting in CONFIG)
+    turn = YAW_RATE_RADPS * DT_S
+    chord = SPEED_MPS * DT_S * math.sin(turn / 2) / (turn / 2)
     for i in range(1, n):
         prior, (x, y, yaw) = localizer.calls[i][1], estimates[i - 1]
-        assert prior.x_m == pytest.approx(x + SPEED_MPS * math.cos(yaw) * DT_S, abs=1e-12)
-        assert prior.y_m == pytest.approx(y + SPEED_MPS * math.sin(yaw) * DT_S, abs=1e-12)
-        assert prior.yaw_rad == pytest.approx(yaw + YAW_RATE_RADPS * DT_S, abs=1e-12)
+        assert prior.x_m == pytest.approx(x + chord * math.cos(yaw + turn / 2), abs=1e-12)
+        assert prior.y_m == pytest.approx(y + chord * math.sin(yaw + turn / 2), abs=1e-12)
+        assert prior.yaw_rad == pytest.approx(yaw + turn, abs=1e-12)
         assert PriorConfig().min_radius_m <= prior.radius_m <= PriorConfig().max_radius_m
     assert np.abs(estimates - truth)[:, :2].max() < 0.2
 

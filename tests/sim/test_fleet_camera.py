@@ -257,12 +257,6 @@ def test_the_fleet_run_writes_its_camera_and_its_own_poses(fleet_dataset):
     )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="client/replay.py reads a KITTI run's camera from calib.txt's P0 only; the "
-    "camera.json beside it (distortion_model, D) is read for TUM runs and by "
-    "`monoloc drive --camera`, not yet for KITTI-layout runs (issue 48, deliverable 2)",
-)
 def test_the_vehicle_replays_the_fleet_run_with_its_camera(fleet_dataset):
     from monoloc.client.replay import read_run
 
@@ -271,6 +265,11 @@ def test_the_vehicle_replays_the_fleet_run_with_its_camera(fleet_dataset):
     fleet = next(s for s in meta["sequences"] if s["run"] == "fleet")
     run = read_run(root, fleet["id"])
     assert run.intrinsics == config.fleet_camera.intrinsics(0.5)
+    # and where it sits on the car, from the camera.json beside the frames
+    camera = json.loads((root / "sequences" / fleet["id"] / "camera.json").read_text())
+    np.testing.assert_allclose(
+        run.mounting.T_vehicle_from_cam, camera["T_vehicle_from_cam"], atol=1e-9
+    )
 
 
 def test_datasets_without_the_fleet_run_are_as_before(fleet_dataset, tmp_path):

@@ -308,9 +308,15 @@ def test_the_vehicle_replays_every_layout_with_the_mounting_of_tf_static(sim_run
             assert replay.lever_arm_m is None
         else:  # base_link -> camera of /tf_static, used by the motion model
             assert replay.lever_arm_m == pytest.approx(lever_arm_m, abs=1e-9), (storage, poses)
-            assert run_filter_config(FilterConfig(), replay).motion.lever_arm_m == pytest.approx(
-                lever_arm_m, abs=1e-9
+            # the whole base_link -> camera transform: 1.2 m ahead, 1.5 m up, looking ahead
+            mounting = replay.mounting
+            np.testing.assert_allclose(
+                mounting.T_vehicle_from_cam, T_BASE_FROM_CAM, atol=1e-9, err_msg=poses
             )
+            assert mounting.height_m == pytest.approx(1.5, abs=1e-9)
+            mount = run_filter_config(FilterConfig(), replay).motion.mount
+            assert mount.x_m == pytest.approx(lever_arm_m, abs=1e-9)
+            assert mount.y_m == pytest.approx(0.0, abs=1e-9)
     # a truth named, and nothing else to take speeds from: the hint names the drive's role
     bag = write_sim_bag(run, tmp_path / "truth_only", three_d="none")
     with pytest.raises(InvalidInputError, match=r"no poses.*--topic odometry="):
