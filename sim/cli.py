@@ -113,6 +113,11 @@ def closed_loop(
     size: str = typer.Option("small", help="small | medium | large"),
     seed: int = typer.Option(0, help="seed of the world"),
     mode: str = typer.Option("closed", help="closed (steer on the estimate) | open (on the truth)"),
+    controller: str = typer.Option(
+        "pid",
+        help="pid | mpc (the localization-aware model predictive controller, sim/mpc.py) "
+        "for the drive; mapping laps are driven by the PID",
+    ),
     laps: float = typer.Option(1.0, help="laps of the reference path to drive"),
     frames: int | None = typer.Option(None, help="at most this many camera frames"),
     map_laps: float | None = typer.Option(
@@ -142,7 +147,7 @@ def closed_loop(
 
     from monoloc.client.api import MonolocClient
     from monoloc.core.errors import InvalidInputError
-    from monoloc.sim.closed_loop import MODES
+    from monoloc.sim.closed_loop import CONTROLLERS, MODES
     from monoloc.sim.closed_loop_metrics import loop_metrics
     from monoloc.sim.closed_loop_plots import plot_cases
     from monoloc.sim.closed_loop_record import write_loop_outputs
@@ -158,6 +163,8 @@ def closed_loop(
 
     if mode not in MODES:
         raise InvalidInputError(f"--mode must be one of {MODES}, got {mode!r}")
+    if controller not in CONTROLLERS:
+        raise InvalidInputError(f"--controller must be one of {CONTROLLERS}, got {controller!r}")
     if map_name is not None and server is None:
         raise InvalidInputError("--map needs --server (a server that holds that map)")
     if laps <= 0:
@@ -191,12 +198,25 @@ def closed_loop(
                 map_id, _ = build_map(client, world, study, out, log=typer.echo)
                 if offcenter_laps > 0:
                     add_offcenter(client, map_id, world, study, out, log=typer.echo)
-            typer.echo(f"driving {laps:g} lap(s), {mode} loop, against map {map_id}")
+            typer.echo(f"driving {laps:g} lap(s), {mode} loop, {controller}, against map {map_id}")
             result = drive_case(
-                client, map_id, world, mode, study, recorded, record_dir=out / "drive" / "run"
+                client,
+                map_id,
+                world,
+                mode,
+                study,
+                recorded,
+                record_dir=out / "drive" / "run",
+                controller=controller,
             )
     metrics = loop_metrics(result)
-    summary = {"mode": mode, "scenario": scenario, "map_id": map_id, **metrics}
+    summary = {
+        "mode": mode,
+        "controller": controller,
+        "scenario": scenario,
+        "map_id": map_id,
+        **metrics,
+    }
     write_loop_outputs(result, out / "drive", summary)
     plots = plot_cases(
         {mode if mode == "open" else "closed": result},

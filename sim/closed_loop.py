@@ -48,7 +48,7 @@ from monoloc.sim.control import (
     step_bicycle,
     tracking_error,
 )
-from monoloc.sim.mpc import LocalizationQuality, MpcConfig, MpcController
+from monoloc.sim.mpc import LocalizationQuality, MpcConfig, MpcController, quality_factor
 
 MODES = ("open", "closed")
 CONTROLLERS = ("pid", "mpc")
@@ -101,7 +101,8 @@ class FrameLog:
     """Per camera frame (all (N,) unless said): time, true vehicle state and camera
     pose, the estimate (camera planar pose, NaN before initialisation), the pose the
     controller believed at that time (rear axle), the command, the true tracking errors,
-    the measured signals, the server's answer in numbers, and the round trip."""
+    the measured signals, the server's answer in numbers, the round trip, and the
+    localization quality q the MPC held (``sim.mpc.quality_factor``; NaN with the PID)."""
 
     t_s: list = field(default_factory=list)
     truth_vehicle: list = field(default_factory=list)  # (x, y, yaw)
@@ -118,6 +119,7 @@ class FrameLog:
     n_matched: list = field(default_factory=list)
     n_inliers: list = field(default_factory=list)
     latency_ms: list = field(default_factory=list)
+    mpc_quality: list = field(default_factory=list)
 
 
 @dataclass
@@ -290,6 +292,11 @@ def run_loop(
             log.T_world_from_cam.append(T_wc)
             log.signals.append(signal)
             log.lateral_m.append(true_err.lateral_m)
+            log.mpc_quality.append(
+                quality_factor(controller.quality, controller.config)
+                if isinstance(controller, MpcController)
+                else math.nan
+            )
             log.heading_rad.append(true_err.heading_rad)
             if tracker is not None:
                 tracker.timestamps_s[i] = t

@@ -98,6 +98,22 @@ def test_open_loop_follows_the_truth_and_recorded_latency_delays_the_estimate(in
     assert np.allclose(slow.frames["latency_ms"][sent], 150.0)
 
 
+def test_mpc_steers_the_closed_loop_told_the_localization_quality(indoor_map):
+    client, map_id, world, _root, _lap = indoor_map
+    study = StudyConfig(laps=1.0, max_frames=20, seed=5, train_laps=0)
+    result = drive_case(client, map_id, world, "closed", study, (30.0,), controller="mpc")
+    m = loop_metrics(result, spike_threshold_m=0.1)
+    assert result.n_frames == 20 and np.all(result.frames["sent"])
+    assert m["lane_departures"] == 0 and m["lateral_max_m"] < world.lane_half_width_m
+    assert m["loc_rmse_m"] < 0.1
+    # The MPC held q = 1 until the first estimate reached it, then the filter's and the
+    # answers' quality (below 1: the default model's filter spreads over centimetres).
+    q = result.frames["mpc_quality"]
+    assert q[0] == 1.0 and np.all((q >= 0) & (q <= 1)) and np.any(q < 1)
+    steer = result.frames["command"][:, 0]
+    assert np.all(np.abs(steer) <= world.bicycle.max_steer_rad + 1e-9)
+
+
 def test_disturbed_laps_are_ingested_as_off_center_entries(indoor_map):
     # Last in this module: it adds entries to the shared map.
     client, map_id, world, root, centre_lap = indoor_map
@@ -119,6 +135,7 @@ def test_disturbed_laps_are_ingested_as_off_center_entries(indoor_map):
     ("argv", "message"),
     [
         (["--mode", "sideways"], "--mode must be one of"),
+        (["--controller", "lqr"], "--controller must be one of"),
         (["--map", "track"], "--map needs --server"),
         (["--scenario", "moon"], "scenario 'moon' is not available"),
         (["--frames", "0"], "--frames must be at least 1"),
