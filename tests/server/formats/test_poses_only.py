@@ -55,9 +55,13 @@ def _open(tmp_path):
 
 
 def test_a_poses_only_model_is_triangulated_from_its_poses(
-    poses_only, sift_model, map_run, monoloc, tmp_path
+    poses_only, sift_model, map_run, query_run, monoloc, tmp_path
 ):
+    from monoloc.core.geometry import planar_from_T_world_from_cam
     from monoloc.server.ingest.manage import find_map
+    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.map_registry import MapRegistry
+    from monoloc.server.settings import Settings
     from monoloc.server.vision.depth import points_from_lidar
 
     _, images_dir, truth = sift_model
@@ -73,8 +77,20 @@ def test_a_poses_only_model_is_triangulated_from_its_poses(
         with session_scope(factory) as session:
             ids = [s.id for s in entries_repo.list_entries(session, record.id, limit=100)]
             entries = entries_repo.get_entry_data(session, ids)
+        # and the map localizes query frames of the same street
+        registry = MapRegistry(factory, Settings(data_dir=tmp_path / "data").index_dir)
+        rng = np.random.default_rng(0)
+        errors = []
+        for frame in query_run.frames[1:5]:
+            result, _ = registry.localize(
+                record.id, query_run.load(frame).image_gray, LocalizeConfig(), rng
+            )
+            true_xy = planar_from_T_world_from_cam(frame.T_world_from_cam)[:2]
+            best = result.best
+            errors.append(np.inf if best is None else np.linalg.norm(best.pose_world[:2] - true_xy))
     finally:
         engine.dispose()
+    assert np.median(errors) < 0.3, errors
     assert len(entries) == len(truth) == 8
     relative = []
     for entry, frame in zip(entries, map_run.frames, strict=True):
