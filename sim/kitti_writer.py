@@ -13,6 +13,8 @@ and ``monoloc.core.formats.vehicle``; here the images (OpenCV) and dataset.json.
 <root>/sequences/NN/camera.json        a run whose camera is not the mapping camera's (the
                                        fleet run): fx fy cx cy width height distortion_model
                                        D (ROS CameraInfo's names and D order), K beside P0
+<root>/sequences/NN/camera.yaml        the same camera in ROS's calibration layout, with
+                                       T_vehicle_from_cam
 <root>/poses/NN.txt                    3x4 T_world_from_cam0 row-major per line
 <root>/dataset.json                    what each sequence is (see monoloc.sim.generate)
 """
@@ -27,6 +29,7 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.formats import kitti, vehicle
+from monoloc.core.formats.camera_yaml import CAMERA_YAML, write_camera_yaml
 
 
 def write_calib(
@@ -93,7 +96,9 @@ def write_camera_json(
 ) -> None:
     """camera.json of a run's own camera: fx, fy, cx, cy, width, height (pixels),
     distortion_model ("none" for a pinhole) and D, the 3x3 K, and where the camera sits
-    on the vehicle (``T_vehicle_from_cam``, 4x4, vehicle x forward, y left, z up)."""
+    on the vehicle (``T_vehicle_from_cam``, 4x4, vehicle x forward, y left, z up); and
+    camera.yaml beside it, the same in ROS's calibration layout
+    (monoloc.core.formats.camera_yaml)."""
     k, lens = intrinsics, intrinsics.distortion
     info = {
         "fx": k.fx,
@@ -109,6 +114,8 @@ def write_camera_json(
     if T_vehicle_from_cam is not None:
         info["T_vehicle_from_cam"] = np.asarray(T_vehicle_from_cam, dtype=float).tolist()
     Path(path).write_text(json.dumps(info, indent=2) + "\n")
+    # the same camera in ROS's calibration layout, as a vehicle's recording carries it
+    write_camera_yaml(Path(path).with_name(CAMERA_YAML), intrinsics, T_vehicle_from_cam, "fleet")
 
 
 def write_dataset_json(root: Path, info: dict) -> None:

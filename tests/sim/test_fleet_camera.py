@@ -13,6 +13,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
@@ -265,11 +266,18 @@ def test_the_vehicle_replays_the_fleet_run_with_its_camera(fleet_dataset):
     fleet = next(s for s in meta["sequences"] if s["run"] == "fleet")
     run = read_run(root, fleet["id"])
     assert run.intrinsics == config.fleet_camera.intrinsics(0.5)
-    # and where it sits on the car, from the camera.json beside the frames
-    camera = json.loads((root / "sequences" / fleet["id"] / "camera.json").read_text())
+    # and where it sits on the car, from the camera file beside the frames: camera.yaml
+    # in ROS's layout, the same as camera.json
+    seq = root / "sequences" / fleet["id"]
+    camera = json.loads((seq / "camera.json").read_text())
     np.testing.assert_allclose(
         run.mounting.T_vehicle_from_cam, camera["T_vehicle_from_cam"], atol=1e-9
     )
+    ros = yaml.safe_load((seq / "camera.yaml").read_text())
+    assert ros["distortion_model"] == camera["distortion_model"]
+    assert ros["distortion_coefficients"]["data"] == camera["D"]
+    assert ros["camera_matrix"]["data"] == np.ravel(camera["K"]).tolist()
+    assert (ros["image_width"], ros["image_height"]) == (camera["width"], camera["height"])
 
 
 def test_datasets_without_the_fleet_run_are_as_before(fleet_dataset, tmp_path):
