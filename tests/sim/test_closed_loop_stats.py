@@ -107,3 +107,21 @@ def test_study_config_refuses_what_it_cannot_drive():
         SeededStudyConfig(controllers=("lqr",))
     config = SeededStudyConfig(controllers=("pid", "mpc"), max_seeds=(("mpc", 3),))
     assert config.seeds_of("mpc") == (0, 1, 2) and len(config.seeds_of("pid")) == 10
+
+
+def test_seeded_figures_are_written(tmp_path):
+    import cv2
+
+    from monoloc.sim.closed_loop_plots import plot_seeded
+
+    rng = np.random.default_rng(4)
+    drives = [
+        _drive(case, seed, rmse, rng)
+        for seed in range(4)
+        for case, rmse in (("open", 0.01), ("closed", 0.02), ("closed+offcenter", 0.015))
+    ]
+    paths = plot_seeded(drives, summarize(drives, FAST), tmp_path, "study")
+    assert [p.name for p in paths] == ["study_per_seed.png", "study_known_vs_lateral.png"]
+    for p in paths:
+        image = cv2.imread(str(p))
+        assert image is not None and image.shape[0] > 300 and image.std() > 10
