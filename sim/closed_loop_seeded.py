@@ -67,11 +67,14 @@ class SeededStudyConfig:
     max_seeds: per controller, at most this many of the seeds (the first ones; a run
     that cannot afford every seed for every controller); study: laps, map/off-center/
     training laps and the cases (its ``seed`` is unused: the map laps take
-    ``map_seed``); stats: the intervals."""
+    ``map_seed``); latency_ms: every drive draws its answers' delays from these values
+    (None: the measured round trips, which on shared cores measure the load); stats: the
+    intervals."""
 
     seeds: tuple[int, ...] = tuple(range(10))
     controllers: tuple[str, ...] = ("pid",)
     max_seeds: tuple[tuple[str, int], ...] = ()
+    latency_ms: tuple[float, ...] | None = None
     study: StudyConfig = field(default_factory=lambda: StudyConfig(laps=1.0))
     map_seed: int = 0
     stats: StatsConfig = field(default_factory=StatsConfig)
@@ -188,8 +191,9 @@ def run_seeded_study(
         for controller in config.controllers:
             for seed in config.seeds_of(controller):
                 result = drive_case(
-                    client, map_id, world, mode, study, seed=seed, controller=controller
-                )
+                    client, map_id, world, mode, study, config.latency_ms, seed=seed,
+                    controller=controller,
+                )  # fmt: skip
                 drive = drive_record(case, controller, seed, result, seed == keep_seed)
                 drives.append(drive)
                 m = drive.metrics
