@@ -107,6 +107,13 @@ class _QuietColmap:
         self.logging.minloglevel = self.before
 
 
+def _image_size(path: Path) -> tuple[int, int] | None:
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return None if image is None else (int(image.shape[1]), int(image.shape[0]))
+
+
 def triangulate(reconstruction, images_dir: Path, where: Path, config=TriangulationConfig()):
     """The poses-only ``reconstruction``'s points, triangulated from its fixed poses and
     cameras with features of the images under ``images_dir`` (module doc). Returns the
@@ -121,6 +128,16 @@ def triangulate(reconstruction, images_dir: Path, where: Path, config=Triangulat
             f"{len(missing)} of its images are not under {images_dir} (first: {missing[0]}): "
             "cannot triangulate it",
         )
+    for image_id, name in names.items():  # COLMAP would skip a mis-sized image silently
+        camera = reconstruction.cameras[reconstruction.images[image_id].camera_id]
+        size = _image_size(images_dir / name)
+        if size != (camera.width, camera.height):
+            what = "unreadable" if size is None else f"{size[0]}x{size[1]}"
+            raise InputFileError(
+                images_dir / name,
+                f"image is {what} but its camera {camera.camera_id} is "
+                f"{camera.width}x{camera.height}: cannot triangulate the poses-only model",
+            )
     with tempfile.TemporaryDirectory(prefix="monoloc-triangulate-") as tmp, _QuietColmap(pycolmap):
         database_path = Path(tmp) / "database.db"
         database = pycolmap.Database.open(str(database_path))

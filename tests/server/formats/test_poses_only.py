@@ -126,6 +126,15 @@ def test_poses_only_models_that_cannot_be_triangulated_are_refused_leaving_no_ma
     code, _, err = monoloc(*imported, "--images", str(blank))
     assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
     assert "0 verified image pairs" in err and "too few matches" in err
+    # images of another size than the model's camera (resized after mapping)
+    small = tmp_path / "small"
+    small.mkdir()
+    for image in images_dir.iterdir():
+        gray = cv2.imread(str(image), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(small / image.name), cv2.resize(gray, (310, 94)))
+    code, _, err = monoloc(*imported, "--images", str(small))
+    assert code == 1 and err.count("\n") == 1 and "Traceback" not in err
+    assert "image is 310x94 but its camera 1 is 620x188" in err
     assert " city " not in _maps(monoloc)
 
 
