@@ -51,8 +51,9 @@ def drive(
     bag_storage: str = typer.Option("sqlite3", help="storage of --bag-out: sqlite3 or mcap"),
     camera: Path | None = typer.Option(
         None,
-        help="the camera that took the frames, when the run does not say: a camera.json "
-        "(fx, fy, cx, cy, width, height) or a KITTI calib.txt (P0)",
+        help="the camera that took the frames, when the run does not say: a camera.yaml "
+        "(ROS's calibration layout), a camera.json (fx, fy, cx, cy, width, height, "
+        "distortion_model, D) or a KITTI calib.txt (P0)",
     ),
 ) -> None:
     """Stream a run's frames, run the filter, write TUM + KITTI trajectories, print metrics."""
@@ -71,7 +72,7 @@ def drive(
     from monoloc.client.drive import drive as run_drive
     from monoloc.client.motion import MotionConfig, fit_lever_arm_m
     from monoloc.client.particle_filter import FilterConfig
-    from monoloc.client.replay import parse_frames, read_run
+    from monoloc.client.replay import mounting_note, parse_frames, read_run
     from monoloc.client.report import metrics_table
     from monoloc.core.errors import InvalidInputError, MonolocError
     from monoloc.core.mounting import CameraMounting
@@ -84,7 +85,10 @@ def drive(
     else:
         run = read_run(run_dir, sequence).select(parse_frames(frames))
     if camera is not None:
-        run = run.with_intrinsics(_camera_file(camera, run))
+        intrinsics, mounting = _camera_file(camera, run)
+        run = run.with_intrinsics(intrinsics)
+        if mounting is not None:
+            run = run.with_mounting(mounting, mounting_note(mounting, str(camera)))
     for note in run.notes:
         console.print(f"[yellow]note:[/] {note}")
     if mount_from is not None:
@@ -198,14 +202,21 @@ def _topics(items: list[str] | None) -> dict[str, str]:
 
 
 def _camera_file(path: Path, run):
-    """The intrinsics in a camera.json (its size, else the run's first image's) or a KITTI
-    calib.txt (P0, with the run's first image's size)."""
+    """(intrinsics, mounting or None) of a camera.yaml (ROS's calibration layout), a
+    camera.json (its size, else the run's first image's) or a KITTI calib.txt (P0, with
+    the run's first image's size)."""
     import json
 
     from monoloc.core.camera import CameraIntrinsics, LensDistortion
-    from monoloc.core.errors import InputFileError
+    from monoloc.core.errors import InputFileError, InvalidInputError
     from monoloc.core.formats import kitti
+    from monoloc.core.formats.camera_yaml import read_camera_yaml
     from monoloc.core.formats.png import png_size
+    from monoloc.core.mounting import CameraMounting
+
+    if path.suffix.lower() in (".yaml", ".yml"):
+        found = read_camera_yaml(path)
+        return found.intrinsics, found.mounting
 
     def first_image_size() -> tuple[int, int]:
         if not len(run) or run.read_image is not None:
@@ -234,5 +245,15 @@ def _camera_file(path: Path, run):
             )
         except (TypeError, ValueError) as exc:
             raise InputFileError(path, f"bad distortion_model / D ({exc})") from exc
-        return CameraIntrinsics(fx, fy, cx, cy, int(width), int(height), lens)
-    return kitti.read_calib_file(path).intrinsics(*first_image_size())
+        mounting = None
+        try:
+            if data.get("T_vehicle_from_cam") is not None:
+                mounting = CameraMounting.from_dict(
+                    {"T_vehicle_from_cam": data["T_vehicle_from_cam"]}
+                )
+            elif data.get("mounting") is not None:
+                mounting = CameraMounting.from_dict(data["mounting"])
+        except InvalidInputError as exc:
+            raise InputFileError(path, str(exc)) from exc
+        return CameraIntrinsics(fx, fy, cx, cy, int(width), int(height), lens), mounting
+    return kitti.read_calib_file(path).intrinsics(*first_image_size()), None
