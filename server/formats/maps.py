@@ -107,39 +107,56 @@ def merge_tracks(
     points_world: list[np.ndarray], descriptors: list[np.ndarray], rule: TrackMerge = TrackMerge()
 ) -> list[np.ndarray]:
     """Per view the (N,) track id of each of its points (views' points (N, 3) world and
-    descriptors (N, 32) uint8), by the ``rule`` (:class:`TrackMerge`)."""
+    descriptors (N, 32) uint8), by the ``rule`` (:class:`TrackMerge`). The pairs that
+    qualify are joined into connected components at once; only a component holding two
+    keypoints of one view is rebuilt greedily, closest pairs first."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     counts = [len(p) for p in points_world]
-    if not sum(counts):
+    n = sum(counts)
+    if not n:
         return [np.zeros(0, dtype=np.int64) for _ in counts]
     xyz = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points_world])
     desc = np.concatenate([np.asarray(d, dtype=np.uint8).reshape(-1, 32) for d in descriptors])
     view = np.repeat(np.arange(len(counts)), counts)
-    parent = np.arange(len(xyz))
-    members: dict[int, set[int]] = {i: {int(view[i])} for i in range(len(xyz))}
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = int(parent[i])
-        return i
-
+    pairs = np.zeros((0, 2), dtype=np.int64)
     if rule.radius_m > 0:
-        pairs = cKDTree(xyz).query_pairs(rule.radius_m, output_type="ndarray")
-        if len(pairs):
-            pairs = pairs[view[pairs[:, 0]] != view[pairs[:, 1]]]
-            bits = np.unpackbits(desc[pairs[:, 0]] ^ desc[pairs[:, 1]], axis=1).sum(axis=1)
-            pairs = pairs[bits <= rule.max_hamming]
-            distance = np.linalg.norm(xyz[pairs[:, 0]] - xyz[pairs[:, 1]], axis=1)
-            for a, b in pairs[np.argsort(distance, kind="stable")].tolist():
-                ra, rb = root(a), root(b)
-                if ra == rb or members[ra] & members[rb]:
-                    continue
-                parent[rb] = ra
-                members[ra] |= members.pop(rb)
-    roots = np.array([root(i) for i in range(len(xyz))], dtype=np.int64)
-    _, ids = np.unique(roots, return_inverse=True)
+        pairs = cKDTree(xyz).query_pairs(rule.radius_m, output_type="ndarray").astype(np.int64)
+        pairs = pairs[view[pairs[:, 0]] != view[pairs[:, 1]]]
+        bits = np.unpackbits(desc[pairs[:, 0]] ^ desc[pairs[:, 1]], axis=1).sum(axis=1)
+        pairs = pairs[bits <= rule.max_hamming]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    # components that hold one view twice
+    order = np.lexsort((view, labels))
+    twice = (labels[order][1:] == labels[order][:-1]) & (view[order][1:] == view[order][:-1])
+    bad = np.zeros(labels.max() + 1, dtype=bool)
+    bad[labels[order][1:][twice]] = True
+    if bad.any():
+        labels = labels.astype(np.int64)
+        redo = pairs[bad[labels[pairs[:, 0]]]]
+        distance = np.linalg.norm(xyz[redo[:, 0]] - xyz[redo[:, 1]], axis=1)
+        parent: dict[int, int] = {}
+        members: dict[int, set[int]] = {}
+
+        def root(i: int) -> int:
+            while parent.get(i, i) != i:
+                i = parent[i]
+            return i
+
+        for a, b in redo[np.argsort(distance, kind="stable")].tolist():
+            ra, rb = root(a), root(b)
+            ma = members.setdefault(ra, {int(view[ra])})
+            mb = members.setdefault(rb, {int(view[rb])})
+            if ra == rb or ma & mb:
+                continue
+            parent[rb] = ra
+            ma |= members.pop(rb)
+        in_bad = np.flatnonzero(bad[labels])
+        labels[in_bad] = labels.max() + 1 + np.array([root(int(i)) for i in in_bad])
+    _, ids = np.unique(labels, return_inverse=True)
     return np.split(ids.astype(np.int64), np.cumsum(counts)[:-1])
 
 

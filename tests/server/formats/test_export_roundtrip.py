@@ -209,3 +209,16 @@ def test_merge_tracks_joins_close_matching_points_of_different_entries():
     # two keypoints of one entry are never one track, even at the same place
     (ids,) = merge_tracks([np.zeros((2, 3))], [np.zeros((2, 32), np.uint8)])
     assert ids[0] != ids[1]
+
+
+def test_merge_tracks_splits_a_chain_through_two_keypoints_of_one_entry():
+    """p1 and p2 of entry A, q of entry B between them: q joins the closer one only."""
+    same = np.zeros((1, 32), np.uint8)
+    a = np.array([[0.0, 0.0, 10.0], [0.02, 0.0, 10.0]])
+    b = np.array([[0.008, 0.0, 10.0]])
+    c = np.array([[5.0, 0.0, 10.0], [5.01, 0.0, 10.0]])  # a clean pair elsewhere
+    ids_a, ids_b, ids_c, ids_d = merge_tracks(
+        [a, b, c[:1], c[1:]], [np.repeat(same, 2, 0), same, same, same]
+    )
+    assert ids_b[0] == ids_a[0] and ids_a[1] != ids_a[0]
+    assert ids_c[0] == ids_d[0] and ids_c[0] not in (ids_a[0], ids_a[1])
