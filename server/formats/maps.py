@@ -90,10 +90,12 @@ def entry_name(entry_id: int) -> str:
 
 @dataclass(frozen=True)
 class TrackMerge:
-    """How an export joins the entries' points into multi-view tracks: two points of
+    """How an export joins the entries' points into multi-view tracks: points of
     different entries whose world positions are within ``radius_m`` and whose ORB
-    descriptors differ by at most ``max_hamming`` bits are one 3D point (closest pairs
-    first; a track never holds two keypoints of one entry), at the mean of its members."""
+    descriptors differ by at most ``max_hamming`` bits are one 3D point at the mean of
+    its members; a track holds at most one keypoint per entry and every member lies
+    within ``radius_m`` of the track's point (where a chain of pairs breaks either rule,
+    closest pairs are joined first)."""
 
     radius_m: float = 0.03
     max_hamming: int = 40
@@ -108,8 +110,8 @@ def merge_tracks(
 ) -> list[np.ndarray]:
     """Per view the (N,) track id of each of its points (views' points (N, 3) world and
     descriptors (N, 32) uint8), by the ``rule`` (:class:`TrackMerge`). The pairs that
-    qualify are joined into connected components at once; only a component holding two
-    keypoints of one view is rebuilt greedily, closest pairs first."""
+    qualify are joined into connected components at once; only a component that breaks
+    a rule is rebuilt greedily, closest pairs first."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -128,18 +130,22 @@ def merge_tracks(
         bits = np.unpackbits(desc[pairs[:, 0]] ^ desc[pairs[:, 1]], axis=1).sum(axis=1)
         pairs = pairs[bits <= rule.max_hamming]
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    # components that hold one view twice
+    n_labels, labels = connected_components(graph, directed=False)
+    labels = labels.astype(np.int64)
+    # components to rebuild: one view twice, or a member beyond the radius of the mean
     order = np.lexsort((view, labels))
     twice = (labels[order][1:] == labels[order][:-1]) & (view[order][1:] == view[order][:-1])
-    bad = np.zeros(labels.max() + 1, dtype=bool)
+    bad = np.zeros(n_labels, dtype=bool)
     bad[labels[order][1:][twice]] = True
+    size = np.bincount(labels, minlength=n_labels)
+    mean = np.stack([np.bincount(labels, xyz[:, k], n_labels) for k in range(3)], 1)
+    mean /= size[:, None]
+    bad[labels[np.linalg.norm(xyz - mean[labels], axis=1) > rule.radius_m]] = True
     if bad.any():
-        labels = labels.astype(np.int64)
         redo = pairs[bad[labels[pairs[:, 0]]]]
         distance = np.linalg.norm(xyz[redo[:, 0]] - xyz[redo[:, 1]], axis=1)
         parent: dict[int, int] = {}
-        members: dict[int, set[int]] = {}
+        members: dict[int, list[int]] = {}
 
         def root(i: int) -> int:
             while parent.get(i, i) != i:
@@ -148,14 +154,19 @@ def merge_tracks(
 
         for a, b in redo[np.argsort(distance, kind="stable")].tolist():
             ra, rb = root(a), root(b)
-            ma = members.setdefault(ra, {int(view[ra])})
-            mb = members.setdefault(rb, {int(view[rb])})
-            if ra == rb or ma & mb:
+            if ra == rb:
                 continue
+            joined = members.get(ra, [ra]) + members.get(rb, [rb])
+            if len(set(view[joined].tolist())) < len(joined):
+                continue  # a track holds one keypoint per view
+            spread = np.linalg.norm(xyz[joined] - xyz[joined].mean(axis=0), axis=1).max()
+            if spread > rule.radius_m:
+                continue  # every member stays within the radius of the track's point
             parent[rb] = ra
-            ma |= members.pop(rb)
+            members[ra] = joined
+            members.pop(rb, None)
         in_bad = np.flatnonzero(bad[labels])
-        labels[in_bad] = labels.max() + 1 + np.array([root(int(i)) for i in in_bad])
+        labels[in_bad] = n_labels + np.array([root(int(i)) for i in in_bad], dtype=np.int64)
     _, ids = np.unique(labels, return_inverse=True)
     return np.split(ids.astype(np.int64), np.cumsum(counts)[:-1])
 

@@ -86,7 +86,8 @@ def camera_intrinsics(
 ) -> CameraIntrinsics:
     """Intrinsics (OpenCV pixel convention) of a camera given as a COLMAP/kapture model
     name and its parameters, with its lens distortion (None when every distortion
-    parameter is zero). InvalidInputError naming the model for one monoloc does not know
+    parameter is zero, but for a fisheye: an equidistant lens without coefficients is
+    still one). InvalidInputError naming the model for one monoloc does not know
     (FOV, THIN_PRISM_FISHEYE, ...) or a wrong number of parameters."""
     if model not in _CAMERA_MODELS:
         raise InvalidInputError(

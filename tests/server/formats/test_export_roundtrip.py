@@ -222,3 +222,15 @@ def test_merge_tracks_splits_a_chain_through_two_keypoints_of_one_entry():
     )
     assert ids_b[0] == ids_a[0] and ids_a[1] != ids_a[0]
     assert ids_c[0] == ids_d[0] and ids_c[0] not in (ids_a[0], ids_a[1])
+
+
+def test_merge_tracks_keeps_every_member_within_the_radius_of_its_track():
+    """A line of points 2.5 cm apart, one per entry: each pair qualifies, the chain
+    would span 25 cm; the tracks it becomes keep their members within 3 cm."""
+    line = [np.array([[0.025 * k, 0.0, 10.0]]) for k in range(11)]
+    ids = np.concatenate(merge_tracks(line, [np.zeros((1, 32), np.uint8)] * 11))
+    xyz = np.concatenate(line)
+    assert 1 < len(np.unique(ids)) < 11
+    for track in np.unique(ids):
+        members = xyz[ids == track]
+        assert np.linalg.norm(members - members.mean(axis=0), axis=1).max() <= RADIUS_M
