@@ -63,12 +63,21 @@ class IndoorLoopWorld:
     name = "indoor"
     run_format = "tum"
 
-    def __init__(self, size: str = "small", seed: int = 0, sensor_noise: bool = True) -> None:
+    def __init__(
+        self, size: str = "small", seed: int = 0, sensor_noise: bool = True, bare_end: bool = True
+    ) -> None:
+        """``bare_end`` False: the rooms without their featureless end (RoomConfig)."""
         from monoloc.sim.indoor.plan import SCALE_CAR, IndoorConfig
         from monoloc.sim.indoor.world import build_world
 
         self.seed = seed
         self.config = IndoorConfig.preset(size)
+        if not bare_end:
+            self.config = replace(
+                self.config,
+                main_room=replace(self.config.main_room, featureless_end_m=0.0),
+                train_room=replace(self.config.train_room, featureless_end_m=0.0),
+            )
         self.world = build_world(self.config.rooms(), seed)
         self.sensor_noise = sensor_noise
         rig = self.config.rig

@@ -171,13 +171,7 @@ def _orb_count(image: np.ndarray) -> int:
 def test_the_bare_end_of_the_room_yields_few_features(world):
     """Where the track heads for the room's bare +x end the camera finds (almost) nothing
     to match; the same views in a room without the bare end are textured."""
-    from monoloc.sim.indoor.world import build_world
-
-    textured = IndoorLoopWorld("small", 0)
-    textured.config = replace(
-        textured.config, main_room=replace(textured.config.main_room, featureless_end_m=0.0)
-    )
-    textured.world = build_world(textured.config.rooms(), 0)
+    textured = IndoorLoopWorld("small", 0, bare_end=False)
     counts = {}
     for name, w in (("bare", world), ("textured", textured)):
         path = w.reference_path(1.0)
