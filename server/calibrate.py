@@ -331,7 +331,19 @@ def calibrate_runs(
     quality-aware model sees hypotheses from both good and poor images. ``progress`` as
     in :func:`calibrate`, over all runs."""
     samples, per_run = collect_samples(runs, intrinsics, vocabulary, config, rng, progress)
-    names = [run.name for run in runs]
+    return fit_samples(samples, per_run, [run.name for run in runs], config, vocabulary)
+
+
+def fit_samples(
+    samples: CalibrationSamples,
+    per_run: list[dict],
+    names: Sequence[str],
+    config: CalibrationConfig,
+    vocabulary: Vocabulary,
+) -> CalibrationResult:
+    """The measurement model fitted on samples :func:`collect_samples` gathered from the
+    runs ``names`` (their counts ``per_run``): the fit alone, so bench/ can fit several
+    configurations on one run's samples."""
     what = " + ".join(name or "the training run" for name in names)
     joint = np.array(samples.joint, dtype=bool)
     used = int((~joint).sum())
@@ -380,7 +392,7 @@ def calibrate_runs(
     )
     counts = {key: sum(c[key] for c in per_run) for key in per_run[0] if key != "used"}
     provenance = _provenance(" + ".join(names), counts, samples, config, vocabulary)
-    if len(runs) > 1:
+    if len(names) > 1:
         provenance["runs"] = [{"source": n, **c} for n, c in zip(names, per_run, strict=True)]
     return CalibrationResult(model, provenance)
 
