@@ -9,9 +9,12 @@ operation can lock the fuzzer out or starve a later one (a deleted map, a revoke
 Each operation gets its known-good request first (the objects that exist, a real image,
 a real KITTI archive), then generated ones, half of them with the path's ids of objects
 that exist; every operation must have answered at least one of them 2xx, its body
-checked against its schema. The state machine follows the description's OpenAPI links
-(a map created, then read, patched, deleted; a key created, then revoked; ...) on its
-own fresh copy. ``make bench`` runs the slow variant with 200 examples per operation.
+checked against its schema. Schemathesis's state machine follows the description's
+OpenAPI links (server/api/openapi_links.py), one family at a time on its own fresh
+copy (maps: a map listed or created, then read, calibrated, geo-referenced; entries: a
+map's entries listed, then one read, re-tagged, its image fetched; keys: a key created,
+then revoked; jobs; cameras), and must follow each family's links to a 2xx answer.
+``make bench`` runs the slow variant with 200 examples per operation.
 
 Requests carry the admin key (authorization has its own matrix test); the last active
 admin key cannot be revoked (409), which the world's fixture checks.
@@ -429,3 +432,96 @@ def test_operation_conforms_thoroughly(fresh_world, label):
     schema, world = fresh_world
     statuses = _fuzz(schema, world, label, max_examples=200)
     assert any(200 <= s < 300 for s in statuses), (label, statuses)
+
+
+# ---- the state machine, along the description's links ---------------------------------
+
+_MAPS_TARGETS = {
+    "GET /v1/maps/{map_id}",
+    "GET /v1/maps/{map_id}/calibration",
+    "PUT /v1/maps/{map_id}/calibration",
+    "GET /v1/maps/{map_id}/geo-reference",
+    "PUT /v1/maps/{map_id}/geo-reference",
+    "GET /v1/maps/{map_id}/runs",
+}
+_ENTRY = "/v1/maps/{map_id}/entries/{entry_id}"
+# Family: (the operations its machine runs, the sources one of whose links it must
+# follow to a 2xx answer). Uploads and frames are left out: their links are in the
+# description, but generated bodies are never valid archives or images.
+FAMILIES: dict[str, tuple[set[str], set[str]]] = {
+    "maps": ({"POST /v1/maps", "GET /v1/maps"} | _MAPS_TARGETS, {"POST /v1/maps", "GET /v1/maps"}),
+    "entries": (
+        {
+            "GET /v1/maps",
+            "GET /v1/maps/{map_id}/entries",
+            f"GET {_ENTRY}",
+            f"PATCH {_ENTRY}",
+            f"GET {_ENTRY}/image",
+        },
+        {"GET /v1/maps/{map_id}/entries"},
+    ),
+    "keys": ({"POST /v1/keys", "GET /v1/keys", "DELETE /v1/keys/{key_id}"}, {"POST /v1/keys"}),
+    "jobs": (
+        {"GET /v1/jobs", "GET /v1/jobs/{job_id}"},
+        {"GET /v1/jobs"},
+    ),
+    "cameras": (
+        {"POST /v1/cameras", "GET /v1/cameras", "GET /v1/cameras/{camera_id}"},
+        {"POST /v1/cameras", "GET /v1/cameras"},
+    ),
+}
+
+
+def _state_machine_run(
+    schema,
+    labels: set[str],
+    spare_key_id: int,
+    max_examples: int,
+    steps: int,
+) -> set:
+    """The (source, target) pairs of the description's links that a state machine over
+    ``labels`` followed to a 2xx answer (every answer checked as in the fuzzing)."""
+    followed: set[tuple[str, str]] = set()
+
+    class Machine(schema.include(name=sorted(labels)).as_state_machine()):  # type: ignore[misc]
+        def get_call_kwargs(self, case) -> dict[str, Any]:
+            return {"headers": HEADERS}
+
+        def before_call(self, case) -> None:
+            # Once the machine made another admin key, the last-admin rule lets its own key
+            # (id 1, first in GET /v1/keys) be revoked: it revokes the spare key instead.
+            if case.operation.label == "DELETE /v1/keys/{key_id}":
+                if case.path_parameters.get("key_id") == 1:
+                    case.path_parameters["key_id"] = spare_key_id
+
+        def validate_response(self, response, case, additional_checks=None, **kwargs) -> None:
+            case.validate_response(response, checks=CHECKS)
+
+        def step(self, input):
+            output = super().step(input)
+            link, status = input.transition, output.response.status_code
+            if link is not None and not link.is_inferred and input.is_applied:
+                if 200 <= status < 300:  # its id: "SOURCE -> [status] name -> TARGET"
+                    followed.add((link.id.split(" -> [", 1)[0], input.case.operation.label))
+            return output
+
+    Machine.run(
+        settings=settings(
+            max_examples=max_examples,
+            stateful_step_count=steps,
+            deadline=None,
+            database=None,
+            derandomize=True,
+            suppress_health_check=list(HealthCheck),
+        )
+    )
+    return followed
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_state_machine_follows_the_links(fresh_world, family):
+    schema, world = fresh_world
+    labels, sources = FAMILIES[family]
+    examples = 16 if family == "entries" else 8  # its links need a list that is not empty
+    followed = _state_machine_run(schema, labels, world.spare_key_id, examples, steps=6)
+    assert {source for source, _ in followed} & sources, sorted(followed)
