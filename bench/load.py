@@ -18,6 +18,13 @@ are spread over the replicas as a load balancer would. The map is a sim city's m
    taken inside the ``Retry-After`` of a shed frame (``http-honours``; those count as
    *held*, offered but not sent).
 
+3. **3x and 5x** (``--overloads 3 5``, issue 50): the same open-loop runs at more load
+   (named ``http@3x``, ...), for the served share and how fast a shed frame is answered:
+   per phase the 503s' latency p50 / p99 / max from the frame's send time (goal: p99
+   <= 50 ms) beside a *floor* measured in the same seconds, one more vehicle sending the
+   same frames to a bare one-thread asyncio server that answers 503 (``FLOOR_SERVER``):
+   what any Python answer costs on the machine at that moment.
+
 Each 2x phase runs in ``--slices`` slices (4 of 5 s by default) alternating with as many
 capacity slices (closed loop, same clients) in the order ABBA ABBA, and its served share
 is taken against the capacity of those slices: on this shared VM the capacity of the same
@@ -41,9 +48,11 @@ capacity: the served share at 2x mixes the server's own efficiency under
 overload with the CPU it got from a shared machine, and only the second figure separates
 them. What it cannot separate: the GIL contention inside a replica, and the scheduler's
 split of the cores between the replicas, the generator and other jobs.
-Writes bench/results/load.json. Usage:
+Writes bench/results/load.json (``--out``; the 3x/5x run: load_overload.json). Usage:
     python -m bench.load [--duration 20] [--slices 4] [--replicas 1 2] [--rate-hz 10]
-                         [--database auto]
+                         [--database auto] [--overloads 2] [--runs http ...]
+    python -m bench.load --replicas 1 --runs http http-honours --overloads 3 5 \
+                         --duration 12 --slices 2 --out bench/results/load_overload.json
 """
 
 from __future__ import annotations
@@ -79,7 +88,64 @@ GOALS = {
     "p99_over_capacity_p50_max": 3.0,
     "memory_growth_mb_max": 300.0,
     "writes_p99_s_max": 1.0,
+    # issue 50: at any overload a shed frame is answered within 50 ms of being sent
+    "shed_p99_ms_max": 50.0,
 }
+
+
+# The floor of a shed answer on this machine, measured in the same seconds: a bare asyncio
+# server (one thread, no monoloc) that answers 503 to the same request bytes, sent by one
+# more vehicle at the same rate. A shed frame slower than this is the server's doing; one
+# as slow is the machine's (its cores taken by the replicas' work, the load generator and
+# every other process).
+FLOOR_SERVER = r"""
+import asyncio, sys
+
+ANSWER = b'{"error":{"code":"overloaded","message":"floor"}}'
+HEAD = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+        b"Retry-After: 1\r\nContent-Length: %d\r\n\r\n" % len(ANSWER))
+
+async def handle(reader, writer):
+    try:
+        while True:
+            head = await reader.readuntil(b"\r\n\r\n")
+            length = 0
+            for line in head.split(b"\r\n"):
+                if line.lower().startswith(b"content-length:"):
+                    length = int(line.split(b":", 1)[1])
+            writer.write(HEAD + ANSWER)  # answered before the body, as admission does
+            await reader.readexactly(length)
+    except (asyncio.IncompleteReadError, ConnectionError):
+        writer.close()
+
+async def main():
+    server = await asyncio.start_server(handle, "127.0.0.1", int(sys.argv[1]))
+    async with server:
+        await server.serve_forever()
+
+asyncio.run(main())
+"""
+
+
+@contextmanager
+def floor_server():
+    """The bare 503 server of FLOOR_SERVER on a free port; yields its URL."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-c", FLOOR_SERVER, str(port)])
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError("the floor server did not start") from None
+                time.sleep(0.05)
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        proc.terminate()
+        proc.wait(10)
 
 
 def free_port() -> int:
@@ -493,10 +559,21 @@ async def _writer(urls, map_id, entry_ids, stop_at, out: list) -> None:
 
 
 async def open_loop_http(
-    urls, map_id, frames, vehicles, rate_hz, duration_s, writes, entries, honour=False, meter=None
+    urls,
+    map_id,
+    frames,
+    vehicles,
+    rate_hz,
+    duration_s,
+    writes,
+    entries,
+    honour=False,
+    meter=None,
+    floor_url=None,
 ):
     requests = FrameRequests(map_id, frames, DEADLINE_MS)
     results: list[tuple[int, float]] = []
+    floor: list[tuple[int, float, float]] = []
     write_results: list[tuple[int, float]] = []
     period = 1.0 / rate_hz
     t0 = time.perf_counter() + 0.2
@@ -519,11 +596,29 @@ async def open_loop_http(
         results.extend(await asyncio.gather(*tasks))
         link.close()
 
+    async def floor_vehicle() -> None:
+        link = VehicleLink(floor_url, 4, DEADLINE_MS / 1e3)
+        tasks, k = [], 0
+        while (at := t0 + 0.5 * period + k * period) < stop_at:
+            await asyncio.sleep(max(0.0, at - time.perf_counter()))
+            tasks.append(asyncio.ensure_future(link.post(requests, k % len(requests))))
+            k += 1
+        floor.extend(await asyncio.gather(*tasks))
+        link.close()
+
     jobs = [_meter_window(meter, t0, stop_at), *(vehicle(v) for v in range(vehicles))]
     if writes:
         jobs.append(_writer(urls, map_id, entries, stop_at, write_results))
+    if floor_url is not None:
+        jobs.append(floor_vehicle())
     await asyncio.gather(*jobs)
-    return {"answers": results, "writes": write_results, "start": t0, "stop_at": stop_at}
+    return {
+        "answers": results,
+        "writes": write_results,
+        "floor": floor,
+        "start": t0,
+        "stop_at": stop_at,
+    }
 
 
 async def open_loop_ws(
@@ -623,6 +718,8 @@ def summarise(slices: list[dict]) -> dict:
     statuses = [a[0] for sl in slices for a in sl["answers"]]
     write_results = [w for sl in slices for w in sl["writes"]]
     write_lat = [lat for _, lat in write_results]
+    shed_lat = [lat for sl in slices for status, lat, _ in sl["answers"] if status == 503]
+    floor_lat = [lat for sl in slices for status, lat, _ in sl.get("floor", ()) if status == 503]
     return {
         "offered": len(statuses),
         "served_per_s": len(served) / _window_s(slices),
@@ -630,6 +727,17 @@ def summarise(slices: list[dict]) -> dict:
         "served_p99_ms": None if not served else pct(served, 99) * 1e3,
         "served_after_window": statuses.count(200) - len(served),
         "shed": statuses.count(503),
+        "shed_p50_ms": None if not shed_lat else pct(shed_lat, 50) * 1e3,
+        "shed_p99_ms": None if not shed_lat else pct(shed_lat, 99) * 1e3,
+        "shed_max_ms": None if not shed_lat else max(shed_lat) * 1e3,
+        "shed_within_50ms": None
+        if not shed_lat
+        else sum(1 for lat in shed_lat if lat <= 0.050) / len(shed_lat),
+        # the same frames answered 503 by a bare asyncio server in the same seconds
+        "floor_answers": len(floor_lat),
+        "floor_p50_ms": None if not floor_lat else pct(floor_lat, 50) * 1e3,
+        "floor_p99_ms": None if not floor_lat else pct(floor_lat, 99) * 1e3,
+        "floor_max_ms": None if not floor_lat else max(floor_lat) * 1e3,
         "errors_5xx": sum(1 for s in statuses if s >= 500 and s != 503),
         "failed_no_answer": statuses.count(0),
         "given_up_by_vehicle": statuses.count(-1),
@@ -661,6 +769,8 @@ def verdicts(run: dict, first: dict, capacity: dict, idle_mb: float) -> dict:
         "memory_growth_mb": growth,
         "memory_met": growth <= GOALS["memory_growth_mb_max"],
         "no_5xx_met": run["errors_5xx"] == 0 and run["failed_no_answer"] == 0,
+        "shed_p99_met": run["shed_p99_ms"] is None
+        or run["shed_p99_ms"] <= GOALS["shed_p99_ms_max"],
     }
     # Not a goal, a diagnostic: frames served per core the replicas used, at 2x over at
     # capacity. Near 1, the replicas spend their CPU as well under overload (shedding is
@@ -700,9 +810,12 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
     data_dir.mkdir(parents=True)
     print(f"[{n_replicas} replica(s)] on {db_name}", flush=True)
     serve_args = ("--http", args.http, "--loop", args.loop)
-    with replicas(n_replicas, data_dir, db, args.workers, args.server_python, serve_args) as (
-        urls,
-        pids,
+    with (
+        replicas(n_replicas, data_dir, db, args.workers, args.server_python, serve_args) as (
+            urls,
+            pids,
+        ),
+        floor_server() as floor_url,
     ):
         map_id = ingest_map(urls[0], dataset)
         entries = [
@@ -734,74 +847,105 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
             f"{idle_mb:.0f} MB; {cpu_text(capacity['cpu_cores'])}",
             flush=True,
         )
-        offered = 2.0 * capacity["served_per_s"]
-        vehicles = max(1, math.ceil(offered / args.rate_hz))
-        rate = offered / vehicles
+
+        def overload_phase(
+            name, multiple, fn, writes, vehicles, rate, slice_s, capacity, idle_mb
+        ) -> dict:
+            # capacity and the overload in alternating slices, in the order ABBA ABBA ..., so
+            # that a drift of the machine's speed weighs on both alike
+            load_parts, load_cores, cap_parts, cap_cores = [], [], [], []
+            peak_mb = 0.0
+            for k in range(args.slices):
+                for step in ("cap", "load") if k % 2 == 0 else ("load", "cap"):
+                    if step == "cap":
+                        cap_parts.append(capacity_slice(slice_s, cap_cores))
+                        continue
+                    cpu = CpuMeter(pids)
+                    with MemorySampler(pids) as memory:
+                        args_ = (vehicles, rate, slice_s, writes, entries)
+                        extra = {} if name.startswith("ws") else {"floor_url": floor_url}
+                        phase = fn(urls, map_id, frames, *args_, meter=cpu, **extra)
+                        load_parts.append(asyncio.run(phase))
+                    peak_mb = max(peak_mb, memory.peak_mb)
+                    load_cores.append(cpu.cores)
+            run = summarise(load_parts)
+            run["peak_mb"] = peak_mb
+            run["cpu_cores"] = mean_cores(load_cores)
+            run["duration_s"] = slice_s * args.slices
+            beside = summarise_capacity(cap_parts)
+            beside["cpu_cores"] = mean_cores(cap_cores)
+            run["capacity_interleaved"] = beside
+            run["verdicts"] = verdicts(run, capacity, beside, idle_mb)
+            run["offered_multiple"] = multiple
+            v = run["verdicts"]
+            print(
+                f"  {multiple:g}x ({vehicles} vehicles x {rate:.1f} Hz) {name:12s} served "
+                f"{run['served_per_s']:.1f}/s ({100 * v['served_share']:.0f} % of the "
+                f"capacity in the slices between, {beside['served_per_s']:.1f}/s; "
+                f"{100 * v['served_share_of_first_capacity']:.0f} % of the first; "
+                f"per server core {100 * v['served_per_core_vs_capacity']:.0f} %), "
+                f"p99 {run['served_p99_ms'] or float('nan'):.0f} ms "
+                f"({v['p99_over_capacity_p50']:.1f}x cap p50), shed {run['shed']} (answered "
+                + (
+                    f"p50 {run['shed_p50_ms']:.1f} / p99 {run['shed_p99_ms']:.1f} / max "
+                    f"{run['shed_max_ms']:.0f} ms, {100 * run['shed_within_50ms']:.1f} % "
+                    "within 50 ms"
+                    if run["shed"]
+                    else "-"
+                )
+                + (
+                    f"; floor p50 {run['floor_p50_ms']:.1f} / p99 {run['floor_p99_ms']:.1f} ms"
+                    if run["floor_answers"]
+                    else ""
+                )
+                + f"), held "
+                f"{run['held_by_vehicle']}, 5xx "
+                f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
+                f"+{v['memory_growth_mb']:.0f} MB"
+                + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else "")
+                + f"; {cpu_text(run['cpu_cores'])}",
+                flush=True,
+            )
+            print(
+                "      slices (frames/s): capacity "
+                + ", ".join(f"{x:.1f}" for x in beside["slices_per_s"])
+                + f"; {multiple:g}x "
+                + ", ".join(f"{x:.1f}" for x in run["slices_per_s"]),
+                flush=True,
+            )
+            return run
+
         runs = {}
+        overloads = {}
         honouring = functools.partial(open_loop_http, honour=True)
         transports = (("http", open_loop_http), ("http-honours", honouring), ("ws", open_loop_ws))
         slice_s = args.duration / args.slices
-        for transport, fn in transports:
-            for writes in (False, True):
-                name = f"{transport}{'+writes' if writes else ''}"
-                if name not in args.runs:
-                    continue
-                # capacity and 2x in alternating slices, in the order ABBA ABBA ..., so
-                # that a drift of the machine's speed weighs on both alike
-                load_parts, load_cores, cap_parts, cap_cores = [], [], [], []
-                peak_mb = 0.0
-                for k in range(args.slices):
-                    for step in ("cap", "load") if k % 2 == 0 else ("load", "cap"):
-                        if step == "cap":
-                            cap_parts.append(capacity_slice(slice_s, cap_cores))
-                            continue
-                        cpu = CpuMeter(pids)
-                        with MemorySampler(pids) as memory:
-                            args_ = (vehicles, rate, slice_s, writes, entries)
-                            phase = fn(urls, map_id, frames, *args_, meter=cpu)
-                            load_parts.append(asyncio.run(phase))
-                        peak_mb = max(peak_mb, memory.peak_mb)
-                        load_cores.append(cpu.cores)
-                run = summarise(load_parts)
-                run["peak_mb"] = peak_mb
-                run["cpu_cores"] = mean_cores(load_cores)
-                run["duration_s"] = slice_s * args.slices
-                beside = summarise_capacity(cap_parts)
-                beside["cpu_cores"] = mean_cores(cap_cores)
-                run["capacity_interleaved"] = beside
-                run["verdicts"] = verdicts(run, capacity, beside, idle_mb)
-                runs[name] = run
-                v = run["verdicts"]
-                print(
-                    f"  2x ({vehicles} vehicles x {rate:.1f} Hz) {name:12s} served "
-                    f"{run['served_per_s']:.1f}/s ({100 * v['served_share']:.0f} % of the "
-                    f"capacity in the slices between, {beside['served_per_s']:.1f}/s; "
-                    f"{100 * v['served_share_of_first_capacity']:.0f} % of the first; "
-                    f"per server core {100 * v['served_per_core_vs_capacity']:.0f} %), "
-                    f"p99 {run['served_p99_ms'] or float('nan'):.0f} ms "
-                    f"({v['p99_over_capacity_p50']:.1f}x cap p50), shed {run['shed']}, held "
-                    f"{run['held_by_vehicle']}, 5xx "
-                    f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
-                    f"+{v['memory_growth_mb']:.0f} MB"
-                    + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else "")
-                    + f"; {cpu_text(run['cpu_cores'])}",
-                    flush=True,
-                )
-                print(
-                    "      slices (frames/s): capacity "
-                    + ", ".join(f"{x:.1f}" for x in beside["slices_per_s"])
-                    + "; 2x "
-                    + ", ".join(f"{x:.1f}" for x in run["slices_per_s"]),
-                    flush=True,
-                )
+        for multiple in args.overloads:
+            offered = multiple * capacity["served_per_s"]
+            vehicles = max(1, math.ceil(offered / args.rate_hz))
+            rate = offered / vehicles
+            overloads[f"{multiple:g}x"] = {
+                "offered_per_s": offered,
+                "vehicles": vehicles,
+                "rate_hz": rate,
+            }
+            for transport, fn in transports:
+                for writes in (False, True):
+                    base = f"{transport}{'+writes' if writes else ''}"
+                    if base not in args.runs:
+                        continue
+                    name = base if multiple == 2.0 else f"{base}@{multiple:g}x"
+                    runs[name] = overload_phase(
+                        name, multiple, fn, writes, vehicles, rate, slice_s, capacity, idle_mb
+                    )
+    main_overload = overloads.get("2x") or next(iter(overloads.values()))
     return {
         "replicas": n_replicas,
         "database": db_name,
         "idle_mb": idle_mb,
         "capacity": capacity,
-        "offered_per_s": offered,
-        "vehicles": vehicles,
-        "rate_hz": rate,
+        **main_overload,  # the 2x phases' (else the first overload's) offered load
+        "overloads": overloads,
         "runs": runs,
     }
 
@@ -827,6 +971,14 @@ def main() -> None:
         "--loop", default="auto", choices=["auto", "uvloop", "asyncio"], help="replicas' loop"
     )
     parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument(
+        "--overloads",
+        type=float,
+        nargs="+",
+        default=[2.0],
+        help="offered load of the open-loop phases, in multiples of the capacity (2: the "
+        "runs keep their names; others are named run@Nx, e.g. http@3x)",
+    )
     parser.add_argument(
         "--runs",
         nargs="+",

@@ -390,3 +390,66 @@ def test_an_upload_that_stops_arriving_is_cut_one_that_trickles_is_not(map_copy)
             headers=write,
         ).json()["tags"]
         assert sorted(tags) == ["night", "trickled"]  # the cut write changed nothing
+
+
+def _shed_scope(path: str = "/v1/maps/1/localize") -> dict:
+    return {"type": "http", "method": "POST", "path": path, "headers": []}
+
+
+def test_a_shed_decision_waits_on_nothing_the_work_holds():
+    """A full lane's 503 is decided and sent in one step of the middleware: no await that
+    suspends (no queue, no event-loop round trip), no body read, and not even the lane's
+    lock, which a worker holds between computations (one the OS preempted there, on a
+    loaded 2-core machine, used to hold every shed answer and the event loop with it)."""
+    from monoloc.server.api.admission import LANES, Admission, AdmissionMiddleware
+    from monoloc.server.api.metrics import Metrics
+
+    config = LaneConfig(workers=1, queue_depth=0, default_deadline_ms=1000)
+    admission = Admission(dict.fromkeys(LANES, config), Metrics())
+    lane = admission.lanes["localize"]
+
+    async def app(scope, receive, send):  # the work: never reached by a shed request
+        raise AssertionError("a shed request reached the route")
+
+    middleware = AdmissionMiddleware(app, admission)
+    sent: list[dict] = []
+    outcome: dict[str, object] = {}
+
+    async def receive():
+        raise AssertionError("a shed request's body was read")
+
+    async def send(message):
+        sent.append(message)
+
+    def shed_once() -> None:
+        step = middleware(_shed_scope(), receive, send)
+        try:
+            step.send(None)
+        except StopIteration:
+            outcome["done_in_one_step"] = True
+        else:
+            step.close()
+            outcome["done_in_one_step"] = False
+
+    try:
+        with _occupied(lane):
+            assert lane.try_enter() is True  # the request the busy worker computes
+            assert lane.try_enter() is False  # full
+            with lane._lock:  # a worker inside its critical section
+                shedder = threading.Thread(target=shed_once, daemon=True)
+                shedder.start()
+                shedder.join(5.0)
+                answered_under_the_lock = not shedder.is_alive()
+            shedder.join(5.0)
+            lane.leave()
+    finally:
+        admission.stop()
+    assert answered_under_the_lock, "the shed answer waited for the lane's lock"
+    assert outcome == {"done_in_one_step": True}
+    start, body = sent
+    assert start["status"] == 503
+    headers = dict(start["headers"])
+    assert int(headers[b"retry-after"]) >= 1 and int(headers[b"retry-after-ms"]) >= 1
+    assert b"overloaded" in body["body"]
+    assert admission.metrics.admission_shed.value("localize") == 1
+
