@@ -11,7 +11,17 @@ controller's time per command and lateral tracking error on the truth are report
 The process is pinned to one core (``os.sched_setaffinity``). Writes
 bench/results/mpc.json.
 
+``--closed-loop``: also short closed-loop drives through a map server started here (the
+small indoor track mapped by one centre-line lap, the measurement model calibrated on
+``--train-laps``), PID and MPC on the same map and query lap, one drive each per seed of
+``--drive-seeds``, every answer delayed by ``--latency-ms`` (a fixed delay below the
+frame period, so that the load of the machine does not decide which frames are sent);
+their localization and tracking errors side by side under "closed_loop", per seed and
+their means (the server and the drives share the cores: the solve-time figures come
+from the first part).
+
     python -m bench.mpc --laps 2
+    python -m bench.mpc --closed-loop --drive-laps 0.5 --drive-seeds 3
 """
 
 from __future__ import annotations
@@ -27,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from monoloc.sim.closed_loop import make_controller
-from monoloc.sim.closed_loop_world import IndoorLoopWorld
+from monoloc.sim.closed_loop_world import IndoorLoopWorld, WorldSpec, build_loop_world
 from monoloc.sim.control import step_bicycle, tracking_error
 from monoloc.sim.mpc import LocalizationQuality, MpcController
 
@@ -96,6 +106,96 @@ def _ms(values_s: np.ndarray) -> dict:
     }
 
 
+CLOSED_LOOP_FIGURES = (
+    "frames",
+    "loc_rmse_m",
+    "loc_p95_m",
+    "loc_max_m",
+    "lateral_rmse_m",
+    "lateral_max_m",
+    "heading_rmse_deg",
+    "lane_departures",
+    "hypotheses_share",
+    "known_share_mean",
+    "dead_reckoning_intervals",
+    "frames_not_sent",
+    "wall_s",
+)
+
+
+def closed_loop(
+    seed: int,
+    drive_laps: float,
+    train_laps: float,
+    frames: int | None,
+    out_dir: Path,
+    drive_seeds: int = 1,
+    latency_ms: float = 30.0,
+) -> dict:
+    """PID and MPC, closed-loop drives on the same fresh map (see the module docstring):
+    per controller and seed the loop's figures (and the MPC's quality q), and the means
+    over the seeds."""
+    from dataclasses import replace
+
+    from monoloc.client.api import MonolocClient
+    from monoloc.sim.closed_loop_metrics import loop_metrics
+    from monoloc.sim.closed_loop_study import StudyConfig, build_map, drive_case, serving
+
+    world = build_loop_world(WorldSpec("indoor", "small", seed))
+    study = StudyConfig(
+        laps=drive_laps,
+        map_laps=1.0,
+        offcenter_laps=0.0,
+        train_laps=train_laps,
+        max_frames=frames,
+        seed=seed,
+        cases=("closed",),
+    )
+    out: dict = {
+        "drive_laps": drive_laps,
+        "train_laps": train_laps,
+        "max_frames": frames,
+        "latency_ms": latency_ms,
+        "drive_seeds": [seed + k for k in range(drive_seeds)],
+        "per_seed": {"pid": [], "mpc": []},
+    }
+    with serving(out_dir) as (url, key):
+        with MonolocClient(url, key, timeout_s=120.0) as client:
+            started = time.perf_counter()
+            map_id, info = build_map(client, world, study, out_dir, log=print)
+            out["map"] = {"map_frames": info.get("map_frames"), "s": time.perf_counter() - started}
+            for drive_seed in out["drive_seeds"]:
+                for name in ("pid", "mpc"):
+                    result = drive_case(
+                        client,
+                        map_id,
+                        world,
+                        "closed",
+                        replace(study, seed=drive_seed),
+                        (latency_ms,),
+                        controller=name,
+                    )
+                    metrics = loop_metrics(result)
+                    row = {k: metrics[k] for k in CLOSED_LOOP_FIGURES if k in metrics}
+                    row["seed"] = drive_seed
+                    std = result.frames["filter_std"]
+                    row["filter_position_std_median_m"] = float(np.nanmedian(std[:, 0]))
+                    row["filter_yaw_std_median_deg"] = float(np.degrees(np.nanmedian(std[:, 1])))
+                    if name == "mpc":
+                        q = result.frames["mpc_quality"]
+                        row["mpc_quality_mean"] = float(np.nanmean(q))
+                        row["mpc_quality_min"] = float(np.nanmin(q))
+                    out["per_seed"][name].append(row)
+                    print(f"  seed {drive_seed} {name}: {json.dumps(row, default=float)}")
+    for name, rows in out["per_seed"].items():
+        out[name] = {
+            k: float(np.mean([r[k] for r in rows]))
+            for k in rows[0]
+            if k != "seed" and isinstance(rows[0][k], (int, float))
+        }
+    return out
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--laps", type=float, default=2.0)
@@ -103,6 +203,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--pose-noise-m", type=float, default=0.003)
     parser.add_argument("--quality-period-s", type=float, default=3.0)
     parser.add_argument("--core", type=int, default=None, help="CPU to pin to (default: last)")
+    parser.add_argument("--closed-loop", action="store_true", help="also drive PID and MPC")
+    parser.add_argument("--drive-laps", type=float, default=0.5)
+    parser.add_argument("--train-laps", type=float, default=1.5)
+    parser.add_argument("--frames", type=int, default=None, help="cap per closed-loop drive")
+    parser.add_argument("--drive-seeds", type=int, default=3, help="closed-loop drives each")
+    parser.add_argument("--latency-ms", type=float, default=30.0, help="each answer's delay")
+    parser.add_argument("--out", type=Path, default=Path("out/bench_mpc"))
     args = parser.parse_args(argv)
     cores = sorted(os.sched_getaffinity(0))
     core = cores[-1] if args.core is None else args.core
@@ -115,7 +222,7 @@ def main(argv: list[str] | None = None) -> dict:
         "pose_noise_m": args.pose_noise_m,
         "quality_period_s": args.quality_period_s,
         "pinned_core": core,
-        "machine": f"{platform.system()} {platform.machine()}, {os.cpu_count()} cores",
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
         "budget_ms": BUDGET_MS,
         "date": time.strftime("%Y-%m-%d"),
         "controllers": {},
@@ -161,6 +268,26 @@ def main(argv: list[str] | None = None) -> dict:
             f"{name}: lateral RMSE {1e3 * row['lateral_rmse_m']:.2f} mm, "
             f"max {1e3 * row['lateral_max_m']:.2f} mm on the truth"
         )
+    if args.closed_loop:
+        os.sched_setaffinity(0, set(cores))  # the server and the drive: every core
+        out["closed_loop"] = closed_loop(
+            args.seed,
+            args.drive_laps,
+            args.train_laps,
+            args.frames,
+            args.out,
+            args.drive_seeds,
+            args.latency_ms,
+        )
+        n = args.drive_seeds
+        print(f"closed loop, means over {n} seed(s):")
+        print(f"{'':<12}{'loc RMSE mm':>12}{'lat RMSE mm':>12}{'lat max mm':>12}")
+        for name in ("pid", "mpc"):
+            row = out["closed_loop"][name]
+            print(
+                f"{name:<12}{1e3 * row['loc_rmse_m']:>12.2f}{1e3 * row['lateral_rmse_m']:>12.2f}"
+                f"{1e3 * row['lateral_max_m']:>12.2f}"
+            )
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "mpc.json").write_text(json.dumps(out, indent=2) + "\n")
     return out

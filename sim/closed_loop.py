@@ -101,8 +101,9 @@ class FrameLog:
     """Per camera frame (all (N,) unless said): time, true vehicle state and camera
     pose, the estimate (camera planar pose, NaN before initialisation), the pose the
     controller believed at that time (rear axle), the command, the true tracking errors,
-    the measured signals, the server's answer in numbers, the round trip, and the
-    localization quality q the MPC held (``sim.mpc.quality_factor``; NaN with the PID)."""
+    the measured signals, the server's answer in numbers, the round trip, the filter's
+    position and yaw std (m, rad; NaN before initialisation), and the localization
+    quality q the MPC held (``sim.mpc.quality_factor``; NaN with the PID)."""
 
     t_s: list = field(default_factory=list)
     truth_vehicle: list = field(default_factory=list)  # (x, y, yaw)
@@ -119,6 +120,7 @@ class FrameLog:
     n_matched: list = field(default_factory=list)
     n_inliers: list = field(default_factory=list)
     latency_ms: list = field(default_factory=list)
+    filter_std: list = field(default_factory=list)  # (position m, yaw rad)
     mpc_quality: list = field(default_factory=list)
 
 
@@ -313,11 +315,15 @@ def run_loop(
                 if estimate is not None:
                     quality = quality_of(estimate, known_share)
                     pending.append((t + latency_s, i, estimate.pose_world.copy(), quality))
+                    log.filter_std.append((quality.position_std_m, quality.yaw_std_rad))
+                else:
+                    log.filter_std.append((math.nan, math.nan))
                 log.sent.append(sent)
                 log.n_hypotheses.append(len(answer.hypotheses))
                 log.latency_ms.append(1e3 * latency_s if sent else math.nan)
             else:
                 counts = (0, 0, 0)
+                log.filter_std.append((math.nan, math.nan))
                 log.sent.append(False)
                 log.n_hypotheses.append(0)
                 log.latency_ms.append(math.nan)

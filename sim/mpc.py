@@ -146,12 +146,14 @@ class MpcConfig:
     ) -> MpcConfig:
         """The defaults scaled to a vehicle: lateral scale 15 % of the wheelbase, speed
         scale a tenth of the reference speed, the corridor as given (how far off the
-        mapping laps' line the map still explains a view)."""
+        mapping laps' line the map still explains a view), and the position std that
+        halves q a fifth of the corridor's half width (2 cm for the indoor car's 10 cm)."""
         return cls(
             reference_speed_mps=reference_speed_mps,
             lateral_scale_m=0.154 * bicycle.wheelbase_m,
             speed_scale_mps=0.1 * reference_speed_mps,
             corridor_half_width_m=corridor_half_width_m,
+            position_std_ref_m=0.2 * corridor_half_width_m,
         )
 
 
