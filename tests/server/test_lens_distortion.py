@@ -1,15 +1,14 @@
 """A query through a distorted lens (docs/method.md section 6): its keypoints are
 undistorted with the camera's model before PnP, so a raw distorted frame localizes as
-well as the pinhole frame it was made from; without the model it does not. The
-distorted frames are the sim's pinhole frames remapped through OpenCV's own lens models
-(plumb_bob as on the fleet camera of issue 48, k1 -0.28)."""
+well as a pinhole frame of the same place; without the model it does not. The distorted
+frames are the sim's fleet run: the query's drive rendered through issue 48's fleet
+camera (1024x576, f 640 px, plumb_bob k1 -0.28, its own mounting; monoloc.sim.lens)."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
-from sim_city import ingested_city
+from sim_city import ingested_city, read_fleet_run
 
 from monoloc.core.camera import CameraIntrinsics, LensDistortion
 from monoloc.core.errors import InvalidInputError
@@ -52,17 +51,9 @@ def test_lens_models_are_checked_and_named():
 
 @pytest.fixture(scope="module")
 def city(tmp_path_factory):
-    return ingested_city(tmp_path_factory.mktemp("lens_city"), seed=5, frames=30)
-
-
-def _through_lens(image: np.ndarray, camera: CameraIntrinsics) -> np.ndarray:
-    """The pinhole image as the lens ``camera.distortion`` would have seen it."""
-    h, w = image.shape
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    source = undistort_pixels(np.c_[u.ravel(), v.ravel()], camera).astype(np.float32)
-    return cv2.remap(
-        image, source[:, 0].reshape(h, w), source[:, 1].reshape(h, w), cv2.INTER_LINEAR
-    )
+    root = tmp_path_factory.mktemp("lens_city")
+    registry, query_run = ingested_city(root, seed=5, frames=30, fleet=True)
+    return registry, query_run, read_fleet_run(root)
 
 
 def _errors(registry, frames, images, camera) -> list[float]:
@@ -78,18 +69,17 @@ def _errors(registry, frames, images, camera) -> list[float]:
 
 
 def test_a_distorted_query_localizes_like_its_pinhole_frame_and_only_with_its_model(city):
-    registry, query_run = city
-    pinhole = query_run.intrinsics
-    lens = CameraIntrinsics(
-        pinhole.fx, pinhole.fy, pinhole.cx, pinhole.cy, pinhole.width_px, pinhole.height_px,
-        PLUMB_BOB,
-    )  # fmt: skip
-    frames = query_run.frames[2:26:3]
+    registry, query_run, fleet_run = city
+    lens = fleet_run.intrinsics
+    assert lens.distortion == PLUMB_BOB
+    # the same stretch of the same drive: the mapping camera's pinhole frames, the fleet
+    # camera's distorted ones (each judged against its own camera's poses)
+    frames, fleet_frames = query_run.frames[2:26:3], fleet_run.frames[2:26:3]
     plain = [query_run.load(f).image_gray for f in frames]
-    distorted = [_through_lens(image, lens) for image in plain]
-    ours = np.median(_errors(registry, frames, plain, pinhole))
-    with_model = np.median(_errors(registry, frames, distorted, lens))
-    without = np.median(_errors(registry, frames, distorted, pinhole))
+    distorted = [fleet_run.load(f).image_gray for f in fleet_frames]
+    ours = np.median(_errors(registry, frames, plain, query_run.intrinsics))
+    with_model = np.median(_errors(registry, fleet_frames, distorted, lens))
+    without = np.median(_errors(registry, fleet_frames, distorted, lens.pinhole))
     print(f"\nmedian error: pinhole {ours:.3f} m, distorted {with_model:.3f} m, "
           f"distorted read as pinhole {without:.3f} m")  # fmt: skip
     assert ours < 0.3

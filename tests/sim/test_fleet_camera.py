@@ -239,6 +239,10 @@ def test_the_fleet_run_writes_its_camera_and_its_own_poses(fleet_dataset):
     images = sorted((seq / "image_0").glob("*.png"))
     query = next(s for s in meta["sequences"] if s["run"] == "query")
     assert len(images) == fleet["frames"] == query["frames"] >= 2  # cut to the map's stretch
+    assert fleet["seed"] == query["seed"]  # one recording of one drive (pose errors, signals)
+    assert (seq / "vehicle.txt").read_bytes() == (
+        kitti.sequence_dir(root, query["id"]) / "vehicle.txt"
+    ).read_bytes()
     assert cv2.imread(str(images[0]), cv2.IMREAD_UNCHANGED).shape == (288, 512)
     np.testing.assert_allclose(
         kitti.read_calib_file(seq / "calib.txt").intrinsics(512, 288).K, camera.K
