@@ -93,6 +93,10 @@ def test_tum_camera_json_and_depth_encoding_read_back(tmp_path):
     path, data = tum.read_camera_json(tmp_path)
     assert path == tmp_path / "camera.json" and data["world_frame"] == "z-up"
     assert (data["fx"], data["width"], data["depth_scale_per_m"]) == (525.0, 640, 5000.0)
+    # camera.yaml beside it, in ROS's layout
+    from monoloc.core.formats.camera_yaml import read_camera_yaml
+
+    assert read_camera_yaml(tmp_path / "camera.yaml").intrinsics == camera
     depth_m = np.array([[1.0, 0.0], [np.nan, 20.0]])
     raw = tum.encode_depth(depth_m)
     assert raw.dtype == np.uint16 and raw.tolist() == [[5000, 0], [0, 0]]  # 20 m: too far

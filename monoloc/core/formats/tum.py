@@ -159,7 +159,12 @@ def encode_depth(depth_m: np.ndarray) -> np.ndarray:
 
 def write_camera_json(path: str | os.PathLike, intrinsics: CameraIntrinsics, extra: dict) -> None:
     """camera.json: fx, fy, cx, cy, width, height, depth_scale_per_m (DEPTH_SCALE_PER_M)
-    and the ``extra`` keys (``world_frame`` is read back; others are for people)."""
+    and the ``extra`` keys (``world_frame`` is read back; ``T_vehicle_from_cam``, where
+    the camera sits, by the vehicle's replay; others are for people); and camera.yaml
+    beside it, the camera and its mounting in ROS's calibration layout
+    (``monoloc.core.formats.camera_yaml``)."""
+    from monoloc.core.formats.camera_yaml import CAMERA_YAML, write_camera_yaml
+
     k = intrinsics
     info = {
         "fx": k.fx,
@@ -172,6 +177,8 @@ def write_camera_json(path: str | os.PathLike, intrinsics: CameraIntrinsics, ext
         **extra,
     }
     Path(path).write_text(json.dumps(info, indent=2) + "\n")
+    T_vehicle_from_cam = extra.get("T_vehicle_from_cam")
+    write_camera_yaml(Path(path).with_name(CAMERA_YAML), intrinsics, T_vehicle_from_cam)
 
 
 def read_camera_json(root: str | os.PathLike) -> tuple[Path | None, dict]:
