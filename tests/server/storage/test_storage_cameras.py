@@ -1,4 +1,5 @@
-"""Revision 0009 (the cameras table) on a real SQLite file: upgraded onto a database of
+"""Revision 0009 (the cameras table) on a real SQLite file and a real PostgreSQL
+database (tests/pg_cluster.py): upgraded onto a database of
 revision 0008 whose keys stay as they were, cameras stored with their lens and read
 back, a camera's key row gone leaves the camera (key_id NULL), and a downgrade drops the
 table with the keys intact."""
@@ -15,6 +16,14 @@ from monoloc.server.storage.migrate import alembic_config, current_revision, upg
 
 
 def test_revision_0009_adds_cameras_and_goes_back(tmp_path):
+    _upgrade_store_downgrade(f"sqlite:///{tmp_path / 'c.db'}")
+
+
+def test_revision_0009_on_postgresql(postgres_url):
+    _upgrade_store_downgrade(postgres_url)
+
+
+def _upgrade_store_downgrade(url: str) -> None:
     from alembic import command
 
     from monoloc.server.storage.db import (
@@ -24,7 +33,6 @@ def test_revision_0009_adds_cameras_and_goes_back(tmp_path):
     )
     from monoloc.server.storage.keys import create_api_key, list_api_keys
 
-    url = f"sqlite:///{tmp_path / 'c.db'}"
     command.upgrade(alembic_config(url), "0008")
     engine = create_engine_for_url(url)  # the server's pragmas: foreign keys enforced
     with engine.connect() as conn:
