@@ -67,20 +67,30 @@ def test_every_operation_is_bounded_before_its_work_starts(tmp_path):
     assert problems == [], "\n".join(problems)
 
 
-@pytest.mark.parametrize("radius", ["1e-6", "5e-324", "0", "-1", "0.09", "nan", "inf", "1e309"])
+@pytest.mark.parametrize(
+    "radius", ["1e-6", "5e-324", "0.0002", "0.00005", "0", "-1", "0.09", "nan", "inf", "1e309"]
+)
 def test_coverage_refuses_a_radius_below_its_minimum_at_once(client_on_copy, map_copy, radius):
-    """radius_m=1e-6 once sampled the route every 0.25 um (23.5 GB); 5e-324 made a zero
-    step and a 500. Both are 422 now, in milliseconds and without memory growth."""
+    """radius_m=1e-6 once sampled the route every 0.25 um (23.5 GB); 0.0002 answered 29 MB
+    (0.63 GB of memory), 0.00005 117 MB; 5e-324 made a zero step and a 500. All are 422
+    now, in milliseconds and without memory growth."""
     headers = map_copy.keys.header("localize")
     path = f"/v1/maps/{map_copy.map_id}/coverage"
+    # the route's first answer on a new app costs its own start-up; then the same app's
+    # read of the map is the baseline: a loaded machine slows both, sampling only one
+    warm = client_on_copy.get(path, params={"radius_m": "0.05"}, headers=headers)
+    assert warm.status_code == 422, warm.text
+    started = time.perf_counter()
+    assert client_on_copy.get(f"/v1/maps/{map_copy.map_id}", headers=headers).status_code == 200
+    baseline_s = time.perf_counter() - started
     rss_before_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     started = time.perf_counter()
     answer = client_on_copy.get(path, params={"radius_m": radius}, headers=headers)
     elapsed_s = time.perf_counter() - started
     assert answer.status_code == 422, answer.text
-    assert elapsed_s < 1.0
+    assert elapsed_s < 1.0 + 2 * baseline_s, (elapsed_s, baseline_s)
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before_kb < 100_000
-    if radius in ("1e-6", "5e-324", "0.09"):
+    if radius in ("1e-6", "5e-324", "0.0002", "0.00005", "0.09"):
         assert "0.1" in answer.json()["error"]["message"]
 
 
@@ -137,3 +147,7 @@ def test_allow_lists_only_what_is_served(fresh):
     assert answer.headers["Allow"] == "GET, HEAD"
     answer = client.request("PUT", "/v1/keys/5", headers=keys.header("admin"))
     assert answer.headers["Allow"] == "DELETE"
+    # OPTIONS /v1/keys/me advertised an undocumented DELETE (issue 50)
+    answer = client.request("OPTIONS", "/v1/keys/me", headers=keys.header("admin"))
+    assert answer.status_code == 405, answer.text
+    assert answer.headers["Allow"] == "GET, HEAD"
