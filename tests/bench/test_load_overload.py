@@ -1,0 +1,28 @@
+"""bench/load.py's overload measurement over real loopback sockets: its bare asyncio 503
+server (the floor) answers the generator's frame requests on keep-alive connections,
+and an open-loop phase's summary carries the shed answers' latency and the floor's."""
+
+from __future__ import annotations
+
+import asyncio
+
+from bench import load
+
+
+def test_an_open_loop_phase_against_the_floor_reports_shed_and_floor_latencies():
+    frames = [b"\x89PNG\r\n\x1a\n" + bytes(200_000), b"\x89PNG\r\n\x1a\n" + bytes(50_000)]
+    with load.floor_server() as floor_url:
+        phase = load.open_loop_http(
+            [floor_url], 1, frames, 3, 20.0, 1.0, False, [], floor_url=floor_url
+        )
+        part = asyncio.run(phase)
+    run = load.summarise([part])
+    # 3 vehicles x 20 Hz for 1 s, every frame answered 503 by the floor server
+    assert 55 <= run["offered"] <= 61, run["offered"]
+    assert run["shed"] == run["offered"] and run["served_per_s"] == 0.0
+    assert run["failed_no_answer"] == 0 and run["errors_5xx"] == 0
+    assert 0.0 < run["shed_p50_ms"] <= run["shed_p99_ms"] <= run["shed_max_ms"]
+    assert 0.0 <= run["shed_within_50ms"] <= 1.0
+    # the floor's own vehicle, at the per-vehicle rate
+    assert 18 <= run["floor_answers"] <= 21, run["floor_answers"]
+    assert 0.0 < run["floor_p50_ms"] <= run["floor_p99_ms"] <= run["floor_max_ms"]
