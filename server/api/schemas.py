@@ -98,6 +98,7 @@ class Camera(BaseModel):
     model_config = ConfigDict(
         from_attributes=True,
         strict=True,
+        extra="forbid",
         allow_inf_nan=False,
         json_schema_extra={
             "examples": [
@@ -145,7 +146,10 @@ class GeoOriginSpec(BaseModel):
     """WGS84 position of the map world's origin and the compass heading of its +X axis."""
 
     model_config = ConfigDict(
-        strict=True, allow_inf_nan=False, json_schema_extra={"examples": [_GEO_ORIGIN_EXAMPLE]}
+        strict=True,
+        extra="forbid",
+        allow_inf_nan=False,
+        json_schema_extra={"examples": [_GEO_ORIGIN_EXAMPLE]},
     )
     lat_deg: float = Field(ge=-90.0, le=90.0, description="WGS84 latitude (degrees).")
     lon_deg: float = Field(ge=-180.0, le=180.0, description="WGS84 longitude (degrees).")

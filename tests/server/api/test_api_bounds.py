@@ -140,6 +140,29 @@ def test_json_bodies_are_standard_json_with_known_fields_only(client_on_copy, ma
     assert key.status_code == 422, key.text
 
 
+def test_nested_objects_refuse_unknown_fields_too(fresh):
+    """The fuzzer's POST /v1/maps with junk keys inside ``camera`` was answered 201."""
+    from api_helpers import camera_of
+
+    client, keys = fresh
+    admin = keys.header("admin")
+    camera = {**camera_of(None), "M": [1, ["x"]]}
+    made = client.post("/v1/maps", json={"name": "junk", "camera": camera}, headers=admin)
+    assert made.status_code == 422, made.text
+    assert "camera.M" in made.json()["error"]["message"]
+    assert client.get("/v1/maps", headers=admin).json()["items"] == []
+    made = client.post("/v1/maps", json={"name": "m", "camera": camera_of(None)}, headers=admin)
+    assert made.status_code == 201, made.text
+    origin = {"lat_deg": 1.0, "lon_deg": 2.0, "x_axis_heading_deg": 0.0, "zone": 32}
+    path = f"/v1/maps/{made.json()['id']}/geo-reference"
+    answer = client.put(path, json={"origin": origin}, headers=admin)
+    assert answer.status_code == 422 and "origin.zone" in answer.json()["error"]["message"]
+    assert client.get(path, headers=admin).status_code == 404  # nothing stored
+    spec = client.get("/openapi.json").json()["components"]["schemas"]
+    assert spec["Camera"]["additionalProperties"] is False
+    assert spec["GeoOriginSpec"]["additionalProperties"] is False
+
+
 def test_allow_lists_only_what_is_served(fresh):
     client, keys = fresh
     answer = client.request("PUT", "/v1/keys/me", headers=keys.header("admin"))
