@@ -925,12 +925,51 @@ def load_headline(data: dict | None) -> Headline:
     )
 
 
+def fleet_camera_headline(data: dict | None) -> Headline:
+    """A fleet car's camera (issue 48) against the mapping camera's lap on the same street
+    (bench/accuracy.py --scenario fleet)."""
+    figure = (
+        "Fleet camera (1024x576, f 640 px, plumb_bob, 0.23 m lower, 3 deg down), raw lap "
+        "RMSE over the mapping camera's (`python -m bench.accuracy --scenario fleet`)"
+    )
+    if data is None or data.get("raw_over_mapping_rmse") is None:
+        return _not_run(figure, "accuracy_fleet")
+    laps = data["laps"]
+    mapping = laps["mapping camera"]["position_rmse_m"]
+    raw = laps["fleet camera, raw (lens model sent)"]["position_rmse_m"]
+    ratio, goal = data["raw_over_mapping_rmse"], data["goal_raw_over_mapping_rmse"]
+    value = f"{ratio:.2f}x ({raw:.3f} m vs {mapping:.3f} m)"
+    pinhole = laps.get("fleet camera, raw read as pinhole", {}).get("position_rmse_m")
+    if pinhole is not None:
+        value += f"; read as pinhole {pinhole:.2f} m"
+    return Headline(figure, value, f"<= {goal:g}x: {_verdict(ratio <= goal)}", "accuracy_fleet")
+
+
+def lens_headline(data: dict | None) -> Headline:
+    """The server's time per distorted query over a pinhole one (bench/lens.py)."""
+    figure = (
+        "Server CPU time per distorted query over the same frames undistorted, one core "
+        "(`python -m bench.lens`)"
+    )
+    if data is None:
+        return _not_run(figure, "lens")
+    ratio, goal = data["distorted_over_pinhole_mean"], data["goal_distorted_over_pinhole"]
+    per_query = data["per_query"]
+    value = (
+        f"{ratio:.3f}x ({per_query['distorted']['mean_ms']:.1f} vs "
+        f"{per_query['pinhole']['mean_ms']:.1f} ms)"
+    )
+    return Headline(figure, value, f"<= {goal:g}x: {_verdict(ratio <= goal)}", "lens")
+
+
 def headline_rows(results: Path = RESULTS) -> list[Headline]:
     """The README's rows, read from ``results`` (a directory of bench result files)."""
     return [
         *accuracy_headlines(load("accuracy_urban", results)),
         indoor_headline(load("accuracy_indoor", results)),
         localize_headline(load("localize", results)),
+        fleet_camera_headline(load("accuracy_fleet", results)),
+        lens_headline(load("lens", results)),
         filter_headline(load("filter", results)),
         ingest_headline(load("ingest", results)),
         retrieval_headline(load("retrieval", results)),

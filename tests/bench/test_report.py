@@ -119,3 +119,28 @@ def test_readme_without_one_pair_of_markers_is_refused(tmp_path, text):
     with pytest.raises(ValueError):
         report.write_results_section(readme, "| a | table |")
     assert readme.read_text() == text
+
+
+def test_the_fleet_camera_rows_read_their_results_and_say_a_missed_goal(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    rmse = {"mapping camera": 0.05, "fleet camera, raw (lens model sent)": 0.09}
+    fleet = {
+        "laps": {name: {"position_rmse_m": v} for name, v in rmse.items()},
+        "raw_over_mapping_rmse": 1.8,
+        "goal_raw_over_mapping_rmse": 1.5,
+    }
+    lens = {
+        "per_query": {"distorted": {"mean_ms": 20.4}, "pinhole": {"mean_ms": 20.0}},
+        "distorted_over_pinhole_mean": 1.02,
+        "goal_distorted_over_pinhole": 1.1,
+    }
+    rows = {row.source: row for row in report.headline_rows(results)}
+    assert rows["accuracy_fleet"].value == rows["lens"].value == "not run"
+    (results / "accuracy_fleet.json").write_text(json.dumps(fleet))
+    (results / "lens.json").write_text(json.dumps(lens))
+    rows = {row.source: row for row in report.headline_rows(results)}
+    assert rows["accuracy_fleet"].value == "1.80x (0.090 m vs 0.050 m)"
+    assert rows["accuracy_fleet"].goal == "<= 1.5x: **missed**"
+    assert rows["lens"].value == "1.020x (20.4 vs 20.0 ms)"
+    assert rows["lens"].goal == "<= 1.1x: met"
