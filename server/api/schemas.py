@@ -551,17 +551,46 @@ def _check_choices(values: dict[str, Any], where: str) -> None:
             )
 
 
+def _offered(value: str) -> dict[str, Any]:
+    return {"anyOf": [{"const": value}, {"type": "null"}]}
+
+
+def _calibration_update_schema(schema: dict[str, Any]) -> None:
+    """What the checks of a calibration PUT take, in its JSON schema: the choices the
+    product offers (``_check_choices``: null or the product's), and each condition as a
+    measurement model of its own (mu1, Sigma1, mu2, Sigma2; no conditions of its own)."""
+    properties = schema["properties"]
+    choices = "Left out or null: the product's; any other value is refused (422)."
+    properties["retrieval_frame"] = {**_offered(DEFAULT_RETRIEVAL_FRAME), "description": choices}
+    properties["vlad_evidence"] = {**_offered(DEFAULT_VLAD_EVIDENCE), "description": choices}
+    model = {k: properties[k] for k in ("mu1", "Sigma1", "mu2", "Sigma2")}
+    condition = {
+        "type": "object",
+        "required": list(model),
+        "properties": {
+            **model,
+            "covariance": {"anyOf": [{"enum": ["paper", DEFAULT_COVARIANCE]}, {"type": "null"}]},
+            "retrieval_frame": properties["retrieval_frame"],
+            "vlad_evidence": properties["vlad_evidence"],
+            "provenance": {"type": "object"},
+            "conditions": {"type": "object", "maxProperties": 0},
+        },
+        **rules_extra(PNP_COVARIANCE_NEEDS_PNP),
+    }
+    conditions = properties["conditions"]
+    conditions.pop("patternProperties", None)
+    conditions["propertyNames"] = {"pattern": TAG_PATTERN}
+    conditions["additionalProperties"] = condition
+    schema["examples"] = [_CALIBRATION_EXAMPLE]
+    schema.update(rules_extra(PNP_COVARIANCE_NEEDS_PNP))
+
+
 class CalibrationUpdate(_MeasurementModelFields):
     """Measurement-model parameters computed elsewhere, and their provenance. The
     retrieval vector's offset is in the world frame (X_i - X, Y_i - Y)."""
 
     model_config = ConfigDict(
-        strict=True,
-        allow_inf_nan=False,
-        json_schema_extra={
-            "examples": [_CALIBRATION_EXAMPLE],
-            **rules_extra(PNP_COVARIANCE_NEEDS_PNP),
-        },
+        strict=True, allow_inf_nan=False, json_schema_extra=_calibration_update_schema
     )
     covariance: Literal["paper", "pnp"] | None = Field(
         default=None,

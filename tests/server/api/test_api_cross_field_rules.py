@@ -341,3 +341,36 @@ def test_the_server_answers_the_violation_422_naming_the_rule(spec, app_with_map
     assert rule["message"] in answer.json()["error"]["message"]
     after = client.get(f"/v1/maps/{map_id}", headers=keys.header("admin")).json()
     assert (after["version"], after["n_runs"]) == (before["version"], before["n_runs"])
+
+
+_NIGHT = {k: v for k, v in CALIBRATION.items() if k != "provenance"}
+CALIBRATION_SHAPES = [
+    ({**CALIBRATION, "retrieval_frame": "vehicle"}, "retrieval_frame"),
+    ({**CALIBRATION, "vlad_evidence": "relative"}, "vlad_evidence"),
+    ({**CALIBRATION, "conditions": {"night": {"mu1": _NIGHT["mu1"]}}}, "night"),
+    ({**CALIBRATION, "conditions": {"night": {**_NIGHT, "conditions": {"a": _NIGHT}}}}, "night"),
+    ({**CALIBRATION, "conditions": {"night": {**_NIGHT, "covariance": "pnp"}}}, "pnp"),
+    ({**CALIBRATION, "conditions": {"not a tag!": _NIGHT}}, "not a tag!"),
+]
+
+
+@pytest.mark.parametrize("body, named", CALIBRATION_SHAPES, ids=lambda v: str(v)[-40:])
+def test_a_calibration_put_is_refused_only_for_what_its_schema_states(
+    spec, app_with_map, body, named
+):
+    """A calibration's choices and its conditions' shape were free in the schema
+    (additional fields, any object per condition) and refused by the server."""
+    client, keys, map_id = app_with_map
+    schema = spec["paths"]["/v1/maps/{map_id}/calibration"]["put"]["requestBody"]
+    validator = jsonschema_rs.Draft202012Validator(
+        {**schema["content"]["application/json"]["schema"], "components": spec["components"]}
+    )
+    good = {**CALIBRATION, "retrieval_frame": "world", "conditions": {"night": _NIGHT}}
+    assert validator.is_valid(good), list(validator.iter_errors(good))
+    assert not validator.is_valid(body)
+    path = f"/v1/maps/{map_id}/calibration"
+    answer = client.put(path, json=body, headers=keys.header("write"))
+    assert answer.status_code == 422, answer.text
+    assert named in answer.json()["error"]["message"]
+    assert client.put(path, json=good, headers=keys.header("write")).status_code == 200
+    assert client.delete(path, headers=keys.header("write")).status_code == 200
