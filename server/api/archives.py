@@ -16,11 +16,12 @@ unpacked to the 4 GiB limit before this module refused it; issue 50):
   must agree with the central directory (400 otherwise: a lying archive). A tar is
   checked header by header as it streams, before the member's data is written.
 * **Compression ratio** (413 ``compression_ratio_too_high``, ``MONOLOC_MAX_ARCHIVE_RATIO``,
-  default 100x): per zip member (declared sizes) and for the whole archive (the declared
-  total, and while copying the bytes unpacked so far against the archive bytes read so
-  far, which also holds a gzip/bzip2/xz tar). Members up to
-  ``MONOLOC_ARCHIVE_RATIO_ALLOWANCE_BYTES`` (1 MiB), and as much of the total, are exempt:
-  small text files (calib.txt, times.txt) compress far better than images. Real runs
+  default 100x): per member and for the whole archive; a zip from its declared sizes, a
+  tar (gzip/bzip2/xz) while copying, the bytes unpacked against the archive bytes read
+  (so far, and while the member was copied); a tar's declared total against its size.
+  Members up to ``MONOLOC_ARCHIVE_RATIO_ALLOWANCE_BYTES`` (1 MiB), and as much of the
+  total, are exempt: small text files (calib.txt, times.txt) compress far better than
+  images. Real runs
   (PNG images, LiDAR floats) compress about 1-3x. Zip members are stored or deflated
   (415 for bzip2/lzma: Python decompresses those without an output bound).
 * **Running total**: every copy counts the bytes it writes and stops at the member's
@@ -338,9 +339,16 @@ class _Metered:
 
 def _unpack_tar(fileobj: BinaryIO, writer: _Writer, packed_bytes: int) -> None:
     metered = _Metered(fileobj)
+    member_start = {"written": 0, "read": 0, "name": ""}
 
     def running_ratio(unpacked: int) -> None:
         writer.check_ratio(unpacked, metered.read_bytes, writer.what)
+        # the member alone (a bomb behind enough real data passes the overall ratio): the
+        # archive bytes read while it is copied, read-ahead included, so never too few
+        in_member = unpacked - member_start["written"]
+        if in_member > writer.limits.ratio_allowance_bytes:
+            read = metered.read_bytes - member_start["read"]
+            writer.check_ratio(in_member, read, f"{writer.what}: member {member_start['name']!r}")
 
     try:
         with tarfile.open(fileobj=metered, mode="r:*") as tar:  # type: ignore[call-overload]
@@ -357,6 +365,9 @@ def _unpack_tar(fileobj: BinaryIO, writer: _Writer, packed_bytes: int) -> None:
                     writer.check_ratio(writer.declared_bytes, packed_bytes, writer.what)
                     source = tar.extractfile(member)
                     assert source is not None
+                    member_start.update(
+                        written=writer.total_bytes, read=metered.read_bytes, name=member.name
+                    )
                     writer.add_file(path, member.size, source, on_chunk=running_ratio)
                 else:
                     raise BadRequestError(

@@ -304,6 +304,30 @@ def test_ratio_bomb_under_the_size_limit_is_refused(tmp_path):
         left_nothing(srv)
 
 
+def test_a_tar_member_bomb_behind_real_data_is_refused_by_its_own_ratio(tmp_path):
+    """Random bytes (incompressible, as images are) first, then 8 MiB of zeros: the
+    archive's overall ratio stays near 5x, the zeros member alone is ~1000x."""
+    rng = np.random.default_rng(7)
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz", compresslevel=6) as tar:
+        for name, data in (
+            ("run/noise.bin", rng.bytes(2 * MiB)),
+            ("run/zeros.bin", bytes(8 * MiB)),
+        ):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    blob = buffer.getvalue()
+    assert 10 * MiB / len(blob) < 10  # far under the overall limit of 100x
+    with server(tmp_path) as srv:
+        with watching(srv.uploads) as disk:
+            r, _ = srv.upload(blob, "run.tar.gz")
+        assert disk.peak_bytes <= 2 * MiB + 3 * MiB, disk.peak_bytes
+        refused(r, 413, "compression_ratio_too_high", "MONOLOC_MAX_ARCHIVE_RATIO")
+        assert "member 'run/zeros.bin'" in r.json()["error"]["message"]
+        left_nothing(srv)
+
+
 def test_many_small_files_exceed_the_per_upload_disk_quota(tmp_path):
     buffer = io.BytesIO()
     with tarfile.open(fileobj=buffer, mode="w") as tar:
