@@ -73,6 +73,8 @@ bench: install
 	$(PY) -m bench.accuracy --scenario fleet --size small --frames 150
 	$(PY) -m bench.closed_loop --scenario indoor
 	$(PY) -m bench.closed_loop --scenario urban
+	$(PY) -m bench.load --replicas 1 --runs http http-honours --overloads 3 5 \
+	  --duration 12 --slices 2 --out bench/results/load_overload.json
 	$(PY) -m bench.report
 
 clean:
