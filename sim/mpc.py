@@ -82,9 +82,10 @@ class MpcConfig:
     feed-forward angle. ``view_weight`` 20 over a 10 cm, 0.3 rad corridor: at q = 0 the
     lateral weight is 4.2x and the heading weight 3.2x the tracking terms' alone.
     ``known_share_ref`` 0.3: a frame whose best answer explains 30 % of its features
-    counts as fully known (the indoor sim's centre-line drives explain ~55 %);
-    ``position_std_ref_m`` 1 cm and ``yaw_std_ref_rad`` 1 deg: a filter that uncertain
-    halves q. ``max_iterations``: SQP iterations per solve (each a QP by qrqp)."""
+    counts as fully known (centre-line drives of the indoor sim explain 35-55 %);
+    ``position_std_ref_m`` 1 cm (``for_vehicle``: a fifth of the corridor's half width)
+    and ``yaw_std_ref_rad`` 1 deg: a filter that uncertain halves q.
+    ``max_iterations``: SQP iterations per solve (each a QP by qrqp)."""
 
     reference_speed_mps: float = 1.0
     horizon_s: float = 1.5
