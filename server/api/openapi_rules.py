@@ -322,3 +322,79 @@ def document_cross_field_rules(openapi: dict[str, Any]) -> dict[str, Any]:
         operation[OPERATION_RULES_EXTRA] = [rule.query_statement() for rule in rules]
         _add_words(operation, rules)
     return openapi
+
+
+# --- a lens: its coefficients by its model (monoloc.core.camera.LensDistortion.parse) ---
+
+
+def _any_case(words: list[str]) -> str:
+    """A regular expression matching one of ``words`` in any case (JSON Schema patterns
+    have no flags)."""
+
+    def letters(word: str) -> str:
+        return "".join(f"[{c.lower()}{c.upper()}]" if c.isalpha() else c for c in word)
+
+    return "^(?:" + "|".join(letters(w) for w in words) + ")$"
+
+
+def lens_rules(model: str, coefficients: str) -> dict[str, Any]:
+    """``json_schema_extra`` of a body holding a lens as ``model`` (a ROS CameraInfo name)
+    and ``coefficients`` (its D, a list): each model's count of coefficients, and
+    coefficients only with a model (all zero: a pinhole). The model's own names are
+    ``lens_model_pattern``."""
+    from monoloc.core.camera import DISTORTION_ALIASES, DISTORTION_MODELS
+
+    branches = []
+    for name, counts in DISTORTION_MODELS.items():
+        names = [name, *(alias for alias, to in DISTORTION_ALIASES.items() if to == name)]
+        branches.append(
+            {
+                "if": {
+                    "required": [model],
+                    "properties": {model: {"type": "string", "pattern": _any_case(names)}},
+                },
+                "then": _present(
+                    coefficients,
+                    {"type": "array", "minItems": min(counts), "maxItems": max(counts)},
+                ),
+            }
+        )
+    counts = {
+        "description": "The coefficients' count fits the model: "
+        + "; ".join(f"{n} {' or '.join(map(str, c))}" for n, c in DISTORTION_MODELS.items())
+        + ".",
+        "allOf": branches,
+        RULE_EXTRA: {
+            "name": "lens_coefficients_fit_the_model",
+            "kind": "fits",
+            "fields": [model, coefficients],
+            "message": "coefficients, got",
+        },
+    }
+    pinhole = {"type": "string", "pattern": _any_case(["", "none", "pinhole"])}
+    without_model = {
+        "description": f"{coefficients} without {model} (or with none or pinhole) only if "
+        "every coefficient is 0.",
+        "if": {"anyOf": [_absent(model), {"properties": {model: pinhole}}]},
+        "then": {
+            "properties": {
+                coefficients: {
+                    "anyOf": [{"type": "null"}, {"type": "array", "items": {"const": 0}}]
+                }
+            }
+        },
+        RULE_EXTRA: {
+            "name": "lens_coefficients_need_a_model",
+            "kind": "needs",
+            "fields": [coefficients, model],
+            "message": "distortion coefficients given without their model",
+        },
+    }
+    return {"allOf": [counts, without_model]}
+
+
+def lens_model_pattern() -> str:
+    """The lens model names the server takes, any case (none and pinhole: no lens)."""
+    from monoloc.core.camera import DISTORTION_ALIASES, DISTORTION_MODELS
+
+    return _any_case(["", "none", "pinhole", *DISTORTION_MODELS, *DISTORTION_ALIASES])

@@ -9,6 +9,7 @@ from typing import Self
 from pydantic import BaseModel, ConfigDict, Field
 
 from monoloc.core.camera import CameraIntrinsics, LensDistortion
+from monoloc.server.api.openapi_rules import lens_model_pattern, lens_rules
 from monoloc.server.api.schemas import TIME_EXAMPLE
 from monoloc.server.storage.cameras import CameraRecord
 
@@ -31,7 +32,10 @@ class CameraCreate(BaseModel):
         strict=True,
         extra="forbid",
         allow_inf_nan=False,
-        json_schema_extra={"examples": [dict(name="fleet-front", **_LENS)]},
+        json_schema_extra={
+            "examples": [dict(name="fleet-front", **_LENS)],
+            **lens_rules("distortion_model", "distortion"),
+        },
     )
     name: str = Field(
         min_length=1,
@@ -51,6 +55,7 @@ class CameraCreate(BaseModel):
         description="plumb_bob (k1 k2 p1 p2 [k3]), rational_polynomial (k1 k2 p1 p2 k3 k4 "
         "k5 k6) or equidistant (fisheye: k1 k2 k3 k4), as ROS CameraInfo names them; "
         "left out, none or pinhole: no distortion. Another model is refused by name.",
+        json_schema_extra={"pattern": lens_model_pattern()},
     )
     distortion: list[float] | None = Field(
         default=None, max_length=16, description="The model's coefficients (CameraInfo's D)."

@@ -28,6 +28,7 @@ T_ECEF = [1.0, 0.0, 0.0, 4200961.4, 0.0, 1.0, 0.0, 168322.7, 0.0, 0.0, 1.0, 4780
 T_ECEF += [0.0, 0.0, 0.0, 1.0]
 POSE = ",".join(str(v) for v in np.eye(4).ravel())
 FOCAL = {"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0}
+LENS = [-0.28, 0.09, 0.0006, -0.0004]
 PRIOR = {"prior_x_m": 1.0, "prior_y_m": 2.0, "prior_radius_m": 5.0}
 
 
@@ -105,6 +106,20 @@ VIOLATIONS = [
         "/v1/maps/{map_id}/calibration",
         json={**CALIBRATION, "covariance": "pnp"},
         valid_json={**CALIBRATION, "covariance": "paper"},
+    ),
+    Violation(
+        "lens_coefficients_fit_the_model",
+        "POST",
+        "/v1/cameras",
+        json={"name": "fleet", **CAMERA, "distortion_model": "Plumb_Bob", "distortion": [0.1, 0.0]},
+        valid_json={"name": "fleet", **CAMERA, "distortion_model": "radtan", "distortion": LENS},
+    ),
+    Violation(
+        "lens_coefficients_need_a_model",
+        "POST",
+        "/v1/cameras",
+        json={"name": "fleet", **CAMERA, "distortion_model": "pinhole", "distortion": LENS},
+        valid_json={"name": "fleet", **CAMERA, "distortion": [0.0, 0.0, 0.0, 0.0]},
     ),
     Violation(
         "localize_focal_all_or_none",
