@@ -18,7 +18,7 @@ small indoor track mapped by one centre-line lap, the measurement model calibrat
 frame period, so that the load of the machine does not decide which frames are sent);
 their localization and tracking errors side by side under "closed_loop", per seed and
 their means (the server and the drives share the cores: the solve-time figures come
-from the first part).
+from the first part). Without it, the JSON keeps the last run's "closed_loop" (dated).
 
     python -m bench.mpc --laps 2
     python -m bench.mpc --closed-loop --drive-laps 0.5 --drive-seeds 3
@@ -152,6 +152,7 @@ def closed_loop(
         cases=("closed",),
     )
     out: dict = {
+        "date": time.strftime("%Y-%m-%d"),
         "drive_laps": drive_laps,
         "train_laps": train_laps,
         "max_frames": frames,
@@ -289,6 +290,12 @@ def main(argv: list[str] | None = None) -> dict:
                 f"{1e3 * row['lateral_max_m']:>12.2f}"
             )
     RESULTS.mkdir(exist_ok=True)
+    previous = RESULTS / "mpc.json"
+    if not args.closed_loop and previous.exists():
+        # Keep the last closed-loop comparison (its own date says when it ran).
+        earlier = json.loads(previous.read_text()).get("closed_loop")
+        if earlier is not None:
+            out["closed_loop"] = earlier
     (RESULTS / "mpc.json").write_text(json.dumps(out, indent=2) + "\n")
     return out
 

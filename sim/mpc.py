@@ -324,8 +324,7 @@ class MpcController:
         """(N,) the path's curvature where the vehicle is planned to be at each step."""
         c, n = self.config, self.config.steps
         if self._plan is not None:
-            v = self._plan.states[1:, 3]
-            v = np.concatenate([v[1:], v[-1:]])  # the previous plan, one step on
+            v = self._plan.states[1:, 3]  # the previous plan's speeds, one step on
         else:
             v = np.full(n, c.reference_speed_mps)
         s0 = self.path.s_m[err.index]
