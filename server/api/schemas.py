@@ -11,7 +11,15 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
 
 from monoloc.core.measurement import (
     DEFAULT_COVARIANCE,
@@ -54,6 +62,18 @@ PATTERN_RULES.update(
     }
 )
 FRAME_RANGE_PATTERN = r"^\s*(?:-?\d*\s*:\s*-?\d*\s*(?::\s*(?:-?0*[1-9]\d*)?\s*)?)?$"
+
+
+def _integral(value: Any) -> Any:
+    """173.0 is the integer 173, as JSON Schema reads it (the OpenAPI's "integer"); a
+    strict model's int field takes it, and still refuses 173.5, true and "173"."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+# An integer field of a strict request body: a JSON number with no fraction.
+JsonInt = Annotated[int, BeforeValidator(_integral)]
 
 
 def _row(n: int) -> Any:
@@ -110,8 +130,8 @@ class Camera(BaseModel):
     fy: float = Field(gt=0)
     cx: float
     cy: float
-    width_px: int = Field(gt=0, le=100_000)
-    height_px: int = Field(gt=0, le=100_000)
+    width_px: JsonInt = Field(gt=0, le=100_000)
+    height_px: JsonInt = Field(gt=0, le=100_000)
 
 
 class MapCreate(BaseModel):

@@ -11,7 +11,13 @@ from pydantic import BaseModel, Field, field_validator
 
 from monoloc.server.api.openapi_rules import ADMIN_KEY_ALL_MAPS, rules_extra
 from monoloc.server.api.params import DB_ID_MAX
-from monoloc.server.api.schemas import TIME_EXAMPLE, example, record_example, strict_example
+from monoloc.server.api.schemas import (
+    TIME_EXAMPLE,
+    JsonInt,
+    example,
+    record_example,
+    strict_example,
+)
 from monoloc.server.storage.keys import SCOPES
 
 Scope = Literal["localize", "map:write", "metrics", "admin"]
@@ -27,7 +33,7 @@ class KeyCreate(BaseModel):
         description="1-128 characters, not only spaces (stored without surrounding spaces).",
     )
     scopes: list[Scope] = Field(min_length=1)
-    maps: list[Annotated[int, Field(ge=1, le=DB_ID_MAX)]] | None = Field(
+    maps: list[Annotated[JsonInt, Field(ge=1, le=DB_ID_MAX)]] | None = Field(
         default=None,
         min_length=1,
         max_length=1000,

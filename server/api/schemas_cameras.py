@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from monoloc.core.camera import CameraIntrinsics, LensDistortion
 from monoloc.server.api.openapi_rules import lens_model_pattern, lens_rules
-from monoloc.server.api.schemas import TIME_EXAMPLE
+from monoloc.server.api.schemas import TIME_EXAMPLE, JsonInt
 from monoloc.server.storage.cameras import CameraRecord
 
 _LENS = dict(
@@ -47,8 +47,8 @@ class CameraCreate(BaseModel):
     fy: float = Field(gt=0, description="Focal length y (px).")
     cx: float = Field(description="Principal point x (px; (0, 0): the top-left pixel's centre).")
     cy: float = Field(description="Principal point y (px).")
-    width_px: int = Field(gt=0, le=100_000, description="Width of the camera's images.")
-    height_px: int = Field(gt=0, le=100_000, description="Height of the camera's images.")
+    width_px: JsonInt = Field(gt=0, le=100_000, description="Width of the camera's images.")
+    height_px: JsonInt = Field(gt=0, le=100_000, description="Height of the camera's images.")
     distortion_model: str | None = Field(
         default=None,
         max_length=32,

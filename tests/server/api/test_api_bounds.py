@@ -163,6 +163,28 @@ def test_nested_objects_refuse_unknown_fields_too(fresh):
     assert spec["GeoOriginSpec"]["additionalProperties"] is False
 
 
+def test_integers_are_json_numbers_without_a_fraction(fresh):
+    """JSON Schema's integer takes 1241.0; the strict models refused it (422) though
+    the OpenAPI allowed it. They take it now, and still refuse a fraction, true and a
+    string."""
+    from api_helpers import camera_of
+
+    client, keys = fresh
+    admin = keys.header("admin")
+    for n, width in enumerate((1241.5, True, "1241")):
+        camera = {**camera_of(None), "width_px": width}
+        body = {"name": f"no{n}", "camera": camera}
+        assert client.post("/v1/maps", json=body, headers=admin).status_code == 422, width
+    camera = {**camera_of(None), "width_px": 1241.0, "height_px": 376.0}
+    made = client.post("/v1/maps", json={"name": "whole", "camera": camera}, headers=admin)
+    assert made.status_code == 201, made.text
+    assert made.json()["camera"]["width_px"] == 1241 and made.json()["camera"]["height_px"] == 376
+    key = {"name": "car", "scopes": ["localize"], "maps": [float(made.json()["id"])]}
+    created = client.post("/v1/keys", json=key, headers=admin)
+    assert created.status_code == 201 and created.json()["maps"] == [made.json()["id"]]
+    assert client.post("/v1/keys", json={**key, "maps": [1.5]}, headers=admin).status_code == 422
+
+
 def test_allow_lists_only_what_is_served(fresh):
     client, keys = fresh
     answer = client.request("PUT", "/v1/keys/me", headers=keys.header("admin"))
