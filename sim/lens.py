@@ -106,8 +106,8 @@ def lens_remap(camera: CameraIntrinsics) -> LensRemap:
         raise InvalidInputError("lens_remap needs a camera with lens distortion")
     w, h = camera.width_px, camera.height_px
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    source = undistort_points(np.c_[u.ravel(), v.ravel()], camera)
     pixels = np.c_[u.ravel(), v.ravel()]
+    source = undistort_points(pixels, camera)
     back = distort_points(source, camera) if np.isfinite(source).all() else None
     if back is None or np.abs(back - pixels).max() > INVERSE_TOLERANCE_PX:
         raise InvalidInputError(
