@@ -290,19 +290,34 @@ def _without_null(schema: dict[str, Any]) -> dict[str, Any]:
     return {**{k: v for k, v in schema.items() if k != "anyOf"}, **kept[0]}
 
 
+def _form_schemas(openapi: dict[str, Any], schema: dict[str, Any]) -> list[dict[str, Any]]:
+    """A form's schema and those it takes its fields from (``allOf``: a form model)."""
+    schema = _resolve(openapi, schema)
+    found = [schema]
+    for part in schema.get("allOf", []):
+        if "$ref" in part:
+            found += _form_schemas(openapi, part)
+    return found
+
+
 def document_form_parts(openapi: dict[str, Any]) -> None:
-    """A multipart form has no null: an optional part is left out. Each form's optional
-    parts are described without their null branch (in place)."""
+    """A multipart form has no null and no empty part: an optional part is left out, and
+    an empty one counts as left out. Each form's optional parts are described without
+    their null branch, its required text parts with at least one character (in place)."""
     for operations in openapi.get("paths", {}).values():
         for operation in operations.values():
             content = operation.get("requestBody", {}).get("content", {})
             form = content.get("multipart/form-data")
             if form is None:
                 continue
-            schema = _resolve(openapi, form["schema"])
-            properties = schema.get("properties", {})
-            for name, part in properties.items():
-                properties[name] = _without_null(part)
+            for schema in _form_schemas(openapi, form["schema"]):
+                properties = schema.get("properties", {})
+                for name, part in properties.items():
+                    properties[name] = _without_null(part)
+                for name in schema.get("required", []):
+                    part = properties.get(name, {})
+                    if part.get("type") == "string" and "contentMediaType" not in part:
+                        part.setdefault("minLength", 1)
 
 
 def document_cross_field_rules(openapi: dict[str, Any]) -> dict[str, Any]:
