@@ -303,9 +303,14 @@ def _form_schemas(openapi: dict[str, Any], schema: dict[str, Any]) -> list[dict[
 def document_form_parts(openapi: dict[str, Any]) -> None:
     """A multipart form has no null and no empty part: an optional part is left out, and
     an empty one counts as left out. Each form's optional parts are described without
-    their null branch, its required text parts with at least one character (in place)."""
+    their null branch, its required text parts with at least one character; optional
+    query parameters and headers without their null branch too (in place)."""
     for operations in openapi.get("paths", {}).values():
         for operation in operations.values():
+            for parameter in operation.get("parameters", []):
+                # a query parameter or header is left out, never null
+                if not parameter.get("required") and "schema" in parameter:
+                    parameter["schema"] = _without_null(parameter["schema"])
             content = operation.get("requestBody", {}).get("content", {})
             form = content.get("multipart/form-data")
             if form is None:
