@@ -149,9 +149,10 @@ class World:
         }
 
 
-def _entry_form(world_or_image: bytes, depth: bytes, x_m: float) -> dict[str, Any]:
+def _entry_form(image: bytes, depth: bytes, x_m: float) -> dict[str, Any]:
+    """An entry's form: the image, a depth image 10 m everywhere, the pose at x_m."""
     return {
-        "image": world_or_image,
+        "image": image,
         "depth": depth,
         "depth_scale": 1000.0,
         "T_world_from_cam": ",".join(str(v) for v in _T_world_from_cam(x_m).ravel()),
@@ -273,6 +274,8 @@ def _call(schema, label: str, **values: Any):
 
 # ---- one known-good request per operation ---------------------------------------------
 
+# (schema, world) -> the Case's values (path_parameters, query, body, media_type); it may
+# make what the request needs first (a running job to cancel)
 Prepare = Callable[[Any, World], dict[str, Any]]
 
 
