@@ -22,7 +22,8 @@ def generate(
     runs: str | None = typer.Option(
         None,
         help="comma-separated runs, one sequence each, in this order (default urban: "
-        "map,query,train,night,offcenter; indoor: map,query,train,offcenter)",
+        "map,query,train,night,offcenter; indoor: map,query,train,offcenter; urban also "
+        "nightmap, trainnight, fleet)",
     ),
     frames: int | None = typer.Option(None, help="at most this many frames per run"),
     scale: float = typer.Option(1.0, help="image scale (1 = KITTI 1241x376 / D435 640x480)"),
@@ -39,12 +40,19 @@ def generate(
     ),
     no_errors: bool = typer.Option(False, help="exact geometry: no recording errors"),
     workers: int = typer.Option(1, help="worker processes (runs are rendered in chunks)"),
+    fleet_camera: str = typer.Option(
+        "issue48",
+        help="urban: the camera of the `fleet` run (the query's drive by a fleet car's own "
+        "camera): issue48 (1024x576, f 640 px, plumb_bob), issue48_equidistant, "
+        "issue48_pinhole",
+    ),
 ) -> None:
     """Generate a city (KITTI odometry layout) or rooms with a race track (TUM RGB-D
     layout, one folder per run), drive the runs, and write dataset.json."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
+    from monoloc.sim.fleet_camera import FleetCameraConfig
     from monoloc.sim.generate import GenerateConfig, generate_dataset
     from monoloc.sim.recording import RecordingErrors
     from monoloc.sim.summary import frames_per_second_note
@@ -61,6 +69,7 @@ def generate(
         query_lighting=query_lighting,
         errors=RecordingErrors.none() if no_errors else RecordingErrors(),
         workers=workers,
+        fleet_camera=FleetCameraConfig.preset(fleet_camera),
     )
     config.validate()
     console = Console(stderr=True)

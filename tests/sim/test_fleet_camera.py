@@ -294,3 +294,30 @@ def test_datasets_without_the_fleet_run_are_as_before(fleet_dataset, tmp_path):
                 root / "sequences" / name / sub
             ).read_bytes()
         assert not (tmp_path / "sequences" / name / "camera.json").exists()
+
+
+def test_sim_generate_takes_a_fleet_camera_by_name_and_refuses_an_unknown_one(
+    monkeypatch, capsys, tmp_path
+):
+    import sys
+
+    from monoloc import cli
+
+    def run(*argv: str) -> tuple[int, str]:
+        monkeypatch.setattr(sys, "argv", ["monoloc", "sim", "generate", *argv])
+        try:
+            cli.main()
+            code = 0
+        except SystemExit as exited:
+            code = exited.code
+        return code, capsys.readouterr().err
+
+    base = ("--runs", "map,fleet", "--frames", "1", "--scale", "0.25", "--no-errors")
+    code, err = run("--out", str(tmp_path / "bad"), *base, "--fleet-camera", "gopro")
+    assert code != 0 and "unknown fleet camera 'gopro'" in err
+    assert not (tmp_path / "bad").exists()
+    out = tmp_path / "fisheye"
+    code, err = run("--out", str(out), *base, "--fleet-camera", "issue48_equidistant")
+    assert code in (0, None), err
+    camera = json.loads((out / "sequences" / "01" / "camera.json").read_text())
+    assert camera["distortion_model"] == "equidistant" and camera["fx"] == 130.0
