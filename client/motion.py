@@ -112,6 +112,24 @@ def predict(
     return advance(particles, speed, yaw_rate, dt_s, config.mount)
 
 
+def _recorded_steps(
+    poses_world: np.ndarray, timestamps_s: np.ndarray, speed_mps: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A recorded run's poses (N, 3), timestamps (N,), speeds (N,) as float arrays, and
+    the (N-1,) mask of consecutive frames both of which are finite (the steps to fit on).
+    Raises InvalidInputError when the shapes do not match."""
+    poses = np.asarray(poses_world, dtype=np.float64)
+    t = np.asarray(timestamps_s, dtype=np.float64)
+    v = np.asarray(speed_mps, dtype=np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 3 or len(t) != len(poses) or len(v) != len(poses):
+        raise InvalidInputError(
+            f"need poses (N, 3), timestamps (N,) and speeds (N,), got {poses.shape}, "
+            f"{t.shape}, {v.shape}"
+        )
+    ok = np.all(np.isfinite(poses), axis=1) & np.isfinite(t) & np.isfinite(v)
+    return poses, t, v, ok[:-1] & ok[1:]
+
+
 def fit_lever_arm_m(
     poses_world: np.ndarray,
     timestamps_s: np.ndarray,
@@ -128,16 +146,7 @@ def fit_lever_arm_m(
     Raises InvalidInputError when the run turns by less than ``min_turn_rad`` in total
     (nothing to fit on) or the inputs do not match.
     """
-    poses = np.asarray(poses_world, dtype=np.float64)
-    t = np.asarray(timestamps_s, dtype=np.float64)
-    v = np.asarray(speed_mps, dtype=np.float64)
-    if poses.ndim != 2 or poses.shape[1] != 3 or len(t) != len(poses) or len(v) != len(poses):
-        raise InvalidInputError(
-            f"need poses (N, 3), timestamps (N,) and speeds (N,), got {poses.shape}, "
-            f"{t.shape}, {v.shape}"
-        )
-    ok = np.all(np.isfinite(poses), axis=1) & np.isfinite(t) & np.isfinite(v)
-    pair = ok[:-1] & ok[1:]
+    poses, t, v, pair = _recorded_steps(poses_world, timestamps_s, speed_mps)
     dt = np.diff(t)[pair]
     psi0, psi1 = poses[:-1, 2][pair], poses[1:, 2][pair]
     turn = wrap_angle(psi1 - psi0)
@@ -173,16 +182,7 @@ def fit_mount(
     Raises InvalidInputError when the run turns by less than ``min_turn_rad`` in total
     or the inputs do not match.
     """
-    poses = np.asarray(poses_world, dtype=np.float64)
-    t = np.asarray(timestamps_s, dtype=np.float64)
-    v = np.asarray(speed_mps, dtype=np.float64)
-    if poses.ndim != 2 or poses.shape[1] != 3 or len(t) != len(poses) or len(v) != len(poses):
-        raise InvalidInputError(
-            f"need poses (N, 3), timestamps (N,) and speeds (N,), got {poses.shape}, "
-            f"{t.shape}, {v.shape}"
-        )
-    ok = np.all(np.isfinite(poses), axis=1) & np.isfinite(t) & np.isfinite(v)
-    pair = ok[:-1] & ok[1:]
+    poses, t, v, pair = _recorded_steps(poses_world, timestamps_s, speed_mps)
     psi0, psi1 = poses[:-1, 2][pair], poses[1:, 2][pair]
     turn = wrap_angle(psi1 - psi0)
     if np.abs(turn).sum() < min_turn_rad:
