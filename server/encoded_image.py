@@ -20,7 +20,8 @@ repeat scans over the same pixels without limit. Before OpenCV sees the bytes:
   marker cannot occur inside it) and refuse more than a real progressive file uses.
 
 So a hostile image costs at most about what a real image of its declared size costs.
-Pure bytes in, bytes out; errors are ``InvalidInputError`` (HTTP 422).
+:func:`png_gray8_pixels` decodes the common mono camera PNG itself from the stream
+inflated here. Pure bytes in, bytes (or pixels) out; errors are ``InvalidInputError`` (HTTP 422).
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ import struct
 import zlib
 from dataclasses import dataclass
 from typing import Literal
+
+import numpy as np
 
 from monoloc.core.errors import InvalidInputError
 
@@ -178,9 +181,9 @@ def _inflate_exactly(idat: list[bytes], expected: int, what: str) -> bytes:
     return b"".join(outs)
 
 
-def bounded_png(data: bytes, what: str) -> bytes:
-    """A PNG whose decoding costs what its header declares: the critical chunks only,
-    with the image data checked to inflate to exactly the declared size."""
+def _checked_png(data: bytes, what: str) -> tuple[bytes, dict[bytes, bytes], bytes]:
+    """(IHDR payload, kept critical chunks, the inflated filtered scanlines) of a PNG
+    whose header is valid and whose image data inflates to exactly the declared size."""
     if not data.startswith(PNG_SIGNATURE):
         raise InvalidInputError(f"{what}: not a PNG")
     ihdr, kept, idat = _png_chunks(data, what)
@@ -193,14 +196,42 @@ def bounded_png(data: bytes, what: str) -> bytes:
             f"compression {compression}, filter {filtering}, interlace {interlace})"
         )
     expected = png_filtered_size(width, height, depth, color, bool(interlace))
+    return ihdr, kept, _inflate_exactly(idat, expected, what)
+
+
+def bounded_png(data: bytes, what: str) -> bytes:
+    """A PNG whose decoding costs what its header declares: the critical chunks only,
+    with the image data checked to inflate to exactly the declared size."""
+    ihdr, kept, filtered = _checked_png(data, what)
     # Inflated once here; the decoder gets the scanlines in stored (level 0) deflate
     # blocks, which it copies instead of inflating them a second time (a camera frame:
     # 6.2 instead of 9.0 ms to decode, identical pixels).
-    stream = zlib.compress(_inflate_exactly(idat, expected, what), 0)
+    stream = zlib.compress(filtered, 0)
     parts = [PNG_SIGNATURE, _chunk(b"IHDR", ihdr)]
     parts += [_chunk(kind, kept[kind]) for kind in _KEPT_CHUNKS if kind in kept]
     parts += [_chunk(b"IDAT", stream), _chunk(b"IEND", b"")]
     return b"".join(parts)
+
+
+def png_gray8_pixels(data: bytes, what: str) -> np.ndarray | None:
+    """(H, W) uint8 of an 8-bit grayscale, non-interlaced PNG without PLTE or tRNS (a
+    mono camera's frame), unfiltered here from the stream inflated once to bound it: no
+    rebuilt file and no second pass by libpng (a noisy 1241 x 376 frame: about half the
+    time of ``bounded_png`` + ``cv2.imdecode``, identical pixels). None for any other
+    PNG, which the decoder gets through :func:`bounded_png`."""
+    if len(data) < 33 or data[24:26] != b"\x08\x00" or data[28] != 0:
+        return None  # header bytes: bit depth 8, colour type 0, interlace 0
+    ihdr, kept, filtered = _checked_png(data, what)
+    width, height, depth, color, _, _, interlace = struct.unpack(">IIBBBBB", ihdr)
+    if kept or (depth, color, interlace) != (8, 0, 0):
+        return None
+    from monoloc.server._png_kernel import unfilter_rows
+
+    pixels = np.empty((height, width), dtype=np.uint8)
+    bad_row = unfilter_rows(np.frombuffer(filtered, dtype=np.uint8), height, width, 1, pixels)
+    if bad_row >= 0:
+        raise InvalidInputError(f"{what}: PNG row {bad_row} has an unknown filter type")
+    return pixels
 
 
 def check_jpeg_scans(data: bytes, what: str) -> None:

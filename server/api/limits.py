@@ -30,6 +30,7 @@ from monoloc.server.encoded_image import (
     PNG_SIGNATURE,
     ImageInfo,
     bounded_for_decoding,
+    png_gray8_pixels,
     read_image_header,
 )
 
@@ -139,8 +140,10 @@ def decode_gray(data: bytes, info: ImageInfo, what: str) -> np.ndarray:
     size its header announced."""
     import cv2
 
-    data = bounded_for_decoding(data, what)
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    image = png_gray8_pixels(data, what) if info.kind == "png" else None
+    if image is None:
+        data = bounded_for_decoding(data, what)
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
     if image is None or image.shape != (info.height_px, info.width_px):
         raise InvalidInputError(f"{what}: the {info.kind.upper()} data cannot be decoded")
     return image

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from monoloc.core.camera import KITTI_CAM0
+from monoloc.server._png_kernel import unfilter_rows
 from monoloc.server.vision.matching import match_descriptors
 from monoloc.server.vision.pnp import (
     PnpConfig,
@@ -26,9 +27,9 @@ from monoloc.server.vision.vlad import compute_vlad
 
 
 def warm_up() -> None:
-    """Run the VLAD kernels, the matching kernel, PnP (RANSAC's inlier scoring + LM,
-    guided PnP's guess scoring), matching by projection and the pose covariance once on a
-    small exact scene."""
+    """Run the PNG unfiltering kernel, the VLAD kernels, the matching kernel, PnP
+    (RANSAC's inlier scoring + LM, guided PnP's guess scoring), matching by projection and
+    the pose covariance once on a small exact scene."""
     rng = np.random.default_rng(0)
     descriptors = rng.integers(0, 256, size=(4, 32), dtype=np.uint8)
     compute_vlad(descriptors, descriptors[:2].astype(np.float32))
@@ -47,3 +48,7 @@ def warm_up() -> None:
     refit_relative_pose(pixels, points_cam, np.eye(4), camera, PnpConfig(), "ransac")
     # each hypothesis's pose covariance (the localizer's default), weighted by keypoint scales
     planar_pose_covariance(np.eye(4), points_cam, camera, keypoint_scales=np.ones(len(pixels)))
+    # a mono PNG's scanlines (encoded_image.png_gray8_pixels), every filter type
+    filtered = np.zeros((5, 3), dtype=np.uint8)
+    filtered[:, 0] = np.arange(5)
+    unfilter_rows(filtered.ravel(), 5, 2, 1, np.empty((5, 2), dtype=np.uint8))

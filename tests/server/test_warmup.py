@@ -11,6 +11,7 @@ import sys
 _PROBE = """
 import json
 from numba.core.registry import CPUDispatcher
+from monoloc.server import _png_kernel
 from monoloc.server.index import _scan_kernel
 from monoloc.server.vision import (
     _covariance_kernel, _hamming_kernel, _pnp_kernel, _vlad_kernel, _window_kernel,
@@ -26,7 +27,8 @@ if WARM:
     warm_up_index()
 kernels = {{}}
 for module in (
-    _covariance_kernel, _hamming_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel, _window_kernel,
+    _covariance_kernel, _hamming_kernel, _png_kernel, _pnp_kernel, _scan_kernel, _vlad_kernel,
+    _window_kernel,
 ):
     for name, obj in vars(module).items():
         if isinstance(obj, CPUDispatcher) and obj.__module__ == module.__name__:
