@@ -33,6 +33,10 @@ class RecordingErrors:
     the error moves by about a millimetre, not by the 5 mm a first-order process of that
     size and time constant moves in 0.1 s, which would be a 0.05 m/s rate error against
     the RT3000's 0.05 km/h (0.014 m/s) RMS velocity accuracy.
+    ``pose_frame_error_m``: horizontal RMS of a further error drawn anew for every frame
+    (white, uncorrelated between neighbouring frames; 0, off, by default): what a
+    pose source that is not smoothed frame to frame adds, e.g. GNSS multipath jumps or a
+    ground truth refined per frame (docs/sim.md; issue 47's decimetre lead).
 
     LiDAR: ``lidar_motion_distortion``: columns fire over the 0.1 s sweep while the car
     moves, points not compensated. ``lidar_sync_offset_s``: the camera is not triggered
@@ -61,6 +65,7 @@ class RecordingErrors:
     pose_tilt_error_rad: float = math.radians(0.03)
     pose_error_time_s: float = 20.0
     pose_error_smoothing_s: float = 1.0
+    pose_frame_error_m: float = 0.0
     speed_scale_error: float = 0.01
     speed_bias_mps: float = 0.02
     speed_noise_mps: float = 0.05
@@ -83,6 +88,7 @@ class RecordingErrors:
             pose_vertical_error_m=0.0,
             pose_yaw_error_rad=0.0,
             pose_tilt_error_rad=0.0,
+            pose_frame_error_m=0.0,
             speed_scale_error=0.0,
             speed_bias_mps=0.0,
             speed_noise_mps=0.0,
@@ -113,7 +119,13 @@ class RecordingErrors:
 
 
 ERROR_GROUPS: dict[str, tuple[str, ...]] = {
-    "pose": ("pose_error_m", "pose_vertical_error_m", "pose_yaw_error_rad", "pose_tilt_error_rad"),
+    "pose": (
+        "pose_error_m",
+        "pose_vertical_error_m",
+        "pose_yaw_error_rad",
+        "pose_tilt_error_rad",
+        "pose_frame_error_m",
+    ),
     "calibration": ("calib_translation_m", "calib_rotation_rad"),
     "lidar_timing": ("lidar_motion_distortion", "lidar_sync_offset_s", "lidar_sync_jitter_s"),
     "signals": (
@@ -185,10 +197,13 @@ def apply_pose_errors(
     times_s: np.ndarray,
     errors: RecordingErrors,
     rng: np.random.Generator,
+    frame_rng: np.random.Generator | None = None,
 ) -> np.ndarray:
     """(n, 4, 4) written poses: the true ones (n, 4, 4) with slowly varying horizontal and
     vertical position offsets and small heading, roll and pitch errors (about the
-    camera's own centre)."""
+    camera's own centre), plus the white per-frame horizontal error
+    (``pose_frame_error_m``) drawn from ``frame_rng`` (its own stream, so turning it on
+    leaves every other draw as it was; required when that error is on)."""
     tau, lp = errors.pose_error_time_s, errors.pose_error_smoothing_s
     ex = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng, lp)
     ey = smooth_random(times_s, errors.pose_error_m / math.sqrt(2), tau, rng, lp)
@@ -201,6 +216,11 @@ def apply_pose_errors(
     out[:, 0, 3] += ex
     out[:, 1, 3] += ey
     out[:, 2, 3] += ez
+    if errors.pose_frame_error_m > 0:
+        if frame_rng is None:
+            raise ValueError("pose_frame_error_m needs frame_rng")
+        white = frame_rng.standard_normal((len(out), 2))
+        out[:, :2, 3] += errors.pose_frame_error_m / math.sqrt(2) * white
     return out
 
 

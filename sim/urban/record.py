@@ -67,7 +67,9 @@ def prepare_run_files(plan, config, out_dir: Path) -> WrittenRun:
     rng = np.random.default_rng([plan.seed, 1])
     errors = config.errors
     T_true = true_camera_poses(plan, config.rig)
-    T_written = apply_pose_errors(T_true, plan.frame_times_s, errors, rng)
+    T_written = apply_pose_errors(
+        T_true, plan.frame_times_s, errors, rng, np.random.default_rng([plan.seed, 6])
+    )
     T_cam_from_lidar = invert_rigid(T_vehicle_from_run_cam(plan, config.rig)) @ (
         config.rig.T_vehicle_from_lidar()
     )

@@ -291,3 +291,27 @@ def test_error_groups_hold_every_error_once_and_only_turns_on_those():
     )
     with pytest.raises(InvalidInputError, match="unknown recording error groups"):
         RecordingErrors.only("pose", "weather")
+
+
+def test_frame_pose_error_is_white_of_its_size_and_leaves_the_rest_as_it_was(
+    tmp_path, city_and_plans
+):
+    """``pose_frame_error_m`` adds a horizontal error drawn anew every frame (issue 47):
+    neighbouring frames' errors uncorrelated, RMS as stated, heading and every other draw
+    of the run unchanged (its own random stream)."""
+    config, _, plans = city_and_plans
+    plan = plans[0]
+    base = RecordingErrors()
+    white = replace(base, pose_frame_error_m=0.2)
+    smooth_err, _ = _pose_errors(plan, config, base, tmp_path)
+    white_err, _ = _pose_errors(plan, config, white, tmp_path)
+    extra = white_err[:, :2] - smooth_err[:, :2]
+    rms = math.sqrt(np.mean(np.sum(extra**2, axis=1)))
+    assert 0.8 * 0.2 < rms < 1.2 * 0.2
+    assert max(abs(_autocorrelation(extra[:, c], 1)) for c in range(2)) < 0.2
+    np.testing.assert_array_equal(white_err[:, 2], smooth_err[:, 2])
+    a = prepare_run_files(plan, replace(config, errors=base), tmp_path)
+    b = prepare_run_files(plan, replace(config, errors=white), tmp_path)
+    np.testing.assert_array_equal(a.Tr_written, b.Tr_written)
+    np.testing.assert_array_equal(a.speed_mps, b.speed_mps)
+    assert RecordingErrors().pose_frame_error_m == 0.0  # off by default
