@@ -64,10 +64,17 @@ class IndoorLoopWorld:
     run_format = "tum"
 
     def __init__(
-        self, size: str = "small", seed: int = 0, sensor_noise: bool = True, bare_end: bool = True
+        self,
+        size: str = "small",
+        seed: int = 0,
+        sensor_noise: bool = True,
+        bare_end: bool = True,
+        near_clutter: bool = True,
     ) -> None:
-        """``bare_end`` False: the rooms without their featureless end (RoomConfig)."""
+        """``bare_end`` False: the rooms without their featureless end; ``near_clutter``
+        False: without the chairs, stands and legs beside the tape (RoomConfig)."""
         from monoloc.sim.indoor.plan import SCALE_CAR, IndoorConfig
+        from monoloc.sim.indoor.room import NearClutterConfig
         from monoloc.sim.indoor.world import build_world
 
         self.seed = seed
@@ -77,6 +84,13 @@ class IndoorLoopWorld:
                 self.config,
                 main_room=replace(self.config.main_room, featureless_end_m=0.0),
                 train_room=replace(self.config.train_room, featureless_end_m=0.0),
+            )
+        if not near_clutter:
+            none = NearClutterConfig(items=0)
+            self.config = replace(
+                self.config,
+                main_room=replace(self.config.main_room, near_clutter=none),
+                train_room=replace(self.config.train_room, near_clutter=none),
             )
         self.world = build_world(self.config.rooms(), seed)
         self.sensor_noise = sensor_noise

@@ -6,8 +6,9 @@ pegboards, lockers and bins, and some long stretches of bare paint (the method's
 case); furniture stands against the walls (shelving units, cabinets, lockers), a table
 and boxes in the infield. Obstacles (cardboard boxes, foam blocks) near the track are
 separate from the static scene so that a run can have them moved, as between two
-sessions in a lab. The world has a main room (map, query, off-centre runs) and a
-training room 60 m away along +x (never seen by them).
+sessions in a lab; chairs, stands and people's legs stand right beside the tape (near
+clutter, ``monoloc.sim.indoor.clutter``). The world has a main room (map, query,
+off-centre runs) and a training room 60 m away along +x (never seen by them).
 
 World frame: the motion-capture frame, origin on the floor at the centre of the main
 room, x along its long side, z up.
@@ -19,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from monoloc.sim.indoor.clutter import add_near_clutter
 from monoloc.sim.indoor.furniture import add_furniture
 from monoloc.sim.indoor.infield import add_infield, obstacle_slots
 from monoloc.sim.indoor.room import RoomConfig, lamp_positions, room_bounds
@@ -96,6 +98,8 @@ def build_room(name: str, config: RoomConfig, seed: int) -> Room:
     add_furniture(b, rng, config, track, walls)
     add_infield(b, rng, config, track)
     slots = obstacle_slots(rng, config, track, walls)
+    # Its own stream: the rest of the room is the same with or without near clutter.
+    add_near_clutter(b, np.random.default_rng([seed, 5]), config, track)
     return Room(name, config, track, b.build(), slots, floor_style)
 
 
