@@ -26,13 +26,15 @@ Goal per cell: the filter within 1.2x its joint poses' RMSE and never worse than
 default model. Writes bench/results/transfer.json.
 Usage: python -m bench.transfer [--size small] [--frames 100] [--scale 1.0]
 [--depth-from stereo] [--data bench/data] [--train TEXT] [--test TEXT]
-[--pose-frame-error-m 0.1]
+[--pose-frame-error-m 0.1] [--stereo-disparity-error-px 0.2]
 
 ``--train`` / ``--test`` keep the environments whose names contain the text (a bounded
 run over a few cells). ``--pose-frame-error-m`` records every run with that white
-per-frame ground-truth pose error (``RecordingErrors.pose_frame_error_m``); the images
-do not depend on it, so a dataset already rendered without it lends its images
-(symlinked) and only the recording's files are written anew.
+per-frame ground-truth pose error (``RecordingErrors.pose_frame_error_m``),
+``--stereo-disparity-error-px`` with that disparity offset per run (the right image
+shifted); the renders do not depend on either, so a dataset already rendered without them
+lends its images (symlinked; right images shifted) and the recording's files are written
+anew by the sim's code.
 """
 
 from __future__ import annotations
@@ -265,15 +267,20 @@ def rerecord(config: GenerateConfig, source: Path, root: Path) -> None:
     ``source``, a dataset generated from the same config with other pose errors only (the
     renders do not depend on them): the runs' recorded files (poses, calibration, times,
     signals, dataset.json) written by the sim's own recording code."""
+    import cv2
+
     from monoloc.core.formats import kitti
     from monoloc.sim import kitti_writer as kw
+    from monoloc.sim.recording import shift_right_image
     from monoloc.sim.urban.city import build_city
     from monoloc.sim.urban.info import dataset_info, kitti_world
     from monoloc.sim.urban.record import prepare_run_files, write_run_metadata
     from monoloc.sim.urban.runs import plan_runs
 
     theirs = json.loads((source / "dataset.json").read_text())["recording_errors"]
-    ours = replace(config.errors, pose_frame_error_m=0.0).to_dict()
+    ours = replace(
+        config.errors, pose_frame_error_m=0.0, stereo_disparity_error_px=0.0
+    ).to_dict()
     if {k: theirs.get(k, 0.0) for k in ours} != ours:
         raise ValueError(f"{source} was recorded with other errors than the pose's")
     plans = plan_runs(build_city(config.city_config(), config.seed), config)
@@ -289,7 +296,14 @@ def rerecord(config: GenerateConfig, source: Path, root: Path) -> None:
                 n = len(list((theirs_seq / sub).iterdir()))
                 if n != len(plan.frame_times_s):
                     raise ValueError(f"{theirs_seq / sub} holds {n} frames, not the plan's")
-                (seq / sub).symlink_to((theirs_seq / sub).resolve())
+                offset_px = written[plan.seq_id].draws.stereo_disparity_offset_px
+                if sub != "image_1" or offset_px == 0:
+                    (seq / sub).symlink_to((theirs_seq / sub).resolve())
+                    continue
+                (seq / sub).mkdir()
+                for path in sorted((theirs_seq / sub).iterdir()):
+                    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+                    kw.write_image(seq / sub / path.name, shift_right_image(image, offset_px))
         write_run_metadata(plan, written[plan.seq_id], frames, config, root)
     kw.write_dataset_json(root, dataset_info(config, plans, written, frames))
 
@@ -422,8 +436,14 @@ def run(args) -> dict:
     stereo = args.depth_from == "stereo"
     depth = "_stereo" if stereo else ""
     tag = f"{args.frames}f_x{args.scale:g}{depth}"
-    errors = replace(RecordingErrors(), pose_frame_error_m=args.pose_frame_error_m)
+    errors = replace(
+        RecordingErrors(),
+        pose_frame_error_m=args.pose_frame_error_m,
+        stereo_disparity_error_px=args.stereo_disparity_error_px,
+    )
     white = f"_white{args.pose_frame_error_m:g}m" if args.pose_frame_error_m > 0 else ""
+    if args.stereo_disparity_error_px > 0:
+        white += f"_disp{args.stereo_disparity_error_px:g}px"
     train_envs = {k: v for k, v in TRAIN_ENVS.items() if args.train in k}
     test_envs = {k: v for k, v in TEST_ENVS.items() if args.test in k}
     if not train_envs or not test_envs:
@@ -453,6 +473,7 @@ def run(args) -> dict:
         "image_scale": args.scale,
         "depth_from": args.depth_from,
         "pose_frame_error_m": args.pose_frame_error_m,
+        "stereo_disparity_error_px": args.stereo_disparity_error_px,
         "goal": f"filter <= {GOAL_JOINT_RATIO}x its joint poses' RMSE and <= the default model",
         "train": {},
         "test": {},
@@ -593,6 +614,12 @@ def main() -> None:
         type=float,
         default=0.0,
         help="white per-frame ground-truth pose error of every run (RecordingErrors)",
+    )
+    parser.add_argument(
+        "--stereo-disparity-error-px",
+        type=float,
+        default=0.0,
+        help="1 sigma of each run's stereo disparity offset (RecordingErrors)",
     )
     parser.add_argument("--out", default="transfer.json", help="file name under bench/results")
     args = parser.parse_args()

@@ -46,6 +46,12 @@ class RecordingErrors:
     ``calib_rotation_rad``: size of the error of a run's written LiDAR-to-camera
     calibration (0.02 m, 0.2 deg: target-based calibration).
 
+    Stereo: ``stereo_disparity_error_px``: 1 sigma of a run's disparity offset, the right
+    image written shifted horizontally by the run's own draw (a residual of the stereo
+    rectification: the two principal points off against the written calibration), so the
+    depth a map computes from the pair is off by z^2 / (f B) times the offset, growing
+    with the square of the depth (0, off, by default; docs/sim.md).
+
     Camera: ``exposure_bias_ev``: 1 sigma of a run's auto-exposure offset (0.5 EV);
     ``material_gain``: 1 sigma (log) of a run's per-material gray-level change (0.1: a
     mono sensor under another illuminant colour sees coloured materials at other relative
@@ -59,6 +65,7 @@ class RecordingErrors:
     lidar_sync_jitter_s: float = 0.002
     calib_translation_m: float = 0.02
     calib_rotation_rad: float = math.radians(0.2)
+    stereo_disparity_error_px: float = 0.0
     pose_error_m: float = 0.05
     pose_vertical_error_m: float = 0.03
     pose_yaw_error_rad: float = math.radians(0.1)
@@ -84,6 +91,7 @@ class RecordingErrors:
             lidar_sync_jitter_s=0.0,
             calib_translation_m=0.0,
             calib_rotation_rad=0.0,
+            stereo_disparity_error_px=0.0,
             pose_error_m=0.0,
             pose_vertical_error_m=0.0,
             pose_yaw_error_rad=0.0,
@@ -126,7 +134,7 @@ ERROR_GROUPS: dict[str, tuple[str, ...]] = {
         "pose_tilt_error_rad",
         "pose_frame_error_m",
     ),
-    "calibration": ("calib_translation_m", "calib_rotation_rad"),
+    "calibration": ("calib_translation_m", "calib_rotation_rad", "stereo_disparity_error_px"),
     "lidar_timing": ("lidar_motion_distortion", "lidar_sync_offset_s", "lidar_sync_jitter_s"),
     "signals": (
         "speed_scale_error",
@@ -251,6 +259,28 @@ def lidar_time_offsets_s(
     jitter of ``lidar_sync_jitter_s``. Zeros when both are 0."""
     offset = rng.uniform(-1.0, 1.0) * errors.lidar_sync_offset_s
     return offset + errors.lidar_sync_jitter_s * rng.standard_normal(n_frames)
+
+
+def stereo_disparity_offset_px(errors: RecordingErrors, rng: np.random.Generator) -> float:
+    """A run's disparity offset in pixels (0 when ``stereo_disparity_error_px`` is 0)."""
+    if errors.stereo_disparity_error_px <= 0:
+        return 0.0
+    return float(errors.stereo_disparity_error_px * rng.standard_normal())
+
+
+def shift_right_image(image: np.ndarray, offset_px: float) -> np.ndarray:
+    """The right image (H, W) uint8 as written under a disparity offset: moved left by
+    ``offset_px`` (bilinear, edge pixels repeated), so every disparity x_left - x_right
+    measured on the pair grows by ``offset_px``. The image itself when it is 0."""
+    if offset_px == 0:
+        return image
+    import cv2
+
+    shift = np.array([[1.0, 0.0, -offset_px], [0.0, 1.0, 0.0]])
+    size = (image.shape[1], image.shape[0])
+    return cv2.warpAffine(
+        image, shift, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
 
 
 def exposure_bias_ev(errors: RecordingErrors, rng: np.random.Generator) -> float:

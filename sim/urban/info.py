@@ -36,6 +36,14 @@ def _matrix(T: np.ndarray) -> list[list[float]]:
     return [[float(v) for v in row] for row in np.asarray(T)]
 
 
+def _stereo_keys(draws) -> dict:
+    """The run's disparity offset, written only when the error is on (the default
+    recording's dataset.json keeps its bytes)."""
+    if draws.stereo_disparity_offset_px == 0:
+        return {}
+    return {"stereo_disparity_offset_px": round(draws.stereo_disparity_offset_px, 4)}
+
+
 def dataset_info(config, plans, written, frames) -> dict:
     """dataset.json of ``config`` (a ``monoloc.sim.generate.GenerateConfig``): its
     ``plans``, the ``written`` calibration of each run and the world ``frames``
@@ -101,6 +109,7 @@ def dataset_info(config, plans, written, frames) -> dict:
                 "lidar_time_offset_mean_s": round(
                     float(np.mean(written[p.seq_id].draws.lidar_time_offsets_s)), 5
                 ),
+                **_stereo_keys(written[p.seq_id].draws),
                 **_train_run_keys(p, config),
                 **_camera_keys(p, config),
             }

@@ -22,6 +22,8 @@ from monoloc.sim.recording import (
     material_gains,
     measured_signals,
     perturb_calibration,
+    shift_right_image,
+    stereo_disparity_offset_px,
 )
 from monoloc.sim.scene import concat_scenes
 from monoloc.sim.textures import TextureBank
@@ -46,11 +48,13 @@ class WrittenRun:
 @dataclass(frozen=True)
 class RunDraws:
     """A run's own draw of the camera and LiDAR errors: exposure offset (EV), each
-    frame's LiDAR sweep centre minus its exposure time (n,) s. Deterministic in the run's
-    seed; the rendering workers and dataset.json get the same values."""
+    frame's LiDAR sweep centre minus its exposure time (n,) s, the stereo pair's disparity
+    offset (px). Deterministic in the run's seed; the rendering workers and dataset.json
+    get the same values."""
 
     exposure_bias_ev: float
     lidar_time_offsets_s: np.ndarray
+    stereo_disparity_offset_px: float = 0.0
 
 
 def run_draws(plan, errors) -> RunDraws:
@@ -59,6 +63,7 @@ def run_draws(plan, errors) -> RunDraws:
     return RunDraws(
         exposure_bias_ev(errors, np.random.default_rng([plan.seed, 2])),
         lidar_time_offsets_s(n, errors, np.random.default_rng([plan.seed, 4])),
+        stereo_disparity_offset_px(errors, np.random.default_rng([plan.seed, 7])),
     )
 
 
@@ -185,7 +190,8 @@ def render_chunk(config, plan, first: int, last: int, out_dir: Path) -> None:
                 exposure=frame.exposure,
                 material_gain=gains,
             )
-            kw.write_image(seq / "image_1" / f"{k:06d}.png", right.image)
+            right_image = shift_right_image(right.image, draws.stereo_disparity_offset_px)
+            kw.write_image(seq / "image_1" / f"{k:06d}.png", right_image)
         if config.write_depth:
             kw.write_depth(seq / "depth" / f"{k:06d}.png", frame.depth_m)
         if config.write_lidar:

@@ -315,3 +315,46 @@ def test_frame_pose_error_is_white_of_its_size_and_leaves_the_rest_as_it_was(
     np.testing.assert_array_equal(a.Tr_written, b.Tr_written)
     np.testing.assert_array_equal(a.speed_mps, b.speed_mps)
     assert RecordingErrors().pose_frame_error_m == 0.0  # off by default
+
+
+def test_stereo_disparity_offset_moves_what_sgbm_measures_by_the_offset():
+    """``shift_right_image`` writes the right image so that the server's own stereo
+    matcher measures every disparity larger by the offset (issue 47's stereo lead)."""
+    from monoloc.server.vision.stereo import disparity_map
+    from monoloc.sim.recording import shift_right_image
+
+    rng = np.random.default_rng(11)
+    import cv2
+
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (200, 400)).astype(np.uint8), (3, 3), 0)
+    left, right = texture[:, 60:360], texture[:, 72:372]  # disparity 12 px everywhere
+    fx_px, baseline_m = 718.0, 0.54
+
+    def mean_disparity(r):
+        d = disparity_map(left, r, fx_px, baseline_m)[20:-20, 80:-20]
+        return float(np.mean(d[d > 0]))
+
+    before = mean_disparity(right)
+    assert abs(before - 12.0) < 0.02
+    assert abs(mean_disparity(shift_right_image(right, 1.0)) - before - 1.0) < 0.02
+    # SGBM's sub-pixel fit pulls fractions toward whole pixels (pixel locking): a
+    # fractional offset shows at 0.5-1x its size, always its sign
+    for offset_px in (0.3, -0.5):
+        moved = mean_disparity(shift_right_image(right, offset_px)) - before
+        assert 0.5 * abs(offset_px) < abs(moved) <= 1.05 * abs(offset_px)
+        assert np.sign(moved) == np.sign(offset_px)
+    assert shift_right_image(right, 0.0) is right
+
+
+def test_stereo_disparity_offset_is_a_runs_own_draw_and_off_by_default(city_and_plans):
+    from monoloc.sim.urban.record import run_draws
+
+    _, _, plans = city_and_plans
+    assert RecordingErrors().stereo_disparity_error_px == 0.0
+    assert run_draws(plans[0], RecordingErrors()).stereo_disparity_offset_px == 0.0
+    on = replace(RecordingErrors(), stereo_disparity_error_px=0.2)
+    offsets = [run_draws(p, on).stereo_disparity_offset_px for p in plans]
+    assert len(set(offsets)) == len(plans) and all(0 < abs(o) < 1.0 for o in offsets)
+    a, b = run_draws(plans[0], RecordingErrors()), run_draws(plans[0], on)
+    assert a.exposure_bias_ev == b.exposure_bias_ev
+    np.testing.assert_array_equal(a.lidar_time_offsets_s, b.lidar_time_offsets_s)
