@@ -52,10 +52,14 @@ def test_near_clutter_stands_just_beside_the_tape_and_off_the_bare_end():
 @pytest.fixture(scope="module")
 def shares() -> dict[bool, dict]:
     config = OffsetStudyConfig(stations=6, lateral_m=(0.0, 0.10), heading_deg=())
-    return {
-        clutter: offset_study(IndoorLoopWorld("small", 0, near_clutter=clutter), config)
-        for clutter in (True, False)
-    }
+    with_clutter = IndoorLoopWorld("small", 0, near_clutter=True)
+    without = IndoorLoopWorld("small", 0, near_clutter=False)
+    out = {True: offset_study(with_clutter, config)}
+    # The rooms are the same but for the clutter: the textures (keyed by their spec) are
+    # shared rather than generated twice.
+    without._bank = with_clutter._bank
+    out[False] = offset_study(without, config)
+    return out
 
 
 def test_known_share_falls_faster_with_lateral_offset_with_near_clutter(shares):
