@@ -11,10 +11,12 @@ thread for the pipeline):
   road (seed 4721, district 9003); its even frames form the map, its odd frames query it.
 
 Bodies: the frame's PNG as the sim wrote it, and JPEG quality 90 and 75 of the same
-pixels (``cv2.imencode``, not timed). Per request the server's own stages (decode,
-features = blur + ORB, vlad, retrieval, lookup, matching, pnp = every pose of the frame:
-RANSAC, guided PnP, joint, pooled, refinement by projection) and "response" (the client's
-wall time minus the server's total: multipart parsing, JSON, the event loop). Per format:
+pixels (``cv2.imencode``, not timed); a fourth row sends the JPEG 90 bodies with k = 5
+(half the retrieved entries), to show what the entries cost. Per request the server's
+own stages (decode, features = blur + ORB, vlad, retrieval, lookup, matching, pnp =
+every pose of the frame: RANSAC, guided PnP, joint, pooled, refinement by projection)
+and "response" (the client's wall time minus the server's total: multipart parsing,
+JSON, the event loop). Per row:
 p50 per stage, total / features at p50 (the goal: <= 2x), the per-frame position error of
 the first hypothesis (most inliers) against the written ground truth (median, share
 < 0.25 m), bytes per body. Beside it, where the pose stage spends its time (cProfile of
@@ -43,6 +45,10 @@ DATA = Path(__file__).parent / "data" / "transfer"
 ADMIN_KEY = "mlk_" + "B" * 43
 GOAL_X_FEATURES = 2.0
 FORMATS = ("png", "jpeg90", "jpeg75")
+# Rows of the HTTP table: (name, body format, k sent; None: the server's default, 10).
+# "jpeg90 k=5": the same JPEG 90 bodies with half the entries retrieved, to show how the
+# matching and pose stages scale with the entries that go through them.
+ROWS = (*((f, f, None) for f in FORMATS), ("jpeg90 k=5", "jpeg90", 5))
 STAGES = ("decode", "features", "vlad", "retrieval", "lookup", "matching", "pnp", "response")
 
 
@@ -160,20 +166,21 @@ def measure_http(data_dir: Path, map_id: int, queries, passes: int) -> dict:
         from fastapi.testclient import TestClient
 
     settings = Settings(data_dir=data_dir, bootstrap_admin_key=ADMIN_KEY, worker_threads=1)
-    samples = {f: [] for f in FORMATS}
-    errors = {f: [] for f in FORMATS}
-    sizes = {f: [] for f in FORMATS}
+    samples = {name: [] for name, _, _ in ROWS}
+    errors = {name: [] for name, _, _ in ROWS}
+    sizes = {name: [] for name, _, _ in ROWS}
     headers = {"X-API-Key": ADMIN_KEY}
     with TestClient(create_app(settings)) as client:
         for p in range(passes + 1):  # pass 0 warms the entry cache and the kernels up
             for i, (body, truth, _) in enumerate(queries):
-                for fmt in FORMATS:
+                for row, fmt, k in ROWS:
                     mime = "image/png" if fmt == "png" else "image/jpeg"
+                    form = {"seed": str(1000 * p + i)} | ({} if k is None else {"k": str(k)})
                     started = time.perf_counter()
                     r = client.post(
                         f"/v1/maps/{map_id}/localize",
                         files={"image": (f"q.{fmt[:4]}", body[fmt], mime)},
-                        data={"seed": str(1000 * p + i)},
+                        data=form,
                         headers=headers,
                     )
                     wall_ms = (time.perf_counter() - started) * 1e3
@@ -184,16 +191,16 @@ def measure_http(data_dir: Path, map_id: int, queries, passes: int) -> dict:
                     t = dict(answer["timings_ms"])
                     t["response"] = wall_ms - t["total"]
                     t["wall"] = wall_ms
-                    samples[fmt].append(t)
-                    sizes[fmt].append(len(body[fmt]))
+                    samples[row].append(t)
+                    sizes[row].append(len(body[fmt]))
                     if answer["hypotheses"]:
                         pose = answer["hypotheses"][0]["pose"]
-                        errors[fmt].append(
+                        errors[row].append(
                             float(np.hypot(pose["x_m"] - truth[0], pose["y_m"] - truth[1]))
                         )
                     else:
-                        errors[fmt].append(float("inf"))
-    return {f: summarise(samples[f], errors[f], sizes[f]) for f in FORMATS}
+                        errors[row].append(float("inf"))
+    return {name: summarise(samples[name], errors[name], sizes[name]) for name, _, _ in ROWS}
 
 
 def summarise(samples: list[dict], errors: list[float], sizes: list[int]) -> dict:
@@ -317,7 +324,7 @@ def pose_stage_profile(data_dir: Path, map_id: int, queries, top: int = 30) -> d
 def print_env(name: str, table: dict, profile: dict) -> None:
     print(f"\n{name}")
     head = (
-        "format   "
+        "format     "
         + "".join(f"{s:>10}" for s in STAGES)
         + "     total  x ORB  med err  <0.25m   kB"
     )
@@ -325,7 +332,7 @@ def print_env(name: str, table: dict, profile: dict) -> None:
     for fmt, row in table.items():
         cells = "".join(f"{row['p50_ms'][s]:10.2f}" for s in STAGES)
         print(
-            f"{fmt:8} {cells}{row['server_total_p50_ms']:10.2f}{row['total_over_features']:7.2f}"
+            f"{fmt:10} {cells}{row['server_total_p50_ms']:10.2f}{row['total_over_features']:7.2f}"
             f"{row['position_error_median_m']:9.3f}{100 * row['share_within_0_25m']:7.0f}%"
             f"{row['body_kb_mean']:6.0f}"
         )
