@@ -14,6 +14,7 @@ import pytest
 from api_helpers import MAP_FRAMES, make_settings, wait_job
 
 from monoloc.core.errors import ConflictError
+from monoloc.core.measurement import DEFAULT_RETRIEVAL_FRAME, DEFAULT_VLAD_EVIDENCE
 from monoloc.server.jobs import store as jobs_repo
 from monoloc.server.jobs.calibration import CalibrationParams
 from monoloc.server.jobs.ingest import IngestParams
@@ -209,7 +210,14 @@ def test_the_api_offers_only_the_products_calibration_choices(fresh):
     client, _ = fresh
     schemas = client.get("/openapi.json").json()["components"]["schemas"]
     update = schemas["CalibrationUpdate"]["properties"]
-    assert "retrieval_frame" not in update
+    # The lab's variants (vehicle-frame offsets, relative VLAD evidence) are not offered:
+    # a GET's body may be PUT back, so the fields are stated, with the product's value only.
+    for name, product in (
+        ("retrieval_frame", DEFAULT_RETRIEVAL_FRAME),
+        ("vlad_evidence", DEFAULT_VLAD_EVIDENCE),
+    ):
+        offered = {v.get("const", v.get("type")) for v in update[name]["anyOf"]}
+        assert offered == {product, "null"}, (name, update[name])
     choices = {e for v in update["covariance"]["anyOf"] for e in v.get("enum", [None])}
     assert choices == {"paper", "pnp", None}
     form = next(v for k, v in schemas.items() if k.startswith("Body_calibration_job"))
