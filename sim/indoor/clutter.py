@@ -16,7 +16,7 @@ from monoloc.sim.scene import SceneBuilder
 _KINDS = ("chair", "stand", "legs")
 # The radius of each kind's footprint in any orientation, metres (its centre sits this
 # far beyond its near edge): a turned chair's seat corner or back, a stand's foot, shoes.
-_RADIUS_M = {"chair": 0.34, "stand": 0.18, "legs": 0.22}
+_RADIUS_M = {"chair": 0.34, "stand": 0.18, "legs": 0.3}
 
 
 def add_near_clutter(
@@ -81,6 +81,6 @@ def _legs(b: SceneBuilder, rng, p: np.ndarray, facing_rad: float) -> None:
     height = rng.uniform(0.75, 0.9)
     cloth = str(rng.choice(["foam", "cardboard", "wood"]))
     for side in (-0.5, 0.5):
-        q = p + across * side * apart + forward * rng.normal(0.0, 0.04)
+        q = p + across * side * apart + forward * float(np.clip(rng.normal(0.0, 0.04), -0.05, 0.05))
         add_textured_box(b, rng, q + forward * 0.05, facing_rad, 0.27, 0.1, 0.0, 0.08, None, "foam")
         add_textured_box(b, rng, q, facing_rad, 0.12, 0.13, 0.08, height, None, cloth, top=False)
