@@ -241,6 +241,8 @@ TRAIN_ENVS = {
 TEST_ENVS = {
     "urban 10 Hz, entry every 1 m": TestEnv(seed=5303, spacing_m=1.0),
     "urban 5 Hz, entry every 2.5 m": TestEnv(seed=5303, spacing_m=2.5, query_every=2),
+    # the real case's map: every other frame at 5 Hz and 10-12 m/s, so k = 10 reaches +-20 m
+    "urban 5 Hz, entry every 4.4 m": TestEnv(seed=5303, spacing_m=4.4, query_every=2),
     "highway 25-30 m/s, 5 Hz, entry every 2.5 m": TestEnv(
         seed=6607, spacing_m=2.5, query_every=2, speed_mps=(25.0, 30.0)
     ),
