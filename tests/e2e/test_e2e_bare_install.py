@@ -27,9 +27,9 @@ def _run(args: list[str], timeout: float = 600, **kwargs) -> subprocess.Complete
 
 
 @pytest.fixture(scope="module")
-def bare_venv(tmp_path_factory) -> Path:
-    """A fresh venv holding the monoloc wheel and only its required dependencies."""
-    root = tmp_path_factory.mktemp("bare")
+def wheel(tmp_path_factory) -> Path:
+    """monoloc built as a wheel from this checkout."""
+    root = tmp_path_factory.mktemp("wheel")
     built = _run(
         [
             sys.executable,
@@ -40,18 +40,34 @@ def bare_venv(tmp_path_factory) -> Path:
             "--no-deps",
             "--no-build-isolation",
             "-w",
-            str(root / "dist"),
+            str(root),
             str(REPO),
         ]
     )
     shutil.rmtree(REPO / "build", ignore_errors=True)
     assert built.returncode == 0, built.stderr[-2000:]
-    (wheel,) = (root / "dist").glob("monoloc-*.whl")
+    (path,) = root.glob("monoloc-*.whl")
+    return path
+
+
+def _fresh_venv(root: Path, requirement: str) -> Path:
     venv.create(root / "venv", with_pip=True)
     python = root / "venv" / "bin" / "python"
-    installed = _run([str(python), "-m", "pip", "install", "-q", str(wheel)])
+    installed = _run([str(python), "-m", "pip", "install", "-q", requirement])
     assert installed.returncode == 0, installed.stderr[-2000:]
     return root / "venv"
+
+
+@pytest.fixture(scope="module")
+def bare_venv(wheel, tmp_path_factory) -> Path:
+    """A fresh venv holding the monoloc wheel and only its required dependencies."""
+    return _fresh_venv(tmp_path_factory.mktemp("bare"), str(wheel))
+
+
+@pytest.fixture(scope="module")
+def bags_venv(wheel, tmp_path_factory) -> Path:
+    """A fresh venv holding the monoloc wheel with the vehicle's ``[bags]`` extra."""
+    return _fresh_venv(tmp_path_factory.mktemp("bags"), f"{wheel}[bags]")
 
 
 def test_the_bare_install_holds_no_heavy_dependency(bare_venv):
@@ -130,3 +146,28 @@ def test_the_bare_install_drives_a_run_against_a_full_server(bare_venv, live_map
     assert len(rows) >= 16 and all(len(r) == 8 for r in rows)
     rmse = float(re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout).group(1))
     assert rmse < 0.5
+
+
+def test_the_bags_extra_drives_a_bag_without_the_server(bags_venv, live_map, tmp_path):
+    # the vehicle replays a ROS 2 bag (CompressedImage, Odometry of base_link, the rig on
+    # /tf_static) with the light install plus rosbags and Pillow: nothing of the server
+    from rosbag_helpers import SimRun, write_sim_bag
+
+    run = SimRun.read(live_map.dataset, QUERY_SEQ)
+    bag = write_sim_bag(run, tmp_path / "query_bag", image="compressed", three_d="none")
+    probe = (
+        "import importlib.util, json; "
+        f"print(json.dumps([m for m in {HEAVY!r} if importlib.util.find_spec(m)]))"
+    )
+    done = _run([str(bags_venv / "bin" / "python"), "-c", probe])
+    assert done.returncode == 0 and json.loads(done.stdout) == [], done.stdout + done.stderr
+    out = tmp_path / "traj" / "bag"
+    env = dict(os.environ, COLUMNS="160", MONOLOC_API_KEY=live_map.keys.localize)
+    args = [str(bags_venv / "bin" / "monoloc"), "drive", str(bag), "--server", live_map.url]
+    args += ["--map", live_map.map_name, "--frames", "10:30", "--particles", "500"]
+    args += ["--topic", "odometry=/odom", "--topic", "truth=/odom"]  # the sim's true motion
+    done = _run([*args, "--out", str(out)], cwd=tmp_path, env=env)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    found = re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout)
+    assert found, done.stdout[-3000:]
+    assert float(found.group(1)) < 0.5
