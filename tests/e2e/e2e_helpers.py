@@ -5,8 +5,12 @@ live server's database (a module name of its own: tests directories are not pack
 from __future__ import annotations
 
 import io
+import os
+import re
 import socket
 import sqlite3
+import subprocess
+import sys
 import tarfile
 import threading
 import time
@@ -179,3 +183,35 @@ def localize_frames_on_copy(live_map, data_dir: Path, images, seed: int, **overr
     copy_database(live_map.data_dir, data_dir)
     with live_server(make_settings(data_dir, **overrides)) as (url, _):
         return localize_frames(url, live_map.keys.localize, live_map.map_id, images, seed)
+
+
+def query_drive_args(live_map, out: Path, *, key: bool = True) -> list[str]:
+    """`monoloc drive` arguments (after the command) of the query run's frames 10..29
+    against ``live_map``, writing under ``out``; ``key``: pass the localize key (else the
+    caller sets MONOLOC_API_KEY)."""
+    args = [str(live_map.dataset), "--sequence", QUERY_SEQ, "--server", live_map.url]
+    args += ["--map", live_map.map_name, "--frames", "10:30", "--particles", "500"]
+    if key:
+        args += ["--key", live_map.keys.localize]
+    return [*args, "--out", str(out)]
+
+
+def printed_rmse_m(stdout: str) -> float:
+    """The position RMSE of a drive's printed table (AssertionError with the output when
+    the table has none)."""
+    found = re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", stdout)
+    assert found, stdout[-3000:]
+    return float(found.group(1))
+
+
+def run_monoloc(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    """The full install's `monoloc` CLI in a subprocess, one line per table row."""
+    env = dict(os.environ, COLUMNS="160")
+    return subprocess.run(
+        [sys.executable, "-m", "monoloc.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+        check=False,
+    )

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -14,7 +13,7 @@ import venv
 from pathlib import Path
 
 import pytest
-from e2e_helpers import QUERY_SEQ
+from e2e_helpers import QUERY_SEQ, printed_rmse_m, query_drive_args
 
 REPO = Path(__file__).resolve().parents[2]
 HEAVY = ("cv2", "faiss", "fastapi", "sqlalchemy", "numba", "skimage", "matplotlib")
@@ -119,33 +118,14 @@ def test_driving_a_bag_names_the_bags_extra(bare_venv, tmp_path):
 def test_the_bare_install_drives_a_run_against_a_full_server(bare_venv, live_map, tmp_path):
     out = tmp_path / "traj" / "query"
     env = dict(os.environ, COLUMNS="160", MONOLOC_API_KEY=live_map.keys.localize)
-    done = _run(
-        [
-            str(bare_venv / "bin" / "monoloc"),
-            "drive",
-            str(live_map.dataset),
-            "--sequence",
-            QUERY_SEQ,
-            "--server",
-            live_map.url,
-            "--map",
-            live_map.map_name,
-            "--frames",
-            "10:30",
-            "--particles",
-            "500",
-            "--out",
-            str(out),
-        ],
-        cwd=tmp_path,
-        env=env,
-    )
+    drive_args = query_drive_args(live_map, out, key=False)
+    args = [str(bare_venv / "bin" / "monoloc"), "drive", *drive_args]
+    done = _run(args, cwd=tmp_path, env=env)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     tum = out.with_name("query.tum.txt")
     rows = [line.split() for line in tum.read_text().splitlines() if line.strip()]
     assert len(rows) >= 16 and all(len(r) == 8 for r in rows)
-    rmse = float(re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout).group(1))
-    assert rmse < 0.5
+    assert printed_rmse_m(done.stdout) < 0.5
 
 
 def test_the_bags_extra_drives_a_bag_without_the_server(bags_venv, live_map, tmp_path):
@@ -168,6 +148,4 @@ def test_the_bags_extra_drives_a_bag_without_the_server(bags_venv, live_map, tmp
     args += ["--topic", "odometry=/odom", "--topic", "truth=/odom"]  # the sim's true motion
     done = _run([*args, "--out", str(out)], cwd=tmp_path, env=env)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    found = re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout)
-    assert found, done.stdout[-3000:]
-    assert float(found.group(1)) < 0.5
+    assert printed_rmse_m(done.stdout) < 0.5

@@ -4,15 +4,11 @@ drive` command, and real-time replay with a server that falls behind."""
 
 from __future__ import annotations
 
-import os
-import re
-import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
-from e2e_helpers import QUERY_SEQ
+from e2e_helpers import QUERY_SEQ, printed_rmse_m, query_drive_args, run_monoloc
 
 from monoloc.client.api import MonolocClient
 from monoloc.client.drive import DriveConfig, drive
@@ -48,43 +44,13 @@ def test_replay_of_a_tiny_sim_run_ends_within_half_a_metre(live_map):
     assert all(t["total"] > 0 for t in answered)
 
 
-def _monoloc(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    env = dict(os.environ, COLUMNS="160")  # rich: one line per table row
-    return subprocess.run(
-        [sys.executable, "-m", "monoloc.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=env,
-        check=False,
-    )
-
-
 def test_monoloc_drive_writes_trajectories_and_prints_the_metrics(live_map, tmp_path):
     out = tmp_path / "traj" / "query"
-    done = _monoloc(
-        "drive",
-        str(live_map.dataset),
-        "--sequence",
-        QUERY_SEQ,
-        "--server",
-        live_map.url,
-        "--map",
-        live_map.map_name,
-        "--key",
-        live_map.keys.localize,
-        "--frames",
-        "10:30",
-        "--particles",
-        "500",
-        "--out",
-        str(out),
-    )
+    done = run_monoloc("drive", *query_drive_args(live_map, out))
     assert done.returncode == 0, done.stderr
     for label in ("position RMSE", "position median", "heading RMSE", "within 0.25 m / 2 deg"):
         assert label in done.stdout, done.stdout
-    rmse = float(re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout).group(1))
-    assert rmse < 0.5
+    assert printed_rmse_m(done.stdout) < 0.5
     assert "frames 10..29 of 40 selected (20 frames)" in done.stderr
     assert "map not calibrated" in done.stderr and "dataset.json" in done.stderr
     tum = np.loadtxt(out.with_name("query.tum.txt"))
@@ -104,7 +70,7 @@ def test_monoloc_drive_writes_trajectories_and_prints_the_metrics(live_map, tmp_
 
 
 def test_monoloc_drive_names_an_unknown_map_in_one_line(live_map):
-    done = _monoloc(
+    done = run_monoloc(
         "drive",
         str(live_map.dataset / "sequences" / QUERY_SEQ),
         "--server",

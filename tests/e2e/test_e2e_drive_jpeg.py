@@ -4,36 +4,15 @@ range is one error line and a non-zero exit before anything is sent."""
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pytest
-from e2e_helpers import QUERY_SEQ
-from test_e2e_drive import _monoloc
+from e2e_helpers import printed_rmse_m, query_drive_args, run_monoloc
 
 from monoloc.server.api import localizing
 
 
 def _drive(live_map, out, *extra: str):
-    return _monoloc(
-        "drive",
-        str(live_map.dataset),
-        "--sequence",
-        QUERY_SEQ,
-        "--server",
-        live_map.url,
-        "--map",
-        live_map.map_name,
-        "--key",
-        live_map.keys.localize,
-        "--frames",
-        "10:30",
-        "--particles",
-        "500",
-        "--out",
-        str(out),
-        *extra,
-    )
+    return run_monoloc("drive", *query_drive_args(live_map, out), *extra)
 
 
 @pytest.fixture
@@ -55,7 +34,7 @@ def test_a_drive_sent_as_jpeg_localizes_as_well_as_png(live_map, tmp_path, decod
     assert done.returncode == 0, done.stderr
     assert "frames sent as JPEG quality 90" in done.stderr
     assert decoded_kinds and set(decoded_kinds) == {"jpeg"}
-    rmse = float(re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", done.stdout).group(1))
+    rmse = printed_rmse_m(done.stdout)
     assert rmse < 0.5
     tum = np.loadtxt(tmp_path / "jpeg" / "query.tum.txt")
     assert len(tum) >= 16
@@ -63,7 +42,7 @@ def test_a_drive_sent_as_jpeg_localizes_as_well_as_png(live_map, tmp_path, decod
     png = _drive(live_map, tmp_path / "png" / "query")
     assert png.returncode == 0, png.stderr
     assert set(decoded_kinds) == {"png"}
-    png_rmse = float(re.search(r"position RMSE\s*\W*\s*([0-9.]+) m", png.stdout).group(1))
+    png_rmse = printed_rmse_m(png.stdout)
     assert rmse <= png_rmse + 0.05
 
 
