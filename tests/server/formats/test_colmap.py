@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from cli_runner import run_monoloc
 from colmap_builder import build_sift_model
+from map_checks import query_position_errors_m
 
-from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam
+from monoloc.core.geometry import invert_rigid
 from monoloc.server.formats.colmap import read_colmap_model
 from monoloc.server.formats.maps import entry_name, export_map, import_sources_into_map
 from monoloc.server.formats.model import import_sources
@@ -92,22 +93,13 @@ def test_orb_mode_keypoints_are_orb_detections_model_mode_the_observations(
 
 
 def test_imported_map_localizes_a_query_frame(factory, settings, sift_model, query_run):
-    from monoloc.server.localize import LocalizeConfig
     from monoloc.server.map_registry import MapRegistry
 
     model_dir, images_dir, _ = sift_model
     model = read_colmap_model(model_dir, images_dir)
     record, _ = _import(factory, "loc", model, "orb")
     registry = MapRegistry(factory, settings.index_dir)
-    rng = np.random.default_rng(0)
-    errors = []
-    for frame in query_run.frames[1:5]:
-        result, _ = registry.localize(
-            record.id, query_run.load(frame).image_gray, LocalizeConfig(), rng
-        )
-        truth = planar_from_T_world_from_cam(frame.T_world_from_cam)[:2]
-        best = result.best
-        errors.append(np.inf if best is None else np.linalg.norm(best.pose_world[:2] - truth))
+    errors = query_position_errors_m(registry, record.id, query_run)
     assert np.median(errors) < 0.3, errors
 
 

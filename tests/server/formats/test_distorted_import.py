@@ -14,9 +14,10 @@ import cv2
 import numpy as np
 import pytest
 from colmap_builder import build_sift_model, distort_image
+from map_checks import query_position_errors_m
 
 from monoloc.core.camera import LensDistortion
-from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam, quaternion_xyzw_from_R
+from monoloc.core.geometry import invert_rigid, quaternion_xyzw_from_R
 from monoloc.server.formats.colmap import read_colmap_model
 from monoloc.server.formats.maps import import_sources_into_map
 from monoloc.server.formats.model import import_sources
@@ -111,7 +112,6 @@ def test_a_distorted_colmap_model_imports_pinhole_consistent(
 def test_the_distorted_import_localizes_pinhole_queries(
     factory, settings, distorted_model, query_run
 ):
-    from monoloc.server.localize import LocalizeConfig
     from monoloc.server.map_registry import MapRegistry
 
     _, model_dir, images_dir = distorted_model
@@ -120,15 +120,7 @@ def test_the_distorted_import_localizes_pinhole_queries(
         factory, "loc", import_sources(model, fmt="colmap", up=None)
     )
     registry = MapRegistry(factory, settings.index_dir)
-    rng = np.random.default_rng(0)
-    errors = []
-    for frame in query_run.frames[1:5]:
-        result, _ = registry.localize(
-            record.id, query_run.load(frame).image_gray, LocalizeConfig(), rng
-        )
-        truth = planar_from_T_world_from_cam(frame.T_world_from_cam)[:2]
-        best = result.best
-        errors.append(np.inf if best is None else np.linalg.norm(best.pose_world[:2] - truth))
+    errors = query_position_errors_m(registry, record.id, query_run)
     assert np.median(errors) < 0.3, errors
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from cli_runner import run_monoloc
 from colmap_builder import build_sift_model
+from map_checks import query_position_errors_m
 
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage.db import session_scope
@@ -57,9 +58,7 @@ def _open(tmp_path):
 def test_a_poses_only_model_is_triangulated_from_its_poses(
     poses_only, sift_model, map_run, query_run, monoloc, tmp_path
 ):
-    from monoloc.core.geometry import planar_from_T_world_from_cam
     from monoloc.server.ingest.manage import find_map
-    from monoloc.server.localize import LocalizeConfig
     from monoloc.server.map_registry import MapRegistry
     from monoloc.server.settings import Settings
     from monoloc.server.vision.depth import points_from_lidar
@@ -79,15 +78,7 @@ def test_a_poses_only_model_is_triangulated_from_its_poses(
             entries = entries_repo.get_entry_data(session, ids)
         # and the map localizes query frames of the same street
         registry = MapRegistry(factory, Settings(data_dir=tmp_path / "data").index_dir)
-        rng = np.random.default_rng(0)
-        errors = []
-        for frame in query_run.frames[1:5]:
-            result, _ = registry.localize(
-                record.id, query_run.load(frame).image_gray, LocalizeConfig(), rng
-            )
-            true_xy = planar_from_T_world_from_cam(frame.T_world_from_cam)[:2]
-            best = result.best
-            errors.append(np.inf if best is None else np.linalg.norm(best.pose_world[:2] - true_xy))
+        errors = query_position_errors_m(registry, record.id, query_run)
     finally:
         engine.dispose()
     assert np.median(errors) < 0.3, errors
