@@ -73,7 +73,7 @@ class IndoorLoopWorld:
     ) -> None:
         """``bare_end`` False: the rooms without their featureless end; ``near_clutter``
         False: without the chairs, stands and legs beside the tape (RoomConfig)."""
-        from monoloc.sim.indoor.plan import SCALE_CAR, IndoorConfig
+        from monoloc.sim.indoor.plan import SCALE_CAR, SCALE_CAR_BICYCLE, IndoorConfig
         from monoloc.sim.indoor.room import NearClutterConfig
         from monoloc.sim.indoor.world import build_world
 
@@ -100,16 +100,7 @@ class IndoorLoopWorld:
         self.intrinsics: CameraIntrinsics = self.config.intrinsics
         self.frame_rate_hz = self.config.frame_rate_hz
         self.dt_s = SCALE_CAR.dt_s
-        self.bicycle = BicycleConfig(
-            wheelbase_m=SCALE_CAR.wheelbase_m,
-            max_steer_rad=SCALE_CAR.max_steer_rad,
-            max_steer_rate_radps=SCALE_CAR.max_steer_rate_radps,
-            max_speed_mps=3.0,
-            max_accel_mps2=SCALE_CAR.max_accel,
-            max_decel_mps2=SCALE_CAR.max_decel,
-            steer_lag_s=0.05,
-            accel_lag_s=0.1,
-        )
+        self.bicycle = SCALE_CAR_BICYCLE
         self.reference_speed_mps = 1.0
         self.natural_freq_radps = 2.0
         # The paper's oscillating laps: SCALE_CAR's off-center disturbance and period.

@@ -28,6 +28,7 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.camera import CameraConfig, Lighting
+from monoloc.sim.control import BicycleConfig
 from monoloc.sim.indoor.camera_motion import AutoExposureConfig, MotionBlurConfig
 from monoloc.sim.indoor.room import SIZE_PRESETS, RoomConfig, room_configs
 from monoloc.sim.indoor.sensors import D435_COLOR, IndoorErrors, IndoorRig
@@ -64,6 +65,18 @@ SCALE_CAR = VehicleConfig(
     steer_disturbance_period_s=2.5,
     pitch_per_accel_rad=0.01,
     roll_per_lateral_accel_rad=0.01,
+)
+# The same car as the closed loop's bicycle (sim/control.py): its steering servo's limits,
+# a 3 m/s top speed, 50 ms steering and 100 ms throttle lags.
+SCALE_CAR_BICYCLE = BicycleConfig(
+    wheelbase_m=SCALE_CAR.wheelbase_m,
+    max_steer_rad=SCALE_CAR.max_steer_rad,
+    max_steer_rate_radps=SCALE_CAR.max_steer_rate_radps,
+    max_speed_mps=3.0,
+    max_accel_mps2=SCALE_CAR.max_accel,
+    max_decel_mps2=SCALE_CAR.max_decel,
+    steer_lag_s=0.05,
+    accel_lag_s=0.1,
 )
 
 

@@ -18,18 +18,10 @@ from monoloc.sim.control import (
     step_bicycle,
     tracking_error,
 )
+from monoloc.sim.indoor.plan import SCALE_CAR_BICYCLE
 from monoloc.sim.path import resample
 
-CAR = BicycleConfig(
-    wheelbase_m=0.26,
-    max_steer_rad=0.45,
-    max_steer_rate_radps=4.0,
-    max_speed_mps=3.0,
-    max_accel_mps2=1.0,
-    max_decel_mps2=1.5,
-    steer_lag_s=0.05,
-    accel_lag_s=0.1,
-)
+CAR = SCALE_CAR_BICYCLE  # the indoor 1:10 car
 
 
 def _drive(state, command, config, seconds, dt=0.005):

@@ -12,12 +12,12 @@ from monoloc.client.particle_filter import FilterEstimate
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.closed_loop import LoopConfig, make_controller, quality_of
 from monoloc.sim.control import (
-    BicycleConfig,
     BicycleState,
     Command,
     TrackingController,
     step_bicycle,
 )
+from monoloc.sim.indoor.plan import SCALE_CAR_BICYCLE
 from monoloc.sim.mpc import (
     LocalizationQuality,
     MpcConfig,
@@ -27,16 +27,7 @@ from monoloc.sim.mpc import (
 )
 from monoloc.sim.path import resample
 
-CAR = BicycleConfig(
-    wheelbase_m=0.26,
-    max_steer_rad=0.45,
-    max_steer_rate_radps=4.0,
-    max_speed_mps=3.0,
-    max_accel_mps2=1.0,
-    max_decel_mps2=1.5,
-    steer_lag_s=0.05,
-    accel_lag_s=0.1,
-)
+CAR = SCALE_CAR_BICYCLE  # the indoor 1:10 car
 DT_S = 0.005
 LOST = LocalizationQuality(position_std_m=0.05, yaw_std_rad=math.radians(5.0), known_share=0.0)
 SURE = LocalizationQuality(position_std_m=0.0, yaw_std_rad=0.0, known_share=0.6)
