@@ -15,7 +15,12 @@ def drive(
         "ROS 2 bag (folder or .mcap/.db3)",
     ),
     server: str = typer.Option("http://127.0.0.1:8000", help="map server base URL"),
-    map_ref: str = typer.Option(..., "--map", help="map id or name"),
+    map_ref: str | None = typer.Option(None, "--map", help="map id or name (or --tiles)"),
+    tiles: Path | None = typer.Option(
+        None,
+        help="a sharded map's tile table (JSON, monoloc.core.tiles): each frame goes to "
+        "its tile's shard group (router or group URLs from the table; --server, --map unused)",
+    ),
     key: str = typer.Option(..., envvar="MONOLOC_API_KEY", help="API key with scope localize"),
     sequence: str | None = typer.Option(None, help="sequence NN under a KITTI dataset root"),
     frames: str | None = typer.Option(None, help="frame range A:B (python slice semantics)"),
@@ -85,6 +90,10 @@ def drive(
     from monoloc.core.mounting import CameraMounting
 
     console = Console(stderr=True)
+    if (map_ref is None) == (tiles is None):
+        raise typer.BadParameter("give --map or --tiles (a sharded map), one of them")
+    if tiles is not None and realtime:
+        raise typer.BadParameter("a sharded drive sends frames in turn", param_hint="--realtime")
     if bag_out is not None:  # refused before the drive, not after it
         _check_bag_out(bag_out, bag_storage)
     if is_bag(run_dir):
@@ -127,21 +136,24 @@ def drive(
         use_prior=not no_prior,
         seed=seed,
     )
-    with MonolocClient(server, key) as client:
-        map_id = client.find_map_id(map_ref)
-        model, calibrated = client.measurement_model(map_id)
-        if not calibrated:
-            console.print("[yellow]note:[/] map not calibrated: default measurement model")
-        with Progress(console=console) as bar:
-            task = bar.add_task(f"driving {run.name}", total=len(run))
-            result = run_drive(
-                client,
-                map_id,
-                run,
-                model,
-                config,
-                progress=lambda i, n: bar.update(task, completed=i),
-            )
+    if tiles is not None:
+        result = _sharded_drive(tiles, key, run, config, console)
+    else:
+        with MonolocClient(server, key) as client:
+            map_id = client.find_map_id(map_ref)
+            model, calibrated = client.measurement_model(map_id)
+            if not calibrated:
+                console.print("[yellow]note:[/] map not calibrated: default measurement model")
+            with Progress(console=console) as bar:
+                task = bar.add_task(f"driving {run.name}", total=len(run))
+                result = run_drive(
+                    client,
+                    map_id,
+                    run,
+                    model,
+                    config,
+                    progress=lambda i, n: bar.update(task, completed=i),
+                )
     for note in result.notes[len(run.notes) :]:
         console.print(f"[yellow]note:[/] {note}")
     if result.all_refused:
@@ -158,9 +170,47 @@ def drive(
     written = [tum, kitti, *(p for p in (vehicle, geojson, bag_path) if p is not None)]
     console.print("trajectories: " + ", ".join(str(p) for p in written))
     if result.geo_reference is None:
-        console.print(f"no GeoJSON track: map {map_ref} has no geographic reference")
+        console.print(f"no GeoJSON track: map {map_ref or tiles} has no geographic reference")
     elif geojson is None:
         console.print("no GeoJSON track: the filter gave no estimate")
+
+
+def _sharded_drive(tiles: Path, key: str, run, config, console):
+    """The drive of ``run`` over the shard groups of the tile table ``tiles``."""
+    from rich.progress import Progress
+
+    from monoloc.client.drive import drive_with
+    from monoloc.client.sharded import ShardedLocalizer
+    from monoloc.core.errors import InvalidInputError
+    from monoloc.core.tiles import read_tile_table
+
+    table = read_tile_table(tiles)
+    if run.intrinsics is None:
+        raise InvalidInputError(f"{run.name}: the camera that took the frames is unknown")
+    with ShardedLocalizer.connect(table, key, run.intrinsics) as localizer:
+        model, calibrated = localizer.measurement_model()
+        if not calibrated:
+            console.print("[yellow]note:[/] map not calibrated: default measurement model")
+        with Progress(console=console) as bar:
+            groups = len(table.groups)
+            task = bar.add_task(f"driving {run.name} over {groups} groups", total=len(run))
+            result = drive_with(
+                localizer,
+                run,
+                model,
+                config,
+                localizer.geo_reference(),
+                progress=lambda i, n: bar.update(task, completed=i),
+            )
+        for name, counts in localizer.counts.items():
+            console.print(
+                f"shard group {name}: " + ", ".join(f"{k} {v}" for k, v in counts.items())
+            )
+        console.print(
+            f"frames to one group {localizer.routes['one_group']}, "
+            f"to several {localizer.routes['several_groups']}"
+        )
+    return result
 
 
 def _fitted_mounting(path: Path, run):

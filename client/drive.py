@@ -26,7 +26,7 @@ import numpy as np
 
 from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient
 from monoloc.client.geojson import track_geojson, write_track_geojson
-from monoloc.client.localizer import StreamLocalizer, check_answer_seq
+from monoloc.client.localizer import Localizer, StreamLocalizer, check_answer_seq
 from monoloc.client.particle_filter import FilterConfig
 from monoloc.client.replay import ReplayRun
 from monoloc.client.tracking import PriorConfig, Tracker, track
@@ -190,15 +190,7 @@ def drive(
     camera_id = client.camera_id(run.intrinsics)
     geo = client.geo_reference(map_id)
     filter_config = run_filter_config(config.filter, run)
-    tracker = Tracker(
-        filter_config,
-        model,
-        np.random.default_rng(config.seed),
-        run.timestamps_s,
-        run.signals,
-        config.prior,
-        config.use_prior,
-    )
+    tracker = _tracker(filter_config, model, run, config)
     log = _DriveLog(len(run))
 
     def recorded(i: int, answer: LocalizeAnswer) -> None:
@@ -216,16 +208,58 @@ def drive(
     return replace(log.result(run, tracker.estimates_world, geo), mount=filter_config.motion.mount)
 
 
-class _Timed:
-    """A localizer whose calls are logged as sent and answered frames."""
+def drive_with(
+    localizer: Localizer,
+    run: ReplayRun,
+    model: MeasurementModel,
+    config: DriveConfig = DriveConfig(),
+    geo: GeoReference | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> DriveResult:
+    """Replay ``run`` through any Localizer taking encoded frames (e.g. the sharded one,
+    monoloc.client.sharded), one frame at a time in order; ``geo``: the map's reference."""
+    if len(run) == 0:
+        raise InvalidInputError(f"{run.name}: no frames to replay (check the frame range)")
+    filter_config = run_filter_config(config.filter, run)
+    tracker = _tracker(filter_config, model, run, config)
+    log = _DriveLog(len(run))
 
-    def __init__(self, localizer: StreamLocalizer, log: _DriveLog) -> None:
+    def recorded(i: int, answer: LocalizeAnswer) -> None:
+        log.record(i, answer)
+        if progress:
+            progress(i + 1, len(run))
+
+    images = (run.image_bytes(i) for i in range(len(run)))
+    track(tracker, _Timed(localizer, log), images, config.k, recorded)
+    return replace(log.result(run, tracker.estimates_world, geo), mount=filter_config.motion.mount)
+
+
+def _tracker(
+    filter_config: FilterConfig, model: MeasurementModel, run: ReplayRun, config: DriveConfig
+) -> Tracker:
+    return Tracker(
+        filter_config,
+        model,
+        np.random.default_rng(config.seed),
+        run.timestamps_s,
+        run.signals,
+        config.prior,
+        config.use_prior,
+    )
+
+
+class _Timed:
+    """A localizer whose calls are logged as sent and answered frames (0, 1, ...)."""
+
+    def __init__(self, localizer: Localizer, log: _DriveLog) -> None:
         self.localizer, self.log = localizer, log
+        self.seq = 0
 
     def localize(
         self, image: bytes, prior: RetrievalPrior | None = None, k: int | None = None
     ) -> LocalizeAnswer:
-        i = self.localizer.seq
+        i = self.seq
+        self.seq += 1
         self.log.sent(i)
         answer = self.localizer.localize(image, prior, k)
         self.log.answered(i)
