@@ -134,3 +134,21 @@ def vlad_distances(query, vectors, rows, out):
             d = np.float64(vector[i]) - query[i]
             acc += d * d
         out[k] = np.sqrt(acc)
+
+
+@njit(cache=True, nogil=True, boundscheck=False, fastmath=True)
+def nibble_sq_distances(q_even, q_odd, step, codes, rows, out):
+    """Squared distances of a query to 4-bit codes codes[rows] ((N, D/2) uint8, value
+    offset + step * nibble, low nibble first) into out (float32). The query comes with the
+    offset subtracted, split into even and odd dimensions (q_even, q_odd: (D/2,) float32),
+    so the loop over a code's bytes vectorises."""
+    n_bytes = q_even.shape[0]
+    for k in range(rows.shape[0]):
+        code = codes[rows[k]]
+        acc = np.float32(0.0)
+        for j in range(n_bytes):
+            byte = code[j]
+            d0 = q_even[j] - step * np.float32(byte & 15)
+            d1 = q_odd[j] - step * np.float32(byte >> 4)
+            acc += d0 * d0 + d1 * d1
+        out[k] = acc

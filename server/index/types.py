@@ -12,19 +12,26 @@ from monoloc.core.errors import InvalidInputError
 
 @dataclass(frozen=True)
 class IndexConfig:
-    """Retrieval settings. ``shortlist_size`` Hamming candidates are re-ranked exactly."""
+    """Retrieval settings. A Hamming shortlist is re-ranked by the 4-bit VLADs held in
+    memory; the ``k + exact_margin`` nearest of those by the float VLADs read on demand,
+    whose exact distances are returned."""
 
     shortlist_size: int = 400
     # From this size on the exhaustive sketch scan (monoloc.server.index.sketch) replaces
     # FAISS's flat index: its cost per query no longer grows with the full codes' bytes.
     scan_min_entries: int = 50_000
     scan_candidates: int = 1000  # sketch-nearest rows re-ranked by the full codes
-    scan_shortlist: int = 20  # full-code-nearest of those re-ranked exactly
-    prior_exact_max: int = 20_000  # up to this many candidates, re-rank all exactly
+    scan_shortlist: int = 100  # full-code-nearest of those re-ranked by the 4-bit VLADs
+    # Inside a prior: up to this many candidates are ranked by Hamming distance directly;
+    # more widen the map-wide shortlist until enough fall inside.
+    prior_hamming_max: int = 20_000
+    exact_margin: int = 20  # float VLADs read per query: k + exact_margin
 
     def __post_init__(self) -> None:
         if self.scan_candidates < 1 or self.scan_shortlist < 1:
             raise InvalidInputError("scan_candidates and scan_shortlist must be >= 1")
+        if self.exact_margin < 0:
+            raise InvalidInputError("exact_margin must be >= 0")
 
 
 @dataclass(frozen=True)
