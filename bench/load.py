@@ -16,7 +16,7 @@ are spread over the replicas as a load balancer would. The map is a sim city's m
    Over HTTP twice: vehicles that send every frame whatever the server answered
    (``http``), and vehicles that, like monoloc's client library, do not send the frames
    taken inside the ``Retry-After`` of a shed frame (``http-honours``; those count as
-   *held*, offered but not sent).
+   *held*, offered but not sent; the library's jitter on the wait included).
 
 3. **3x and 5x** (``--overloads 3 5``, issue 50): the same open-loop runs at more load
    (named ``http@3x``, ...), for the served share and how fast a shed frame is answered:
@@ -75,6 +75,8 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
+
+from monoloc.client.api import jittered_wait_s
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"
@@ -446,14 +448,17 @@ class VehicleLink:
         pool_timeout_s: float,
         timeout_s: float = 10.0,
         honour_retry_after: bool = False,
+        rng: np.random.Generator | None = None,
     ) -> None:
         host, port = url.removeprefix("http://").rsplit(":", 1)
         self.host, self.port = host, int(port)
         self.pool_timeout_s, self.timeout_s = pool_timeout_s, timeout_s
         # As monoloc's client library (client.localizer.HttpLocalizer): after a shed frame
-        # (503), the frames taken inside its Retry-After-Ms (else Retry-After) are not
-        # sent (status HELD).
+        # (503), the frames taken inside its Retry-After-Ms (else Retry-After), lengthened
+        # by the library's jitter (drawn from ``rng``, one per vehicle), are not sent
+        # (status HELD).
         self.honour_retry_after = honour_retry_after
+        self._rng = np.random.default_rng(0) if rng is None else rng
         self._hold_until = -math.inf
         self._free: list[_Connection] = []
         self._slots = asyncio.Semaphore(max_connections)
@@ -483,7 +488,8 @@ class VehicleLink:
                     conn = _Connection(*await asyncio.open_connection(self.host, self.port))
                     status = await conn.exchange(requests.requests[i])
             if status == 503 and self.honour_retry_after:
-                self._hold_until = max(self._hold_until, start + conn.retry_after_s)
+                wait_s = jittered_wait_s(conn.retry_after_s, self._rng)
+                self._hold_until = max(self._hold_until, start + wait_s)
             if conn.reusable:
                 self._free.append(conn)
         except Exception:  # noqa: BLE001 - a timeout or reset counts as a failure
@@ -582,7 +588,13 @@ async def open_loop_http(
     async def vehicle(v: int) -> None:
         # A vehicle keeps a few connections alive; a frame that finds them all busy past
         # its deadline is given up by the vehicle, unsent.
-        link = VehicleLink(urls[v % len(urls)], 4, DEADLINE_MS / 1e3, honour_retry_after=honour)
+        link = VehicleLink(
+            urls[v % len(urls)],
+            4,
+            DEADLINE_MS / 1e3,
+            honour_retry_after=honour,
+            rng=np.random.default_rng(v),
+        )
         tasks = []
         k = 0
         while True:
@@ -712,6 +724,40 @@ def summarise_capacity(slices: list[dict]) -> dict:
     }
 
 
+def _per_bin(slices: list[dict], times, bin_s: float) -> list[int]:
+    """Counts of ``times(slice)`` (perf_counter instants) per ``bin_s`` bin of each slice's
+    window, pooled over the slices."""
+    counts: list[int] = []
+    for sl in slices:
+        n = max(1, int((sl["stop_at"] - sl["start"]) / bin_s))
+        bins = np.zeros(n, dtype=int)
+        for t in times(sl):
+            k = int((t - sl["start"]) / bin_s)
+            if 0 <= k < n:
+                bins[k] += 1
+        counts += bins.tolist()
+    return counts
+
+
+def burstiness(slices: list[dict]) -> dict:
+    """How evenly the requests reached the server and the answers left it: requests sent
+    per 50 ms (p50 / p99 / max; a herd of vehicles returning together after the same wait
+    is a high p99 over a low p50) and the share of 100-ms bins without a served frame (the
+    lane left idle, e.g. while every vehicle holds)."""
+    sent = _per_bin(
+        slices,
+        lambda sl: [end - lat for s, lat, end in sl["answers"] if s not in (HELD, -1)],
+        0.050,
+    )
+    served = _per_bin(slices, lambda sl: [end for s, _, end in sl["answers"] if s == 200], 0.100)
+    return {
+        "sent_per_50ms_p50": pct(sent, 50),
+        "sent_per_50ms_p99": pct(sent, 99),
+        "sent_per_50ms_max": max(sent),
+        "served_none_in_100ms_share": sum(1 for c in served if c == 0) / len(served),
+    }
+
+
 def summarise(slices: list[dict]) -> dict:
     """Open-loop slices pooled."""
     served = _served(slices)
@@ -746,6 +792,7 @@ def summarise(slices: list[dict]) -> dict:
         "writes_failed": sum(1 for s, _ in write_results if s != 200),
         "writes_p99_s": pct(write_lat, 99),
         "slices_per_s": [len(_served([sl])) / _window_s([sl]) for sl in slices],
+        **burstiness(slices),
     }
 
 
@@ -899,7 +946,10 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
                     else ""
                 )
                 + f"), held "
-                f"{run['held_by_vehicle']}, 5xx "
+                f"{run['held_by_vehicle']}, sent per 50 ms p50 {run['sent_per_50ms_p50']:.0f} "
+                f"/ p99 {run['sent_per_50ms_p99']:.0f} / max {run['sent_per_50ms_max']}, "
+                f"100-ms bins without a served frame "
+                f"{100 * run['served_none_in_100ms_share']:.1f} %, 5xx "
                 f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
                 f"+{v['memory_growth_mb']:.0f} MB"
                 + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else "")

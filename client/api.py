@@ -180,6 +180,16 @@ def wait_until_ready(base_url: str, timeout_s: float, process=None, poll_s: floa
 # Answers worth another try: the request may succeed later (the server is starting,
 # overloaded, restarting behind a proxy). 501 means "never in this build".
 RETRY_STATUS = frozenset({408, 429, 500, 502, 503, 504})
+# A wait (the server's Retry-After or the backoff) is lengthened by up to this share, drawn
+# per wait: clients told the same wait at the same moment (a proxy's fixed Retry-After,
+# a server restart) do not all come back in the same millisecond. Retry-After is the
+# least wait the server asked for, so the jitter only adds.
+RETRY_JITTER = 0.25
+
+
+def jittered_wait_s(wait_s: float, rng: np.random.Generator) -> float:
+    """``wait_s`` lengthened by a uniform draw of up to ``RETRY_JITTER`` of it."""
+    return wait_s * (1.0 + RETRY_JITTER * float(rng.random()))
 
 
 def _error_message(response: httpx.Response) -> str:
@@ -214,7 +224,8 @@ def _retry_after_s(response: httpx.Response | None) -> float | None:
 
 
 class MonolocClient:
-    """Synchronous client. ``transport`` lets tests and in-process callers inject one."""
+    """Synchronous client. ``transport`` lets tests and in-process callers inject one;
+    ``rng`` draws the retry waits' jitter (default: seeded from OS entropy)."""
 
     def __init__(
         self,
@@ -225,6 +236,7 @@ class MonolocClient:
         backoff_s: float = 0.2,
         transport: httpx.BaseTransport | None = None,
         max_backoff_s: float = 10.0,
+        rng: np.random.Generator | None = None,
     ) -> None:
         if retries < 0 or backoff_s < 0 or max_backoff_s < 0:
             raise InvalidInputError(
@@ -236,6 +248,7 @@ class MonolocClient:
         self.retries = retries
         self.backoff_s = backoff_s
         self.max_backoff_s = max_backoff_s
+        self._rng = np.random.default_rng() if rng is None else rng
         self._http = httpx.Client(
             base_url=self.base_url,
             headers={"X-API-Key": api_key},
@@ -256,8 +269,8 @@ class MonolocClient:
         self, method: str, path: str, retries: int | None = None, **kwargs
     ) -> httpx.Response:
         """One call; retried (``retries`` more times, default the client's, waiting
-        ``backoff_s * 2**attempt`` capped at ``max_backoff_s``, or the server's
-        ``Retry-After``) on transport errors
+        ``backoff_s * 2**attempt``, or the server's ``Retry-After``, plus up to
+        ``RETRY_JITTER`` of it, capped at ``max_backoff_s``) on transport errors
         and RETRY_STATUS answers. Other 4xx/5xx raise at once: NotFoundError for 404,
         ServerError (with ``status_code``) otherwise, both with the server's message."""
         retries = self.retries if retries is None else retries
@@ -281,7 +294,7 @@ class MonolocClient:
                 wait = _retry_after_s(response)
                 if wait is None:
                     wait = self.backoff_s * (2**attempt)
-                time.sleep(min(wait, self.max_backoff_s))
+                time.sleep(min(jittered_wait_s(wait, self._rng), self.max_backoff_s))
         assert last is not None
         raise ServerError(
             f"{last} (gave up after {retries + 1} attempts)", last.status_code, last.retry_after_s

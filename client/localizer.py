@@ -16,7 +16,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-from monoloc.client.api import FrameStream, LocalizeAnswer, MonolocClient, ServerError
+import numpy as np
+
+from monoloc.client.api import (
+    FrameStream,
+    LocalizeAnswer,
+    MonolocClient,
+    ServerError,
+    jittered_wait_s,
+)
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.measurement import Hypotheses
 from monoloc.core.prior import RetrievalPrior
@@ -46,13 +54,16 @@ class ShedCounts:
 class HttpLocalizer:
     """One HTTP request per frame against map ``map_id``.
 
-    A frame is worth nothing once the next one is taken, so it is sent once (no retry).
-    A frame the server sheds (503) comes back as a dropped answer (the filter predicts
-    only), and the frames inside the server's ``Retry-After`` window are not sent at all
-    (dropped too): an overloaded server is given the time it asked for. ``counts`` keeps
-    the tally. ``deadline_ms`` (X-Request-Deadline-Ms) tells the server when an answer
-    is no longer worth computing; ``intrinsics``: the camera that took the frames, or
-    ``camera_id`` its registered id (neither: the map's). Other errors raise (ServerError)."""
+    A frame is worth nothing once the next one is taken, so it is sent once (no retry). A
+    frame the server sheds (503) comes back as a dropped answer (the filter predicts only),
+    and the frames inside the server's ``Retry-After`` window are not sent at all (dropped
+    too): an overloaded server is given the time it asked for, and up to a quarter more
+    (``RETRY_JITTER``, drawn from ``rng``; pass one seeded per vehicle for a reproducible
+    drive), so that vehicles told the same wait do not all come back in the same
+    millisecond. ``counts`` keeps the tally. ``deadline_ms`` (X-Request-Deadline-Ms) tells
+    the server when an answer is no longer worth computing; ``intrinsics``: the camera that
+    took the frames, or ``camera_id`` its registered id (neither: the map's). Other errors
+    raise (ServerError)."""
 
     def __init__(
         self,
@@ -62,6 +73,7 @@ class HttpLocalizer:
         clock: Callable[[], float] = time.monotonic,
         intrinsics: CameraIntrinsics | None = None,
         camera_id: int | None = None,
+        rng: np.random.Generator | None = None,
     ) -> None:
         self.client = client
         self.map_id = map_id
@@ -70,6 +82,7 @@ class HttpLocalizer:
         self.camera_id = camera_id
         self.counts = ShedCounts()
         self._clock = clock
+        self._rng = np.random.default_rng() if rng is None else rng
         self._hold_until_s = -math.inf
 
     def localize(
@@ -95,7 +108,7 @@ class HttpLocalizer:
             if exc.status_code != 503:
                 raise
             self.counts.shed += 1
-            self._hold_until_s = now_s + (exc.retry_after_s or 0.0)
+            self._hold_until_s = now_s + jittered_wait_s(exc.retry_after_s or 0.0, self._rng)
             return _dropped("shed")
         self.counts.answered += 1
         return answer

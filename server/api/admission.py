@@ -4,18 +4,19 @@ Every HTTP request of the API belongs to one *lane* (:func:`lane_of`): ``localiz
 (``POST .../localize``), ``write`` (entry adds, deletes, re-tags, calibration and other
 map edits), ``jobs`` (run uploads, job resumes) and ``read`` (every ``GET`` under
 ``/v1/``: most are cheap, but a whole map's poses or coverage costs as much as a write,
-and any key may send them). A lane admits at most
-``workers + queue_depth`` requests at a time; one more is answered at once with 503 and
-``Retry-After`` (whole seconds, HTTP's unit; ``Retry-After-Ms`` gives the same wait to
-the millisecond), before its body is read, so it costs the server nothing (no upload
-spooled, no decode) and memory stays bounded by the lanes' sizes whatever the offered
-load. Each lane has its own worker threads (``workers``), which take the lane's queued
-computations themselves, in arrival order: writes never queue behind a flood of frames
-and frames never behind an upload, and a free worker starts the next frame at once,
-without a hand-over through the event loop (which, busy reading requests under
-overload, waits for the GIL the workers hold). ``/healthz``, ``/readyz``, ``/metrics``,
-the docs and the console's live event stream (``.../vehicles/events``, open for 30 s and
-cheap) take no lane: they always answer.
+and any key may send them). A lane admits at most ``workers + queue_depth`` requests at
+a time; one more is answered at once with 503 and ``Retry-After`` (whole seconds, HTTP's
+unit; ``Retry-After-Ms`` gives the same wait to the millisecond; the requests shed in
+one moment are given returns one service slot apart, :meth:`Lane.book_retry_ms`), before
+its body is read, so it costs the server nothing (no upload spooled, no decode) and
+memory stays bounded by the lanes' sizes whatever the offered load. Each lane has its
+own worker threads (``workers``), which take the lane's queued computations themselves,
+in arrival order: writes never queue behind a flood of frames and frames never behind an
+upload, and a free worker starts the next frame at once, without a hand-over through the
+event loop (which, busy reading requests under overload, waits for the GIL the workers
+hold). ``/healthz``, ``/readyz``, ``/metrics``, the docs and the console's live event
+stream (``.../vehicles/events``, open for 30 s and cheap) take no lane: they always
+answer.
 
 An admitted request carries a deadline: ``X-Request-Deadline-Ms`` (milliseconds the
 client is willing to wait, counted from the server's receipt of the request), else the
@@ -224,6 +225,10 @@ class Lane:
         self._inside = 0
         self._running = 0
         self._service_s = 0.05  # moving average of one computation, for Retry-After
+        # the latest return time (monotonic s) a shed answer gave; its own lock, which the
+        # workers never take, so that a shed still waits on nothing the work holds
+        self._last_return_s = -math.inf
+        self._return_lock = threading.Lock()
 
     def try_enter(self) -> bool:
         """Take a place in the lane; False (shed) when it is full. A full lane is told
@@ -269,7 +274,28 @@ class Lane:
 
     def retry_after_s(self) -> int:
         """The drain time in whole seconds (HTTP's unit), at least 1."""
-        return int(min(60, max(1, math.ceil(self.retry_after_ms() / 1000.0))))
+        return whole_seconds(self.retry_after_ms())
+
+    def book_retry_ms(self, now_s: float | None = None) -> int:
+        """The wait to give one shed request (ms, 1 ms to 60 s), booking its return: the
+        drain time for the first, then one service slot (service time / workers) later
+        for each next one shed before that return, up to ``RETURN_SPREAD_SLOTS`` slots
+        past the drain time, where the booking starts again at the drain time.
+
+        Why: vehicles told the same wait all come back in the same few milliseconds, a
+        burst far above capacity (slow sheds, most of it shed again) and then nothing
+        while they wait (an idle lane). Returns one slot apart arrive at the rate the
+        lane serves. ``now_s``: monotonic time of the shed (default: now)."""
+        now_s = time.monotonic() if now_s is None else now_s
+        slot_s = self._service_s / max(1, self.config.workers)
+        first_s = now_s + self.capacity * slot_s
+        with self._return_lock:
+            at_s = max(first_s, self._last_return_s + slot_s)
+            if at_s > first_s + (RETURN_SPREAD_SLOTS + 0.5) * slot_s:  # half: float sums
+                at_s = first_s
+            self._last_return_s = at_s
+        # the microsecond's rounding first: a sum of slots is not exact in floats
+        return int(min(60_000, max(1, math.ceil(round((at_s - now_s) * 1000.0, 3)))))
 
     def submit(
         self,
@@ -389,6 +415,18 @@ class Lane:
             raise
 
 
+# How far past the drain time shed requests' returns are spread, in service slots (at
+# capacity, the requests the lane serves in that time): deep enough for 60 vehicles
+# waiting their turn, shallow enough that vehicles honouring the wait are not sent away
+# for long by clients that do not (whose sheds book returns too).
+RETURN_SPREAD_SLOTS = 60
+
+
+def whole_seconds(ms: int) -> int:
+    """A wait in whole seconds (HTTP's Retry-After), 1 to 60."""
+    return int(min(60, max(1, math.ceil(ms / 1000.0))))
+
+
 @dataclass
 class Ticket:
     """An admitted request: its lane, its deadline (monotonic s) and its ASGI receive."""
@@ -428,11 +466,11 @@ class Admission:
 
     def shed(self, lane: Lane) -> OverloadedError:
         self.metrics.admission_shed.inc(lane.name)
-        retry_ms = lane.retry_after_ms()
+        retry_ms = lane.book_retry_ms()
         return OverloadedError(
             f"the server is at capacity for {lane.name} requests "
             f"({lane.capacity} admitted); retry after the Retry-After seconds",
-            int(min(60, max(1, math.ceil(retry_ms / 1000.0)))),
+            whole_seconds(retry_ms),
             retry_ms,
         )
 
@@ -484,11 +522,12 @@ class Admission:
             return ClientDisconnectedError(
                 "the client disconnected before its request was computed", 1
             )
+        retry_ms = lane.book_retry_ms()
         return DeadlineExceededError(
             f"the request's deadline passed while it waited for a {lane.name} slot; "
             "it was not computed",
-            lane.retry_after_s(),
-            lane.retry_after_ms(),
+            whole_seconds(retry_ms),
+            retry_ms,
         )
 
     def stop(self) -> None:

@@ -4,9 +4,10 @@ not a retry; the Retry-After window is honoured; the counts say what happened.""
 from __future__ import annotations
 
 import httpx
+import numpy as np
 import pytest
 
-from monoloc.client.api import MonolocClient, ServerError
+from monoloc.client.api import RETRY_JITTER, MonolocClient, ServerError
 from monoloc.client.localizer import HttpLocalizer
 
 HYP = {
@@ -45,22 +46,28 @@ def test_a_shed_frame_is_dropped_once_and_the_retry_after_window_is_honoured():
     seen: list[httpx.Request] = []
     clock = FakeClock()
     client = MonolocClient("http://fake", "mlk_t", retries=3, transport=scripted([503, 200], seen))
+    # the hold is the server's 2 s lengthened by the jitter drawn from the vehicle's rng
+    hold_s = 2.0 * (1.0 + RETRY_JITTER * np.random.default_rng(3).random())
     with client:
-        localizer = HttpLocalizer(client, 7, deadline_ms=150, clock=clock)
+        localizer = HttpLocalizer(
+            client, 7, deadline_ms=150, clock=clock, rng=np.random.default_rng(3)
+        )
         first = localizer.localize(b"png")
         assert first.dropped and first.raw["reason"] == "shed" and len(first.hypotheses) == 0
         assert len(seen) == 1  # no retry of a stale frame, despite retries=3
         assert seen[0].headers["X-Request-Deadline-Ms"] == "150"
-        for i in range(1, 20):  # 10 Hz for 1.9 s: inside the 2 s window, nothing is sent
-            clock.now_s = 100.0 + 0.1 * i
+        held_frames = 0
+        while (at_s := 100.0 + 0.01 * (held_frames + 1)) < 100.0 + hold_s:
+            clock.now_s = at_s  # 100 Hz through the window: nothing is sent
             held = localizer.localize(b"png")
             assert held.dropped and held.raw["reason"] == "held"
-        assert len(seen) == 1
-        clock.now_s = 102.0
+            held_frames += 1
+        assert len(seen) == 1 and held_frames >= 199  # never before the server's 2 s
+        clock.now_s = 100.0 + hold_s
         answer = localizer.localize(b"png")
     assert not answer.dropped and len(answer.hypotheses) == 1 and answer.map_version == 4
     counts = localizer.counts
-    assert (counts.sent, counts.answered, counts.shed, counts.held) == (2, 1, 1, 19)
+    assert (counts.sent, counts.answered, counts.shed, counts.held) == (2, 1, 1, held_frames)
 
 
 def test_the_millisecond_retry_after_is_honoured_before_the_whole_seconds():
@@ -80,10 +87,65 @@ def test_the_millisecond_retry_after_is_honoured_before_the_whole_seconds():
         assert localizer.localize(b"png").raw["reason"] == "shed"
         clock.now_s = 100.2  # inside the 250 ms
         assert localizer.localize(b"png").raw["reason"] == "held"
-        clock.now_s = 100.3  # past them, though inside the whole second
+        clock.now_s = 100.0 + 0.25 * (1 + RETRY_JITTER)  # past them and the jitter, though
+        # inside the whole second
         answer = localizer.localize(b"png")
     assert not answer.dropped and len(seen) == 2
     assert (localizer.counts.shed, localizer.counts.held) == (1, 1)
+
+
+def test_vehicles_told_the_same_wait_do_not_all_come_back_at_once():
+    """20 vehicles shed in the same moment with the same wait (a proxy's fixed Retry-After,
+    or a server that does not spread its waits): each holds for the wait plus its own
+    jitter, so they come back spread over a quarter of the wait, none before it."""
+    clock = FakeClock()
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if clock.now_s == 100.0:
+            body = {"error": {"code": "overloaded", "message": "at capacity"}}
+            return httpx.Response(503, json=body, headers={"Retry-After-Ms": "400"})
+        return httpx.Response(200, json={"hypotheses": [HYP], "map_version": 4})
+
+    back_s: dict[int, float] = {}
+    with MonolocClient("http://fake", "mlk_t", transport=httpx.MockTransport(handler)) as client:
+        fleet = [
+            HttpLocalizer(client, 7, clock=clock, rng=np.random.default_rng(v)) for v in range(20)
+        ]
+        for vehicle in fleet:
+            assert vehicle.localize(b"png").raw["reason"] == "shed"
+        for tick in range(1, 120):  # every vehicle tries every 5 ms for 0.6 s
+            clock.now_s = 100.0 + 0.005 * tick
+            for v, vehicle in enumerate(fleet):
+                if v not in back_s and not vehicle.localize(b"png").dropped:
+                    back_s[v] = clock.now_s
+    returns_ms = sorted(round(1000 * (t - 100.0)) for t in back_s.values())
+    assert len(returns_ms) == 20 and returns_ms[0] >= 400  # all back, none too early
+    assert returns_ms[-1] <= 400 * (1 + RETRY_JITTER) + 5
+    assert returns_ms[-1] - returns_ms[0] >= 50, returns_ms  # spread, not one burst
+    most_in_one_tick = max(returns_ms.count(t) for t in returns_ms)
+    assert most_in_one_tick <= 4, returns_ms
+
+
+def test_the_retry_wait_of_the_client_is_jittered_never_shortened(monkeypatch):
+    """MonolocClient's own retries (uploads, map calls) wait the server's Retry-After plus
+    up to RETRY_JITTER of it, drawn from the injected rng: two clients seeded alike wait
+    alike, two seeded apart do not."""
+    slept: list[float] = []
+    monkeypatch.setattr("monoloc.client.api.time.sleep", slept.append)
+
+    def waits(seed: int) -> list[float]:
+        seen: list[httpx.Request] = []
+        transport = scripted([503, 503, 503, 200], seen)
+        rng = np.random.default_rng(seed)
+        with MonolocClient("http://fake", "mlk_t", retries=3, transport=transport, rng=rng) as c:
+            c.localize(7, b"png")
+        taken = slept[-3:]
+        return taken
+
+    first, again, other = waits(1), waits(1), waits(2)
+    assert first == again and first != other
+    assert all(2.0 <= w <= 2.0 * (1 + RETRY_JITTER) for w in first + other)
+    assert len(set(first)) == 3
 
 
 def test_other_errors_still_raise():
