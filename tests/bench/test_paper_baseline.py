@@ -24,6 +24,8 @@ def _per_entry(result) -> dict[int, np.ndarray]:
     return {h.entry_id: h.pose_world for h in result.hypotheses if not h.joint}
 
 
+# Ingests its own 40-frame city (~50 s on 2 cores): a lab baseline's check, run by `make bench`.
+@pytest.mark.slow
 def test_the_paper_baseline_retrieves_the_same_entries_and_is_no_closer_to_the_truth(
     city, monkeypatch
 ):

@@ -77,6 +77,9 @@ def _build_context(tmp: Path) -> Path:
     return context
 
 
+# A fresh venv installs the image's requirement set (~60 s of pip): run by `make bench`;
+# the compose and start.sh tests below keep the image's layout in `make test`.
+@pytest.mark.slow
 def test_the_image_requirement_set_migrates_postgres_in_a_fresh_venv(postgres_admin_url, tmp_path):
     """The compose file's migrate service, with the image's requirement set alone: it
     failed with "No module named 'psycopg'" when the image installed `.[server]`."""
