@@ -32,7 +32,13 @@ from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import NotFoundError
 from monoloc.core.measurement import MeasurementModel
 from monoloc.core.prior import RetrievalPrior
-from monoloc.server.index.persist import IndexFileError, load_index, save_index
+from monoloc.server.index.persist import (
+    IndexFileError,
+    delete_index,
+    load_index,
+    rebuild_index,
+    save_index,
+)
 from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
 from monoloc.server.localize import (
     LocalizationResult,
@@ -49,6 +55,10 @@ from monoloc.server.vision.features import orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
+
+# Float VLADs a map's index may hold in memory (added live, 8 KiB each) before a catch-up
+# rewrites its file: 16,384 is 128 MiB.
+UNPERSISTED_MAX = 16_384
 
 
 class ChangeListener:
@@ -199,10 +209,8 @@ class MapRegistry:
                 log.info("map %s: index loaded from %s (%d entries)", map_id, path, len(index))
             except IndexFileError as exc:
                 log.warning("map %s: %s; rebuilding from the database", map_id, exc)
-                index = RetrievalIndex(self._index_config)
-                for batch in entries_repo.iter_map_vectors(session, map_id):
-                    index.add(batch.entry_ids, batch.codes, batch.vlads, batch.planar)
-                save_index(path, index, record.version)
+                batches = entries_repo.iter_map_vectors(session, map_id)
+                index = rebuild_index(path, batches, record.version, self._index_config)
         cache = EntryCache(self._lookup, self._cache_entries)
         self._warm(cache, index.entry_ids(), len(index))
         return MapRuntime(record, vocabulary, index, cache, record.version, time.monotonic())
@@ -293,6 +301,9 @@ class MapRegistry:
             runtime.index.add(vectors.entry_ids, vectors.codes, vectors.vlads, vectors.planar)
         runtime.cache.discard(touched)
         runtime.version = changes[-1].version
+        if runtime.index.unpersisted >= UNPERSISTED_MAX:
+            # The VLADs added live are held in memory until the index file is rewritten.
+            save_index(self.index_path(runtime.record.id), runtime.index, runtime.version)
         self._warm(runtime.cache, vectors.entry_ids, len(runtime.index))
         return runtime.version == version or version < runtime.version
 
@@ -396,7 +407,7 @@ class MapRegistry:
         with self._lock:
             self._maps.pop(map_id, None)
         if delete_file:
-            self.index_path(map_id).unlink(missing_ok=True)
+            delete_index(self.index_path(map_id))
 
     def persist(self, map_id: int | None = None) -> None:
         """Write the index file of one map (or of all loaded maps)."""

@@ -90,6 +90,12 @@ class RetrievalIndex:
         """The shortlist: "flat" (FAISS's flat Hamming index) or "scan" (the sketches)."""
         return self._kind
 
+    @property
+    def unpersisted(self) -> int:
+        """Float VLADs held in memory (added since the file was written, removed ones
+        included): persisting the index moves them to its file."""
+        return self._store.delta_size
+
     def entry_ids(self) -> np.ndarray:
         with self._lock.read():
             return self._ids[: self._size].copy()

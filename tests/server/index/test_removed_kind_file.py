@@ -12,7 +12,7 @@ import pytest
 
 from monoloc.core.camera import KITTI_CAM0
 from monoloc.core.geometry import T_world_from_cam_planar
-from monoloc.server.index.persist import IndexFileError, load_index
+from monoloc.server.index.persist import IndexFileError, load_index, vlad_files
 from monoloc.server.index.sketch import vlad_sketch
 from monoloc.server.map_registry import MapRegistry
 from monoloc.server.storage import entries as entries_repo
@@ -99,7 +99,7 @@ def test_an_index_file_of_a_removed_kind_is_rebuilt_from_the_database(factory, s
         path,
         arrays["ids"],
         arrays["codes"],
-        arrays["vlads"],
+        runtime.index.snapshot()["vlads"],  # format 2 keeps them in the float file
         arrays["poses"],
         int(arrays["map_version"]),
         "hnsw",
@@ -113,7 +113,9 @@ def test_an_index_file_of_a_removed_kind_is_rebuilt_from_the_database(factory, s
     expected = runtime.index.search(vlads[7], vlad_binary_code(vlads[7]), k=3)
     np.testing.assert_array_equal(query.entry_ids, expected.entry_ids)
     with np.load(path) as rewritten:
-        assert "faiss_large" not in rewritten.files
+        assert "faiss_large" not in rewritten.files and "vlads" not in rewritten.files
+    (vlad_file,) = vlad_files(path)  # one float file: the first build's went with the rebuild
+    assert np.array_equal(np.load(vlad_file), runtime.index.snapshot()["vlads"])
     caplog.clear()
     MapRegistry(factory, settings.index_dir).get(map_id)
     assert "index loaded from" in caplog.text and "rebuilding" not in caplog.text
