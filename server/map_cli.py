@@ -443,6 +443,34 @@ def map_add_image(
     )
 
 
+@map_app.command("bulk-tile")
+def map_bulk_tile(
+    ctx: typer.Context,
+    map_ref: Annotated[str, typer.Argument(help="Destination map (name or id), already created.")],
+    source: Annotated[
+        list[str], typer.Option("--from", help="Source map (ingested as usual); repeatable.")
+    ],
+    entries: Annotated[int, typer.Option(help="Entries the destination holds when done.")],
+    seed: Annotated[int, typer.Option(help="Seed of the tiles' turns and perturbations.")] = 0,
+    batch_rows: Annotated[int, typer.Option(help="Rows per transaction.")] = 10_000,
+) -> None:
+    """Fill a map with perturbed, turned geographic copies of source maps (to size a
+    deployment before a city of that size is mapped; server/ingest/bulk.py)."""
+    from monoloc.server.ingest.bulk import TileConfig, prepare_tiling, write_tiles
+    from monoloc.server.ingest.report import progress_bar
+
+    _, factory = open_database(ctx)
+    config = TileConfig(entries=entries, seed=seed, batch_rows=batch_rows)
+    plan = prepare_tiling(factory, map_ref, list(source), config)
+    with progress_bar("tiling") as update:
+        summary = write_tiles(factory, plan, progress=update)
+    typer.echo(
+        f"map {summary.map_id}: added {summary.entries_added} entries in {summary.seconds:.1f} s "
+        f"({summary.entries_per_s:.0f}/s), {summary.entries_total} in {summary.tiles} tiles, "
+        f"version {summary.version}"
+    )
+
+
 @map_app.command("import")
 def map_import(
     ctx: typer.Context,
