@@ -22,8 +22,13 @@ def warm_up() -> None:
     poses = np.zeros((8, 3))
     poses[:, 0] = np.arange(8.0)
     prior = RetrievalPrior(x_m=2.0, y_m=0.0, radius_m=3.0)
-    # The scan kind with a shortlist of 2 re-ranks its 8 candidates by the full codes too.
-    for config in (IndexConfig(), IndexConfig(scan_min_entries=4, scan_shortlist=2)):
+    # The scan kind with a shortlist of 2 re-ranks its 8 candidates by the full codes too;
+    # no exact margin: the 4-bit re-rank runs on 8 entries.
+    flat, scan = (
+        IndexConfig(exact_margin=0),
+        IndexConfig(scan_min_entries=4, scan_shortlist=2, exact_margin=0),
+    )
+    for config in (flat, scan):
         index = RetrievalIndex(config)
         index.add(np.arange(8), codes, vlads, poses)
         for with_prior in (None, prior):
