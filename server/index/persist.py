@@ -141,18 +141,35 @@ def save_index(path: Path, index: RetrievalIndex, map_version: int) -> None:
     index.adopt_vlads(map_vlads(vlad_path), edits)
 
 
-def map_vlads(vlad_path: Path) -> np.ndarray:
-    """A float VLAD file, memory-mapped read-only (an empty one as an empty array: a
-    zero-length mapping is refused)."""
+def _data_offset(vlad_path: Path) -> tuple[tuple[int, ...], int]:
+    """A ``.npy`` file's shape and the offset of its data."""
     with open(vlad_path, "rb") as fh:
         major, _ = np.lib.format.read_magic(fh)
         read_header = np.lib.format.read_array_header_1_0
         if major != 1:
             read_header = np.lib.format.read_array_header_2_0
         shape, _, _ = read_header(fh)
+        return shape, fh.tell()
+
+
+def map_vlads(vlad_path: Path) -> np.ndarray:
+    """A float VLAD file, memory-mapped read-only (an empty one as an empty array: a
+    zero-length mapping is refused)."""
+    shape, _ = _data_offset(vlad_path)
     if shape and shape[0] == 0:
         return np.zeros((0, *shape[1:]), dtype=np.float32)
     return np.load(vlad_path, mmap_mode="r", allow_pickle=False)
+
+
+def _file_crc32(path: Path, offset: int) -> int:
+    """CRC-32 of a file's bytes from ``offset`` on, read with plain reads: the page cache
+    keeps them, but this process maps none of them (its resident set stays small)."""
+    crc = 0
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        while chunk := fh.read(1 << 24):
+            crc = zlib.crc32(chunk, crc)
+    return crc
 
 
 def _checked_vlads(path: Path, name: str, n: int, crc: int) -> np.ndarray:
@@ -165,10 +182,7 @@ def _checked_vlads(path: Path, name: str, n: int, crc: int) -> np.ndarray:
         raise IndexFileError(f"index file {path}: VLAD file {name} is corrupt: {exc}") from exc
     if vlads.dtype != np.float32 or vlads.shape != (n, VLAD_DIM) or vlads.ndim != 2:
         raise IndexFileError(f"index file {path}: VLAD file {name} has the wrong shape")
-    found = 0
-    for start in range(0, n, 8192):  # reads the file once (and leaves it in the page cache)
-        found = zlib.crc32(np.ascontiguousarray(vlads[start : start + 8192]).data, found)
-    if found != crc:
+    if _file_crc32(vlad_path, _data_offset(vlad_path)[1]) != crc:
         raise IndexFileError(f"index file {path}: VLAD file {name} is corrupt (CRC-32)")
     return vlads
 
