@@ -28,6 +28,7 @@ _GROUPS = [
     ("monoloc.server.cli", "db_app", "db", "server"),
     ("monoloc.server.cli", "map_app", "map", "server"),
     ("monoloc.server.cli", "keys_app", "keys", "server"),
+    ("monoloc.server.shards_cli", "shards_app", "shards", "server"),
     ("monoloc.sim.cli", "app", "sim", "sim"),
 ]
 _COMMANDS = [

@@ -41,7 +41,7 @@ def _upgrade_store_downgrade(url: str) -> None:
     with session_scope(factory) as session:
         create_api_key(session, "car1", ["localize"])
     upgrade_database(url)
-    assert current_revision(url) == "0009"
+    assert current_revision(url) == "0010"
     lens = LensDistortion("plumb_bob", (-0.28, 0.09, 0.0006, -0.0004))
     camera = CameraIntrinsics(640.0, 640.0, 511.5, 287.5, 1024, 576, lens)
     with session_scope(factory) as session:

@@ -28,11 +28,11 @@ def test_db_upgrade_and_current_through_the_monoloc_app(tmp_path):
 
     result = runner.invoke(app, ["db", "upgrade", "--database-url", url])
     assert result.exit_code == 0, result.output
-    assert "at revision 0009" in result.output
-    assert current_revision(url) == "0009"
+    assert "at revision 0010" in result.output
+    assert current_revision(url) == "0010"
 
     result = runner.invoke(app, ["db", "current", "--database-url", url])
-    assert result.output.startswith("0009") and "up to date" in result.output
+    assert result.output.startswith("0010") and "up to date" in result.output
 
 
 def test_db_upgrade_console_script_uses_settings(tmp_path):

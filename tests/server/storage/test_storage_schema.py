@@ -26,7 +26,7 @@ def test_upgrade_creates_exactly_the_models_schema(tmp_path):
     assert current_revision(url) is None
     upgrade_database(url)
     upgrade_database(url)  # idempotent
-    assert current_revision(url) == head_revision() == "0009"
+    assert current_revision(url) == head_revision() == "0010"
     engine = create_engine(url)
     with engine.connect() as conn:
         assert set(inspect(conn).get_table_names()) == TABLES | {"alembic_version"}

@@ -1,0 +1,171 @@
+"""`monoloc shards ...`: the operator's side of a map split into shard groups by tile
+(monoloc.core.tiles): the nginx router's config written from the tile table, and a check
+of which tiles a group's database covers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from monoloc.core.errors import InvalidInputError
+from monoloc.core.tiles import TileTable
+
+shards_app = typer.Typer(
+    help="A map in shard groups by geographic tile: router config, coverage.",
+    no_args_is_help=True,
+)
+
+TablePath = Annotated[Path, typer.Argument(help="the tile table (JSON, monoloc.core.tiles)")]
+
+
+def render_nginx_config(table: TileTable, listen: str = "80") -> str:
+    """nginx's config routing each request on its ``X-Monoloc-Tile`` header to the
+    upstream of the tile's group (``map``), least connections over the group's replicas;
+    a localize is retried once on the group's other replica when one is down or sheds it
+    (it has no side effects), other requests only when the replica could not be reached.
+    A request naming no served tile gets a 400 with a JSON message."""
+    missing = sorted(name for name, group in table.groups.items() if not group.replicas)
+    if missing:
+        raise InvalidInputError(f"the router needs the replicas of groups {', '.join(missing)}")
+    tiles = "\n".join(
+        f'        "{tile}" shard_{group};' for tile, group in sorted(table.tiles.items())
+    )
+    upstreams = "\n\n".join(
+        f"    upstream shard_{name} {{\n        least_conn;\n"
+        + "".join(
+            f"        server {replica} max_fails=3 fail_timeout=5s;\n" for replica in group.replicas
+        )
+        + "        keepalive 32;\n    }"
+        for name, group in sorted(table.groups.items())
+    )
+    return _NGINX_TEMPLATE.format(
+        map_name=table.map_name,
+        size=f"{table.scheme.size_m:g}",
+        tiles=tiles,
+        upstreams=upstreams,
+        listen=listen,
+        unknown_tile=_UNKNOWN_TILE,
+    )
+
+
+_UNKNOWN_TILE = (
+    '{"error": {"code": "unknown_tile", "message": "X-Monoloc-Tile names no tile of this map"}}'
+)
+_NGINX_TEMPLATE = """\
+# nginx in front of the shard groups of map '{map_name}' (tiles of {size} m), written by
+# `monoloc shards nginx-config` from the tile table: each request goes to the group of
+# the tile its X-Monoloc-Tile header names (the vehicle's ShardedLocalizer sends it), least
+# connections over the group's replicas. A localize is free of side effects: it is tried
+# once more on the group's other replica when one is down or sheds it.
+worker_processes auto;
+
+events {{
+    worker_connections 4096;
+}}
+
+http {{
+    log_format shard '$remote_addr "$request" $status $request_time '
+                     'tile=$http_x_monoloc_tile upstream=$upstream_addr '
+                     'upstream_status=$upstream_status';
+    access_log /dev/stdout shard;
+
+    map $http_x_monoloc_tile $shard_upstream {{
+        default "";
+{tiles}
+    }}
+
+{upstreams}
+
+    server {{
+        listen {listen};
+        client_max_body_size 4g;
+        default_type application/json;
+
+        proxy_http_version 1.1;
+        proxy_set_header Host $host;
+        proxy_set_header X-Forwarded-For $proxy_add_x_forwarded_for;
+        proxy_set_header X-Forwarded-Proto $scheme;
+        proxy_set_header Connection "";
+        proxy_read_timeout 120s;
+        proxy_ignore_client_abort off;
+
+        if ($shard_upstream = "") {{
+            return 400 '{unknown_tile}\\n';
+        }}
+
+        location ~ ^/v1/maps/[^/]+/localize$ {{
+            proxy_pass http://$shard_upstream;
+            proxy_next_upstream error timeout http_503 non_idempotent;
+            proxy_next_upstream_tries 2;
+            client_max_body_size 64m;
+        }}
+
+        location / {{
+            proxy_pass http://$shard_upstream;
+            proxy_next_upstream error timeout;
+            proxy_request_buffering off;
+        }}
+    }}
+}}
+"""
+
+
+@shards_app.callback()
+def _shards() -> None:
+    """Shard group commands."""
+
+
+@shards_app.command("nginx-config")
+def nginx_config(
+    table_path: TablePath,
+    out: Annotated[Path | None, typer.Option(help="write here (default: print)")] = None,
+    listen: Annotated[str, typer.Option(help="nginx's listen address")] = "80",
+) -> None:
+    """Write the router's nginx config for the tile table's groups and replicas."""
+    from monoloc.core.tiles import read_tile_table
+
+    text = render_nginx_config(read_tile_table(table_path), listen)
+    if out is None:
+        typer.echo(text, nl=False)
+    else:
+        out.write_text(text)
+        typer.echo(f"wrote {out}", err=True)
+
+
+@shards_app.command("coverage")
+def coverage(
+    table_path: TablePath,
+    group: Annotated[str, typer.Option(help="the group whose database this is")],
+    database_url: Annotated[
+        str | None, typer.Option(help="the group's database (default MONOLOC_DATABASE_URL)")
+    ] = None,
+) -> None:
+    """Entries per tile of the table's map in a group's database; exits 1 when some lie
+    in tiles the table gives to another group (or to none)."""
+    from monoloc.core.tiles import read_tile_table
+    from monoloc.server.cli import _database_url
+    from monoloc.server.storage.db import create_engine_for_url, make_session_factory
+    from monoloc.server.storage.maps import get_map_by_name
+    from monoloc.server.storage.spatial import tile_coverage
+
+    table = read_tile_table(table_path)
+    if group not in table.groups:
+        raise InvalidInputError(f"group {group!r} is not in {table_path}")
+    engine = create_engine_for_url(_database_url(database_url))
+    try:
+        with make_session_factory(engine)() as session:
+            record = get_map_by_name(session, table.map_name)
+            counts = tile_coverage(session, record.id, table.scheme)
+    finally:
+        engine.dispose()
+    misplaced = 0
+    for tile, n in sorted(counts.items()):
+        owner = table.group_of(tile)
+        verdict = "ok" if owner == group else f"belongs to {owner or 'no group'}"
+        misplaced += 0 if owner == group else n
+        typer.echo(f"{tile}\t{n}\t{verdict}")
+    if misplaced:
+        typer.echo(f"{misplaced} entries outside group {group}'s tiles", err=True)
+        raise typer.Exit(1)
