@@ -27,13 +27,18 @@ chromium:
 
 # The tests start a throwaway PostgreSQL (initdb/pg_ctl, tests/pg_cluster.py) and check the
 # nginx config of docker/ with `nginx -t`, and validate docker/compose.yaml with compose (the
-# docker plugin, else Debian's docker-compose): install Debian's packages when missing.
+# docker plugin, else Debian's docker-compose); the shard suites (tests/shards) need PostGIS
+# and pg_auto_failover for that server's version: install Debian's packages when missing.
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 system-deps:
 	@need=""; \
 	command -v pg_ctl >/dev/null || ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 \
 	  || need="$$need postgresql"; \
 	command -v nginx >/dev/null || [ -x /usr/sbin/nginx ] || need="$$need nginx-light"; \
+	pg=$$(ls /usr/lib/postgresql 2>/dev/null | sort -n | tail -1); pg=$${pg:-15}; \
+	ls /usr/share/postgresql/$$pg/extension/postgis.control >/dev/null 2>&1 \
+	  || need="$$need postgresql-$$pg-postgis-3"; \
+	command -v pg_autoctl >/dev/null || need="$$need postgresql-$$pg-auto-failover"; \
 	{ docker compose version >/dev/null 2>&1 || command -v docker-compose >/dev/null; } \
 	  || need="$$need docker-compose"; \
 	if [ -n "$$need" ]; then \
