@@ -67,7 +67,7 @@ demo: install
 
 # Benchmarks: slow test suites, then every bench script (each prints its figures beside a
 # baseline and writes bench/results/*.json), then bench/REPORT.md from those results.
-BENCHES := vision filter sim ingest localize pnp_calibration retrieval speed accuracy pose_covariance crash load footprint geopose hostile http_overhead formats joint joint_refit error_split transfer mpc lens frame_cost
+BENCHES := vision filter sim ingest localize pnp_calibration retrieval speed accuracy pose_covariance crash load footprint geopose hostile http_overhead formats joint joint_refit error_split transfer mpc lens frame_cost scale
 
 bench: install
 	$(PY) -m pytest -q -m slow
