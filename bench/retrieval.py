@@ -2,32 +2,37 @@
 
 Real VLADs for a million images cannot be made here, so the map is a synthetic route
 (see ``synthetic_route``): neighbouring places look alike, distant ones do not, and each
-entry is a noisy view of its place. Queries are new noisy views of random entries.
-For every size it prints the p50 search time of the monoloc index on one core (FAISS
-binary flat shortlist + exact float re-rank; from 50k entries the exhaustive sketch scan,
-then the full codes, then exact float), the baseline exact float k-NN (brute force over
-all float VLADs, the paper-faithful search) measured in the same run, memory per entry,
-and recall@10 against that exact search. ``--baselines hnsw,ivf`` also times FAISS's
-binary HNSW and IVF shortlists (with the settings they had as index kinds, re-ranked
-exactly), the graph and inverted index the sketch scan was chosen over; building HNSW
-over 1M entries takes a long while, so they are off by default.
+entry is a noisy view of its place. Queries are new noisy views of random entries. The
+map is built as a replica rebuilds one (``persist.rebuild_index``: its float VLADs in
+the memory-mapped file, read back through the page cache). For every size it prints the
+p50 / p99 search time on one core and recall@10 of the monoloc index (Hamming shortlist:
+FAISS binary flat, from 50k entries the sketch scan and the full codes; then the 4-bit
+VLADs; then exact float distances of the k + 20 nearest) without a prior and with
+priors of 50 m and 2.5 km (200 and 10,000 entries inside), the same for the lab baseline
+of 2026-12-01 (bench/lab/float_index.py: float VLADs resident, a prior's inside rows
+re-ranked exactly; ``--float-baseline-max``), the exact float k-NN (brute force, the
+paper-faithful search) and memory per entry, all in the same run. Recall is against
+exact float search (inside the prior with one). ``--baselines hnsw,ivf`` also times
+FAISS's binary HNSW and IVF shortlists (with the settings they had as index kinds,
+re-ranked exactly), the graph and inverted index the sketch scan was chosen over;
+building HNSW over 1M entries takes a long while, so they are off by default.
 Usage: python -m bench.retrieval [--sizes 10000,100000,1000000] [--queries 100]
-[--baselines hnsw,ivf]
-"""
+[--float-baseline-max 1000000] [--baselines hnsw,ivf]"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
+import tempfile
 import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from monoloc.server.index.retrieval import RetrievalIndex, SearchResult
+from monoloc.server.index.retrieval import SearchResult
 from monoloc.server.vision.binary_code import vlad_binary_code
 
 RESULTS = Path(__file__).parent / "results"
@@ -116,18 +121,25 @@ def faiss_baseline(kind: str, codes: np.ndarray, vlads: np.ndarray) -> FaissShor
     return FaissShortlist(index, vlads, shortlist)
 
 
-def timed_searches(index, queries: np.ndarray, q_codes: np.ndarray):
+def timed_searches(index, queries: np.ndarray, q_codes: np.ndarray, priors=None):
     """Per-query search times (ms) and found ids of ``index`` (anything with ``search``),
-    after three warm-up searches."""
-    for q, c in zip(queries[:3], q_codes[:3], strict=True):
-        index.search(q, c, k=10)  # compile / warm the caches
+    after three warm-up searches; ``priors`` one per query (or None)."""
+    priors = priors if priors is not None else [None] * len(queries)
+    for q, c, p in zip(queries[:3], q_codes[:3], priors[:3], strict=True):
+        _search(index, q, c, p)  # compile / warm the caches
     times, found = [], []
-    for q, c in zip(queries, q_codes, strict=True):
+    for q, c, p in zip(queries, q_codes, priors, strict=True):
         t0 = time.perf_counter()
-        res = index.search(q, c, k=10)
+        res = _search(index, q, c, p)
         times.append((time.perf_counter() - t0) * 1e3)
         found.append(res.entry_ids)
     return times, found
+
+
+def _search(index, q, c, prior):
+    if prior is None:
+        return index.search(q, c, k=10)
+    return index.search(q, c, k=10, prior=prior)
 
 
 def recall_at_10(truth: np.ndarray, found: list[np.ndarray]) -> float:
@@ -135,94 +147,162 @@ def recall_at_10(truth: np.ndarray, found: list[np.ndarray]) -> float:
     return float(np.mean(hits)) / 10
 
 
-def huge_pages_mb() -> float | None:
-    """This process's memory on transparent huge pages (Linux), in MB: with 4 KB pages the
-    scan and the re-rank's random rows pay TLB misses, a cause of run-to-run spread."""
-    try:
-        with open("/proc/self/smaps_rollup") as f:
-            for line in f:
-                if line.startswith("AnonHugePages:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return None
+def route_batches(n: int, rng: np.random.Generator, chunk: int = 50_000):
+    """``MapVectors`` batches of :func:`synthetic_route` (float32), their sign codes and
+    poses 0.5 m apart along x: the map a replica rebuilds, one batch at a time."""
+    from monoloc.server.storage.records import MapVectors
+
+    for start in range(0, n, chunk):
+        m = min(chunk, n - start)
+        vlads = synthetic_route(m, rng).astype(np.float32)
+        vlads /= np.linalg.norm(vlads, axis=1, keepdims=True)
+        poses = np.zeros((m, 3))
+        poses[:, 0] = np.arange(start, start + m) * 0.5
+        yield MapVectors(np.arange(start, start + m), vlads, vlad_binary_code(vlads), poses)
+
+
+def resident_bytes_per_entry(index) -> float:
+    """The arrays a product index keeps in memory per entry (its float VLADs are in the
+    mapped file), FAISS's copy of the codes in the flat kind included."""
+    n = len(index)
+    arrays = (index._ids, index._codes, index._compressed, index._poses, index._refs)
+    held = sum(a[:n].nbytes for a in arrays) + 32 * n  # + the sketches
+    held += index._sorted_ids.nbytes + index._sorted_rows.nbytes
+    held += n * (256 + 8) if index._faiss is not None else 0
+    return held / n
+
+
+def baseline_bytes_per_entry(index) -> float:
+    """The same for the float-resident baseline (its id dict about 100 B per entry)."""
+    n = len(index)
+    arrays = (index._ids, index._codes, index._vlads, index._poses)
+    held = sum(a[:n].nbytes for a in arrays) + 32 * n + 100 * n
+    held += n * (256 + 8) if index._faiss is not None else 0
+    return held / n
+
+
+PRIOR_RADII_M = (50.0, 2500.0)  # 200 and 10,000 entries inside at 0.5 m spacing
+
+
+def _priors(picks: np.ndarray, radius_m: float | None):
+    from monoloc.core.prior import RetrievalPrior
+
+    if radius_m is None:
+        return [None] * len(picks)
+    return [RetrievalPrior(x_m=0.5 * float(i), y_m=0.0, radius_m=radius_m) for i in picks]
+
+
+def prior_truth(vlads: np.ndarray, queries: np.ndarray, picks: np.ndarray, radius_m: float):
+    """Exact top-10 ids inside each query's prior (entries within radius_m of its pick)."""
+    out = []
+    for q, i in zip(queries, picks, strict=True):
+        lo = max(0, int(np.ceil(i - 2 * radius_m)))
+        hi = min(len(vlads), int(np.floor(i + 2 * radius_m)) + 1)
+        d = np.linalg.norm(vlads[lo:hi].astype(np.float32) - q, axis=1)
+        out.append(lo + np.argsort(d, kind="stable")[:10])
+    return np.array(out)
+
+
+def timed_modes(index, queries, q_codes, picks, truths) -> dict:
+    """p50 / p99 and recall@10 without a prior and with each of PRIOR_RADII_M."""
+    out = {}
+    for radius_m in (None, *PRIOR_RADII_M):
+        name = "no_prior" if radius_m is None else f"prior_{radius_m:.0f}m"
+        times, found = timed_searches(index, queries, q_codes, _priors(picks, radius_m))
+        out[name] = {
+            "p50_ms": float(np.median(times)),
+            "p99_ms": float(np.percentile(times, 99)),
+            "recall_at_10": recall_at_10(truths[name], found),
+        }
+    return out
 
 
 def run_size(
-    n: int, n_queries: int, rng: np.random.Generator, baselines: tuple[str, ...] = ()
+    n: int,
+    n_queries: int,
+    rng: np.random.Generator,
+    baselines: tuple[str, ...] = (),
+    float_baseline: bool = True,
 ) -> dict:
-    vlads = synthetic_route(n, rng)
-    codes = np.concatenate(
-        [vlad_binary_code(vlads[s : s + 50_000].astype(np.float32)) for s in range(0, n, 50_000)]
-    )
-    poses = np.zeros((n, 3))
-    poses[:, 0] = np.arange(n) * 0.5
     import faiss
 
-    tracemalloc.start()
-    build_start = time.perf_counter()
-    faiss.omp_set_num_threads(2)  # building may use both cores; each search uses one
-    index = RetrievalIndex.from_arrays(np.arange(n), codes, vlads, poses)  # the server's
-    faiss.omp_set_num_threads(1)
-    build_s = time.perf_counter() - build_start
-    huge_mb = huge_pages_mb()
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    # FAISS memory is not seen by tracemalloc: add the codes it holds (n x 256 B) + ids.
-    faiss_bytes = n * (256 + 8) if index._faiss is not None else 0
-    sketch_bytes = 32 * n
-    arrays_bytes = sketch_bytes + sum(
-        a[:n].nbytes
-        for a in (
-            index._ids,
-            index._codes,
-            index._vlads,
-            index._poses,
+    from bench.lab.float_index import FloatRetrievalIndex
+    from monoloc.server.index.persist import rebuild_index
+
+    with tempfile.TemporaryDirectory(dir=RESULTS.parent.parent / "out") as tmp:
+        path = Path(tmp) / "map_1.index.npz"
+        build_start = time.perf_counter()
+        index = rebuild_index(path, route_batches(n, rng), 1)  # as a replica rebuilds
+        build_s = time.perf_counter() - build_start
+        vlads = index._store.base  # the mapped float file (page cache, not the index's)
+        kind = index.kind
+        picks = rng.choice(n, n_queries, replace=False)
+        queries = vlads[picks] + rng.normal(size=(n_queries, DIM)).astype(np.float32) * (
+            0.3 / np.sqrt(DIM)
         )
-    )
-    per_entry = (arrays_bytes + faiss_bytes + 100 * n) / n  # ~100 B/entry for the id map
-    kind = index.kind
-    picks = rng.choice(n, n_queries, replace=False)
-    queries = vlads[picks].astype(np.float32) + rng.normal(size=(n_queries, DIM)).astype(
-        np.float32
-    ) * (0.3 / np.sqrt(DIM))
-    queries /= np.linalg.norm(queries, axis=1, keepdims=True)
-    q_codes = vlad_binary_code(queries)
-    times, found = timed_searches(index, queries, q_codes)
-    del index
-    base_start = time.perf_counter()
-    truth = exact_topk(vlads, queries[: min(20, n_queries)], 10)
-    baseline_ms = (time.perf_counter() - base_start) * 1e3 / min(20, n_queries)
-    truth_all = exact_topk(vlads, queries, 10)
-    del truth
-    row = {
-        "entries": n,
-        "index_kind": kind,
-        "build_s": build_s,
-        "p50_ms": float(np.median(times)),
-        "p99_ms": float(np.percentile(times, 99)),
-        "baseline_exact_float_p50_ms": baseline_ms,
-        "memory_bytes_per_entry": per_entry,
-        "recall_at_10": recall_at_10(truth_all, found),
-        "python_peak_build_mb": peak / 2**20,
-        "huge_pages_mb_after_build": huge_mb,
-        "baselines": {},
-    }
-    for name in baselines:
-        start = time.perf_counter()
-        faiss.omp_set_num_threads(2)
-        baseline = faiss_baseline(name, codes, vlads)
-        faiss.omp_set_num_threads(1)
-        built_s = time.perf_counter() - start
-        times, found = timed_searches(baseline, queries, q_codes)
-        row["baselines"][name] = {
-            "build_s": built_s,
-            "p50_ms": float(np.median(times)),
-            "p99_ms": float(np.percentile(times, 99)),
-            "recall_at_10": recall_at_10(truth_all, found),
+        queries /= np.linalg.norm(queries, axis=1, keepdims=True)
+        q_codes = vlad_binary_code(queries)
+        base_start = time.perf_counter()
+        n_timed = min(20, n_queries)
+        exact_topk(vlads, queries[:n_timed], 10)
+        baseline_ms = (time.perf_counter() - base_start) * 1e3 / n_timed
+        truths = {"no_prior": exact_topk(vlads, queries, 10)}
+        for radius_m in PRIOR_RADII_M:
+            truths[f"prior_{radius_m:.0f}m"] = prior_truth(vlads, queries, picks, radius_m)
+        modes = timed_modes(index, queries, q_codes, picks, truths)
+        row = {
+            "entries": n,
+            "index_kind": kind,
+            "build_s": build_s,
+            "p50_ms": modes["no_prior"]["p50_ms"],
+            "p99_ms": modes["no_prior"]["p99_ms"],
+            "recall_at_10": modes["no_prior"]["recall_at_10"],
+            "modes": modes,
+            "baseline_exact_float_p50_ms": baseline_ms,
+            "memory_bytes_per_entry": resident_bytes_per_entry(index),
+            "loadavg": os.getloadavg()[0],
+            "baselines": {},
         }
-        del baseline
+        sketches = index._sketches.rows(n)  # the baseline's are the same: not recomputed
+        del index
+        if float_baseline:  # the float-resident index of 2026-12-01, same map and queries
+            start = time.perf_counter()
+            baseline = FloatRetrievalIndex.from_arrays(
+                np.arange(n),
+                _codes_of(vlads),
+                vlads,
+                np.c_[np.arange(n) * 0.5, np.zeros((n, 2))],
+                sketches=sketches,
+            )
+            row["float_baseline"] = {
+                "build_s": time.perf_counter() - start,
+                "memory_bytes_per_entry": baseline_bytes_per_entry(baseline),
+                "modes": timed_modes(baseline, queries, q_codes, picks, truths),
+                "loadavg": os.getloadavg()[0],
+            }
+            del baseline
+        for name in baselines:
+            start = time.perf_counter()
+            faiss.omp_set_num_threads(2)
+            shortlist = faiss_baseline(name, _codes_of(vlads), vlads)
+            faiss.omp_set_num_threads(1)
+            built_s = time.perf_counter() - start
+            times, found = timed_searches(shortlist, queries, q_codes)
+            row["baselines"][name] = {
+                "build_s": built_s,
+                "p50_ms": float(np.median(times)),
+                "p99_ms": float(np.percentile(times, 99)),
+                "recall_at_10": recall_at_10(truths["no_prior"], found),
+            }
+            del shortlist
+        del vlads
     return row
+
+
+def _codes_of(vlads: np.ndarray, chunk: int = 50_000) -> np.ndarray:
+    return np.concatenate(
+        [vlad_binary_code(np.asarray(vlads[s : s + chunk])) for s in range(0, len(vlads), chunk)]
+    )
 
 
 def main() -> None:
@@ -231,6 +311,12 @@ def main() -> None:
     parser.add_argument("--queries", type=int, default=100)
     parser.add_argument(
         "--baselines", default="", help=f"comma-separated, of {', '.join(BASELINES)}"
+    )
+    parser.add_argument(
+        "--float-baseline-max",
+        type=int,
+        default=1_000_000,
+        help="largest size at which the float-resident index of 2026-12-01 is measured too",
     )
     args = parser.parse_args()
     baselines = tuple(b for b in args.baselines.split(",") if b)
@@ -243,23 +329,32 @@ def main() -> None:
     threadpool_limits(1)  # one core, as the server runs each search
     rng = np.random.default_rng(0)
     rows = []
+    print(f"load average {os.getloadavg()[0]:.1f} before; one search thread")
     print(
-        f"{'entries':>9} {'kind':>5} {'p50 ms':>8} {'p99 ms':>8} "
-        f"{'exact ms':>9} {'B/entry':>8} {'recall@10':>9} {'THP MB':>7}"
+        f"{'entries':>9} {'index':>18} {'mode':>11} {'p50 ms':>8} {'p99 ms':>8} "
+        f"{'recall@10':>9} {'B/entry':>8}"
     )
     for n in [int(s) for s in args.sizes.split(",")]:
-        row = run_size(n, args.queries, rng, baselines)
+        row = run_size(n, args.queries, rng, baselines, n <= args.float_baseline_max)
         rows.append(row)
+        designs = [(f"product ({row['index_kind']})", row)]
+        if "float_baseline" in row:
+            designs.append(("float 2026-12-01", row["float_baseline"]))
+        for label, design in designs:
+            for mode, m in design["modes"].items():
+                print(
+                    f"{n:>9} {label:>18} {mode:>11} {m['p50_ms']:>8.3f} {m['p99_ms']:>8.3f} "
+                    f"{m['recall_at_10']:>9.3f} {design['memory_bytes_per_entry']:>8.0f}"
+                )
         print(
-            f"{n:>9} {row['index_kind']:>5} {row['p50_ms']:>8.3f} {row['p99_ms']:>8.3f} "
-            f"{row['baseline_exact_float_p50_ms']:>9.2f} {row['memory_bytes_per_entry']:>8.0f} "
-            f"{row['recall_at_10']:>9.3f} {row['huge_pages_mb_after_build'] or 0:>7.0f}"
+            f"{n:>9} {'exact float k-NN':>18} {'no_prior':>11} "
+            f"{row['baseline_exact_float_p50_ms']:>8.2f}   (brute force, load average "
+            f"{row['loadavg']:.1f})"
         )
         for name, b in row["baselines"].items():
             print(
-                f"{'':>9} {name:>5} {b['p50_ms']:>8.3f} {b['p99_ms']:>8.3f} "
-                f"{'':>9} {'':>8} {b['recall_at_10']:>9.3f}   (baseline, built in "
-                f"{b['build_s']:.1f} s)"
+                f"{n:>9} {name:>18} {'no_prior':>11} {b['p50_ms']:>8.3f} {b['p99_ms']:>8.3f} "
+                f"{b['recall_at_10']:>9.3f}   (baseline, built in {b['build_s']:.1f} s)"
             )
     print("goal at 1M entries: p50 <= 2 ms and recall@10 >= 0.95")
     last = rows[-1]

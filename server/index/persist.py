@@ -14,6 +14,7 @@ refused the same way, so their map is rebuilt with the current index.
 
 from __future__ import annotations
 
+import mmap
 import os
 import secrets
 import tempfile
@@ -158,7 +159,11 @@ def map_vlads(vlad_path: Path) -> np.ndarray:
     shape, _ = _data_offset(vlad_path)
     if shape and shape[0] == 0:
         return np.zeros((0, *shape[1:]), dtype=np.float32)
-    return np.load(vlad_path, mmap_mode="r", allow_pickle=False)
+    vlads = np.load(vlad_path, mmap_mode="r", allow_pickle=False)
+    # Rows are read at random, 8 KiB each: no read-ahead around them (nor mapping the
+    # neighbouring cached pages), which would read and map the file for nothing.
+    vlads._mmap.madvise(mmap.MADV_RANDOM)
+    return vlads
 
 
 def _file_crc32(path: Path, offset: int) -> int:
