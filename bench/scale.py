@@ -1,11 +1,12 @@
 """A city on one replica (issue 52, 1): a map of ``--entries`` entries built end to end,
-measured beside the same figures at ``--baseline-entries`` in the same run.
+measured beside the same figures at the smaller ``--sizes`` in the same run (the first is
+the baseline; the map grows from one size to the next).
 
 1. Base: sim cities of several seeds (map + query runs, KITTI size) are rendered and
    their map runs ingested through the real pipeline (``ingest_source``): one source map
    per city; the pipeline's entries/s is reported.
 2. ``monoloc map bulk-tile``'s functions (server/ingest/bulk.py) tile the sources into map
-   ``scale``: first up to the baseline size, measured, then up to ``--entries``, measured.
+   ``scale``: up to each size in turn, measured at each.
 3. At each size: disk (SQLite file, or ``pg_database_size``); index rebuild from the
    database (``persist.rebuild_index``, in this process); recall@10 of the index against
    exact float search (numpy over the database's VLADs, chunked) for the query frames'
@@ -16,7 +17,8 @@ measured beside the same figures at ``--baseline-entries`` in the same run.
 
 ``--database postgresql`` runs a throwaway PostgreSQL server (tests/pg_cluster.py) with its
 data under ``--work-dir``. Data lives in ``--work-dir`` (deleted at the end unless ``--keep``;
-the rendered base is kept for the next run). Writes bench/results/scale[...].json.
+the rendered base is kept for the next run). Writes bench/results/scale_<database>_<entries>.json
+after each size (a run stopped early keeps the sizes done).
 """
 
 from __future__ import annotations

@@ -3,8 +3,10 @@
 latency) before a real city of that size is mapped.
 
 The sources are maps ingested the ordinary way (``monoloc map ingest``). Tile ``k`` is a
-copy of source ``k % S`` centred on cell ``k`` of a square grid (pitch: the largest
-source's diagonal plus a margin), turned about the source's centre by a random angle.
+copy of source ``k % S`` centred on cell ``k`` of a grid of ``columns`` columns filled row
+by row (pitch: the largest source's diagonal plus a margin), turned about the source's
+centre by a random angle; a tile's place and turn depend only on ``k`` and the seed, so
+a map grown in steps or resumed after an interruption is the map written at once.
 The first ``S`` tiles are the sources unchanged and unturned (a frame of a source
 localizes there, at its pose moved by the tile); every later tile perturbs its
 entries so that no two copies are equal: each descriptor bit flips with probability
@@ -44,11 +46,13 @@ from monoloc.server.storage.records import EntryData, MapRecord, NewEntry
 @dataclass(frozen=True)
 class TileConfig:
     """How to tile: ``entries`` the destination map's size when done (the last tile may
-    be partial); ``margin_m`` between tiles; each descriptor bit flips with probability
-    ``2**-flip_halvings``; ``swap_share`` of an entry's descriptors come from another
-    entry; ``batch_rows`` rows per transaction; ``seed`` fixes layout and perturbation."""
+    be partial); ``columns`` of the tile grid; ``margin_m`` between tiles; each
+    descriptor bit flips with probability ``2**-flip_halvings``; ``swap_share`` of an
+    entry's descriptors come from another entry; ``batch_rows`` rows per transaction;
+    ``seed`` fixes turns and perturbations."""
 
     entries: int
+    columns: int = 32
     margin_m: float = 100.0
     flip_halvings: int = 4
     swap_share: float = 0.2
@@ -58,6 +62,8 @@ class TileConfig:
     def validate(self) -> None:
         if self.entries < 1:
             raise InvalidInputError(f"entries must be >= 1, got {self.entries}")
+        if self.columns < 1:
+            raise InvalidInputError(f"columns must be >= 1, got {self.columns}")
         if not (math.isfinite(self.margin_m) and self.margin_m >= 0):
             raise InvalidInputError(f"margin_m must be >= 0, got {self.margin_m}")
         if not 1 <= self.flip_halvings <= 16:
@@ -101,16 +107,15 @@ class _Source:
     diagonal_m: float
 
 
-def tile_layout(n_tiles: int, sources: list[_Source], margin_m: float, seed: int) -> list[Tile]:
-    """The tiles of a grid of ``ceil(sqrt(n_tiles))`` columns, row by row."""
-    pitch_m = max(s.diagonal_m for s in sources) + margin_m
-    columns = max(1, math.ceil(math.sqrt(n_tiles)))
-    rng = np.random.default_rng([seed, 0])
-    turns = rng.uniform(-math.pi, math.pi, n_tiles)
+def tile_layout(n_tiles: int, sources: list[_Source], config: TileConfig) -> list[Tile]:
+    """The first ``n_tiles`` tiles (each tile's turn drawn from its own seed)."""
+    pitch_m = max(s.diagonal_m for s in sources) + config.margin_m
+    columns = config.columns
     tiles = []
     for k in range(n_tiles):
         source = k % len(sources)
-        theta = 0.0 if k < len(sources) else float(turns[k])
+        turn = np.random.default_rng([config.seed, 0, k]).uniform(-math.pi, math.pi)
+        theta = 0.0 if k < len(sources) else float(turn)
         c, s = math.cos(theta), math.sin(theta)
         cell = np.array([k % columns, k // columns], dtype=np.float64) * pitch_m
         centre = sources[source].centre_m
@@ -293,7 +298,7 @@ def prepare_tiling(
         vocab = maps_repo.get_vocabulary(session, dest.vocabulary_id)
     vocabulary = Vocabulary.from_centres(np.asarray(vocab.centres), vocab.description)
     rows = _plan(sources, config)
-    tiles = tile_layout(rows[-1][0] + 1, sources, config.margin_m, config.seed)
+    tiles = tile_layout(rows[-1][0] + 1, sources, config)
     return TilingPlan(dest, sources, vocabulary, tiles, rows, config)
 
 

@@ -18,7 +18,13 @@ from sqlalchemy import select
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import planar_from_T_world_from_cam
-from monoloc.server.ingest.bulk import TileConfig, bulk_tile, perturb_descriptors, tile_hash
+from monoloc.server.ingest.bulk import (
+    TileConfig,
+    bulk_tile,
+    perturb_descriptors,
+    prepare_tiling,
+    tile_hash,
+)
 from monoloc.server.settings import Settings
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
@@ -155,6 +161,10 @@ def test_bulk_tile_keeps_the_invariants_and_a_query_localizes_on_a_copy(settings
     # a rerun adds nothing; a larger target adds only the difference
     again = bulk_tile(factory, "big", ["city"], TileConfig(entries=ENTRIES, batch_rows=64))
     assert again.entries_added == 0 and again.version == ENTRIES
+    bigger = TileConfig(entries=40 * n_source)  # more tiles: the first keep their place
+    assert np.allclose(
+        prepare_tiling(factory, "big", ["city"], bigger).tiles[3].T_world_from_source, T_tile
+    )
     more = bulk_tile(factory, "big", ["city"], TileConfig(entries=ENTRIES + 5))
     assert more.entries_added == 5 and more.version == ENTRIES + 5
     engine.dispose()
@@ -208,6 +218,11 @@ def test_bulk_tile_cli_refuses_bad_input(tmp_path):
 
 
 def test_tile_config_refuses_bad_values():
-    for bad in (dict(entries=0), dict(entries=5, swap_share=1.0), dict(entries=5, flip_halvings=0)):
+    for bad in (
+        dict(entries=0),
+        dict(entries=5, swap_share=1.0),
+        dict(entries=5, flip_halvings=0),
+        dict(entries=5, columns=0),
+    ):
         with pytest.raises(InvalidInputError):
             TileConfig(**bad).validate()
