@@ -126,6 +126,12 @@ def main() -> None:
     parser.add_argument(
         "--mpc-seeds", type=int, default=None, help="indoor: the MPC drives only the first N seeds"
     )
+    parser.add_argument(
+        "--cases", default=None, help="indoor: among open,closed,closed+offcenter (default all)"
+    )
+    parser.add_argument(
+        "--name", default="closed_loop_indoor", help="indoor: results file stem in bench/results"
+    )
     parser.add_argument("--size", default="small")
     parser.add_argument("--seed", type=int, default=0, help="the world's (and the map's) seed")
     parser.add_argument("--out", type=Path, default=None)
@@ -205,16 +211,17 @@ def seeded_main(args) -> None:
     out = args.out or Path("out/closed_loop_bench_indoor")
     world = build_loop_world(WorldSpec("indoor", args.size, args.seed))
     laps = args.laps or 1.0
+    cases = {} if args.cases is None else {"cases": tuple(args.cases.split(","))}
     config = SeededStudyConfig(
         seeds=tuple(range(args.seeds)),
         controllers=tuple(c.strip() for c in args.controllers.split(",") if c.strip()),
         max_seeds=() if args.mpc_seeds is None else (("mpc", args.mpc_seeds),),
         latency_ms=NOMINAL_LATENCY_MS if args.latency == "nominal" else None,
-        study=StudyConfig(laps=laps, offcenter_laps=1.0, train_laps=1.0, seed=args.seed),
+        study=StudyConfig(laps=laps, offcenter_laps=1.0, train_laps=1.0, seed=args.seed, **cases),
         map_seed=args.seed,
     )
     RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / "closed_loop_indoor.json"
+    path = RESULTS / f"{args.name}.json"
     planned = sum(len(config.seeds_of(c)) for c in config.controllers) * len(config.study.cases)
     header = {
         "scenario": "indoor",
@@ -265,11 +272,11 @@ def seeded_main(args) -> None:
             plots += plot_cases(
                 kept,
                 RESULTS,
-                prefix=f"closed_loop_indoor_{controller}",
+                prefix=f"{args.name}_{controller}",
                 reference_xy=world.reference_path(min(laps, 1.0)).xy,
             )
     summary = summarize(drives, config.stats)
-    plots += plot_seeded(drives, summary, RESULTS, "closed_loop_indoor")
+    plots += plot_seeded(drives, summary, RESULTS, args.name)
     data = save(drives, info, complete=True, plots=plots)
     print_seeded(data)
     print(f"wrote {path} and {len(plots)} plots ({data['total_s']:.0f} s)")

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from monoloc.sim.closed_loop import LoopResult
-from monoloc.sim.closed_loop_record import localization_error_m
+from monoloc.sim.closed_loop_record import localization_error_m, true_localization_error_m
 
 SPIKE_FACTOR = 3.0
 # The filter's first second (initialisation from the first hypotheses) is not a spike.
@@ -51,6 +51,7 @@ def loop_metrics(result: LoopResult, spike_threshold_m: float | None = None) -> 
     err = localization_error_m(result)
     has = np.isfinite(err)
     e = err[has]
+    e_true = true_localization_error_m(result)[has]
     lateral = np.abs(result.trace["lateral_m"])
     out_of_lane = lateral > result.lane_half_width_m
     no_hyp = f["n_hypotheses"] == 0
@@ -65,6 +66,7 @@ def loop_metrics(result: LoopResult, spike_threshold_m: float | None = None) -> 
         "loc_rmse_m": float(np.sqrt(np.mean(e**2))) if len(e) else None,
         "loc_p95_m": float(np.percentile(e, 95)) if len(e) else None,
         "loc_max_m": float(np.max(e)) if len(e) else None,
+        "loc_rmse_true_m": float(np.sqrt(np.mean(e_true**2))) if len(e_true) else None,
         "lateral_rmse_m": float(np.sqrt(np.mean(lateral**2))),
         "lateral_max_m": float(np.max(lateral)),
         "heading_rmse_deg": float(np.degrees(np.sqrt(np.mean(f["heading_rad"] ** 2)))),

@@ -44,6 +44,7 @@ SUMMARY_METRICS = (
     "loc_rmse_m",
     "loc_p95_m",
     "loc_max_m",
+    "loc_rmse_true_m",
     "within_0_06",
     "within_0_1",
     "spikes",

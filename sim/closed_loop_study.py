@@ -109,7 +109,7 @@ def filter_config_for(world) -> FilterConfig:
 
 
 def create_map(client: MonolocClient, world, name: str) -> int:
-    k = world.intrinsics
+    k = world.calibrated_intrinsics
     camera = dict(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width_px=k.width_px, height_px=k.height_px)
     return int(
         client.request("POST", "/v1/maps", json={"name": name, "camera": camera}).json()["id"]

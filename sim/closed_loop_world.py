@@ -75,6 +75,7 @@ class IndoorLoopWorld:
         False: without the chairs, stands and legs beside the tape (RoomConfig)."""
         from monoloc.sim.indoor.plan import SCALE_CAR, SCALE_CAR_BICYCLE, IndoorConfig
         from monoloc.sim.indoor.room import NearClutterConfig
+        from monoloc.sim.indoor.sensors import IndoorErrors
         from monoloc.sim.indoor.world import build_world
 
         self.seed = seed
@@ -98,6 +99,14 @@ class IndoorLoopWorld:
         self.T_vehicle_from_cam = rig.T_vehicle_from_cam()
         self.lever_arm_m = rig.camera_ahead_of_rear_axle_m
         self.intrinsics: CameraIntrinsics = self.config.intrinsics
+        from monoloc.sim.indoor.sensors import calibrated_intrinsics, hand_eye_residual
+
+        # One calibration per rig (world seed): what every run's camera.json and tracker
+        # poses carry (the true intrinsics render).
+        errors = self.config.errors if sensor_noise else IndoorErrors.none()
+        rig_rng = np.random.default_rng([seed, 43])
+        self.T_cam_from_recorded = hand_eye_residual(errors, rig_rng)
+        self.calibrated_intrinsics = calibrated_intrinsics(self.intrinsics, errors, rig_rng)
         self.frame_rate_hz = self.config.frame_rate_hz
         self.dt_s = SCALE_CAR.dt_s
         self.bicycle = SCALE_CAR_BICYCLE
@@ -188,7 +197,7 @@ class IndoorLoopWorld:
         registered to the image. Frames of one drive come one frame period apart: the
         exposure follows the scene's brightness with its lag, and the image is blurred
         by the motion since the previous frame over the exposure time."""
-        from monoloc.sim.indoor.camera_motion import motion_blur
+        from monoloc.sim.indoor.camera_motion import motion_blur, rolling_shutter
         from monoloc.sim.indoor.sensors import noisy_depth
 
         scene, bank = self._scene(lap)
@@ -202,28 +211,43 @@ class IndoorLoopWorld:
         cam = replace(cam, adaptation=state.adaptation(self.config.auto_exposure, period_s))
         exposure = auto_exposure(radiance, cam, state.exposure)
         blur = self.config.motion_blur
-        if blur.enabled and state.T_world_from_cam is not None:
-            time_s = blur.max_exposure_time_s * min(exposure, cam.max_exposure) / cam.max_exposure
+        readout_s = self.config.rolling_shutter.readout_s
+        if state.T_world_from_cam is not None and (blur.enabled or readout_s > 0):
             T_prev_from_cur = np.linalg.inv(state.T_world_from_cam) @ T_world_from_cam
-            radiance = motion_blur(
-                radiance, raster.depth_m, T_prev_from_cur, self.intrinsics,
-                time_s / period_s, blur.samples,
-            )  # fmt: skip
+            if readout_s > 0:
+                radiance = rolling_shutter(
+                    radiance, raster.depth_m, T_prev_from_cur, self.intrinsics,
+                    readout_s / period_s,
+                )  # fmt: skip
+            if blur.enabled:
+                share = min(exposure, cam.max_exposure) / cam.max_exposure
+                radiance = motion_blur(
+                    radiance, raster.depth_m, T_prev_from_cur, self.intrinsics,
+                    blur.max_exposure_time_s * share / period_s, blur.samples,
+                )  # fmt: skip
         state.T_world_from_cam, state.exposure = np.array(T_world_from_cam), exposure
         image = expose(radiance, exposure, cam, rng)
         if not with_depth:
             return image, None
         return image, noisy_depth(raster.depth_m, image, self.config.errors.depth, rng)
 
-    def tracker_poses(self, T_world_from_cam: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """(n, 4, 4) the poses a run's ground truth records: the true camera poses with the
-        tracker's jitter and per-run bias (``IndoorErrors.mocap_*``; exact without sensor
-        noise)."""
-        from monoloc.sim.indoor.sensors import mocap_noise
+    def tracker_poses(
+        self,
+        T_world_from_cam: np.ndarray,
+        rng: np.random.Generator,
+        t_s: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(n, 4, 4) the poses a run's ground truth records for its true camera poses
+        (n, 4, 4) at times ``t_s`` (n,) s: one clock offset later, through the rig's
+        hand-eye residual, with the tracker's jitter and per-run bias
+        (``sensors.recorded_truth``; exact without sensor noise)."""
+        from monoloc.sim.indoor.sensors import recorded_truth
 
         if not self.sensor_noise:
             return np.asarray(T_world_from_cam)
-        return mocap_noise(T_world_from_cam, self.config.errors, rng)
+        return recorded_truth(
+            T_world_from_cam, t_s, self.config.errors, self.T_cam_from_recorded, rng
+        )
 
     def camera_json_extra(self) -> dict:
         return {
@@ -257,6 +281,7 @@ class UrbanLoopWorld:
         self.T_cam_from_lidar = rig.T_cam_from_lidar()
         self.lever_arm_m = rig.camera_ahead_of_rear_axle_m
         self.intrinsics: CameraIntrinsics = self.config.intrinsics()
+        self.calibrated_intrinsics = self.intrinsics  # the sim's city camera: as calibrated
         self.frame_rate_hz = 1.0 / FRAME_PERIOD_S
         vehicle = self.config.vehicle
         self.dt_s = vehicle.dt_s

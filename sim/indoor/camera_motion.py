@@ -1,5 +1,6 @@
 """The colour camera of a moving car, frame after frame: motion blur (the image moves
-during the exposure) and an auto-exposure that follows the scene's brightness with a lag.
+during the exposure), rolling shutter (rows read one after another while the camera
+moves) and an auto-exposure that follows the scene's brightness with a lag.
 
 Both need the camera's previous frame, so a drive keeps a ``CameraState`` (``reset`` at
 the start of a drive: the first frame has no blur and exposes at once).
@@ -37,6 +38,17 @@ class AutoExposureConfig:
     instantaneous (the former model)."""
 
     time_constant_s: float = 0.3
+
+
+@dataclass(frozen=True)
+class RollingShutterConfig:
+    """readout_s: time from the first row's exposure to the last's; the frame's stamp is
+    its middle row's time. The D435i's RGB sensor (OmniVision OV2740) is rolling shutter,
+    and its skew scales with the frame time (librealsense issue 3554: read out over most
+    of a frame); 25 ms, three quarters of a 30 fps frame, is an assumption within that.
+    0: a global shutter."""
+
+    readout_s: float = 0.025
 
 
 def image_motion_px(
@@ -97,6 +109,29 @@ def motion_blur(
         map_y = (rows + np.float32(s) * dv).astype(np.float32)
         acc += cv2.remap(radiance, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     return acc / np.float32(samples)
+
+
+def rolling_shutter(
+    radiance: np.ndarray,
+    depth_m: np.ndarray,
+    T_prev_from_cur: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    readout_share_of_period: float,
+) -> np.ndarray:
+    """Radiance (H, W) float32 read out row after row: row v is seen
+    ``(v / (H - 1) - 1/2) * readout_share_of_period`` of the motion between the previous
+    frame and this one (``T_prev_from_cur``, assumed to continue) after the frame's
+    time (top rows earlier, bottom rows later)."""
+    import cv2
+
+    if readout_share_of_period <= 0:
+        return radiance
+    du, dv = image_motion_px(depth_m, T_prev_from_cur, intrinsics, readout_share_of_period)
+    h, w = radiance.shape
+    share = (np.arange(h, dtype=np.float32) / np.float32(max(h - 1, 1)) - 0.5)[:, None]
+    map_x = (np.arange(w, dtype=np.float32)[None, :] + share * du).astype(np.float32)
+    map_y = (np.arange(h, dtype=np.float32)[:, None] + share * dv).astype(np.float32)
+    return cv2.remap(radiance, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
 
 class CameraState:

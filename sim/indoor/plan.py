@@ -29,7 +29,11 @@ from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.sim.camera import CameraConfig, Lighting
 from monoloc.sim.control import BicycleConfig
-from monoloc.sim.indoor.camera_motion import AutoExposureConfig, MotionBlurConfig
+from monoloc.sim.indoor.camera_motion import (
+    AutoExposureConfig,
+    MotionBlurConfig,
+    RollingShutterConfig,
+)
 from monoloc.sim.indoor.room import SIZE_PRESETS, RoomConfig, room_configs
 from monoloc.sim.indoor.sensors import D435_COLOR, IndoorErrors, IndoorRig
 from monoloc.sim.indoor.track import lap_length_m, lap_path
@@ -83,8 +87,8 @@ SCALE_CAR_BICYCLE = BicycleConfig(
 @dataclass(frozen=True)
 class IndoorConfig:
     """Everything the indoor runs depend on besides the seed (see the module docstring).
-    ``motion_blur`` and ``auto_exposure`` (its lag) act on closed-loop drives, which
-    render frame after frame (``monoloc.sim.closed_loop_world``)."""
+    ``motion_blur``, ``rolling_shutter`` and ``auto_exposure`` (its lag) act on
+    closed-loop drives, which render frame after frame (``monoloc.sim.closed_loop_world``)."""
 
     main_room: RoomConfig = field(default_factory=RoomConfig)
     train_room: RoomConfig = field(default_factory=lambda: room_configs("small")["train"])
@@ -104,6 +108,7 @@ class IndoorConfig:
     obstacle_change_fraction: float = 0.4
     motion_blur: MotionBlurConfig = field(default_factory=MotionBlurConfig)
     auto_exposure: AutoExposureConfig = field(default_factory=AutoExposureConfig)
+    rolling_shutter: RollingShutterConfig = field(default_factory=RollingShutterConfig)
 
     @classmethod
     def preset(cls, size: str, errors: IndoorErrors | None = None) -> IndoorConfig:

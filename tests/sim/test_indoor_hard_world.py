@@ -12,6 +12,7 @@ import pytest
 
 from monoloc.sim.closed_loop import T_world_from_vehicle_flat
 from monoloc.sim.closed_loop_world import IndoorLoopWorld, Lap
+from monoloc.sim.indoor.camera_motion import RollingShutterConfig
 from monoloc.sim.indoor.sensors import DepthNoiseConfig, IndoorErrors, misregister, noisy_depth
 from monoloc.sim.render import rasterize
 
@@ -137,11 +138,19 @@ def test_a_frame_at_speed_is_blurred(world):
     moving, _ = world.render(LAP, light, T_now, rng(), False)
     assert _high_frequency_energy(moving) < 0.85 * _high_frequency_energy(still)
     off = IndoorLoopWorld("small", 0)
-    off.config = replace(off.config, motion_blur=replace(off.config.motion_blur, enabled=False))
+    no_blur = replace(off.config.motion_blur, enabled=False)
+    off.config = replace(off.config, motion_blur=no_blur)
+    off.lighting(LAP)
+    off.render(LAP, light, _pose(off, turn - 4), rng(), False)
+    skewed, _ = off.render(LAP, light, T_now, rng(), False)  # rolling shutter only
+    off.config = replace(off.config, rolling_shutter=RollingShutterConfig(readout_s=0.0))
     off.lighting(LAP)
     off.render(LAP, light, _pose(off, turn - 4), rng(), False)
     sharp, _ = off.render(LAP, light, T_now, rng(), False)
     assert _high_frequency_energy(sharp) == pytest.approx(_high_frequency_energy(still), rel=0.02)
+    # the rows read before and after the frame's time see the turn's image motion
+    diff = np.abs(skewed.astype(np.int16) - sharp.astype(np.int16))
+    assert diff.mean() > 2.0
 
 
 def test_auto_exposure_follows_the_scene_with_a_lag(world):
