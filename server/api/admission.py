@@ -276,6 +276,11 @@ class Lane:
         """The drain time in whole seconds (HTTP's unit), at least 1."""
         return whole_seconds(self.retry_after_ms())
 
+    def record_service_s(self, elapsed_s: float) -> None:
+        """Fold one computation's duration (s) into the service time the waits use."""
+        with self._lock:
+            self._service_s = 0.9 * self._service_s + 0.1 * elapsed_s
+
     def book_retry_ms(self, now_s: float | None = None) -> int:
         """The wait to give one shed request (ms, 1 ms to 60 s), booking its return: the
         drain time for the first, then one service slot (service time / workers) later
@@ -354,7 +359,7 @@ class Lane:
             elapsed = time.perf_counter() - start
             with self._lock:
                 self._running -= 1
-                self._service_s = 0.9 * self._service_s + 0.1 * elapsed
+            self.record_service_s(elapsed)
             if error is not None:
                 job.future.set_exception(error)
             else:
