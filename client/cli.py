@@ -94,6 +94,11 @@ def drive(
         raise typer.BadParameter("give --map or --tiles (a sharded map), one of them")
     if tiles is not None and realtime:
         raise typer.BadParameter("a sharded drive sends frames in turn", param_hint="--realtime")
+    table = None
+    if tiles is not None:  # a wrong table is refused before the run is read
+        from monoloc.core.tiles import read_tile_table
+
+        table = read_tile_table(tiles)
     if bag_out is not None:  # refused before the drive, not after it
         _check_bag_out(bag_out, bag_storage)
     if is_bag(run_dir):
@@ -136,8 +141,8 @@ def drive(
         use_prior=not no_prior,
         seed=seed,
     )
-    if tiles is not None:
-        result = _sharded_drive(tiles, key, run, config, console)
+    if table is not None:
+        result = _sharded_drive(table, key, run, config, console)
     else:
         with MonolocClient(server, key) as client:
             map_id = client.find_map_id(map_ref)
@@ -175,16 +180,14 @@ def drive(
         console.print("no GeoJSON track: the filter gave no estimate")
 
 
-def _sharded_drive(tiles: Path, key: str, run, config, console):
-    """The drive of ``run`` over the shard groups of the tile table ``tiles``."""
+def _sharded_drive(table, key: str, run, config, console):
+    """The drive of ``run`` over the shard groups of the tile table ``table``."""
     from rich.progress import Progress
 
     from monoloc.client.drive import drive_with
     from monoloc.client.sharded import ShardedLocalizer
     from monoloc.core.errors import InvalidInputError
-    from monoloc.core.tiles import read_tile_table
 
-    table = read_tile_table(tiles)
     if run.intrinsics is None:
         raise InvalidInputError(f"{run.name}: the camera that took the frames is unknown")
     with ShardedLocalizer.connect(table, key, run.intrinsics) as localizer:
@@ -206,6 +209,8 @@ def _sharded_drive(tiles: Path, key: str, run, config, console):
             console.print(
                 f"shard group {name}: " + ", ".join(f"{k} {v}" for k, v in counts.items())
             )
+        for error in localizer.last_errors.values():
+            console.print(f"[yellow]note:[/] last failure of shard group {error}")
         console.print(
             f"frames to one group {localizer.routes['one_group']}, "
             f"to several {localizer.routes['several_groups']}"

@@ -56,6 +56,7 @@ class _Group:
     ) -> None:
         self.name, self.client, self.transport, self.localizer = name, client, transport, localizer
         self.failed = 0
+        self.last_error: str | None = None
 
     def localize(
         self, tile: str, image: bytes, prior: RetrievalPrior | None, k: int | None
@@ -65,7 +66,8 @@ class _Group:
             return self.localizer.localize(image, prior, k)
         except ServerError as exc:
             self.failed += 1
-            return LocalizeAnswer(Hypotheses.empty(), None, {}, {}, error=f"{self.name}: {exc}")
+            self.last_error = f"{self.name}: {exc}"
+            return LocalizeAnswer(Hypotheses.empty(), None, {}, {}, error=self.last_error)
 
 
 class ShardedLocalizer:
@@ -115,6 +117,11 @@ class ShardedLocalizer:
                 made.client.close()
             raise
         return cls(table, groups)
+
+    @property
+    def last_errors(self) -> dict[str, str]:
+        """Per group that failed a frame: its last failure."""
+        return {n: g.last_error for n, g in self.groups.items() if g.last_error is not None}
 
     @property
     def counts(self) -> dict[str, dict[str, int]]:

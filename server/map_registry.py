@@ -76,13 +76,21 @@ class ChangeListener:
 
         url = self._url
         params = {k: v for k, v in url.query.items() if isinstance(v, str)}
+        host, port = params.get("host", url.host), params.get("port", url.port)
+        hosts = url.query.get("host")
+        if isinstance(hosts, tuple):  # several hosts (host=h:p&host=h:p): libpq's lists
+            pairs = [h.rsplit(":", 1) if ":" in h else (h, "") for h in hosts]
+            host, port = ",".join(h for h, _ in pairs), ",".join(p for _, p in pairs)
+        # LISTEN needs the primary (a standby refuses it): keep the URL's choice of node
+        extra = {k: params[k] for k in ("target_session_attrs",) if k in params}
         conn = psycopg.connect(
-            host=params.get("host", url.host),
-            port=params.get("port", url.port),
+            host=host,
+            port=port,
             user=url.username,
             password=url.password,
             dbname=url.database,
             autocommit=True,
+            **extra,
         )
         conn.execute(f"LISTEN {maps_repo.CHANGES_CHANNEL}")
         return conn

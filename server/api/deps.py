@@ -32,7 +32,7 @@ from starlette.requests import HTTPConnection
 from monoloc.server.api.admission import Admission
 from monoloc.server.api.camera_cache import CameraCache
 from monoloc.server.api.errors import ForbiddenError, NotReadyError, UnauthorizedError
-from monoloc.server.api.key_cache import KeyCache
+from monoloc.server.api.key_cache import DATABASE_UNREACHABLE, KeyCache
 from monoloc.server.api.metrics import Metrics
 from monoloc.server.jobs.runner import JobRunner
 from monoloc.server.map_registry import MapRegistry
@@ -152,11 +152,17 @@ def authenticate(
         )
     record = state.keys.get(presented)
     if record is None:
-        with session_scope(state.sessions) as session:
-            record = verify_api_key(session, presented)
-        if record is None:
-            raise UnauthorizedError("unknown or revoked API key")
-        state.keys.put(presented, record)
+        try:
+            with session_scope(state.sessions) as session:
+                record = verify_api_key(session, presented)
+        except DATABASE_UNREACHABLE:
+            record = state.keys.get_stale(presented)
+            if record is None:
+                raise
+        else:
+            if record is None:
+                raise UnauthorizedError("unknown or revoked API key")
+            state.keys.put(presented, record)
     if not record.has_scope(scope):
         raise ForbiddenError(
             f"this API key ({record.prefix}..., scopes {sorted(record.scopes)}) lacks the "

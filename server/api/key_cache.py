@@ -8,8 +8,11 @@ taken from here instead (its record, scopes included).
 
 Revocation: the replica that revokes a key forgets it at once; another replica refuses
 it at the latest ``ttl_s`` later (its memory of the key expires). ``ttl_s`` = 0 turns
-the memory off. Only keys that verified are kept (an unknown key is looked up every
-time, so guessing keys cannot fill the memory), at most ``max_keys`` of them.
+the memory off. While the database cannot be reached (a PostgreSQL failover: 2-5 s on
+loopback, tests/shards), a key whose memory expired less than ``stale_s`` ago is still
+taken (:meth:`KeyCache.get_stale`): no key can be revoked meanwhile either. Only keys
+that verified are kept (an unknown key is looked up every time, so guessing keys cannot
+fill the memory), at most ``max_keys`` of them.
 """
 
 from __future__ import annotations
@@ -18,14 +21,24 @@ import threading
 import time
 from collections import OrderedDict
 
+from sqlalchemy.exc import InterfaceError, OperationalError
+
 from monoloc.server.storage.keys import hash_api_key
 from monoloc.server.storage.records import ApiKeyRecord
 
+# What the driver raises when the database cannot be reached (down, restarting, failing
+# over): the caches below answer from memory then, for a bounded time.
+DATABASE_UNREACHABLE = (OperationalError, InterfaceError)
+STALE_IF_UNREACHABLE_S = 60.0
+
 
 class KeyCache:
-    def __init__(self, ttl_s: float, max_keys: int = 10_000) -> None:
+    def __init__(
+        self, ttl_s: float, max_keys: int = 10_000, stale_s: float = STALE_IF_UNREACHABLE_S
+    ) -> None:
         self.ttl_s = ttl_s
         self.max_keys = max_keys
+        self.stale_s = stale_s
         self._items: OrderedDict[str, tuple[float, ApiKeyRecord]] = OrderedDict()
         self._lock = threading.Lock()
 
@@ -39,7 +52,18 @@ class KeyCache:
             if found is None:
                 return None
             if time.monotonic() >= found[0]:
-                del self._items[digest]
+                if time.monotonic() >= found[0] + self.stale_s:
+                    del self._items[digest]
+                return None
+            return found[1]
+
+    def get_stale(self, presented: str) -> ApiKeyRecord | None:
+        """The record of ``presented`` if its memory expired less than ``stale_s`` ago
+        (or has not): for a request that found the database unreachable."""
+        digest = hash_api_key(presented)
+        with self._lock:
+            found = self._items.get(digest)
+            if found is None or time.monotonic() >= found[0] + self.stale_s:
                 return None
             return found[1]
 

@@ -129,3 +129,35 @@ def test_without_the_right_to_create_postgis_0010_skips_and_queries_still_answer
             connection.execute(text("DROP DATABASE IF EXISTS shard_nopostgis WITH (FORCE)"))
             connection.execute(text("DROP ROLE IF EXISTS shard_owner"))
         admin.dispose()
+
+
+def test_shards_coverage_lists_a_groups_tiles_and_fails_on_a_stray_entry(tmp_path):
+    from typer.testing import CliRunner
+
+    from monoloc.cli import _register, app
+    from monoloc.core.tiles import ShardGroup, TileTable, write_tile_table
+
+    url = f"sqlite:///{tmp_path / 'g.db'}"
+    upgrade_database(url)
+    factory = make_session_factory(create_engine_for_url(url))
+    centres = np.random.default_rng(0).uniform(0, 255, (64, 32)).astype(np.float32)
+    with session_scope(factory) as session:
+        vocab, _ = get_or_create_vocabulary(session, centres, "test vocabulary")
+        map_id = create_map(session, "city", KITTI_CAM0, vocab.id).id
+        for i, x in enumerate((-25.0, -5.0, 10.0, 60.0)):  # tile -1_0 west of x = -20
+            add_entry(session, map_id, entry_at(f"c{i}", x, 20.0))
+    groups = {"a": ShardGroup("a", "http://a"), "b": ShardGroup("b", "http://b")}
+    table = TileTable(SCHEME, "city", groups, {"-1_0": "b", "0_0": "a"})
+    path = write_tile_table(tmp_path / "tiles.json", table)
+    _register()
+    args = ["shards", "coverage", str(path), "--database-url", url]
+    stray = CliRunner().invoke(app, [*args, "--group", "a"])
+    assert stray.exit_code == 1, stray.output
+    assert "0_0\t3\tok" in stray.output and "-1_0\t1\tbelongs to b" in stray.output
+    assert "1 entries outside group a's tiles" in stray.output
+    with session_scope(factory) as session:
+        session.execute(text("DELETE FROM entries WHERE x_m < -20"))
+    clean = CliRunner().invoke(app, [*args, "--group", "a"])
+    assert clean.exit_code == 0 and clean.output == "0_0\t3\tok\n", clean.output
+    unknown = CliRunner().invoke(app, [*args, "--group", "c"])
+    assert unknown.exit_code != 0 and "group 'c' is not in" in str(unknown.exception)
