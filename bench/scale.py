@@ -410,8 +410,8 @@ def run(args) -> dict:
     result = dict(
         sizes_measured=args.sizes,
         database=args.database,
-        commit=git("rev-parse", "HEAD"),
-        index_commit=git("log", "-1", "--format=%H", "--", "server/index"),
+        commit=args.commit or git("rev-parse", "HEAD"),
+        index_commit=args.commit or git("log", "-1", "--format=%H", "--", "server/index"),
         machine=dict(cpus=os.cpu_count(), load_before=load()),
         seeds=seeds,
         base_frames=args.base_frames,
@@ -528,6 +528,9 @@ def main() -> None:
     parser.add_argument("--timeout-s", type=float, default=3600.0, help="per server start")
     parser.add_argument("--keep", action="store_true", help="keep the database")
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument(
+        "--commit", default="", help="the commit this code is (when run from an exported copy)"
+    )
     args = parser.parse_args()
     args.sizes = [int(n) for n in args.sizes.split(",") if n] + [args.entries]
     if args.sizes != sorted(set(args.sizes)):
