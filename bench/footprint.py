@@ -2,12 +2,13 @@
 
 * **Index memory per entry**, the product beside the lab baseline, each in a fresh
   process: the growth of its anonymous resident memory (``RssAnon``: the replica's own)
-  and of its file-backed resident memory (``RssFile``: pages of the memory-mapped float
-  VLAD file, page cache the kernel may reclaim), divided by the entry count.
+  and of its file-backed resident memory (``RssFile``: mapped files; the product reads its
+  float VLAD file with ``pread``, so the rows it reads sit in the page cache, which the
+  kernel reclaims as it needs, not in the process), divided by the entry count.
   - product: a writer process builds the index files from ``--entries`` synthetic unit
     VLADs the way a replica rebuilds a map (``persist.rebuild_index``); a reader process
     loads them as a replica starts (``load_index``) and then runs ``--queries`` searches
-    (each reads k + 20 float VLADs through the mapping);
+    (each reads k + 20 float VLADs from the file);
   - baseline (``--baseline-max``, the index of 2026-12-01: bench/lab/float_index.py): the
     entries added to a float-resident index, as this bench measured it until then.
 * **Entry cache per entry**: descriptors + 3D points + pose of real entries (the cache
@@ -180,7 +181,7 @@ def _print_index(row: dict) -> None:
         f"index at {n} entries: product {p['anon_bytes_per_entry']:.0f} B/entry anonymous "
         f"after load, {p['anon_bytes_per_entry_after_queries']:.0f} after {p['queries']} "
         f"queries; file-backed {p['file_bytes_per_entry_after_load']:.0f} / "
-        f"{p['file_bytes_per_entry_after_queries']:.0f} B/entry (reclaimable page cache); "
+        f"{p['file_bytes_per_entry_after_queries']:.0f} B/entry; "
         f"disk {p['disk_bytes_per_entry']:.0f} B/entry; load {p['load_s']:.1f} s "
         f"(load average {row['loadavg_before']:.1f})"
     )

@@ -3,8 +3,8 @@
 An index is two files: ``<name>.npz``, an uncompressed ``.npz`` (zip members carry
 CRC-32, so torn or flipped bytes are detected) with the arrays held in memory (ids,
 codes, 4-bit VLADs, sketches, poses), the map version and the name and CRC-32 of the
-second, ``<name>.<token>.vlads.npy``: the float32 VLADs in row order, memory-mapped on
-load and read on demand (only the page cache holds them). The float file is written and
+second, ``<name>.<token>.vlads.npy``: the float32 VLADs in row order, opened on load
+and read row by row on demand (only the page cache holds them). The float file is written and
 renamed first, the ``.npz`` that names it last, so a crash between leaves the old pair
 intact. On start the server loads a pair only if both are intact and the version equals
 the database's; anything else is rebuilt from the database, never served empty. Files of
@@ -14,7 +14,6 @@ refused the same way, so their map is rebuilt with the current index.
 
 from __future__ import annotations
 
-import mmap
 import os
 import secrets
 import tempfile
@@ -27,6 +26,7 @@ import numpy as np
 
 from monoloc.core.errors import MonolocError
 from monoloc.server.index.retrieval import IndexConfig, RetrievalIndex
+from monoloc.server.index.vlad_store import VladFile
 from monoloc.server.vision.sizes import VLAD_DIM
 
 FORMAT_VERSION = 2
@@ -149,21 +149,18 @@ def _data_offset(vlad_path: Path) -> tuple[tuple[int, ...], int]:
         read_header = np.lib.format.read_array_header_1_0
         if major != 1:
             read_header = np.lib.format.read_array_header_2_0
-        shape, _, _ = read_header(fh)
+        shape, fortran_order, dtype = read_header(fh)
+        if fortran_order or dtype != np.dtype("<f4"):
+            raise ValueError(f"not a C-ordered float32 array ({dtype})")
         return shape, fh.tell()
 
 
-def map_vlads(vlad_path: Path) -> np.ndarray:
-    """A float VLAD file, memory-mapped read-only (an empty one as an empty array: a
-    zero-length mapping is refused)."""
-    shape, _ = _data_offset(vlad_path)
-    if shape and shape[0] == 0:
-        return np.zeros((0, *shape[1:]), dtype=np.float32)
-    vlads = np.load(vlad_path, mmap_mode="r", allow_pickle=False)
-    # Rows are read at random, 8 KiB each: no read-ahead around them (nor mapping the
-    # neighbouring cached pages), which would read and map the file for nothing.
-    vlads._mmap.madvise(mmap.MADV_RANDOM)
-    return vlads
+def map_vlads(vlad_path: Path) -> VladFile:
+    """A float VLAD file, opened for reading rows on demand."""
+    shape, offset = _data_offset(vlad_path)
+    if len(shape) != 2 or shape[1] != VLAD_DIM:
+        raise ValueError(f"shape {shape}, not (N, {VLAD_DIM})")
+    return VladFile(vlad_path, shape[0], offset)
 
 
 def _file_crc32(path: Path, offset: int) -> int:
@@ -185,7 +182,7 @@ def _checked_vlads(path: Path, name: str, n: int, crc: int) -> np.ndarray:
         vlads = map_vlads(vlad_path)
     except (OSError, ValueError) as exc:
         raise IndexFileError(f"index file {path}: VLAD file {name} is corrupt: {exc}") from exc
-    if vlads.dtype != np.float32 or vlads.shape != (n, VLAD_DIM) or vlads.ndim != 2:
+    if vlads.shape != (n, VLAD_DIM):
         raise IndexFileError(f"index file {path}: VLAD file {name} has the wrong shape")
     if _file_crc32(vlad_path, _data_offset(vlad_path)[1]) != crc:
         raise IndexFileError(f"index file {path}: VLAD file {name} is corrupt (CRC-32)")

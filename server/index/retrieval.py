@@ -5,10 +5,10 @@ large maps (from ``IndexConfig.scan_min_entries``) shortlist by an exhaustive sc
 256-bit sketches instead (monoloc.server.index.sketch says why), narrowed by the full
 codes. The shortlist is re-ranked by 4-bit VLADs held in memory
 (monoloc.server.index.compressed), and its ``k + exact_margin`` nearest by the exact L2
-distance of the float VLADs, read on demand from the index file's memory-mapped float
-file (monoloc.server.index.vlad_store): the distances returned are exact (they are
+distance of the float VLADs, read on demand from the index file's float file
+(monoloc.server.index.vlad_store): the distances returned are exact (they are
 e_vlad, an input of the measurement model). Resident per entry: code 256 B, 4-bit VLAD
-1 KiB, sketch 32 B, planar pose 24 B, id and the id lookup (sorted ids) 32 B.
+1 KiB, sketch 32 B, planar pose 24 B, id, VLAD ref and the id lookup (sorted ids) 32 B.
 
 With a planar prior only entries inside the radius (and heading window) compete. Entries
 are added and removed live; a readers-writer lock lets searches run concurrently but
@@ -29,7 +29,7 @@ from monoloc.server.index.compressed import (
 from monoloc.server.index.rwlock import ReadWriteLock
 from monoloc.server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
 from monoloc.server.index.types import IndexConfig, SearchResult, empty_result
-from monoloc.server.index.vlad_store import VladStore
+from monoloc.server.index.vlad_store import VladFile, VladStore
 from monoloc.server.vision.sizes import CODE_BYTES, VLAD_DIM
 
 __all__ = ["IndexConfig", "RetrievalIndex", "SearchResult"]
@@ -43,9 +43,11 @@ def _new_flat():
     return faiss.IndexBinaryIDMap2(faiss.IndexBinaryFlat(VLAD_DIM))
 
 
-def _float32_rows(vlads) -> np.ndarray:
-    """``vlads`` as an (N, 2048) float32 C-contiguous array, without a copy when it is one
-    (a memory-mapped file stays a mapping)."""
+def _float32_rows(vlads):
+    """``vlads`` as a VladFile (the index file's, kept) or an (N, 2048) float32
+    C-contiguous array, without a copy when it is one (a memory mapping stays one)."""
+    if isinstance(vlads, VladFile):
+        return vlads
     if (
         isinstance(vlads, np.ndarray)
         and vlads.dtype == np.float32
@@ -339,9 +341,9 @@ class RetrievalIndex:
             }
             return arrays, self._store.blocks(self._refs[:n].copy()), self._edits
 
-    def adopt_vlads(self, vlads: np.ndarray, edits: int) -> bool:
-        """Read the float VLADs from ``vlads`` (N, 2048) float32 (the file just written, in
-        row order) and drop the in-memory delta, unless the index was edited since
+    def adopt_vlads(self, vlads, edits: int) -> bool:
+        """Read the float VLADs from ``vlads`` (the VladFile just written, in row order)
+        and drop the in-memory delta, unless the index was edited since
         :meth:`persist_state` gave ``edits``. Returns whether it was adopted."""
         base = _float32_rows(vlads)
         with self._lock.write():
@@ -363,8 +365,8 @@ class RetrievalIndex:
         compressed=None,
     ) -> RetrievalIndex:
         """Build an index from arrays. ``vlads`` (N, 2048) is read in place, not copied,
-        when it is float32 and C-contiguous (the index file's mapping): the caller must not
-        change it afterwards. ``sketches`` (N, 32) and ``compressed`` (N, 1024) uint8 (as
+        when it is float32 and C-contiguous, or a VladFile (the index file's): the caller
+        must not change it afterwards. ``sketches`` (N, 32) and ``compressed`` (N, 1024) uint8 (as
         ``snapshot`` gives them) skip recomputing them from the VLADs."""
         index = cls(config)
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
@@ -388,8 +390,10 @@ class RetrievalIndex:
             index._compressed[:n] = compressed
         if sketches is not None:
             index._sketches.set_rows(0, np.asarray(sketches, dtype=np.uint8))
-        for start in range(0, n, _CHUNK):
-            block = base[start : start + _CHUNK]
+        recompute = compressed is None or sketches is None
+        source = base.read_all() if recompute and isinstance(base, VladFile) else base
+        for start in range(0, n if recompute else 0, _CHUNK):
+            block = source[start : start + _CHUNK]
             if compressed is None:
                 index._compressed[start : start + len(block)] = compress_vlads(block)
             if sketches is None:

@@ -1,7 +1,7 @@
 """The float VLADs of an index, read on demand: the exact distances of the final top k.
 
-A store is a base array (the index file's memory-mapped float file, or an array the
-caller hands over) and a delta of the VLADs added live since, in blocks of 256 rows
+A store is a base (the index file's float file, read row by row with ``pread``: or an
+array the caller hands over) and a delta of the VLADs added live since, in blocks of 256 rows
 (2 MiB, each its own mapping: freed to the system when the delta is dropped). An index
 row refers to its VLAD by a ref: ``r >= 0`` is base row r, ``r < 0`` delta slot -1 - r.
 Removing a row only drops its ref (the slot is reclaimed when the index is next
@@ -10,17 +10,71 @@ persisted and its store becomes the new file).
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 
 from monoloc.server.vision.sizes import VLAD_DIM
 
 _DELTA_BLOCK = 256
+_ROW_BYTES = VLAD_DIM * 4
+
+
+class VladFile:
+    """The rows of a float32 ``.npy`` file of shape (N, 2048), read with ``pread``.
+
+    Not a memory mapping: with the page cache's large folios one mapped row maps about a
+    megabyte of its neighbours into the process, so a few hundred queries map the whole
+    file (bench/footprint.py, docs/notebook/index-memory.md). Read, the rows stay in the
+    page cache, which the kernel reclaims as it needs, and the replica's resident set
+    holds none of them. The open descriptor keeps the file readable after it is replaced.
+    """
+
+    def __init__(self, path: Path, n_rows: int, data_offset: int) -> None:
+        self.path = Path(path)
+        self.shape = (int(n_rows), VLAD_DIM)
+        self.dtype = np.dtype(np.float32)
+        self.ndim = 2
+        self._offset = int(data_offset)
+        fd = os.open(self.path, os.O_RDONLY)
+        if os.fstat(fd).st_size != self._offset + n_rows * _ROW_BYTES:
+            os.close(fd)
+            raise ValueError(f"{self.path} does not hold {n_rows} float32 VLADs")
+        if hasattr(os, "posix_fadvise"):  # rows are read at random: no read-ahead
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_RANDOM)
+        self._fd = fd
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __del__(self) -> None:
+        fd = getattr(self, "_fd", None)
+        if fd is not None:
+            os.close(fd)
+            self._fd = None
+
+    def take(self, rows: np.ndarray, out: np.ndarray) -> None:
+        """Read rows ``rows`` (R,) into out (R, 2048) float32."""
+        view = out.reshape(len(rows), _ROW_BYTES // 4).view(np.uint8)
+        for i, row in enumerate(np.asarray(rows, dtype=np.int64).tolist()):
+            if not 0 <= row < self.shape[0]:
+                raise IndexError(f"row {row} outside {self.path}'s {self.shape[0]}")
+            got = os.preadv(self._fd, [view[i]], self._offset + row * _ROW_BYTES)
+            if got != _ROW_BYTES:
+                raise OSError(f"{self.path}: short read of row {row}")
+
+    def read_all(self) -> np.ndarray:
+        """All rows (N, 2048) float32 (small maps; tests)."""
+        out = np.empty(self.shape, dtype=np.float32)
+        self.take(np.arange(len(self)), out)
+        return out
 
 
 class VladStore:
     """Float32 VLADs by ref; the owning index's lock guards edits."""
 
-    def __init__(self, base: np.ndarray | None = None) -> None:
+    def __init__(self, base: np.ndarray | VladFile | None = None) -> None:
         if base is None:
             base = np.zeros((0, VLAD_DIM), dtype=np.float32)
         if base.dtype != np.float32 or base.ndim != 2 or base.shape[1] != VLAD_DIM:
@@ -51,8 +105,15 @@ class VladStore:
         refs = np.asarray(refs, dtype=np.int64).reshape(-1)
         out = np.empty((len(refs), VLAD_DIM), dtype=np.float32)
         in_base = refs >= 0
-        if in_base.any():
-            out[in_base] = self.base[refs[in_base]]
+        if in_base.all() and isinstance(self.base, VladFile):
+            self.base.take(refs, out)
+        elif in_base.any():
+            if isinstance(self.base, VladFile):
+                part = np.empty((int(in_base.sum()), VLAD_DIM), dtype=np.float32)
+                self.base.take(refs[in_base], part)
+                out[in_base] = part
+            else:
+                out[in_base] = self.base[refs[in_base]]
         for i in np.flatnonzero(~in_base):
             slot = -1 - int(refs[i])
             out[i] = self._blocks[slot // _DELTA_BLOCK][slot % _DELTA_BLOCK]
