@@ -144,12 +144,14 @@ def query_frames(roots: list[Path], per_city: int, vocabulary) -> list[QueryFram
 
 # ---- database ----------------------------------------------------------------------------
 @contextmanager
-def database(kind: str, work: Path):
-    """(Settings of a fresh database, a callable giving its size in bytes)."""
+def database(kind: str, work: Path, reuse: bool = False):
+    """(Settings of a fresh database, a callable giving its size in bytes); ``reuse``
+    (SQLite): the database a run left (``--keep``, or a run stopped early)."""
     from monoloc.server.settings import Settings
 
     data_dir = work / f"data-{kind}"
-    shutil.rmtree(data_dir, ignore_errors=True)
+    if not reuse:
+        shutil.rmtree(data_dir, ignore_errors=True)
     if kind == "sqlite":
         settings = Settings(data_dir=data_dir, bootstrap_admin_key=ADMIN_KEY)
         db_file = data_dir / "monoloc.db"
@@ -227,20 +229,26 @@ def recall_at_k(found: list[np.ndarray], exact: np.ndarray) -> float:
     return float(np.mean(shares))
 
 
-def index_figures(settings, factory, map_id: int, queries, priors, work: Path) -> dict:
-    """Index rebuild from the database (timed) and recall@10 against exact search."""
-    from monoloc.server.index.persist import delete_index, rebuild_index
+def index_figures(settings, factory, map_id: int, queries, priors, work: Path, rebuild: bool):
+    """Index rebuild from the database (timed; ``rebuild`` False: the index the server
+    saved is loaded instead, its rebuild is the cold start) and recall@10 against exact
+    search."""
+    from monoloc.server.index.persist import delete_index, load_index, rebuild_index
     from monoloc.server.storage import entries as entries_repo
     from monoloc.server.storage import maps as maps_repo
     from monoloc.server.storage.db import session_scope
 
     path = work / "bench-index" / "scale.index.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
+    rebuild_s = None
     with session_scope(factory) as session:
         version = maps_repo.get_map(session, map_id).version
-        t0 = time.perf_counter()
-        index = rebuild_index(path, entries_repo.iter_map_vectors(session, map_id), version)
-        rebuild_s = time.perf_counter() - t0
+        if rebuild:
+            t0 = time.perf_counter()
+            index = rebuild_index(path, entries_repo.iter_map_vectors(session, map_id), version)
+            rebuild_s = time.perf_counter() - t0
+        else:
+            index = load_index(settings.index_dir / f"map_{map_id}.index.npz", version)
     vlads = np.stack([q.vlad for q in queries])
     t0 = time.perf_counter()
     exact_free, exact_prior = exact_top_k(factory, map_id, vlads, priors)
@@ -258,7 +266,8 @@ def index_figures(settings, factory, map_id: int, queries, priors, work: Path) -
         queries=len(queries),
     )
     del index
-    delete_index(path)
+    if rebuild:
+        delete_index(path)
     return figures
 
 
@@ -375,7 +384,7 @@ def server_figures(settings, map_id: int, queries, tiles, n_sources: int, timeou
 
 
 # ---- the run ---------------------------------------------------------------------------------
-def measure_size(settings, size_of, factory, plan, queries, work: Path, timeout_s: float):
+def measure_size(settings, size_of, factory, plan, queries, work: Path, timeout_s, rebuild_max):
     from monoloc.core.geometry import planar_from_T_world_from_cam
     from monoloc.core.prior import RetrievalPrior
 
@@ -386,13 +395,16 @@ def measure_size(settings, size_of, factory, plan, queries, work: Path, timeout_
     priors = [RetrievalPrior(p[0], p[1], PRIOR_RADIUS_M) for p in own]
     figures = dict(disk_bytes=size_of())
     print(f"  disk {figures['disk_bytes'] / 1e9:.2f} GB (load {load()})", flush=True)
-    figures["index"] = index_figures(settings, factory, plan.dest.id, queries, priors, work)
-    print(f"  index {figures['index']} (load {load()})", flush=True)
     n_sources = len(plan.sources)
     figures["server"] = server_figures(
         settings, plan.dest.id, queries, plan.tiles, n_sources, timeout_s
     )
     print(f"  server {figures['server']} (load {load()})", flush=True)
+    rebuild = len(plan.rows) <= rebuild_max
+    figures["index"] = index_figures(
+        settings, factory, plan.dest.id, queries, priors, work, rebuild
+    )
+    print(f"  index {figures['index']} (load {load()})", flush=True)
     return figures
 
 
@@ -417,16 +429,18 @@ def run(args) -> dict:
         base_frames=args.base_frames,
     )
     roots = render_base(work, seeds, args.base_frames)
-    with database(args.database, work) as (settings, size_of):
+    with database(args.database, work, args.reuse) as (settings, size_of):
         upgrade_database(settings.database_url)
         engine = create_engine_for(settings)
         factory = make_session_factory(engine)
-        result["pipeline_ingest"] = ingest_base(factory, roots, seeds)
-        print(f"pipeline ingest {result['pipeline_ingest']} (load {load()})", flush=True)
-        first = roots[0]
         from monoloc.server.ingest.sources import read_kitti_sequence
 
-        create_map(factory, "scale", read_kitti_sequence(first, "00").intrinsics)
+        if args.reuse:
+            result["pipeline_ingest"] = None  # measured by the run that made the database
+        else:
+            result["pipeline_ingest"] = ingest_base(factory, roots, seeds)
+            print(f"pipeline ingest {result['pipeline_ingest']} (load {load()})", flush=True)
+            create_map(factory, "scale", read_kitti_sequence(roots[0], "00").intrinsics)
         with session_scope(factory) as session:
             record = maps_repo.get_map_by_name(session, "scale")
             vocab = maps_repo.get_vocabulary(session, record.vocabulary_id)
@@ -446,7 +460,9 @@ def run(args) -> dict:
                 load=load(),
             )
             print(f"  bulk {figures}", flush=True)
-            figures |= measure_size(settings, size_of, factory, plan, queries, work, args.timeout_s)
+            figures |= measure_size(
+                settings, size_of, factory, plan, queries, work, args.timeout_s, args.rebuild_max
+            )
             result["sizes"][str(size)] = figures
             result["scaling"] = scaling(result)
             args.out.write_text(json.dumps(result, indent=2) + "\n")  # what is done so far
@@ -503,11 +519,15 @@ def print_table(result: dict) -> None:
     table = result["scaling"]
     for key in table[sizes[0]]:
         values = [table[n][key] for n in sizes]
-        ratio = values[-1] / values[0] if values[0] else float("nan")
-        print(f"{key:30s}" + "".join(f"{v:12.3f}" for v in values) + f"   {ratio:6.2f}x")
+        known = values[0] is not None and values[-1] is not None and values[0] != 0
+        ratio = f"{values[-1] / values[0]:6.2f}x" if known else "     -"
+        cells = "".join(f"{v:12.3f}" if v is not None else f"{'-':>12s}" for v in values)
+        print(f"{key:30s}{cells}   {ratio}")
     if "disk_bytes_per_added_entry" in table:
         print(f"disk per added entry: {table['disk_bytes_per_added_entry']:.0f} B")
     ingest = result["pipeline_ingest"]
+    if ingest is None:
+        return
     print(
         f"real pipeline on the base: {ingest['entries']} entries from {ingest['frames']} "
         f"frames, {ingest['entries_per_s']:.1f} entries/s"
@@ -527,6 +547,15 @@ def main() -> None:
     parser.add_argument("--queries-per-city", type=int, default=12)
     parser.add_argument("--timeout-s", type=float, default=3600.0, help="per server start")
     parser.add_argument("--keep", action="store_true", help="keep the database")
+    parser.add_argument(
+        "--reuse", action="store_true", help="SQLite: go on with the database a run left"
+    )
+    parser.add_argument(
+        "--rebuild-max",
+        type=int,
+        default=200_000,
+        help="above this size the index is not rebuilt in this process (the cold start does)",
+    )
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument(
         "--commit", default="", help="the commit this code is (when run from an exported copy)"

@@ -180,25 +180,27 @@ def _check_compatible(dest: MapRecord, sources: list[MapRecord]) -> None:
 
 
 def _tile_entries(
-    tile: Tile, source: _Source, positions: range, config: TileConfig, vocabulary
+    tile: Tile, source: _Source, positions: list[int], config: TileConfig, vocabulary
 ) -> list[NewEntry]:
-    """The tile's copies of the source entries at ``positions``."""
+    """The tile's copies of the source entries at ``positions`` (each entry's
+    perturbation drawn from its own seed: the same in any batch)."""
     from monoloc.server.vision.binary_code import vlad_binary_code
     from monoloc.server.vision.vlad import compute_vlad_batch
 
-    rng = np.random.default_rng([config.seed, 1, tile.index, positions.start])
     picked = [source.entries[i] for i in positions]
     descriptors = [e.descriptors for e in picked]
     if tile.perturbed:
         n = len(source.entries)
-        donors = [
-            source.entries[(i + 1 + int(rng.integers(0, n - 1))) % n if n > 1 else i].descriptors
-            for i in positions
-        ]
-        descriptors = [
-            perturb_descriptors(d, donor, config.flip_halvings, config.swap_share, rng)
-            for d, donor in zip(descriptors, donors, strict=True)
-        ]
+        perturbed = []
+        for i, d in zip(positions, descriptors, strict=True):
+            rng = np.random.default_rng([config.seed, 1, tile.index, i])
+            donor = source.entries[(i + 1 + int(rng.integers(0, n - 1))) % n if n > 1 else i]
+            perturbed.append(
+                perturb_descriptors(
+                    d, donor.descriptors, config.flip_halvings, config.swap_share, rng
+                )
+            )
+        descriptors = perturbed
         vlads = compute_vlad_batch(descriptors, vocabulary)
     else:
         vlads = np.stack([e.vlad for e in picked])
@@ -310,16 +312,25 @@ def write_tiles(
     """Write the plan's entries, ``batch_rows`` per transaction (``progress(done,
     total)`` after each); entries already in the map are skipped."""
     config, started, added = plan.config, time.perf_counter(), 0
+    sources = plan.sources
     for start in range(0, len(plan.rows), config.batch_rows):
-        batch: list[NewEntry] = []
-        for tile_index, positions in _group(plan.rows[start : start + config.batch_rows]):
-            tile = plan.tiles[tile_index]
-            source = plan.sources[tile.source]
-            batch += _tile_entries(tile, source, positions, config, plan.vocabulary)
+        part = plan.rows[start : start + config.batch_rows]
+        hashes = [
+            tile_hash(t, sources[plan.tiles[t].source].entries[i].summary.source_image_hash)
+            for t, i in part
+        ]
         with session_scope(session_factory) as session:
-            added += len(write_entries(session, plan.dest.id, batch))
+            known = entries_repo.existing_hashes(session, plan.dest.id, hashes)
+        batch: list[NewEntry] = []
+        missing = [row for row, h in zip(part, hashes, strict=True) if h not in known]
+        for tile_index, positions in _group(missing):
+            tile = plan.tiles[tile_index]
+            batch += _tile_entries(tile, sources[tile.source], positions, config, plan.vocabulary)
+        if batch:
+            with session_scope(session_factory) as session:
+                added += len(write_entries(session, plan.dest.id, batch))
         if progress is not None:
-            progress(min(start + config.batch_rows, len(plan.rows)), len(plan.rows))
+            progress(start + len(part), len(plan.rows))
     seconds = time.perf_counter() - started
     with session_scope(session_factory) as session:
         final = maps_repo.get_map(session, plan.dest.id)
@@ -352,12 +363,12 @@ def _plan(sources: list[_Source], config: TileConfig) -> list[tuple[int, int]]:
     return plan
 
 
-def _group(part: list[tuple[int, int]]) -> list[tuple[int, range]]:
-    """Consecutive positions of one tile as ranges: [(tile, range(a, b)), ...]."""
-    groups: list[tuple[int, range]] = []
+def _group(part: list[tuple[int, int]]) -> list[tuple[int, list[int]]]:
+    """The positions of each tile, tiles in order: [(tile, [position, ...]), ...]."""
+    groups: list[tuple[int, list[int]]] = []
     for tile, position in part:
-        if groups and groups[-1][0] == tile and groups[-1][1].stop == position:
-            groups[-1] = (tile, range(groups[-1][1].start, position + 1))
+        if groups and groups[-1][0] == tile:
+            groups[-1][1].append(position)
         else:
-            groups.append((tile, range(position, position + 1)))
+            groups.append((tile, [position]))
     return groups

@@ -167,6 +167,12 @@ def test_bulk_tile_keeps_the_invariants_and_a_query_localizes_on_a_copy(settings
     )
     more = bulk_tile(factory, "big", ["city"], TileConfig(entries=ENTRIES + 5))
     assert more.entries_added == 5 and more.version == ENTRIES + 5
+    # a map written at once, in other batches, holds the same entries
+    from monoloc.server.ingest.manage import create_map
+
+    create_map(factory, "once", big.camera)
+    bulk_tile(factory, "once", ["city"], TileConfig(entries=ENTRIES + 5, batch_rows=1000))
+    assert _descriptors_by_hash(factory, "once") == _descriptors_by_hash(factory, "big")
     engine.dispose()
 
     # a query frame of the city, with a prior on the turned tile, localizes there
@@ -176,6 +182,17 @@ def test_bulk_tile_keeps_the_invariants_and_a_query_localizes_on_a_copy(settings
     best = max(answer["hypotheses"], key=lambda h: h["n_inliers"])
     found = np.array([best["pose"]["x_m"], best["pose"]["y_m"]])
     assert np.linalg.norm(found - expected[:2]) < 1.0, (found, expected)
+
+
+def _descriptors_by_hash(factory, name: str) -> dict[str, bytes]:
+    with session_scope(factory) as session:
+        map_id = maps_repo.get_map_by_name(session, name).id
+        rows = session.execute(
+            select(Entry.source_image_hash, Entry.descriptors, Entry.T_world_from_cam).where(
+                Entry.map_id == map_id
+            )
+        )
+        return {h: bytes(d) + bytes(T) for h, d, T in rows}
 
 
 def test_perturbation_rates():
