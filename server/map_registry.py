@@ -49,7 +49,7 @@ from monoloc.server.localize import (
 from monoloc.server.localize.frame import PRODUCT_STAGES, FrameStages
 from monoloc.server.storage import entries as entries_repo
 from monoloc.server.storage import maps as maps_repo
-from monoloc.server.storage.db import session_scope
+from monoloc.server.storage.db import libpq_params, session_scope
 from monoloc.server.storage.records import MapChangeRecord, MapRecord
 from monoloc.server.vision.features import orb_for_rule
 from monoloc.server.vision.vocabulary import Vocabulary
@@ -66,32 +66,13 @@ class ChangeListener:
     or after ``timeout_s``. Falls back to sleeping when the connection fails."""
 
     def __init__(self, sqlalchemy_url: str) -> None:
-        from sqlalchemy.engine import make_url
-
-        self._url = make_url(sqlalchemy_url).set(drivername="postgresql")
+        self._url = sqlalchemy_url
         self._conn = None
 
     def _connect(self):
         import psycopg
 
-        url = self._url
-        params = {k: v for k, v in url.query.items() if isinstance(v, str)}
-        host, port = params.get("host", url.host), params.get("port", url.port)
-        hosts = url.query.get("host")
-        if isinstance(hosts, tuple):  # several hosts (host=h:p&host=h:p): libpq's lists
-            pairs = [h.rsplit(":", 1) if ":" in h else (h, "") for h in hosts]
-            host, port = ",".join(h for h, _ in pairs), ",".join(p for _, p in pairs)
-        # LISTEN needs the primary (a standby refuses it): keep the URL's choice of node
-        extra = {k: params[k] for k in ("target_session_attrs",) if k in params}
-        conn = psycopg.connect(
-            host=host,
-            port=port,
-            user=url.username,
-            password=url.password,
-            dbname=url.database,
-            autocommit=True,
-            **extra,
-        )
+        conn = psycopg.connect(**libpq_params(self._url), autocommit=True)
         conn.execute(f"LISTEN {maps_repo.CHANGES_CHANNEL}")
         return conn
 

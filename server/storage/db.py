@@ -33,6 +33,27 @@ if TYPE_CHECKING:
 SYNCHRONOUS_LEVELS = ("OFF", "NORMAL", "FULL", "EXTRA")
 
 
+def libpq_params(url: str) -> dict[str, Any]:
+    """psycopg.connect's keyword arguments for a PostgreSQL SQLAlchemy URL (a LISTEN
+    connection beside the engine's): host and port from the URL or its query; several
+    hosts (``host=h:p&host=h:p``, a failover pair) as libpq's comma lists, with the URL's
+    ``target_session_attrs`` (LISTEN needs the primary: a standby refuses it)."""
+    parsed = make_url(url)
+    params = {k: v for k, v in parsed.query.items() if isinstance(v, str)}
+    host, port = params.get("host", parsed.host), params.get("port", parsed.port)
+    hosts = parsed.query.get("host")
+    if isinstance(hosts, tuple):
+        pairs = [h.rsplit(":", 1) if ":" in h else (h, "") for h in hosts]
+        host, port = ",".join(h for h, _ in pairs), ",".join(p for _, p in pairs)
+    kwargs: dict[str, Any] = dict(
+        host=host, port=port, user=parsed.username, password=parsed.password
+    )
+    kwargs["dbname"] = parsed.database
+    if "target_session_attrs" in params:
+        kwargs["target_session_attrs"] = params["target_session_attrs"]
+    return kwargs
+
+
 def redact_url(url: str) -> str:
     """The URL with any password masked, for messages and logs."""
     try:

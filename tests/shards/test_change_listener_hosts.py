@@ -2,7 +2,7 @@
 a pg_auto_failover formation gives its replicas (host=a&host=b&target_session_attrs=
 read-write): it skips the node it cannot reach, listens on the one it can, and a NOTIFY
 wakes it at once (before the fix it connected to libpq's default socket instead and the
-replica fell back to polling)."""
+replica fell back to polling); the console's relay connection likewise."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import time
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 
+from monoloc.server.api.console.relay import _connect as relay_connect
 from monoloc.server.map_registry import ChangeListener
 from monoloc.server.storage.maps import CHANGES_CHANNEL
 
@@ -39,6 +40,12 @@ def test_listen_on_a_multi_host_url_wakes_at_the_first_notify(postgres_admin_url
         waited = time.monotonic() - started
         assert listener._conn is not None
         assert 0.4 < waited < 10.0, waited  # woken by the NOTIFY, not the 30 s timeout
+        # the console's live-vehicle relay listens the same way
+        relayed = relay_connect(multi)
+        try:
+            assert relayed.execute(text("SELECT 1").text).fetchone() == (1,)
+        finally:
+            relayed.close()
     finally:
         listener.close()
         engine.dispose()

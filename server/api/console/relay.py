@@ -17,6 +17,7 @@ import threading
 from typing import Any
 
 from monoloc.server.api.console.live import VehicleBoard
+from monoloc.server.storage.db import libpq_params
 
 log = logging.getLogger(__name__)
 
@@ -49,18 +50,8 @@ def decode_into(board: VehicleBoard, payload: str) -> None:
 
 def _connect(sqlalchemy_url: str):
     import psycopg
-    from sqlalchemy.engine import make_url
 
-    url = make_url(sqlalchemy_url)
-    params = {k: v for k, v in url.query.items() if isinstance(v, str)}
-    return psycopg.connect(
-        host=params.get("host", url.host),
-        port=params.get("port", url.port),
-        user=url.username,
-        password=url.password,
-        dbname=url.database,
-        autocommit=True,
-    )
+    return psycopg.connect(**libpq_params(sqlalchemy_url), autocommit=True)
 
 
 class BoardRelay:
