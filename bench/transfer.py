@@ -13,11 +13,12 @@ straight highway at 25-30 m/s recorded at 5 Hz. A test environment is a city's `
 frame: 5 Hz), urban or at highway speed. Per cell, in the same run:
 
 - the filter's position RMSE with each model of ``VARIANTS``: "calibrated" (the product's
-  calibration: absolute e_vlad, offsets in world axes), "default" (the uncalibrated
-  ``MeasurementModel()``), "vehicle frame" (offsets along / across the heading, fitted
-  so), "relative e_vlad" (e_vlad minus the frame's best), "widened by fit" (the e_vlad
-  spread widened by the fit check's shift), "no retrieval term" (c_i constant: the pose
-  term alone);
+  calibration: absolute e_vlad, offsets along / across the heading, isotropic pose
+  spreads), "default" (the uncalibrated ``MeasurementModel()``), "world axes" (the paper's
+  fit, the product before 2026-12-02), "no retrieval term" (c_i constant: the pose term
+  alone), "relative e_vlad" (e_vlad minus the frame's best), "widened by fit" (the e_vlad
+  spread widened by the fit check's shift), and world-axes baselines without the
+  retrieval term, without the offsets' mean, with isotropic offsets;
 - the RMSE (and median) of the frames' own joint poses (each query frame localized
   without a prior: its joint pose, else its likeliest (most-inlier) hypothesis);
 - the calibration's e_vlad, offsets and relative e_vlad beside the test map's.
@@ -27,6 +28,12 @@ default model. Writes bench/results/transfer.json.
 Usage: python -m bench.transfer [--size small] [--frames 100] [--scale 1.0]
 [--depth-from stereo] [--data bench/data] [--train TEXT] [--test TEXT]
 [--pose-frame-error-m 0.1] [--stereo-disparity-error-px 0.2]
+[--rotate-test-world-deg 0 90 across] [--variants NAME,NAME] [--out NAME]
+
+``--rotate-test-world-deg``: every test environment is also evaluated with its world frame
+turned about the vertical (entry poses, query truth, and so the prior; "across": onto the
+first training road's across-axis). A map's world frame is arbitrary, so a model that
+transfers gives the same figures at every angle.
 
 ``--train`` / ``--test`` keep the environments whose names contain the text (a bounded
 run over a few cells). ``--pose-frame-error-m`` records every run with that white
@@ -62,12 +69,16 @@ GOAL_JOINT_RATIO = 1.2
 
 @dataclass(frozen=True)
 class Fitted:
-    """One training environment's calibrations: the model fitted with the offsets in world
-    axes and in the vehicle's frame (same samples), and its provenance."""
+    """One training environment's calibrations from the same samples: the product's
+    (``vehicle``: offsets along / across the heading, isotropic pose spreads) and the
+    paper's world axes (``world``, the product before 2026-12-02), and its provenance."""
 
     world: MeasurementModel
     vehicle: MeasurementModel
     provenance: dict
+    # what both were fitted on (server.calibrate.collect_samples), for --record-fixture
+    samples: object = None
+    per_run: list = field(default_factory=list)
 
 
 def widened(model: MeasurementModel, provenance: dict, map_vlad: dict | None) -> MeasurementModel:
@@ -113,16 +124,37 @@ def without_retrieval(model: MeasurementModel, std: float = 1e4) -> MeasurementM
     )
 
 
+def without_offset_mean(model: MeasurementModel) -> MeasurementModel:
+    """The model with the retrieval offsets' mean (mu2's X, Y) set to zero."""
+    mu2 = model.mu2.copy()
+    mu2[1:3] = 0.0
+    return replace(model, mu2=mu2)
+
+
+def isotropic_offsets(model: MeasurementModel) -> MeasurementModel:
+    """The model with the retrieval offsets' mean dropped and their covariance made
+    isotropic (half its trace on both axes, uncorrelated with e_vlad and the heading): a
+    world-frame term that no longer depends on the frame's orientation."""
+    Sigma2 = model.Sigma2.copy()
+    Sigma2[1:3, :] = 0.0
+    Sigma2[:, 1:3] = 0.0
+    Sigma2[1, 1] = Sigma2[2, 2] = 0.5 * (model.Sigma2[1, 1] + model.Sigma2[2, 2])
+    return replace(without_offset_mean(model), Sigma2=Sigma2)
+
+
 # A model variant: the training environment's calibrations and the test map's neighbour
 # VLAD distances in, the model the filter runs with out.
 Variant = Callable[[Fitted, dict | None], MeasurementModel]
 VARIANTS: dict[str, Variant] = {
-    "calibrated": lambda fit, _: fit.world,
+    "calibrated": lambda fit, _: fit.vehicle,
     "default": lambda fit, _: MeasurementModel(),
-    "vehicle frame": lambda fit, _: fit.vehicle,
-    "relative e_vlad": lambda fit, _: fit.world.with_vlad_evidence("relative"),
-    "widened by fit": lambda fit, vlad: widened(fit.world, fit.provenance, vlad),
-    "no retrieval term": lambda fit, _: without_retrieval(fit.world),
+    "world axes": lambda fit, _: fit.world,
+    "no retrieval term": lambda fit, _: without_retrieval(fit.vehicle),
+    "world axes without retrieval term": lambda fit, _: without_retrieval(fit.world),
+    "relative e_vlad": lambda fit, _: fit.vehicle.with_vlad_evidence("relative"),
+    "widened by fit": lambda fit, vlad: widened(fit.vehicle, fit.provenance, vlad),
+    "world axes, no offset mean": lambda fit, _: without_offset_mean(fit.world),
+    "world axes, isotropic offsets": lambda fit, _: isotropic_offsets(fit.world),
 }
 
 
@@ -280,9 +312,7 @@ def rerecord(config: GenerateConfig, source: Path, root: Path) -> None:
     from monoloc.sim.urban.runs import plan_runs
 
     theirs = json.loads((source / "dataset.json").read_text())["recording_errors"]
-    ours = replace(
-        config.errors, pose_frame_error_m=0.0, stereo_disparity_error_px=0.0
-    ).to_dict()
+    ours = replace(config.errors, pose_frame_error_m=0.0, stereo_disparity_error_px=0.0).to_dict()
     if {k: theirs.get(k, 0.0) for k in ours} != ours:
         raise ValueError(f"{source} was recorded with other errors than the pose's")
     plans = plan_runs(build_city(config.city_config(), config.seed), config)
@@ -320,6 +350,36 @@ def thinned(seq, spacing_m: float):
             keep.append(frame)
             next_m = s + spacing_m
     return replace(seq, frames=keep)
+
+
+def rotated(seq, angle_rad: float):
+    """``seq`` (a KittiSequence) in a world frame turned by ``angle_rad`` about the
+    vertical: every T_world_from_cam pre-multiplied by R_z (a map's world frame is an
+    arbitrary choice: an ENU origin, a SLAM frame; nothing physical changes)."""
+    if angle_rad == 0.0:
+        return seq
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    R = np.eye(4)
+    R[:2, :2] = [[c, -s], [s, c]]
+    frames = [replace(f, T_world_from_cam=R @ f.T_world_from_cam) for f in seq.frames]
+    return replace(seq, frames=frames)
+
+
+def axial_heading_rad(seq) -> float:
+    """The direction (mod pi) a run mostly drives along: the axial mean of its steps'
+    headings weighted by their length, in (-pi/2, pi/2]."""
+    xy = np.array([f.T_world_from_cam[:2, 3] for f in seq.frames])
+    steps = np.diff(xy, axis=0)
+    length = np.hypot(steps[:, 0], steps[:, 1])
+    doubled = 2.0 * np.arctan2(steps[:, 1], steps[:, 0])
+    mean = math.atan2(float(length @ np.sin(doubled)), float(length @ np.cos(doubled)))
+    return 0.5 * mean
+
+
+def across_angle_deg(train_heading_rad: float, test_heading_rad: float) -> float:
+    """The rotation (deg, in [0, 180)) that turns a test run's main direction onto the
+    training road's across-axis."""
+    return math.degrees(train_heading_rad + math.pi / 2 - test_heading_rad) % 180.0
 
 
 def rmse(estimates: np.ndarray, truth: np.ndarray) -> float | None:
@@ -389,7 +449,89 @@ def calibrate_both(train, vocabulary) -> Fitted:
         )
         for frame in ("world", "vehicle")
     }
-    return Fitted(fits["world"].model, fits["vehicle"].model, fits["world"].provenance)
+    return Fitted(
+        fits["world"].model, fits["vehicle"].model, fits["world"].provenance, samples, per_run
+    )
+
+
+FIXTURE_SAMPLE_FIELDS = (
+    "truth",
+    "hypothesis",
+    "e_vlad",
+    "e_vlad_best",
+    "entry_pose",
+    "n_inliers",
+    "error_px",
+    "joint",
+    "pose_covariance",
+    "query_index",
+    "entry_index",
+    "neighbour_e_vlad",
+)
+FIXTURE_HYPOTHESIS_FIELDS = (
+    "pose_world",
+    "entry_pose_world",
+    "e_vlad",
+    "n_inliers",
+    "reprojection_error_px",
+    "joint",
+    "pose_covariance",
+)
+
+
+def record_fixture(path: Path, fitted: Fitted, test: TestRun, vocab, frames: int) -> None:
+    """Write ``path`` (.npz): a training run's calibration samples (what
+    ``server.calibrate.fit_samples`` fits) and the first ``frames`` frames of a drive on
+    the test map under the product's calibration: each frame's hypotheses as the server
+    answered them, the truth, times and signals. A test replays the drive without images
+    (tests/core/test_measurement_world_frame.py)."""
+    from bench.lab.evaluation import MemoryMap
+    from monoloc.client.particle_filter import FilterConfig
+    from monoloc.client.tracking import Tracker
+    from monoloc.core.geometry import planar_from_T_world_from_cam
+    from monoloc.server.localize import LocalizeConfig
+    from monoloc.server.localize.in_process import InProcessLocalizer
+
+    memory = MemoryMap.empty(vocab)
+    memory.add_run(test.map_seq)
+    query = replace(test.query, frames=test.query.frames[:frames])
+    localizer = InProcessLocalizer(
+        memory.index,
+        memory.lookup,
+        vocab,
+        query.intrinsics,
+        np.random.default_rng(1),
+        LocalizeConfig(),
+    )
+    config = FilterConfig()
+    config = replace(config, motion=replace(config.motion, lever_arm_m=test.lever_arm_m))
+    times = np.array([f.timestamp_s for f in query.frames])
+    model = fitted.vehicle if fitted.vehicle.retrieval_frame == "vehicle" else fitted.world
+    tracker = Tracker(config, model, np.random.default_rng(0), times, test.signals[:frames])
+    answers = [
+        tracker.follow(i, query.load(frame).image_gray, localizer)
+        for i, frame in enumerate(query.frames)
+    ]
+    hyps = [a.hypotheses for a in answers]
+    out = {f"sample_{k}": np.asarray(getattr(fitted.samples, k)) for k in FIXTURE_SAMPLE_FIELDS}
+    for key in FIXTURE_HYPOTHESIS_FIELDS:
+        out[f"hyp_{key}"] = np.concatenate(
+            [np.asarray(getattr(h, key)).reshape((len(h), -1)) for h in hyps]
+        ).squeeze()
+    out["hyp_pose_covariance"] = out["hyp_pose_covariance"].reshape(-1, 3, 3)
+    out["hyp_method"] = np.array([m for h in hyps for m in (h.method or ("",) * len(h))])
+    out["hyp_count"] = np.array([len(h) for h in hyps])
+    out["truth_world"] = np.array(
+        [planar_from_T_world_from_cam(f.T_world_from_cam) for f in query.frames]
+    )
+    out["timestamps_s"] = times
+    out["signals"] = test.signals[:frames]
+    out["lever_arm_m"] = np.array(test.lever_arm_m)
+    out["per_run"] = np.array(json.dumps(fitted.per_run))
+    out["recorded_estimates_world"] = tracker.estimates_world
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **out)
+    print(f"wrote {path} ({len(hyps)} frames, {sum(map(len, hyps))} hypotheses)", flush=True)
 
 
 def calibration_summary(calibration: Fitted) -> dict:
@@ -428,7 +570,6 @@ def cell_goal(filter_rmse: dict, joint_rmse: float | None) -> dict:
 
 
 def run(args) -> dict:
-    from bench.lab.evaluation import MemoryMap, evaluate_run
     from monoloc.client.replay import read_kitti_run, rig_lever_arm_m
     from monoloc.server.ingest.sources import read_kitti_sequence
     from monoloc.server.vision.vocabulary import load_default_vocabulary
@@ -450,6 +591,9 @@ def run(args) -> dict:
     test_envs = {k: v for k, v in TEST_ENVS.items() if args.test in k}
     if not train_envs or not test_envs:
         raise SystemExit(f"no environment matches --train {args.train!r} / --test {args.test!r}")
+    variants = {k: v for k, v in VARIANTS.items() if not args.variants or k in args.variants}
+    if args.variants and len(variants) != len(set(args.variants)):
+        raise SystemExit(f"--variants: unknown {sorted(set(args.variants) - set(VARIANTS))}")
     trains = {}
     for name, env in train_envs.items():
         base = data / f"train_{_slug(name)}_{env.seed}_{tag}"
@@ -459,10 +603,9 @@ def run(args) -> dict:
         meta = json.loads((root / "dataset.json").read_text())
         seq_id = sequence_of(meta, "train")
         t0 = time.time()
-        calibration = calibrate_both(
-            read_kitti_sequence(root, seq_id, depth_from=args.depth_from), vocab
-        )
-        trains[name] = (calibration, meta)
+        train_seq = read_kitti_sequence(root, seq_id, depth_from=args.depth_from)
+        calibration = calibrate_both(train_seq, vocab)
+        trains[name] = (calibration, meta, axial_heading_rad(train_seq))
         summary = calibration_summary(calibration)
         print(
             f"{name}: calibrated on {summary['used']} hypotheses in {time.time() - t0:.0f} s; "
@@ -481,13 +624,16 @@ def run(args) -> dict:
         "test": {},
         "cells": [],
     }
-    for name, (calibration, meta) in trains.items():
+    for name, (calibration, meta, heading) in trains.items():
         train_seq = meta["sequences"][0]
         out["train"][name] = {
             **calibration_summary(calibration),
             "frames": train_seq["frames"],
             "route_length_m": train_seq["route_length_m"],
             "options": train_seq.get("train_run"),
+            "heading_deg": math.degrees(heading),
+            "offset_mean_m": [float(calibration.world.mu2[i]) for i in (1, 2)],
+            "offset_mean_along_across_m": [float(calibration.vehicle.mu2[i]) for i in (1, 2)],
         }
     for test_name, env in test_envs.items():
         env = replace(env, size=args.size)
@@ -498,58 +644,109 @@ def run(args) -> dict:
         config = env.generate_config(args.frames, args.scale, stereo, errors)
         ensure(root, config, renders_of=base if white else None)
         meta = json.loads((root / "dataset.json").read_text())
-        memory = MemoryMap.empty(vocab)
         map_seq = read_kitti_sequence(root, sequence_of(meta, "map"), depth_from=args.depth_from)
         map_seq = thinned(map_seq, env.spacing_m)
-        memory.add_run(map_seq)
         query_id = sequence_of(meta, "query")
         query = read_kitti_sequence(root, query_id)
         query = replace(query, frames=query.frames[:: env.query_every])
         signals = read_kitti_run(root, query_id).signals[:: env.query_every]
-        map_vlad = map_neighbour_vlad(memory)
         # the sim rig's camera lever arm (a straight training street cannot fit one)
         lever = rig_lever_arm_m(root) or 0.0
-        t0 = time.time()
-        frames = per_frame_poses(memory, query)
-        out["test"][test_name] = {
-            **frames,
-            "map_entries": len(memory.refs),
-            "query_frames": len(query.frames),
-            "neighbour_e_vlad": {k: v for k, v in map_vlad.items() if k != "distances"},
-        }
-        print(
-            f"\n{test_name}: {len(memory.refs)} entries; joint poses RMSE "
-            f"{_m(frames['joint_rmse_m'])} ({time.time() - t0:.0f} s), e_vlad of accepted "
-            f"hypotheses {_pm(frames['e_vlad'])}; per-entry hypotheses "
-            f"{_m(frames['entry_scatter_about_joint_m'])} RMS about the joint pose (median "
-            f"frame), their median error {_m(frames['entry_error_median_m'])}",
-            flush=True,
-        )
-        shared: dict[str, float | None] = {}  # the variants that ignore the training run
-        for train_name, (calibration, _) in trains.items():
-            filter_rmse = {}
-            for variant, transform in VARIANTS.items():
-                if variant in shared:
-                    filter_rmse[variant] = shared[variant]
-                    continue
-                model = transform(calibration, map_vlad)
-                result = evaluate_run(
-                    memory, query, signals, model, lever_arm_m=lever, variants=("full",)
-                )
-                value = result.metrics["full"].position_rmse_m
-                filter_rmse[variant] = value if math.isfinite(value) else None
-                if variant in UNTRAINED:
-                    shared[variant] = filter_rmse[variant]
-            cell = {
+        test_heading = axial_heading_rad(query)
+        if args.record_fixture is not None:
+            fitted = next(iter(trains.values()))[0]
+            test_run = TestRun(map_seq, query, signals, lever)
+            record_fixture(args.record_fixture, fitted, test_run, vocab, args.fixture_frames)
+            continue
+        for angle in args.rotate_test_world_deg:
+            if angle == "across":
+                train_heading = next(iter(trains.values()))[2]
+                angle = across_angle_deg(train_heading, test_heading)
+            label = test_name if float(angle) == 0.0 else f"{test_name}, world turned {angle:g} deg"
+            turn = math.radians(float(angle))
+            test_run = TestRun(rotated(map_seq, turn), rotated(query, turn), signals, lever)
+            summary, cells = evaluate_test(test_run, label, float(angle), trains, vocab, variants)
+            out["test"][label] = {
+                **summary,
+                "rotation_deg": float(angle),
+                "query_heading_deg": math.degrees(test_heading + turn),
+            }
+            for cell in cells:
+                out["cells"].append(cell)
+                print_cell(cell, out["train"][cell["train"]]["e_vlad"], summary["e_vlad"])
+    return out
+
+
+@dataclass(frozen=True)
+class TestRun:
+    """A test environment's thinned map run, its query run (every ``query_every``-th
+    frame) with its measured signals (N, 2), and the rig's lever arm (m)."""
+
+    map_seq: object
+    query: object
+    signals: np.ndarray
+    lever_arm_m: float
+
+
+def evaluate_test(
+    test: TestRun, label: str, rotation_deg: float, trains: dict, vocab, variants: dict
+) -> tuple[dict, list[dict]]:
+    """One test environment's map built in memory, its frames' joint poses and, per
+    training environment, the filter's RMSE under each of ``variants``: (the test
+    environment's summary, its cells)."""
+    from bench.lab.evaluation import MemoryMap, evaluate_run
+
+    memory = MemoryMap.empty(vocab)
+    memory.add_run(test.map_seq)
+    map_vlad = map_neighbour_vlad(memory)
+    t0 = time.time()
+    frames = per_frame_poses(memory, test.query)
+    summary = {
+        **frames,
+        "map_entries": len(memory.refs),
+        "query_frames": len(test.query.frames),
+        "neighbour_e_vlad": {k: v for k, v in map_vlad.items() if k != "distances"},
+    }
+    print(
+        f"\n{label}: {len(memory.refs)} entries; joint poses RMSE "
+        f"{_m(frames['joint_rmse_m'])} ({time.time() - t0:.0f} s), e_vlad of accepted "
+        f"hypotheses {_pm(frames['e_vlad'])}; per-entry hypotheses "
+        f"{_m(frames['entry_scatter_about_joint_m'])} RMS about the joint pose (median "
+        f"frame), their median error {_m(frames['entry_error_median_m'])}",
+        flush=True,
+    )
+    shared: dict[str, float | None] = {}  # the variants that ignore the training run
+    cells = []
+    for train_name, (calibration, _, _) in trains.items():
+        filter_rmse = {}
+        for variant, transform in variants.items():
+            if variant in shared:
+                filter_rmse[variant] = shared[variant]
+                continue
+            model = transform(calibration, map_vlad)
+            result = evaluate_run(
+                memory,
+                test.query,
+                test.signals,
+                model,
+                lever_arm_m=test.lever_arm_m,
+                variants=("full",),
+            )
+            value = result.metrics["full"].position_rmse_m
+            filter_rmse[variant] = value if math.isfinite(value) else None
+            if variant in UNTRAINED:
+                shared[variant] = filter_rmse[variant]
+        cells.append(
+            {
                 "train": train_name,
-                "test": test_name,
+                "test": label,
+                "rotation_deg": rotation_deg,
                 "filter_rmse_m": filter_rmse,
                 "joint_rmse_m": frames["joint_rmse_m"],
                 "meets_goal": cell_goal(filter_rmse, frames["joint_rmse_m"]),
             }
-            out["cells"].append(cell)
-            print_cell(cell, out["train"][train_name]["e_vlad"], frames["e_vlad"])
-    return out
+        )
+    return summary, cells
 
 
 def _slug(name: str) -> str:
@@ -586,15 +783,24 @@ def print_matrix(out: dict) -> None:
         row = f"{train:<62}"
         for test in tests:
             cell = next(c for c in out["cells"] if c["train"] == train and c["test"] == test)
-            value, joint = cell["filter_rmse_m"]["calibrated"], cell["joint_rmse_m"]
-            default = cell["filter_rmse_m"]["default"]
-            mark = "ok" if cell["meets_goal"]["calibrated"] else "FAIL"
+            value, joint = cell["filter_rmse_m"].get("calibrated"), cell["joint_rmse_m"]
+            default = cell["filter_rmse_m"].get("default")
+            mark = "ok" if cell["meets_goal"].get("calibrated") else "FAIL"
             text = f"{_m(value)} / j {_m(joint)} / d {_m(default)} {mark}"
             row += f"{text:>36}"
         print(row)
-    failing = [c for c in out["cells"] if not c["meets_goal"]["calibrated"]]
+    failing = [c for c in out["cells"] if not c["meets_goal"].get("calibrated")]
     n = len(out["cells"])
     print(f"cells failing the goal with the calibrated model: {len(failing)} of {n}")
+
+
+def _rotation(text: str) -> float | str:
+    if text == "across":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"an angle in deg or 'across', got {text!r}") from None
 
 
 def main() -> None:
@@ -623,15 +829,37 @@ def main() -> None:
         default=0.0,
         help="1 sigma of each run's stereo disparity offset (RecordingErrors)",
     )
+    parser.add_argument(
+        "--rotate-test-world-deg",
+        nargs="+",
+        type=_rotation,
+        default=[0.0],
+        help="evaluate every test environment with its world frame turned by each of these "
+        "angles (deg; 'across': onto the first training road's across-axis)",
+    )
+    parser.add_argument(
+        "--variants",
+        type=lambda text: [v.strip() for v in text.split(",") if v.strip()],
+        default=None,
+        help=f"comma-separated model variants to run (default all: {', '.join(VARIANTS)})",
+    )
+    parser.add_argument(
+        "--record-fixture",
+        type=Path,
+        default=None,
+        help="write the first training run's samples and a drive's hypotheses on the test "
+        "map to this .npz (tests/core/test_measurement_world_frame.py) instead of the matrix",
+    )
+    parser.add_argument("--fixture-frames", type=int, default=50)
     parser.add_argument("--out", default="transfer.json", help="file name under bench/results")
     args = parser.parse_args()
     limit_threads()
     t0 = time.time()
     out = run(args)
-    print_matrix(out)
     out["seconds"] = round(time.time() - t0)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / args.out).write_text(json.dumps(out, indent=2) + "\n")
+    print_matrix(out)
     print(f"wrote {RESULTS / args.out}")
 
 

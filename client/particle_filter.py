@@ -155,7 +155,7 @@ class FilterConfig:
     reseed_window_frames: int = 20
     reseed_position_tol_m: float = 1.0
     reseed_yaw_tol_rad: float = math.radians(3.0)
-    # Roughening after resampling: Gaussian jitter (m, m, rad) so that a cloud that
+    # Roughening after resampling: Gaussian jitter (along m, across m, rad) so that a cloud that
     # collapsed onto a few particles can still move to where the measurements are.
     roughening_std: tuple[float, float, float] = (0.02, 0.02, math.radians(0.1))
     # The reported pose: a Gaussian filter riding on the main mode (client/refine.py)
@@ -218,6 +218,16 @@ def mode_estimate(particles: np.ndarray, weights: np.ndarray, radius_m: float) -
     return mean
 
 
+def along_across_to_world(offsets: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
+    """Offsets (n, 3) (along m, across m, yaw rad) of poses heading ``heading_rad`` (n,)
+    in world axes (X m, Y m, yaw rad)."""
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    out = offsets.copy()
+    out[:, 0] = c * offsets[:, 0] - s * offsets[:, 1]
+    out[:, 1] = s * offsets[:, 0] + c * offsets[:, 1]
+    return out
+
+
 def sample_around(
     centres: np.ndarray,
     n: int,
@@ -225,10 +235,12 @@ def sample_around(
     yaw_std_rad: float,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """n particles (n, 3) spread evenly over centres (C, 3) with Gaussian noise."""
+    """n particles (n, 3) spread evenly over centres (C, 3) with Gaussian noise (drawn
+    along and across each centre's heading: the same particles, turned, in a turned world
+    frame)."""
     picks = np.arange(n) % len(centres)
     noise = rng.normal(size=(n, 3)) * [position_std_m, position_std_m, yaw_std_rad]
-    particles = centres[picks] + noise
+    particles = centres[picks] + along_across_to_world(noise, centres[picks, 2])
     particles[:, 2] = wrap_angle(particles[:, 2])
     return particles
 
@@ -296,7 +308,7 @@ class ParticleFilter:
         """Start around the (bias-corrected) hypotheses of one frame."""
         if len(hypotheses) == 0:
             raise InvalidInputError("cannot initialise from an empty set of hypotheses")
-        centres = hypotheses.pose_world + self.model.mu1
+        centres = self.model.corrected(hypotheses)
         self.initialise(centres, self.config.init_position_std_m, self.config.init_yaw_std_rad)
         # Weigh the seeded particles by the same frame: where several hypotheses agree the
         # mixture is denser, so a lone wrong hypothesis loses its share at once.
@@ -333,7 +345,7 @@ class ParticleFilter:
             self._remember(np.zeros((0, 3)))
             return
         log_lik, closest = log_likelihood_and_distance(self.particles, hypotheses, self.model)
-        centres = hypotheses.pose_world + self.model.mu1
+        centres = self.model.corrected(hypotheses)
         if closest > self.config.lost_mahalanobis_sq:
             self._unlikely_frames += 1
             self.frames_since_support += 1
@@ -455,7 +467,7 @@ class ParticleFilter:
 
     def _reseed(self, hypotheses: Hypotheses, chosen: np.ndarray) -> None:
         """Particles around the chosen hypotheses, weighed by the whole frame."""
-        centres = hypotheses.pose_world[chosen] + self.model.mu1
+        centres = self.model.corrected(hypotheses)[chosen]
         self.initialise(centres, self.config.init_position_std_m, self.config.init_yaw_std_rad)
         self.n_reseeds += 1
         # the frames that agreed with the candidate are the new track's support
@@ -475,7 +487,8 @@ class ParticleFilter:
         if ess < self.config.resample_ess_fraction * self.config.n_particles:
             idx = systematic_resample(weights, self.rng)
             jitter = self.rng.normal(size=self.particles.shape) * self.config.roughening_std
-            self.particles = self.particles[idx] + jitter
+            kept = self.particles[idx]
+            self.particles = kept + along_across_to_world(jitter, kept[:, 2])
             self.particles[:, 2] = wrap_angle(self.particles[:, 2])
             self.log_weights = np.zeros(self.config.n_particles)
         else:
@@ -598,7 +611,7 @@ class ParticleFilter:
     def _start(self, hypotheses: Hypotheses) -> bool:
         """Initialise on this frame if its hypotheses may start the filter (see
         ``FilterConfig.init_min_agreeing``); otherwise remember them. Whether it started."""
-        centres = hypotheses.pose_world + self.model.mu1
+        centres = self.model.corrected(hypotheses)
         if len(hypotheses) == 0:
             self._remember(centres)
             return False

@@ -16,7 +16,9 @@ fitted on the per-entry hypotheses only, as in the paper, and the quality-aware 
 joint flag) by maximum likelihood on every hypothesis, joint ones included. Hypotheses farther than
 ``gate_position_m`` / ``gate_yaw_rad`` from the truth are PnP failures, not noise: they
 are counted and left out of both fits (the measurement model's outlier floor stands for
-them), and reported.
+them), and reported. In the product's frame (``retrieval_frame`` "vehicle") e_i and the
+offset of r_i are taken along and across the hypothesis's / the query's heading, and the
+pose spreads' position parts (Sigma1, the PnP floor) are made isotropic.
 
 Pure apart from the frames it is handed: no database, no files. Query frames are kept
 as features + VLAD (not images), so a long training run fits in memory.
@@ -53,6 +55,7 @@ from monoloc.core.measurement import (
     MeasurementModel,
     RetrievalFrame,
     VladEvidence,
+    to_heading_axes,
 )
 from monoloc.server.entry_builder import (
     BuildConfig,
@@ -356,7 +359,12 @@ def fit_samples(
             "not match each other"
         )
     truth = np.array(samples.truth)
-    errors = pose_errors(truth, np.array(samples.hypothesis))
+    hypothesis = np.array(samples.hypothesis)
+    covariances = np.array(samples.pose_covariance).reshape(-1, 3, 3)
+    errors = pose_errors(truth, hypothesis)
+    if config.retrieval_frame == "vehicle":
+        # the pose error along / across the hypothesis's heading, as the model reads it
+        errors, covariances = to_heading_axes(errors, hypothesis[:, 2], covariances)
     paper = fit_measurement_model(
         errors[~joint],
         retrieval_vectors(
@@ -374,13 +382,15 @@ def fit_samples(
     quality = fit_quality_model(
         errors, np.array(samples.n_inliers), np.array(samples.error_px), joint
     )
-    pnp = _fit_pnp(errors[~joint], np.array(samples.pose_covariance)[~joint], paper, config)
+    pnp = _fit_pnp(errors[~joint], covariances[~joint], paper, config)
     if config.covariance == "pnp" and pnp is None:
         raise InvalidInputError(
             f"calibration of {what} cannot fit the pnp covariance model: fewer than "
             f"{MIN_GOOD_HYPOTHESES} hypotheses with a pose covariance (the pose stage must "
             "give them)"
         )
+    if config.retrieval_frame == "vehicle":
+        paper, pnp = _isotropic_pose_spread(paper, pnp)
     relative = np.array(samples.e_vlad)[~joint] - np.array(samples.e_vlad_best)[~joint]
     model = dataclasses.replace(
         paper,
@@ -395,6 +405,26 @@ def fit_samples(
     if len(names) > 1:
         provenance["runs"] = [{"source": n, **c} for n, c in zip(names, per_run, strict=True)]
     return CalibrationResult(model, provenance)
+
+
+def _isotropic_position(cov: np.ndarray) -> np.ndarray:
+    """A (3, 3) pose covariance with its position block isotropic (half its trace on
+    both axes) and uncorrelated with the heading."""
+    out = np.diag(np.diag(cov)).astype(np.float64)
+    out[0, 0] = out[1, 1] = 0.5 * (cov[0, 0] + cov[1, 1])
+    return out
+
+
+def _isotropic_pose_spread(paper: MeasurementModel, pnp):
+    """The paper term's Sigma1 and the PnP floor with isotropic position spreads (the bias
+    mu1 kept along / across the heading): the direction of a pose error is what each
+    hypothesis's own PnP covariance says; the training road's split of the rest between
+    along and across did not transfer to other streets (docs/notebook/transfer.md,
+    2026-12-02, third entry)."""
+    paper = dataclasses.replace(paper, Sigma1=_isotropic_position(paper.Sigma1))
+    if pnp is not None:
+        pnp = dataclasses.replace(pnp, floor=_isotropic_position(pnp.floor))
+    return paper, pnp
 
 
 def _fit_pnp(errors: np.ndarray, covariances: np.ndarray, paper, config: CalibrationConfig):

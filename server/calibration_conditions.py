@@ -17,7 +17,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from monoloc.core.errors import ConflictError, InvalidInputError, NotFoundError
-from monoloc.core.measurement import MeasurementModel
+from monoloc.core.measurement import DEFAULT_RETRIEVAL_FRAME, MeasurementModel
 from monoloc.server.storage.entry_checks import normalise_tag
 
 
@@ -99,7 +99,9 @@ def put_conditions(
 ) -> dict[str, dict[str, Any]]:
     """The conditions of a calibration PUT as stored: names normalised as tags, each
     model checked (``MeasurementModel.from_dict``; InvalidInputError) and stored with
-    source "put", its provenance (an object, default empty) and ``updated_at``."""
+    source "put", its provenance (an object, default empty) and ``updated_at``; a model
+    that leaves its retrieval frame out is in the product's (a stored calibration that
+    leaves it out was fitted before the choice existed: world axes)."""
     out: dict[str, dict[str, Any]] = {}
     for given, values in conditions.items():
         name = condition_name(given)
@@ -109,7 +111,9 @@ def put_conditions(
         if not isinstance(provenance, Mapping):
             raise InvalidInputError(f"condition {name!r}: provenance must be an object")
         try:
-            model = dataclasses.replace(MeasurementModel.from_dict(values), source="put")
+            frame = values.get("retrieval_frame") or DEFAULT_RETRIEVAL_FRAME
+            given = {**values, "retrieval_frame": frame}
+            model = dataclasses.replace(MeasurementModel.from_dict(given), source="put")
             out[name] = condition_entry(model, provenance, updated_at)
         except InvalidInputError as exc:
             raise InvalidInputError(f"condition {name!r}: {exc}") from exc

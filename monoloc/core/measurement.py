@@ -9,10 +9,10 @@ For a particle x = (X, Y, psi) and hypotheses i = 1..H from one frame::
 Everything is vectorised over particles and hypotheses (P x H). Pure numpy.
 
 The product's choices are :data:`DEFAULT_COVARIANCE` (each hypothesis's own PnP
-covariance) and :data:`DEFAULT_RETRIEVAL_FRAME` (the paper's world-frame offset). The
-variants beside them ("paper" and "quality" covariances, the "vehicle" frame) stay
-reachable here for bench/ and for calibrations stored with them; the API does not offer
-them.
+covariance) and :data:`DEFAULT_RETRIEVAL_FRAME` (offsets along and across the vehicle's
+heading). The variants beside them ("paper" and "quality" covariances, the paper's world
+axes) stay reachable here for bench/ and for calibrations stored with them; the API does
+not offer them.
 """
 
 from __future__ import annotations
@@ -136,6 +136,33 @@ class Hypotheses:
 
     def __len__(self) -> int:
         return len(self.pose_world)
+
+
+def _turn(heading_rad: np.ndarray) -> np.ndarray:
+    """R (H, 3, 3): planar rotations by each heading, the angle axis left alone."""
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    R = np.zeros((len(c), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def to_world_axes(cov: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
+    """Covariances (H, 3, 3) in world axes of (along, across, psi) covariances (3, 3) or
+    (H, 3, 3) along and across each heading (H,)."""
+    R = _turn(np.asarray(heading_rad, dtype=np.float64).reshape(-1))
+    return R @ cov @ R.transpose(0, 2, 1)
+
+
+def to_heading_axes(
+    errors: np.ndarray, heading_rad: np.ndarray, cov: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Pose errors (N, 3) (X, Y, psi) and covariances (N, 3, 3), optional, in world axes
+    turned along and across each heading (N,): what a vehicle-frame pose term is fitted
+    on (the inverse of :func:`to_world_axes`)."""
+    R = _turn(np.asarray(heading_rad, dtype=np.float64).reshape(-1))
+    Rt = R.transpose(0, 2, 1)
+    along = np.einsum("nij,nj->ni", Rt, np.asarray(errors, dtype=np.float64))
+    return along, None if cov is None else Rt @ np.asarray(cov, dtype=np.float64) @ R
 
 
 def _as_cov(matrix, size: int, name: str) -> np.ndarray:
@@ -314,13 +341,19 @@ class PnpCovarianceModel:
         ):
             raise InvalidInputError(f"invalid PnP covariance model {self}")
 
-    def covariances(self, pose_covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def covariances(
+        self, pose_covariance: np.ndarray, heading_rad: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """S_i (H, 3, 3) of hypotheses with planar covariances (H, 3, 3) at 1 px, and
-        which of them have one (H,) bool (where not, S_i is the identity: unused)."""
+        which of them have one (H,) bool (where not, S_i is the identity: unused).
+        ``heading_rad`` (H,): the floor is along / across each hypothesis's heading
+        (a model in the vehicle frame), turned into world axes here."""
         C = np.asarray(pose_covariance, dtype=np.float64)
         known = np.isfinite(C).all(axis=(1, 2))
         out = np.broadcast_to(np.eye(3), C.shape).copy()
-        out[known] = self.pixel_std_px**2 * C[known] + self.floor
+        floor = self.floor if heading_rad is None else to_world_axes(self.floor, heading_rad)
+        floor = np.broadcast_to(floor, C.shape)
+        out[known] = self.pixel_std_px**2 * C[known] + floor[known]
         return out, known
 
     def to_dict(self) -> dict:
@@ -347,8 +380,11 @@ RetrievalFrame = Literal["world", "vehicle"]
 DEFAULT_COVARIANCE: CovarianceModel = "pnp"
 """The pose-error model the product calibrates and selects. A model without its
 parameters (the documented defaults, a calibration stored before it) uses the paper's."""
-DEFAULT_RETRIEVAL_FRAME: RetrievalFrame = "world"
-"""The frame of the retrieval vector's offset: the paper's (X_i - X, Y_i - Y)."""
+DEFAULT_RETRIEVAL_FRAME: RetrievalFrame = "vehicle"
+"""The axes of the model's offsets: along and across the vehicle's heading (the particle's
+for the retrieval vector, the hypothesis's for the pose error), which a calibration keeps
+on a street running another way; the paper's world axes remembered the training road's
+direction (docs/notebook/transfer.md, 2026-12-02, third entry)."""
 VladEvidence = Literal["absolute", "relative"]
 DEFAULT_VLAD_EVIDENCE: VladEvidence = "absolute"
 """How the retrieval term reads a hypothesis's VLAD distance: "absolute" (the paper's
@@ -364,8 +400,9 @@ class MeasurementModel:
     """Parameters (mu1, Sigma1, mu2, Sigma2) of the mixture, plus monoloc's outlier floor.
 
     mu1 (3,), Sigma1 (3, 3): error of a hypothesis, truth minus hypothesis, in
-    (m, m, rad). mu2 (4,), Sigma2 (4, 4): the retrieval vector
-    [e_vlad, X_i - X, Y_i - Y, psi_i - psi] in (1, m, m, rad).
+    (m, m, rad), in ``retrieval_frame``'s axes. mu2 (4,), Sigma2 (4, 4): the retrieval
+    vector [e_vlad, X_i - X, Y_i - Y, psi_i - psi] in (1, m, m, rad), the offset in
+    ``retrieval_frame``'s axes.
     ``outlier_log_density`` is monoloc's addition: a constant density mixed in so a frame
     whose hypotheses are all wrong cannot annihilate every particle (None disables it).
     ``tail_weight`` eps and ``tail_scale`` k, also monoloc's (paper covariance only; the
@@ -379,9 +416,14 @@ class MeasurementModel:
     ``quality``) or "pnp" (``pnp``'s covariance from each hypothesis's own PnP geometry,
     joint hypotheses left out; needs ``pnp``); None picks :data:`DEFAULT_COVARIANCE`
     when its parameters are given, else "paper". ``with_covariance`` switches between
-    them. ``retrieval_frame``: the frame of the retrieval vector's offset, "world" (the
-    paper's; calibrations stored before the choice existed) or "vehicle" (along and
-    across the particle's heading).
+    them. ``retrieval_frame``: the axes of the model's planar offsets. "vehicle" (the
+    product's, :data:`DEFAULT_RETRIEVAL_FRAME`): the retrieval vector's offset along and
+    across the particle's heading, and the pose error's bias and covariance (mu1, Sigma1,
+    the quality model's, the PnP floor and bias; not a hypothesis's own PnP covariance,
+    which is in world axes) along and across the hypothesis's heading, so that nothing
+    depends on how the map's world frame is turned. "world": all of them in world axes,
+    as in the paper; a calibration stored before the choice existed or stored with it is
+    applied so.
     ``vlad_evidence``: "absolute" (the paper's e_vlad term, mu2[0] and Sigma2's first
     row) or "relative": the retrieval weight is N(e_vlad_i - min_j e_vlad_j;
     ``relative_vlad`` (mean, std)) times the offsets' Gaussian (mu2[1:], Sigma2[1:, 1:]),
@@ -519,17 +561,39 @@ class MeasurementModel:
 
     def _own_gaussians(self, hypotheses: Hypotheses) -> tuple[np.ndarray, np.ndarray]:
         n = len(hypotheses)
-        centres = hypotheses.pose_world + self.mu1
-        covs = np.broadcast_to(self.Sigma1, (n, 3, 3)).copy()
+        heading = self._pose_headings(hypotheses)
+        centres = self.corrected(hypotheses, self.mu1)
+        covs = np.broadcast_to(self._in_world(self.Sigma1, heading), (n, 3, 3)).copy()
         if self.covariance == "pnp" and hypotheses.pose_covariance is not None:
-            S, known = self.pnp.covariances(hypotheses.pose_covariance)
+            S, known = self.pnp.covariances(hypotheses.pose_covariance, heading)
             covs[known] = S[known]
-            centres[known] = hypotheses.pose_world[known] + self.pnp.mu1
+            centres[known] = self.corrected(hypotheses, self.pnp.mu1)[known]
         elif self.covariance == "quality" and hypotheses.has_quality:
             scale = np.exp(self.quality.log_scale(hypotheses))
-            covs = scale[:, None, None] * self.quality.Sigma1
-            centres = hypotheses.pose_world + self.quality.mu1
+            covs = scale[:, None, None] * self._in_world(self.quality.Sigma1, heading)
+            centres = self.corrected(hypotheses, self.quality.mu1)
         return centres, covs
+
+    def _pose_headings(self, hypotheses: Hypotheses) -> np.ndarray | None:
+        """The headings (H,) the pose error's parameters are along / across (the
+        hypotheses' own, vehicle frame), None in world axes."""
+        return None if self.retrieval_frame == "world" else hypotheses.pose_world[:, 2]
+
+    @staticmethod
+    def _in_world(cov: np.ndarray, heading: np.ndarray | None) -> np.ndarray:
+        return cov if heading is None else to_world_axes(cov, heading)
+
+    def corrected(self, hypotheses: Hypotheses, mu1: np.ndarray | None = None) -> np.ndarray:
+        """The bias-corrected poses (H, 3) z_i + mu1 (``mu1``: this model's by default),
+        the bias along / across each hypothesis's heading in the vehicle frame."""
+        mu1 = self.mu1 if mu1 is None else mu1
+        poses = hypotheses.pose_world
+        if self.retrieval_frame == "world":
+            return poses + mu1
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        return poses + np.column_stack(
+            [c * mu1[0] - s * mu1[1], s * mu1[0] + c * mu1[1]] + [np.full(len(poses), mu1[2])]
+        )
 
     def by_condition(self, hypotheses: Hypotheses) -> list[tuple[MeasurementModel, np.ndarray]]:
         """The hypotheses grouped by the model that weighs them: (model, indices) pairs,
@@ -709,8 +773,12 @@ def _mixture_terms(
     X, Y, psi = (particles[:, k : k + 1] for k in range(3))
     # Component: N(x; z_i + mu1, s_i Sigma1), residual x - (z_i + mu1), wrapped heading.
     mu1 = model.mu1 if quality is None else quality.mu1
-    centres = hypotheses.pose_world + mu1  # (H, 3)
+    centres = model.corrected(hypotheses, mu1)  # (H, 3)
     r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
+    if model.retrieval_frame == "vehicle":
+        # the pose error along / across the hypothesis's heading (Sigma1's axes)
+        cos_h, sin_h = np.cos(hypotheses.pose_world[:, 2]), np.sin(hypotheses.pose_world[:, 2])
+        r1[0], r1[1] = cos_h * r1[0] + sin_h * r1[1], cos_h * r1[1] - sin_h * r1[0]
     if pnp is not None:
         terms, maha1 = _pnp_terms(X, Y, psi, hypotheses, r1, model, pnp)
     elif quality is None:
@@ -758,10 +826,10 @@ def _pnp_terms(X, Y, psi, hypotheses, r1_paper, model, pnp):
     by half a degree would find every right hypothesis unlikely and re-seed)."""
     maha_paper = _mahalanobis(r1_paper, model._whiten1)
     paper = model.paper_log_density(maha_paper)
-    S, known = pnp.covariances(hypotheses.pose_covariance)
+    S, known = pnp.covariances(hypotheses.pose_covariance, model._pose_headings(hypotheses))
     if not known.any():
         return paper, maha_paper
-    centres = hypotheses.pose_world + pnp.mu1
+    centres = model.corrected(hypotheses, pnp.mu1)
     r1 = [X - centres[:, 0], Y - centres[:, 1], _wrap_residual(psi - centres[:, 2])]
     maha = _mahalanobis_each(r1, np.linalg.inv(np.linalg.cholesky(S)))
     log_norm = -0.5 * (np.linalg.slogdet(S)[1] + 3.0 * math.log(2.0 * math.pi))

@@ -606,8 +606,8 @@ def _calibration_update_schema(schema: dict[str, Any]) -> None:
 
 
 class CalibrationUpdate(_MeasurementModelFields):
-    """Measurement-model parameters computed elsewhere, and their provenance. The
-    retrieval vector's offset is in the world frame (X_i - X, Y_i - Y)."""
+    """Measurement-model parameters computed elsewhere, and their provenance. The offsets
+    are along and across the vehicle's heading (``retrieval_frame``, stored)."""
 
     model_config = ConfigDict(
         strict=True, allow_inf_nan=False, json_schema_extra=_calibration_update_schema
@@ -618,6 +618,18 @@ class CalibrationUpdate(_MeasurementModelFields):
         "PnP covariance; needs pnp) or paper (mu1, Sigma1 for every hypothesis); null: pnp "
         "when pnp is given, else paper.",
     )
+    retrieval_frame: str | None = Field(
+        default=None,
+        validate_default=True,
+        description="Axes of the offsets: vehicle (mu1, Sigma1 along / across the "
+        "hypothesis's heading, mu2[1:3], Sigma2 along / across the vehicle's); null: "
+        "vehicle. Parameters in world axes (an older server's) are refused: calibrate again.",
+    )
+
+    @field_validator("retrieval_frame", mode="after")
+    @classmethod
+    def _product_frame(cls, value: str | None) -> str:
+        return value or DEFAULT_RETRIEVAL_FRAME
 
     @model_validator(mode="before")
     @classmethod

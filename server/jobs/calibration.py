@@ -218,12 +218,16 @@ def describe_calibration(calibration: dict[str, Any]) -> list[str]:
     deg = math.degrees
     if model.retrieval_frame == "vehicle":
         head, a, b = "along / across the vehicle's heading", "along", "across"
+        pose = " (along / across the hypothesis's heading)"
     else:
         head, a, b = "X_i - X, Y_i - Y", "X", "Y"
+        pose = ""
     lines = [
-        "pose error e = truth - hypothesis:",
-        f"  mu1    X {100 * mu1[0]:+.1f} cm, Y {100 * mu1[1]:+.1f} cm, psi {deg(mu1[2]):+.2f} deg",
-        f"  std1   X {100 * std1[0]:.1f} cm, Y {100 * std1[1]:.1f} cm, psi {deg(std1[2]):.2f} deg",
+        f"pose error e = truth - hypothesis{pose}:",
+        f"  mu1    {a} {100 * mu1[0]:+.1f} cm, {b} {100 * mu1[1]:+.1f} cm, "
+        f"psi {deg(mu1[2]):+.2f} deg",
+        f"  std1   {a} {100 * std1[0]:.1f} cm, {b} {100 * std1[1]:.1f} cm, "
+        f"psi {deg(std1[2]):.2f} deg",
         *_describe_tail(calibration),
         f"retrieval vector [e_vlad, entry offset ({head}), psi_i - psi]:",
         f"  mu2    e_vlad {mu2[0]:.3f}, {a} {mu2[1]:+.2f} m, {b} {mu2[2]:+.2f} m, "

@@ -30,6 +30,7 @@ def test_without_retrieval_weighs_hypotheses_by_their_pose_alone():
     near = hypotheses.pose_world[rng.integers(0, 6, 400)]
     particles = near + rng.normal(0.0, 1.0, (400, 3)) * np.array([0.1, 0.1, 0.02])
     model = MeasurementModel(
+        retrieval_frame="world",  # the pose term is written out in world axes above
         Sigma1=np.diag([0.05**2, 0.08**2, 1e-3]),
         mu2=np.array([1.1, 0.5, 0.0, 0.0]),
         Sigma2=np.diag([0.05**2, 1.0, 2.5**2, 0.05**2]),

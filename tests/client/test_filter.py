@@ -48,6 +48,7 @@ def test_mixture_matches_hand_computed_value():
         mu2=[0.8, 0.0, 0.0, 0.0],
         Sigma2=np.diag([0.04, 9.0, 16.0, 0.1]),
         outlier_log_density=None,
+        retrieval_frame="world",  # the paper's formula, written out below in world axes
     )
     hyps = Hypotheses(
         pose_world=np.array([[10.0, 5.0, 0.3], [11.0, 4.0, 3.1]]),
@@ -159,8 +160,9 @@ def test_calibration_recovers_planted_bias_and_covariance():
     entry = truth.copy()
     entry[:, :2] += r[:, 1:3]
     entry[:, 2] = wrap_angle(entry[:, 2] + r[:, 3])
-    e2 = retrieval_vectors(r[:, 0], entry, truth)
-    model = fit_measurement_model(e1, e2)
+    # offsets planted in world axes: the paper's frame
+    e2 = retrieval_vectors(r[:, 0], entry, truth, "world")
+    model = fit_measurement_model(e1, e2, retrieval_frame="world")
     assert np.allclose(model.mu1, mu1, atol=0.01)
     assert np.allclose(model.Sigma1, A @ A.T, atol=0.01)
     assert np.allclose(model.mu2, mu2, atol=0.05)

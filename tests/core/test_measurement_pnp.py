@@ -33,7 +33,15 @@ PNP = PnpCovarianceModel(
 
 
 def _model(**fields) -> MeasurementModel:
-    values = dict(Sigma1=SIGMA1, Sigma2=SIGMA2, outlier_log_density=None, pnp=PNP, covariance="pnp")
+    # world axes: the hand-computed densities below are written in them
+    values = dict(
+        Sigma1=SIGMA1,
+        Sigma2=SIGMA2,
+        outlier_log_density=None,
+        pnp=PNP,
+        covariance="pnp",
+        retrieval_frame="world",
+    )
     values.update(fields)
     return MeasurementModel(**values)
 

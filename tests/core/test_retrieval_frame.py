@@ -35,7 +35,7 @@ def test_vehicle_frame_offsets_are_along_and_across_the_query_heading():
     entry[:, 1] += along * np.sin(truth[:, 2]) + across * np.cos(truth[:, 2])
     vehicle = retrieval_vectors(np.full(20, 0.9), entry, truth, "vehicle")
     assert np.allclose(vehicle[:, 1], along) and np.allclose(vehicle[:, 2], across)
-    world = retrieval_vectors(np.full(20, 0.9), entry, truth)
+    world = retrieval_vectors(np.full(20, 0.9), entry, truth, "world")
     assert np.allclose(world[:, 1:3], entry[:, :2] - truth[:, :2])
     with pytest.raises(InvalidInputError):
         retrieval_vectors(np.full(20, 0.9), entry, truth, "compass")

@@ -60,21 +60,33 @@ def exact_run(tmp_path_factory) -> Path:
     return _generate(tmp_path_factory.mktemp("train_exact"), exact=True)
 
 
-def _frames(root: Path, offset_x_m: float = 0.0, offset_yaw_rad: float = 0.0) -> list:
-    """TrainingFrames of sequence 00; the query frames' (odd frames') truth is moved by
-    +offset_x_m along world X and turned by +offset_yaw_rad about world z."""
+def _frames(
+    root: Path,
+    offset_x_m: float = 0.0,
+    offset_yaw_rad: float = 0.0,
+    offset_ahead_m: float = 0.0,
+    turn_world_rad: float = 0.0,
+) -> list:
+    """TrainingFrames of sequence 00 in its world frame turned by ``turn_world_rad`` about
+    z; the query frames' (odd frames') truth is moved by +offset_x_m along world X and
+    +offset_ahead_m along the camera's heading, and turned by +offset_yaw_rad about z."""
     from monoloc.server.ingest.sources import read_kitti_sequence
 
     source = read_kitti_sequence(root)
     c, s = math.cos(offset_yaw_rad), math.sin(offset_yaw_rad)
     R_turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    c, s = math.cos(turn_world_rad), math.sin(turn_world_rad)
+    R_world = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     frames = []
     for i, frame in enumerate(source.frames):
         loaded = source.load(frame)
         T = np.array(frame.T_world_from_cam, dtype=np.float64)
+        T[:3] = R_world @ T[:3]
         if i % 2 == 1:
             T[:3, :3] = R_turn @ T[:3, :3]
             T[0, 3] += offset_x_m
+            heading = math.atan2(T[1, 2], T[0, 2])
+            T[:2, 3] += offset_ahead_m * np.array([math.cos(heading), math.sin(heading)])
         frames.append(TrainingFrame(loaded.image_gray, T, loaded.source))
     return frames
 
@@ -118,7 +130,7 @@ def test_calibration_on_a_sim_training_run_is_sane(noisy_run):
     # The quality-aware and paper models are fitted beside the PnP covariance model, the
     # one selected. More inliers must not widen a hypothesis.
     assert model.covariance == "pnp" and model.pnp is not None and model.quality is not None
-    assert model.retrieval_frame == "world"
+    assert model.retrieval_frame == "vehicle"
     # the relative VLAD evidence is fitted beside the absolute one: a frame's hypotheses
     # lie a few hundredths above its best, well inside the absolute spread
     mean_rel, std_rel = model.relative_vlad
@@ -191,8 +203,9 @@ def test_the_pnp_model_is_fitted_on_covariances_with_the_keypoints_pyramid_scale
 
 
 def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
-    """e = truth - hypothesis: truth moved by +0.5 m in X -> mu1_x = +0.5, and so on."""
-    config = CalibrationConfig(k=3)
+    """e = truth - hypothesis: truth moved by +0.5 m in X -> mu1_x = +0.5, and so on (in
+    world axes, the paper's)."""
+    config = CalibrationConfig(k=3, retrieval_frame="world")
     planted = _calibrate(exact_run, config, offset_x_m=OFFSET_X_M, offset_yaw_rad=OFFSET_YAW_RAD)
     mu1 = planted.model.mu1
     assert mu1[0] == pytest.approx(OFFSET_X_M, abs=0.02), mu1
@@ -202,7 +215,7 @@ def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
     # The paper's second moment about zero keeps the planted bias inside Sigma1.
     paper = _calibrate(
         exact_run,
-        CalibrationConfig(k=3, unbiased=False),
+        CalibrationConfig(k=3, unbiased=False, retrieval_frame="world"),
         offset_x_m=OFFSET_X_M,
         offset_yaw_rad=OFFSET_YAW_RAD,
     ).model
@@ -210,6 +223,29 @@ def test_planted_offset_shows_up_in_mu1_with_its_sign(exact_run):
     expected = (planted.model.Sigma1[0, 0] - floor) * (n - 1) / n + mu1[0] ** 2 + floor
     assert paper.Sigma1[0, 0] == pytest.approx(expected, rel=1e-6)
     assert np.allclose(paper.mu1, mu1)
+
+
+def test_the_product_fits_the_pose_error_along_and_across_the_heading(exact_run):
+    """The truth moved 0.5 m ahead of each query frame: the product's mu1 is +0.5 m along
+    the heading and nothing across it, whichever way the run's world frame is turned (the
+    paper's world axes turn it with the frame)."""
+    turned = _calibrate(
+        exact_run, CalibrationConfig(k=3), offset_ahead_m=OFFSET_X_M, turn_world_rad=math.pi / 2
+    ).model
+    for model in (
+        _calibrate(exact_run, CalibrationConfig(k=3), offset_ahead_m=OFFSET_X_M).model,
+        turned,
+    ):
+        assert model.retrieval_frame == "vehicle"
+        assert model.mu1[0] == pytest.approx(OFFSET_X_M, abs=0.02), model.mu1
+        assert abs(model.mu1[1]) < 0.02 and np.all(_position_std_m(model.Sigma1) < 0.05), model
+    world = _calibrate(
+        exact_run,
+        CalibrationConfig(k=3, retrieval_frame="world"),
+        offset_ahead_m=OFFSET_X_M,
+        turn_world_rad=math.pi / 2,
+    ).model
+    assert abs(world.mu1[0]) < 0.02 and world.mu1[1] == pytest.approx(OFFSET_X_M, abs=0.02)
 
 
 def test_runs_are_pooled_each_against_its_own_map(exact_run):
@@ -282,8 +318,8 @@ def test_map_calibrate_cli(noisy_run, tmp_path):
     assert result.exit_code == 0, result.output
     out = result.output
     assert "job 1 done: map 1 calibrated" in out
-    assert "std1   X" in out and " cm" in out and " deg" in out
-    assert "entry offset (X_i - X, Y_i - Y)" in out
+    assert "std1   along" in out and " cm" in out and " deg" in out
+    assert "entry offset (along / across the vehicle's heading)" in out
     paper_tail, quality_tail = calibration_tail_lines(out)
     assert paper_tail == "tail   30 % of hypotheses, 10.0x the spread"
     assert quality_tail.endswith("x the spread") and "% of hypotheses" in quality_tail
@@ -357,7 +393,7 @@ def test_map_calibrate_cli_condition(noisy_run, tmp_path):
     night = runner.invoke(cli.app, [*args, "--condition", "Night"], env=env, catch_exceptions=False)
     assert night.exit_code == 0, night.output
     assert "job 2 done: map 1 condition night calibrated" in night.output
-    assert "std1   X" in night.output and "condition: night" in night.output
+    assert "std1   along" in night.output and "condition: night" in night.output
 
     engine = create_engine_for(Settings(data_dir=tmp_path / "data"))
     with session_scope(make_session_factory(engine)) as session:
@@ -381,8 +417,11 @@ def test_the_calibration_description_names_the_offsets_frame():
     text = "\n".join(describe_calibration(stored))
     assert "entry offset (along / across the vehicle's heading)" in text
     assert "along +0.00 m, across +0.00 m" in text
+    assert "pose error e = truth - hypothesis (along / across the hypothesis's heading)" in text
+    assert "mu1    along +0.0 cm, across +0.0 cm" in text
     stored["retrieval_frame"] = "world"
-    assert "X +0.00 m, Y +0.00 m" in "\n".join(describe_calibration(stored))
+    world = "\n".join(describe_calibration(stored))
+    assert "X +0.00 m, Y +0.00 m" in world and "mu1    X +0.0 cm, Y +0.0 cm" in world
     # the paper covariance's tail: none for a model without one (or stored before it)
     assert "tail   none (one Gaussian)" in text
     tailed = MeasurementModel(tail_weight=0.3, tail_scale=10.0).to_dict()

@@ -360,7 +360,7 @@ def test_the_server_answers_the_violation_422_naming_the_rule(spec, app_with_map
 
 _NIGHT = {k: v for k, v in CALIBRATION.items() if k != "provenance"}
 CALIBRATION_SHAPES = [
-    ({**CALIBRATION, "retrieval_frame": "vehicle"}, "retrieval_frame"),
+    ({**CALIBRATION, "retrieval_frame": "world"}, "retrieval_frame"),
     ({**CALIBRATION, "vlad_evidence": "relative"}, "vlad_evidence"),
     ({**CALIBRATION, "conditions": {"night": {"mu1": _NIGHT["mu1"]}}}, "night"),
     ({**CALIBRATION, "conditions": {"night": {**_NIGHT, "conditions": {"a": _NIGHT}}}}, "night"),
@@ -380,7 +380,7 @@ def test_a_calibration_put_is_refused_only_for_what_its_schema_states(
     validator = jsonschema_rs.Draft202012Validator(
         {**schema["content"]["application/json"]["schema"], "components": spec["components"]}
     )
-    good = {**CALIBRATION, "retrieval_frame": "world", "conditions": {"night": _NIGHT}}
+    good = {**CALIBRATION, "retrieval_frame": "vehicle", "conditions": {"night": _NIGHT}}
     assert validator.is_valid(good), list(validator.iter_errors(good))
     assert not validator.is_valid(body)
     path = f"/v1/maps/{map_id}/calibration"

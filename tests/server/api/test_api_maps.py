@@ -109,20 +109,20 @@ def test_calibration_defaults_put_and_delete(fresh):
     assert got["provenance"] == CALIBRATION["provenance"]
     assert np.allclose(got["Sigma2"], CALIBRATION["Sigma2"]) and got["mu1"] == CALIBRATION["mu1"]
     assert client.get(f"/v1/maps/{map_id}", headers=w | keys.header("admin")).json()["calibrated"]
-    # The retrieval vector's offset is served in the world frame, the only one a body may
-    # name; the lab's variants (the vehicle frame, the quality covariance) are refused
-    # with the field named, in a condition too. Without pnp parameters the paper's
-    # covariance is selected.
-    assert got["retrieval_frame"] == "world" and got["covariance"] == "paper"
-    world = dict(CALIBRATION, retrieval_frame="world")
-    assert client.put(url, headers=w, json=world).json()["retrieval_frame"] == "world"
-    for lab in ({"retrieval_frame": "vehicle"}, {"retrieval_frame": "compass"}):
+    # A body's offsets are in the product's frame (along / across the vehicle's heading),
+    # the only one it may name, stored so; the lab's variants (the paper's world axes, the
+    # quality covariance) are refused with the field named, in a condition too. Without
+    # pnp parameters the paper's covariance is selected.
+    assert got["retrieval_frame"] == "vehicle" and got["covariance"] == "paper"
+    vehicle = dict(CALIBRATION, retrieval_frame="vehicle")
+    assert client.put(url, headers=w, json=vehicle).json()["retrieval_frame"] == "vehicle"
+    for lab in ({"retrieval_frame": "world"}, {"retrieval_frame": "compass"}):
         refused = client.put(url, headers=w, json=dict(CALIBRATION, **lab))
         assert refused.status_code == 422 and "retrieval_frame" in refused.text
     refused = client.put(url, headers=w, json=dict(CALIBRATION, covariance="quality"))
     assert refused.status_code == 422 and "covariance" in refused.text
     night = {k: v for k, v in CALIBRATION.items() if k != "provenance"}
-    for lab in ({"retrieval_frame": "vehicle"}, {"covariance": "quality"}):
+    for lab in ({"retrieval_frame": "world"}, {"covariance": "quality"}):
         body = dict(CALIBRATION, conditions={"night": {**night, **lab}})
         refused = client.put(url, headers=w, json=body)
         assert refused.status_code == 422 and f"conditions.night.{next(iter(lab))}" in refused.text
@@ -177,8 +177,8 @@ def test_calibration_defaults_put_and_delete(fresh):
 
 def test_a_calibration_stored_with_the_labs_variants_is_still_served(fresh, tmp_path):
     """A calibration an older server stored selecting the quality covariance with the
-    retrieval offset in the vehicle frame (for a night condition too): served as stored
-    and loaded by the vehicle as such, though a body naming them is refused."""
+    offsets in world axes (for a night condition too): served as stored and loaded by the
+    vehicle as such, though a body naming them is refused."""
     from api_helpers import make_settings
 
     from monoloc.core.measurement import QualityModel
@@ -191,7 +191,7 @@ def test_a_calibration_stored_with_the_labs_variants_is_still_served(fresh, tmp_
         "/v1/maps", json={"name": "old", "camera": CAMERA}, headers=keys.header("admin")
     ).json()["id"]
     lab = MeasurementModel(
-        quality=QualityModel(), covariance="quality", retrieval_frame="vehicle", source="calibrated"
+        quality=QualityModel(), covariance="quality", retrieval_frame="world", source="calibrated"
     )
     night = condition_entry(lab, {"job_id": 2}, "2026-11-20T10:00:00+00:00")
     stored = {**lab.to_dict(), "provenance": {"job_id": 1}, "conditions": {"night": night}}
@@ -205,14 +205,14 @@ def test_a_calibration_stored_with_the_labs_variants_is_still_served(fresh, tmp_
     assert served.status_code == 200, served.text
     got = served.json()
     assert (got["covariance"], got["retrieval_frame"], got["calibrated"]) == (
-        "quality", "vehicle", True
+        "quality", "world", True
     )  # fmt: skip
     assert got["quality"]["n_ref"] == 100.0 and got["provenance"] == {"job_id": 1}
     assert got["conditions"]["night"]["covariance"] == "quality"
     vehicle = MonolocClient("http://testserver", keys.localize, transport=client._transport)
     model, calibrated = vehicle.measurement_model(map_id)
-    assert calibrated and (model.covariance, model.retrieval_frame) == ("quality", "vehicle")
-    assert model.conditions["night"].retrieval_frame == "vehicle"
+    assert calibrated and (model.covariance, model.retrieval_frame) == ("quality", "world")
+    assert model.conditions["night"].retrieval_frame == "world"
     put_back = {k: v for k, v in got.items() if k not in ("calibrated", "source", "updated_at")}
     assert client.put(url, headers=keys.header("write"), json=put_back).status_code == 422
 
