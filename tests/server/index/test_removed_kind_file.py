@@ -119,3 +119,39 @@ def test_an_index_file_of_a_removed_kind_is_rebuilt_from_the_database(factory, s
     caplog.clear()
     MapRegistry(factory, settings.index_dir).get(map_id)
     assert "index loaded from" in caplog.text and "rebuilding" not in caplog.text
+
+
+def test_a_replica_moves_live_adds_to_its_file_past_the_limit(factory, settings, monkeypatch):
+    """Catching up past UNPERSISTED_MAX live adds rewrites the map's index files: the
+    float VLADs leave memory and a restart loads the new file as it is."""
+    import monoloc.server.map_registry as registry_module
+
+    map_id, vlads = _map_with_entries(factory)
+    registry = MapRegistry(factory, settings.index_dir)
+    runtime = registry.get(map_id)
+    monkeypatch.setattr(registry_module, "UNPERSISTED_MAX", 2)
+    new_vlads, rng = _unit_vlads(N_ENTRIES + 3)
+    held = []
+    for i, vlad in enumerate(new_vlads[N_ENTRIES:], start=N_ENTRIES):
+        with session_scope(factory) as session:
+            entry = NewEntry(
+                source_image_hash=hashlib.sha256(f"late frame {i}".encode()).hexdigest(),
+                T_world_from_cam=T_world_from_cam_planar(2.0 * i, 0.0, 0.0, height_m=1.6),
+                vlad=vlad,
+                code=vlad_binary_code(vlad),
+                keypoints_px=rng.uniform(0, 370, (20, 2)).astype(np.float32),
+                descriptors=rng.integers(0, 256, (20, 32), dtype=np.uint8),
+                points_cam=rng.uniform(1, 40, (20, 3)).astype(np.float32),
+                image_width_px=KITTI_CAM0.width_px,
+                image_height_px=KITTI_CAM0.height_px,
+            )
+            entries_repo.add_entry(session, map_id, entry)
+        runtime = registry.catch_up(map_id)
+        held.append(runtime.index.unpersisted)
+    assert held == [1, 0, 1]  # the second add reached the limit: the file was rewritten
+    assert len(runtime.index) == N_ENTRIES + 3
+    late = new_vlads[N_ENTRIES + 1]
+    found = runtime.index.search(late, vlad_binary_code(late), k=1)
+    assert found.distances[0] < 1e-5
+    restarted = load_index(registry.index_path(map_id), runtime.version - 1)
+    assert restarted.search(late, vlad_binary_code(late), k=1).entry_ids[0] == found.entry_ids[0]
