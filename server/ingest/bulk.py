@@ -227,6 +227,14 @@ def write_entries(session: Session, map_id: int, entries: list[NewEntry]) -> lis
     the map in one statement, skipping hashes the map already holds; the map's version
     rises by one per new entry, each with its ``add`` row in the change log. Returns the
     new entries' ids. Does not commit."""
+    # A write first: it takes the map's write lock (SQLite: the database's), so that no
+    # other bulk writer adds one of these hashes between the look and the insert.
+    session.execute(
+        update(Map)
+        .where(Map.id == map_id)
+        .values(version=Map.version)
+        .execution_options(synchronize_session=False)
+    )
     hashes = [e.source_image_hash for e in entries]
     known = entries_repo.existing_hashes(session, map_id, hashes)
     fresh = [e for e in entries if e.source_image_hash not in known]
@@ -234,7 +242,6 @@ def write_entries(session: Session, map_id: int, entries: list[NewEntry]) -> lis
         raise InvalidInputError("bulk entries carry no tags or images")
     if not fresh:
         return []
-    # The version first: it takes the map's write lock (SQLite: the database's).
     version = session.execute(
         update(Map)
         .where(Map.id == map_id)
