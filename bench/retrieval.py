@@ -10,7 +10,9 @@ FAISS binary flat, from 50k entries the sketch scan and the full codes; then the
 VLADs; then exact float distances of the k + 20 nearest) without a prior and with
 priors of 50 m and 2.5 km (200 and 10,000 entries inside), the same for the lab baseline
 of 2026-12-01 (bench/lab/float_index.py: float VLADs resident, a prior's inside rows
-re-ranked exactly; ``--float-baseline-max``), the exact float k-NN (brute force, the
+re-ranked exactly; ``--float-baseline-max``), the product again with its float file
+evicted from the page cache before each mode ("cold": every read goes to disk), the
+exact float k-NN (brute force, the
 paper-faithful search) and memory per entry, all in the same run. Recall is against
 exact float search (inside the prior with one). ``--baselines hnsw,ivf`` also times
 FAISS's binary HNSW and IVF shortlists (with the settings they had as index kinds,
@@ -203,11 +205,24 @@ def prior_truth(vlads: np.ndarray, queries: np.ndarray, picks: np.ndarray, radiu
     return np.array(out)
 
 
-def timed_modes(index, queries, q_codes, picks, truths) -> dict:
-    """p50 / p99 and recall@10 without a prior and with each of PRIOR_RADII_M."""
+def drop_page_cache(path: Path) -> None:
+    """Evict a file's clean pages from the page cache (this file's only)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
+
+
+def timed_modes(index, queries, q_codes, picks, truths, cold_file: Path | None = None) -> dict:
+    """p50 / p99 and recall@10 without a prior and with each of PRIOR_RADII_M; with
+    ``cold_file``, that file leaves the page cache before each mode (the worst case: a
+    replica whose page cache holds none of its float VLADs)."""
     out = {}
     for radius_m in (None, *PRIOR_RADII_M):
         name = "no_prior" if radius_m is None else f"prior_{radius_m:.0f}m"
+        if cold_file is not None:
+            drop_page_cache(cold_file)
         times, found = timed_searches(index, queries, q_codes, _priors(picks, radius_m))
         out[name] = {
             "p50_ms": float(np.median(times)),
@@ -251,6 +266,7 @@ def run_size(
         for radius_m in PRIOR_RADII_M:
             truths[f"prior_{radius_m:.0f}m"] = prior_truth(vlads, queries, picks, radius_m)
         modes = timed_modes(index, queries, q_codes, picks, truths)
+        cold = timed_modes(index, queries, q_codes, picks, truths, vlad_files(path)[0])
         row = {
             "entries": n,
             "index_kind": kind,
@@ -259,6 +275,7 @@ def run_size(
             "p99_ms": modes["no_prior"]["p99_ms"],
             "recall_at_10": modes["no_prior"]["recall_at_10"],
             "modes": modes,
+            "modes_cold_page_cache": cold,
             "baseline_exact_float_p50_ms": baseline_ms,
             "memory_bytes_per_entry": resident_bytes_per_entry(index),
             "loadavg": os.getloadavg()[0],
@@ -339,6 +356,7 @@ def main() -> None:
         row = run_size(n, args.queries, rng, baselines, n <= args.float_baseline_max)
         rows.append(row)
         designs = [(f"product ({row['index_kind']})", row)]
+        designs.append(("product, cold", {**row, "modes": row["modes_cold_page_cache"]}))
         if "float_baseline" in row:
             designs.append(("float 2026-12-01", row["float_baseline"]))
         for label, design in designs:
