@@ -16,7 +16,9 @@ are spread over the replicas as a load balancer would. The map is a sim city's m
    Over HTTP twice: vehicles that send every frame whatever the server answered
    (``http``), and vehicles that, like monoloc's client library, do not send the frames
    taken inside the ``Retry-After`` of a shed frame (``http-honours``; those count as
-   *held*, offered but not sent; the library's jitter on the wait included).
+   *held*, offered but not sent; the library's jitter on the wait included; and, as the
+   library, one request at a time: a frame taken while the previous one is unanswered is
+   not sent, *busy*).
 
 3. **3x and 5x** (``--overloads 3 5``, issue 50): the same open-loop runs at more load
    (named ``http@3x``, ...), for the served share and how fast a shed frame is answered:
@@ -85,6 +87,7 @@ ADMIN_KEY = "mlk_" + "L" * 43  # local benchmark data only
 DEADLINE_MS = 1000
 RUNS = ("http", "http+writes", "http-honours", "http-honours+writes", "ws", "ws+writes")
 HELD = -2  # a frame a vehicle did not send: inside the Retry-After of a shed frame
+BUSY = -3  # a frame an honouring vehicle did not send: its previous one still unanswered
 GOALS = {
     "served_share_min": 0.90,
     "p99_over_capacity_p50_max": 3.0,
@@ -456,8 +459,10 @@ class VehicleLink:
         # As monoloc's client library (client.localizer.HttpLocalizer): after a shed frame
         # (503), the frames taken inside its Retry-After-Ms (else Retry-After), lengthened
         # by the library's jitter (drawn from ``rng``, one per vehicle), are not sent
-        # (status HELD).
+        # (status HELD); and, as the library (one request at a time), a frame taken while
+        # the previous one is unanswered is not sent either (status BUSY).
         self.honour_retry_after = honour_retry_after
+        self._in_flight = 0
         self._rng = np.random.default_rng(0) if rng is None else rng
         self._hold_until = -math.inf
         self._free: list[_Connection] = []
@@ -468,6 +473,17 @@ class VehicleLink:
         start = time.perf_counter()
         if self.honour_retry_after and start < self._hold_until:
             return HELD, 0.0, start
+        if self.honour_retry_after and self._in_flight:
+            return BUSY, 0.0, start
+        self._in_flight += 1
+        try:
+            return await self._post(requests, i, start)
+        finally:
+            self._in_flight -= 1
+
+    async def _post(
+        self, requests: FrameRequests, i: int, start: float
+    ) -> tuple[int, float, float]:
         try:
             async with asyncio.timeout(self.pool_timeout_s):
                 await self._slots.acquire()
@@ -746,7 +762,7 @@ def burstiness(slices: list[dict]) -> dict:
     lane left idle, e.g. while every vehicle holds)."""
     sent = _per_bin(
         slices,
-        lambda sl: [end - lat for s, lat, end in sl["answers"] if s not in (HELD, -1)],
+        lambda sl: [end - lat for s, lat, end in sl["answers"] if s not in (HELD, BUSY, -1)],
         0.050,
     )
     served = _per_bin(slices, lambda sl: [end for s, _, end in sl["answers"] if s == 200], 0.100)
@@ -788,6 +804,7 @@ def summarise(slices: list[dict]) -> dict:
         "failed_no_answer": statuses.count(0),
         "given_up_by_vehicle": statuses.count(-1),
         "held_by_vehicle": statuses.count(HELD),
+        "busy_by_vehicle": statuses.count(BUSY),
         "writes": len(write_results),
         "writes_failed": sum(1 for s, _ in write_results if s != 200),
         "writes_p99_s": pct(write_lat, 99),
@@ -946,7 +963,8 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
                     else ""
                 )
                 + f"), held "
-                f"{run['held_by_vehicle']}, sent per 50 ms p50 {run['sent_per_50ms_p50']:.0f} "
+                f"{run['held_by_vehicle']}, busy {run['busy_by_vehicle']}, sent per 50 ms p50 "
+                f"{run['sent_per_50ms_p50']:.0f} "
                 f"/ p99 {run['sent_per_50ms_p99']:.0f} / max {run['sent_per_50ms_max']}, "
                 f"100-ms bins without a served frame "
                 f"{100 * run['served_none_in_100ms_share']:.1f} %, 5xx "

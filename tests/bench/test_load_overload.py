@@ -26,3 +26,42 @@ def test_an_open_loop_phase_against_the_floor_reports_shed_and_floor_latencies()
     # the floor's own vehicle, at the per-vehicle rate
     assert 18 <= run["floor_answers"] <= 21, run["floor_answers"]
     assert 0.0 < run["floor_p50_ms"] <= run["floor_p99_ms"] <= run["floor_max_ms"]
+
+
+def test_an_honouring_vehicle_sends_one_frame_at_a_time_as_the_library_does():
+    """While its frame is unanswered (a slow server, 0.3 s), an honouring vehicle does not
+    send the next one (BUSY), as HttpLocalizer, which waits for each answer; a vehicle
+    sending every frame has both in flight."""
+    answer = b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}"
+
+    async def slow(reader, writer):
+        try:
+            while True:
+                head = await reader.readuntil(b"\r\n\r\n")
+                length = next(
+                    int(line.split(b":")[1])
+                    for line in head.split(b"\r\n")
+                    if line.lower().startswith(b"content-length:")
+                )
+                await reader.readexactly(length)
+                await asyncio.sleep(0.3)
+                writer.write(answer)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            writer.close()
+
+    async def run(honour: bool) -> list[int]:
+        server = await asyncio.start_server(slow, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        requests = load.FrameRequests(1, [b"\x89PNG" + bytes(1000)], None)
+        link = load.VehicleLink(f"http://127.0.0.1:{port}", 4, 5.0, honour_retry_after=honour)
+        first = asyncio.ensure_future(link.post(requests, 0))
+        await asyncio.sleep(0.1)
+        second = await link.post(requests, 0)  # taken while the first is unanswered
+        statuses = [(await first)[0], second[0], (await link.post(requests, 0))[0]]
+        link.close()
+        server.close()
+        await server.wait_closed()
+        return statuses
+
+    assert asyncio.run(run(True)) == [200, load.BUSY, 200]
+    assert asyncio.run(run(False)) == [200, 200, 200]
