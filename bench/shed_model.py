@@ -25,7 +25,8 @@ Printed per overload and policy: frames served (share of the lane's capacity), s
 shed (multiples of the capacity), held, and sends per 50 ms (p50 / p99). What it leaves
 out: the CPU each shed costs the server (0.2-0.4 ms, taken from the computations on a real
 machine), so fewer sheds serve no more frames here. Usage:
-    python -m bench.shed_model [--overloads 3 5] [--seconds 60] [--stall-s 0.3]
+    python -m bench.shed_model [--overloads 3 5] [--seconds 60] [--stall-s 0 0.3]
+                               [--service-s 0.045]
 Writes bench/results/shed_model.json (``--out``).
 """
 
@@ -156,19 +157,31 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--stall-s", type=float, nargs="+", default=[0.0, 0.3])
     parser.add_argument("--stall-every-s", type=float, default=2.0)
+    parser.add_argument(
+        "--service-s", type=float, nargs="+", default=[0.045], help="one computation (s)"
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "shed_model.json")
     args = parser.parse_args()
     if args.seconds <= 0 or args.stall_every_s <= max(args.stall_s) or min(args.stall_s) < 0:
         raise SystemExit("error: --seconds > 0 and 0 <= --stall-s < --stall-every-s")
+    if min(args.service_s) <= 0:
+        raise SystemExit("error: --service-s must be > 0")
     rows = []
-    for stall_s in args.stall_s:
-        cfg = ModelConfig(seconds=args.seconds, stall_s=stall_s, stall_every_s=args.stall_every_s)
+    for service_s, stall_s in ((a, b) for a in args.service_s for b in args.stall_s):
+        cfg = ModelConfig(
+            service_s=service_s,
+            seconds=args.seconds,
+            stall_s=stall_s,
+            stall_every_s=args.stall_every_s,
+        )
         for overload in args.overloads:
             for policy in POLICIES:
-                row = {"stall_s": stall_s, **simulate(policy, overload, cfg)}
+                row = {"service_s": service_s, "stall_s": stall_s}
+                row.update(simulate(policy, overload, cfg))
                 rows.append(row)
                 print(
-                    f"stall {stall_s:.1f} s / {args.stall_every_s:g} s, {overload:g}x "
+                    f"service {1000 * service_s:.0f} ms, stall {stall_s:.1f} s / "
+                    f"{args.stall_every_s:g} s, {overload:g}x "
                     f"({row['vehicles']} vehicles) {policy:13s}: served "
                     f"{100 * row['served_share']:.0f} % of capacity, sent "
                     f"{row['sent_over_capacity']:.2f}x, shed {row['shed_over_capacity']:.2f}x, "
