@@ -11,7 +11,8 @@ Indoor (the default) is the seeded study (``monoloc.sim.closed_loop_seeded``): e
 driven with ``--seeds`` seeds by each of ``--controllers`` (pid, mpc) on one map; every
 metric with its bootstrap CI over seeds, the paper's two claims as paired permutation
 tests, the known-feature share against the tracking error, the open loop's share of
-frames within 0.06 / 0.1 m beside the paper's. Writes bench/results/closed_loop_indoor.json
+frames within 0.06 / 0.1 m beside the paper's (judged against the tracker's record of each
+drive, as the paper judged against its Vive). Writes bench/results/closed_loop_indoor.json
 (after every drive, ``complete`` false until the end) and
 bench/results/closed_loop_indoor_{errors,per_seed,known_vs_lateral,...}.png.
 
@@ -20,7 +21,10 @@ and each case drives that share ``--passes`` times from its start (fresh filter 
 pass; the figures pool the passes).
 
 Usage: python -m bench.closed_loop [--scenario indoor|urban] [--seeds 10]
-    [--controllers pid,mpc] [--laps N] [--passes N] [--size small]
+    [--controllers pid,mpc] [--mpc-seeds N] [--cases open,closed,closed+offcenter]
+    [--name closed_loop_indoor] [--laps N] [--passes N] [--size small]
+(``--name``: the indoor results' file stem, so that a partial run does not overwrite the
+study's files.)
 """
 
 from __future__ import annotations
