@@ -145,3 +145,43 @@ def test_the_closed_loop_is_judged_against_the_recorded_truth():
     assert np.allclose(true_localization_error_m(result), 0.0)
     del result.frames["recorded_cam"]
     assert np.allclose(localization_error_m(result), 0.0)
+
+
+def test_a_recorded_mapping_lap_carries_the_rigs_calibration(tmp_path):
+    """The run folder a mapping lap uploads: camera.json with the calibrated intrinsics,
+    groundtruth.txt with the recorded (offset, residual) poses, not the sim's truth."""
+    from types import SimpleNamespace
+
+    from monoloc.core.formats import tum
+    from monoloc.sim.closed_loop import LoopConfig
+    from monoloc.sim.closed_loop_record import TumRecorder
+    from monoloc.sim.closed_loop_world import IndoorLoopWorld
+
+    world = IndoorLoopWorld("small", seed=0)
+    recorder = TumRecorder(tmp_path / "map", world, "test")
+    t, T = _straight_run(n=8)
+    image = np.zeros((world.intrinsics.height_px, world.intrinsics.width_px), np.uint8)
+    for i in range(len(t)):
+        recorder(i, float(t[i]), image, None, T[i])
+    signals = np.tile([1.0, 0.0], (len(t), 1))
+    recorder.finish(SimpleNamespace(config=LoopConfig(seed=0), frames={"signals": signals}))
+    _, camera = tum.read_camera_json(tmp_path / "map")
+    assert camera["fx"] == pytest.approx(world.calibrated_intrinsics.fx)
+    assert camera["fx"] != pytest.approx(world.intrinsics.fx)
+    gt = tum.read_ground_truth(tmp_path / "map" / "groundtruth.txt")
+    # the residual's 1 deg turns every recorded orientation (the tracker's jitter: 0.05 deg)
+    for row, T_true in zip(gt, T, strict=True):
+        R_rec = _quat_xyzw_to_R(row[4:8])
+        angle = math.acos(np.clip((np.trace(T_true[:3, :3].T @ R_rec) - 1) / 2, -1, 1))
+        assert math.degrees(angle) == pytest.approx(1.0, abs=0.2)
+
+
+def _quat_xyzw_to_R(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
