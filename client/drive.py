@@ -189,23 +189,26 @@ def drive(
     # the run's camera is registered once (or found registered) and named by its id
     camera_id = client.camera_id(run.intrinsics)
     geo = client.geo_reference(map_id)
-    filter_config = run_filter_config(config.filter, run)
-    tracker = _tracker(filter_config, model, run, config)
-    log = _DriveLog(len(run))
+    with client.stream(map_id) as stream:
+        if not config.realtime:
+            localizer = StreamLocalizer(stream, run.timestamps_s, camera_id=camera_id)
+            return drive_with(localizer, run, model, config, geo, progress)
+        filter_config = run_filter_config(config.filter, run)
+        tracker = _tracker(filter_config, model, run, config)
+        log = _DriveLog(len(run))
+        _drive_realtime(stream, run, tracker, log, config.k, _recorder(log, progress), camera_id)
+    return replace(log.result(run, tracker.estimates_world, geo), mount=filter_config.motion.mount)
+
+
+def _recorder(log: _DriveLog, progress: Callable[[int, int], None] | None):
+    """The per-frame callback: the answer logged, then the progress told."""
 
     def recorded(i: int, answer: LocalizeAnswer) -> None:
         log.record(i, answer)
         if progress:
-            progress(i + 1, len(run))
+            progress(i + 1, len(log.n_hypotheses))
 
-    with client.stream(map_id) as stream:
-        if config.realtime:
-            _drive_realtime(stream, run, tracker, log, config.k, recorded, camera_id)
-        else:
-            images = (run.image_bytes(i) for i in range(len(run)))
-            localizer = _Timed(StreamLocalizer(stream, run.timestamps_s, camera_id=camera_id), log)
-            track(tracker, localizer, images, config.k, recorded)
-    return replace(log.result(run, tracker.estimates_world, geo), mount=filter_config.motion.mount)
+    return recorded
 
 
 def drive_with(
@@ -223,14 +226,8 @@ def drive_with(
     filter_config = run_filter_config(config.filter, run)
     tracker = _tracker(filter_config, model, run, config)
     log = _DriveLog(len(run))
-
-    def recorded(i: int, answer: LocalizeAnswer) -> None:
-        log.record(i, answer)
-        if progress:
-            progress(i + 1, len(run))
-
     images = (run.image_bytes(i) for i in range(len(run)))
-    track(tracker, _Timed(localizer, log), images, config.k, recorded)
+    track(tracker, _Timed(localizer, log), images, config.k, _recorder(log, progress))
     return replace(log.result(run, tracker.estimates_world, geo), mount=filter_config.motion.mount)
 
 
