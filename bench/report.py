@@ -895,6 +895,27 @@ def retrieval_headline(data: dict | None) -> Headline:
     )
 
 
+def index_memory_headline(data: dict | None) -> Headline:
+    """Replica index memory per entry at the largest size of bench/footprint.py (its own,
+    anonymous memory), beside the float-resident baseline when the same run measured it."""
+    figure = "Replica retrieval index, resident bytes per entry (`python -m bench.footprint`)"
+    sizes = (data or {}).get("index_sizes") or []
+    if not sizes:
+        return _not_run(figure, "footprint")
+    size = max(sizes, key=lambda r: r["entries"])
+    n, per_entry = size["entries"], size["product"]["anon_bytes_per_entry"]
+    entries = f"{n / 1e6:g}M" if n >= 1_000_000 else f"{n / 1e3:g}k"
+    value = f"{per_entry:,.0f} B at {entries} entries"
+    baselines = [r for r in sizes if "baseline_2026_12_01" in r]
+    if baselines:
+        b = max(baselines, key=lambda r: r["entries"])
+        value += (
+            f" (float-resident index: {b['baseline_2026_12_01']['anon_bytes_per_entry']:,.0f} B"
+            f" at {b['entries'] / 1e3:g}k)"
+        )
+    return Headline(figure, value, f"<= 2,048 B: {_verdict(per_entry <= 2048)}", "footprint")
+
+
 def load_headline(data: dict | None) -> Headline:
     """Fleet load at twice capacity (bench/load.py): the served share over HTTP and over
     the stream, the worst p99, and how many phases missed a goal."""
@@ -973,6 +994,7 @@ def headline_rows(results: Path = RESULTS) -> list[Headline]:
         filter_headline(load("filter", results)),
         ingest_headline(load("ingest", results)),
         retrieval_headline(load("retrieval", results)),
+        index_memory_headline(load("footprint", results)),
         load_headline(load("load", results)),
     ]
 
