@@ -16,6 +16,7 @@ from pathlib import Path
 
 import httpx
 from busy_machine import generous_env
+from nginx_loopback import loopback_paths
 
 from monoloc.client.api import ServerError, wait_until_ready
 
@@ -176,17 +177,4 @@ def loopback_nginx_conf(tmp: Path, ports: list[int], listen_port: int) -> Path:
     servers = iter(ports)
     text = re.sub(r"server monoloc-\d+:8000", lambda _m: f"server 127.0.0.1:{next(servers)}", text)
     text = text.replace("listen 80;", f"listen 127.0.0.1:{listen_port};")
-    text = text.replace(
-        "access_log /dev/stdout upstream;", f"access_log {tmp}/access.log upstream;"
-    )
-    temp = "\n".join(
-        f"    {kind}_temp_path {tmp}/{kind};"
-        for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
-    )
-    text = text.replace("http {\n", "http {\n" + temp + "\n", 1)
-    text = f"pid {tmp}/nginx.pid;\nerror_log {tmp}/error.log;\n" + text
-    if os.geteuid() == 0:  # workers would run as nobody, who cannot write under tmp
-        text = "user root;\n" + text
-    conf = tmp / "nginx.conf"
-    conf.write_text(text)
-    return conf
+    return loopback_paths(tmp, text, "upstream")

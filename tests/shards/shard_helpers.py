@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import os
 import subprocess
 import time
 from dataclasses import dataclass
@@ -15,6 +14,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from nginx_loopback import loopback_paths
 
 from monoloc.core.camera import KITTI_CAM0
 from monoloc.core.geometry import T_world_from_cam_planar
@@ -118,18 +118,7 @@ def start_router(tmp: Path, table: TileTable, listen_port: int) -> subprocess.Po
 
 def loopback_conf(tmp: Path, text: str) -> Path:
     """An nginx config ``text`` with its pid, logs and temporary files under ``tmp``."""
-    text = text.replace("access_log /dev/stdout shard;", f"access_log {tmp}/access.log shard;")
-    temp = "\n".join(
-        f"    {kind}_temp_path {tmp}/{kind};"
-        for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
-    )
-    text = text.replace("http {\n", "http {\n" + temp + "\n", 1)
-    text = f"pid {tmp}/nginx.pid;\nerror_log {tmp}/error.log;\n" + text
-    if os.geteuid() == 0:  # workers would run as nobody, who cannot write under tmp
-        text = "user root;\n" + text
-    conf = tmp / "nginx.conf"
-    conf.write_text(text)
-    return conf
+    return loopback_paths(tmp, text, "shard")
 
 
 def stop_process(process: subprocess.Popen | None) -> None:
