@@ -5,40 +5,23 @@ shard router on loopback."""
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
+from fake_entries import fake_entry
 from nginx_loopback import loopback_paths
 
-from monoloc.core.camera import KITTI_CAM0
-from monoloc.core.geometry import T_world_from_cam_planar
 from monoloc.core.tiles import ShardGroup, TileScheme, TileTable
 from monoloc.server.storage.records import NewEntry
 
 
 def entry_at(name: str, x_m: float, y_m: float, n: int = 12) -> NewEntry:
     """A valid entry (random features) whose camera stands at (x_m, y_m)."""
-    rng = np.random.default_rng(
-        int.from_bytes(hashlib.sha256(name.encode()).digest()[:4], "little")
-    )
-    return NewEntry(
-        source_image_hash=hashlib.sha256(name.encode()).hexdigest(),
-        T_world_from_cam=T_world_from_cam_planar(x_m, y_m, 0.0, height_m=1.6),
-        vlad=rng.normal(size=2048).astype(np.float32),
-        code=rng.integers(0, 256, 256, dtype=np.uint8),
-        keypoints_px=rng.uniform(0, 370, (n, 2)).astype(np.float32),
-        descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
-        points_cam=rng.uniform(1, 40, (n, 3)).astype(np.float32),
-        image_width_px=KITTI_CAM0.width_px,
-        image_height_px=KITTI_CAM0.height_px,
-        timestamp_s=0.0,
-    )
+    return fake_entry(name, x_m, y_m, n=n, timestamp_s=0.0)
 
 
 MAP_NAME = "street"

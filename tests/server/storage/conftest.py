@@ -6,16 +6,15 @@ The database is a SQLite file in tmp_path, or a fresh PostgreSQL database per te
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
+from fake_entries import fake_entry
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from monoloc.core.camera import KITTI_CAM0
-from monoloc.core.geometry import T_world_from_cam_planar
 from monoloc.server.settings import Settings
 from monoloc.server.storage.db import create_engine_for, make_session_factory, session_scope
 from monoloc.server.storage.maps import create_map, get_or_create_vocabulary
@@ -57,21 +56,6 @@ def make_entry() -> Callable[..., NewEntry]:
         n: int = 20,
         tags: tuple[str, ...] = (),
     ) -> NewEntry:
-        rng = np.random.default_rng(
-            int.from_bytes(hashlib.sha256(name.encode()).digest()[:4], "little")
-        )
-        return NewEntry(
-            source_image_hash=hashlib.sha256(name.encode()).hexdigest(),
-            T_world_from_cam=T_world_from_cam_planar(x_m, y_m, yaw_rad, height_m=1.6),
-            vlad=rng.normal(size=2048).astype(np.float32),
-            code=rng.integers(0, 256, 256, dtype=np.uint8),
-            keypoints_px=rng.uniform(0, 370, (n, 2)).astype(np.float32),
-            descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8),
-            points_cam=rng.uniform(1, 40, (n, 3)).astype(np.float32),
-            image_width_px=KITTI_CAM0.width_px,
-            image_height_px=KITTI_CAM0.height_px,
-            tags=tags,
-            timestamp_s=0.1,
-        )
+        return fake_entry(name, x_m, y_m, yaw_rad, n, tags)
 
     return build
