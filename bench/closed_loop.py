@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -192,6 +193,33 @@ def main() -> None:
     print(f"wrote {path} and {len(plots)} plots ({summary['total_s']:.0f} s)")
 
 
+# What the study's figures depend on: a drive run on other code is not comparable.
+CODE_PATHS = ("sim", "client", "server", "monoloc", "bench/closed_loop.py")
+
+
+def code_version() -> dict:
+    """The commit the study runs on and whether CODE_PATHS differ from it (None outside a
+    git checkout)."""
+    root = Path(__file__).resolve().parent.parent
+
+    def git(*cmd: str) -> str | None:
+        try:
+            done = subprocess.run(
+                ["git", "-C", str(root), *cmd], capture_output=True, text=True, timeout=30
+            )
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.rstrip("\n") if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    # porcelain lines are "XY path": two status columns and a space
+    changed = git("status", "--porcelain", "--", *CODE_PATHS)
+    return {
+        "commit": commit,
+        "changed_paths": None if changed is None else [ln[3:] for ln in changed.splitlines()],
+    }
+
+
 def _relative(plots) -> list[str]:
     """Plot paths relative to the repository: a results file names no path outside it."""
     root = Path(__file__).resolve().parent.parent
@@ -236,6 +264,7 @@ def seeded_main(args) -> None:
         "controllers": list(config.controllers),
         "drives_planned": planned,
         "latency": args.latency,
+        "code": code_version(),
     }
 
     def log(text: str) -> None:
