@@ -6,7 +6,8 @@ A drive's frames are written in the TUM RGB-D layout like every indoor run
 ``camera.json``), so a mapping lap can be uploaded to the map server as it is. A
 localized drive adds its estimate (``estimate.tum.txt`` / ``estimate.kitti.txt``), the
 true trajectory in the same two formats, ``frames.csv`` (one row per frame: estimate,
-command, tracking errors, the answer's feature counts, latency) and ``summary.json``.
+command, tracking errors, the answer's feature counts, latency, the MPC's quality q) and
+``summary.json``.
 """
 
 from __future__ import annotations
@@ -168,6 +169,7 @@ FRAME_COLUMNS = (
     "n_inliers",
     "known_share",
     "latency_ms",
+    "mpc_quality",
 )
 
 
@@ -218,6 +220,7 @@ def write_loop_outputs(result: LoopResult, out_dir: Path, summary: dict) -> list
         f["n_inliers"],
         known,
         f["latency_ms"],
+        f["mpc_quality"],
         strict=True,
     )
     csv_path = out_dir / "frames.csv"

@@ -9,7 +9,7 @@ import json
 
 import numpy as np
 import pytest
-from e2e_helpers import mapped_loop_server
+from e2e_helpers import ADMIN_KEY, mapped_loop_server
 
 from monoloc.sim.closed_loop import LoopConfig
 from monoloc.sim.closed_loop_metrics import loop_metrics
@@ -82,6 +82,7 @@ def test_closed_loop_steers_on_the_estimate_and_records_everything(indoor_map, t
         rows = list(csv.DictReader(fh))
     assert len(rows) == FRAMES
     assert {"steer_cmd_rad", "lateral_error_m", "n_inliers", "known_share"} <= set(rows[0])
+    assert all(row["mpc_quality"] == "nan" for row in rows)  # the PID holds no quality
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["frames"] == FRAMES
 
 
@@ -114,6 +115,29 @@ def test_mpc_steers_the_closed_loop_told_the_localization_quality(indoor_map):
     assert q[0] == 1.0 and np.all((q >= 0) & (q <= 1)) and np.any(q < 1)
     steer = result.frames["command"][:, 0]
     assert np.all(np.abs(steer) <= world.bicycle.max_steer_rad + 1e-9)
+
+
+def test_closed_loop_cli_drives_with_the_mpc(indoor_map, monkeypatch, capsys, tmp_path):
+    """`monoloc sim closed-loop --controller mpc` against the live map: the MPC steers
+    (its quality q in frames.csv) and the drive's outputs are written."""
+    import sys
+
+    from monoloc import cli
+
+    client, _map_id, _world, _root, _lap = indoor_map
+    out = tmp_path / "cli"
+    argv = ["monoloc", "sim", "closed-loop", "--out", str(out), "--controller", "mpc"]
+    argv += ["--server", client.base_url, "--key", ADMIN_KEY, "--map", "track", "--frames", "20"]
+    monkeypatch.setattr(sys, "argv", argv)
+    cli.main()
+    assert "mpc, against map" in capsys.readouterr().out
+    summary = json.loads((out / "drive" / "summary.json").read_text())
+    assert summary["controller"] == "mpc" and summary["mode"] == "closed"
+    assert summary["frames"] == 20 and summary["lane_departures"] == 0
+    with open(out / "drive" / "frames.csv", newline="") as fh:
+        q = np.array([float(row["mpc_quality"]) for row in csv.DictReader(fh)])
+    assert len(q) == 20 and q[0] == 1.0 and np.all((q >= 0) & (q <= 1))
+    assert (out / "drive_errors.png").exists()
 
 
 def test_disturbed_laps_are_ingested_as_off_center_entries(indoor_map):
