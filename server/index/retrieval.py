@@ -8,9 +8,12 @@ codes. The shortlist is re-ranked by 4-bit VLADs held in memory
 distance of the float VLADs, read on demand from the index file's float file
 (monoloc.server.index.vlad_store): the distances returned are exact (they are
 e_vlad, an input of the measurement model). Resident per entry: code 256 B, 4-bit VLAD
-1 KiB, sketch 32 B, planar pose 24 B, id, VLAD ref and the id lookup (sorted ids) 32 B.
+1 KiB, sketch 32 B, planar pose 24 B, id, VLAD ref and the id lookup (sorted ids) 32 B,
+the planar grid 16 B.
 
-With a planar prior only entries inside the radius (and heading window) compete. Entries
+With a planar prior only entries inside the radius (and heading window) compete: the
+planar grid (monoloc.server.index.grid) gives the rows in the cells the prior's disk
+overlaps and the prior's mask is applied to those only. Entries
 are added and removed live; a readers-writer lock lets searches run concurrently but
 never during an add or a remove (FAISS's rule).
 """
@@ -26,6 +29,7 @@ from monoloc.server.index.compressed import (
     compress_vlads,
     compressed_sq_distances,
 )
+from monoloc.server.index.grid import PlanarGrid
 from monoloc.server.index.rwlock import ReadWriteLock
 from monoloc.server.index.sketch import SKETCH_BYTES, SketchTable, vlad_sketch
 from monoloc.server.index.types import IndexConfig, SearchResult, empty_result
@@ -78,6 +82,7 @@ class RetrievalIndex:
         self._sorted_ids = np.zeros(0, dtype=np.int64)
         self._sorted_rows = np.zeros(0, dtype=np.int64)
         self._sketches = SketchTable()
+        self._grid = PlanarGrid(self.config.prior_cell_m)
         self._store = VladStore()
         self._edits = 0  # counts adds and removes (persistence adopts a file only if unchanged)
         self._faiss = _new_flat()  # None once the sketches are the index ("scan")
@@ -154,6 +159,7 @@ class RetrievalIndex:
             self._compressed[rows] = compressed
             self._refs[rows] = self._store.append(vlads)
             self._sketches.set_rows(self._size, sketches)
+            self._grid.add_rows(self._size, poses)
             order = np.argsort(ids, kind="stable")
             at = np.searchsorted(self._sorted_ids, ids[order])
             new_rows = np.arange(self._size, self._size + len(ids), dtype=np.int64)[order]
@@ -184,9 +190,11 @@ class RetrievalIndex:
         keep = ~np.isin(self._sorted_ids, present)
         self._sorted_ids, self._sorted_rows = self._sorted_ids[keep], self._sorted_rows[keep]
         # Compact: move the last live rows into the holes (a VLAD moves by its ref).
+        origin: dict[int, int] = {}  # row now -> the row it held before this removal
         for row in np.sort(rows)[::-1].tolist():
             last = self._size - 1
             if row != last:
+                origin[row] = origin.pop(last, last)
                 self._ids[row], self._codes[row] = self._ids[last], self._codes[last]
                 self._compressed[row], self._poses[row] = self._compressed[last], self._poses[last]
                 self._refs[row] = self._refs[last]
@@ -194,6 +202,7 @@ class RetrievalIndex:
                 pos = np.searchsorted(self._sorted_ids, self._ids[row])
                 self._sorted_rows[pos] = row
             self._size -= 1
+        self._grid.remove_rows(rows, {old: new for new, old in origin.items()})
         self._edits += 1
         if self._faiss is not None:  # a map that shrinks under the size keeps its scan
             self._faiss.remove_ids(faiss.IDSelectorBatch(present))
@@ -268,7 +277,7 @@ class RetrievalIndex:
     def _prior_rows(self, code: np.ndarray, sketch, k: int, prior: RetrievalPrior) -> np.ndarray:
         """At most ``shortlist_size`` (or k) rows inside the prior, nearest by Hamming."""
         size = max(self.config.shortlist_size, k)
-        inside = np.flatnonzero(prior.mask(self._poses[: self._size]))
+        inside = self._inside_rows(prior)
         if len(inside) <= self.config.prior_hamming_max:
             return self._hamming_nearest(code, inside, size)
         # Many candidates: widen the Hamming shortlist until enough fall inside the prior.
@@ -281,6 +290,15 @@ class RetrievalIndex:
             if len(rows) >= self.config.shortlist_size or wanted >= self._size:
                 return rows[:size]
             wanted *= 4
+
+    def _inside_rows(self, prior: RetrievalPrior) -> np.ndarray:
+        """Rows (ascending int64) inside the prior: ``flatnonzero(prior.mask(poses))``,
+        the mask applied only to the rows of the grid cells the prior's disk overlaps."""
+        rows = self._grid.candidates(prior, max_rows=self._size // 2)
+        if rows is None:  # the prior covers much of the map: the plain mask is cheaper
+            return np.flatnonzero(prior.mask(self._poses[: self._size]))
+        rows.sort()
+        return rows[prior.mask(self._poses[rows])]
 
     def _rerank(self, query: np.ndarray, rows: np.ndarray, k: int) -> SearchResult:
         """The k nearest of ``rows`` by exact distance, among the ``k + exact_margin``
@@ -402,6 +420,7 @@ class RetrievalIndex:
         index._refs[:n] = np.arange(n, dtype=np.int64)
         order = np.argsort(ids, kind="stable")
         index._sorted_ids, index._sorted_rows = ids[order], order.astype(np.int64)
+        index._grid.build(index._poses[:n])
         index._size = n
         index._build_shortlist()
         return index

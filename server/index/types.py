@@ -3,6 +3,7 @@ prior is ``monoloc.core.prior.RetrievalPrior``, shared with the vehicle."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,10 @@ class IndexConfig:
     # Inside a prior: up to this many candidates are ranked by Hamming distance directly;
     # more widen the map-wide shortlist until enough fall inside.
     prior_hamming_max: int = 20_000
+    # The planar grid that finds a prior's rows (monoloc.server.index.grid): square cells
+    # of this side. Vehicle priors are 8-60 m in radius (client.tracking): a 60 m disk
+    # spans about 8 x 8 cells, a 8 m one 2 x 2.
+    prior_cell_m: float = 16.0
     exact_margin: int = 20  # float VLADs read per query: k + exact_margin
 
     def __post_init__(self) -> None:
@@ -32,6 +37,8 @@ class IndexConfig:
             raise InvalidInputError("scan_candidates and scan_shortlist must be >= 1")
         if self.exact_margin < 0:
             raise InvalidInputError("exact_margin must be >= 0")
+        if not (math.isfinite(self.prior_cell_m) and self.prior_cell_m > 0):
+            raise InvalidInputError("prior_cell_m must be finite and > 0")
 
 
 @dataclass(frozen=True)
