@@ -291,6 +291,7 @@ def seeded_main(args) -> None:
             "total_s": time.time() - started,
         }
         path.write_text(json.dumps(data, indent=2, default=float) + "\n")
+        save_series(drives, out / f"{args.name}_frames.npz")
         return data
 
     with serving(out) as (url, key):
@@ -313,6 +314,24 @@ def seeded_main(args) -> None:
     data = save(drives, info, complete=True, plots=plots)
     print_seeded(data)
     print(f"wrote {path} and {len(plots)} plots ({data['total_s']:.0f} s)")
+
+
+SERIES = ("t_s", "s_m", "loc_error_m", "lateral_m", "heading_rad", "known_share", "n_hypotheses")
+
+
+def save_series(drives, path: Path) -> None:
+    """Every drive's per-frame series (``case/controller/seed/name`` arrays) in one npz,
+    beside the drive outputs (not in bench/results: ~100 frames x 7 series a drive), so
+    that the study's statistics can be recomputed without driving again."""
+    import numpy as np
+
+    arrays = {
+        f"{d.case}/{d.controller}/{d.seed}/{name}": np.asarray(getattr(d, name))
+        for d in drives
+        for name in SERIES
+        if getattr(d, name) is not None
+    }
+    np.savez_compressed(path, **arrays)
 
 
 def _ci(v: dict, scale: float = 100.0, digits: int = 2) -> str:
@@ -360,7 +379,14 @@ def print_seeded(data: dict) -> None:
                 if r.get("r") is None:
                     continue
                 ci = "" if r.get("lo") is None else f" [{r['lo']:.2f}, {r['hi']:.2f}]"
-                parts.append(f"{name} r = {r['r']:.2f}{ci}")
+                slope = ""
+                if name == "known_resid_vs_lateral" and r.get("slope_lo") is not None:
+                    # share per m -> percentage points per cm
+                    slope = (
+                        f" (slope {r['slope']:+.2f} [{r['slope_lo']:+.2f}, "
+                        f"{r['slope_hi']:+.2f}] points/cm)"
+                    )
+                parts.append(f"{name} r = {r['r']:.2f}{ci}{slope}")
             print(f"mechanism {controller} {case}: " + "; ".join(parts))
     for case, tests in s.get("controllers", {}).items():
         if case == "note":

@@ -90,7 +90,8 @@ def plot_seeded(drives, summary: dict, out_dir: Path, prefix: str) -> list[Path]
     """The seeded study's figures (``monoloc.sim.closed_loop_seeded``): per-seed
     distributions of the localization RMSE, max and lateral RMSE per case and controller
     (lines join one seed's drives), and the known-feature share against |lateral error|
-    (every sent frame, binned means)."""
+    (every sent frame, binned means; below it, when ``summarize`` set the drives'
+    ``known_residual``, the share minus the open loop's at the same place)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -130,35 +131,59 @@ def plot_seeded(drives, summary: dict, out_dir: Path, prefix: str) -> list[Path]
     )  # fmt: skip
     paths.append(_save(fig, out_dir / f"{prefix}_per_seed.png"))
 
-    fig, axes = plt.subplots(1, len(controllers), figsize=(5.5 * len(controllers), 4.5),
-                             squeeze=False)  # fmt: skip
-    for ax, controller in zip(axes[0], controllers, strict=True):
-        for case in cases:
-            rows = [d for d in drives if d.case == case and d.controller == controller]
-            known = np.concatenate([d.known_share for d in rows])
-            lateral = np.concatenate([d.lateral_m for d in rows])
-            ok = np.isfinite(known)
-            ax.scatter(100 * lateral[ok], 100 * known[ok], s=2, alpha=0.15, color=COLOURS[case])
-            if ok.sum() > 20:
-                edges = np.quantile(lateral[ok], np.linspace(0, 1, 9))
-                idx = np.clip(np.searchsorted(edges, lateral[ok], side="right") - 1, 0, 7)
-                centres = [
-                    100 * np.median(lateral[ok][idx == b]) for b in range(8) if (idx == b).any()
-                ]
-                means = [100 * np.mean(known[ok][idx == b]) for b in range(8) if (idx == b).any()]
-                r = summary.get("mechanism", {}).get(controller, {}).get(case, {})
-                r = r.get("known_vs_lateral", {})
-                label = case if r.get("r") is None else (
-                    f"{case}: r = {r['r']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}]"
-                    if r.get("lo") is not None else f"{case}: r = {r['r']:.2f}"
-                )  # fmt: skip
-                ax.plot(centres, means, "-o", color=COLOURS[case], ms=3, label=label)
-        ax.set_xlabel("|lateral tracking error| (cm)")
-        ax.set_ylabel("known-feature share of the query (%)")
-        ax.set_title(f"{controller}: known features against tracking error", fontsize=9)
-        ax.legend(fontsize=7)
+    residuals = any(d.known_residual is not None for d in drives)
+    panels = (("known", "known-feature share of the query (%)", "known_vs_lateral"),) + (
+        (("resid", "share minus the open loop's at the place (points)", "known_resid_vs_lateral"),)
+        if residuals
+        else ()
+    )
+    fig, axes = plt.subplots(len(panels), len(controllers), squeeze=False,
+                             figsize=(5.5 * len(controllers), 4.5 * len(panels)))  # fmt: skip
+    for row, (kind, ylabel, key) in zip(axes, panels, strict=True):
+        for ax, controller in zip(row, controllers, strict=True):
+            for case in cases:
+                rows = [d for d in drives if d.case == case and d.controller == controller]
+                share = [d.known_share if kind == "known" else d.known_residual for d in rows]
+                if any(v is None for v in share):
+                    continue
+                known = np.concatenate(share)
+                lateral = np.concatenate([d.lateral_m for d in rows])
+                ok = np.isfinite(known)
+                ax.scatter(100 * lateral[ok], 100 * known[ok], s=2, alpha=0.15,
+                           color=COLOURS[case])  # fmt: skip
+                if ok.sum() > 20:
+                    centres, means = _binned(lateral[ok], known[ok])
+                    r = summary.get("mechanism", {}).get(controller, {}).get(case, {})
+                    ax.plot(100 * centres, 100 * means, "-o", color=COLOURS[case], ms=3,
+                            label=_r_label(case, r.get(key, {})))  # fmt: skip
+            ax.set_xlabel("|lateral tracking error| (cm)")
+            ax.set_ylabel(ylabel)
+            what = "known features" if kind == "known" else "known features at the same place"
+            ax.set_title(f"{controller}: {what} against tracking error", fontsize=9)
+            if kind == "resid":
+                ax.axhline(0.0, color="0.5", lw=0.6)
+            ax.legend(fontsize=7)
     paths.append(_save(fig, out_dir / f"{prefix}_known_vs_lateral.png"))
     return paths
+
+
+def _binned(x: np.ndarray, y: np.ndarray, n_bins: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Median x and mean y in ``n_bins`` bins of equal counts of x."""
+    edges = np.quantile(x, np.linspace(0, 1, n_bins + 1))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n_bins - 1)
+    kept = [b for b in range(n_bins) if (idx == b).any()]
+    return (
+        np.array([np.median(x[idx == b]) for b in kept]),
+        np.array([np.mean(y[idx == b]) for b in kept]),
+    )
+
+
+def _r_label(case: str, r: dict) -> str:
+    if r.get("r") is None:
+        return case
+    if r.get("lo") is None:
+        return f"{case}: r = {r['r']:.2f}"
+    return f"{case}: r = {r['r']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}]"
 
 
 def _save(fig, path: Path) -> Path:

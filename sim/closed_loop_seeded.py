@@ -60,6 +60,12 @@ SUMMARY_METRICS = (
 )
 # The claims tested on these metrics (larger = worse for every one of them).
 CLAIM_METRICS = ("loc_rmse_m", "loc_p95_m", "loc_max_m", "spikes")
+# Stations along the drive for the place-controlled mechanism: the known share differs by
+# place far more than by offset (0 on the bare end, 70 % in textured turns), and the
+# tracking error does too (largest after the bare end), so the pooled correlation mixes
+# place and offset. 5 cm: under a map period (6.7 cm), over the drives' spread in
+# distance at one station of a 0.4-lap drive with a 3 % speed-scale error (a few cm).
+STATION_M = 0.05
 
 
 @dataclass(frozen=True)
@@ -100,7 +106,9 @@ class Drive:
     """One drive: its case, controller, seed, metrics and the per-frame series the
     mechanism needs (all (N,)): time s, localization error m (NaN before an estimate),
     |lateral| m, |heading| rad, known-feature share of sent frames (NaN for frames not
-    sent), hypotheses."""
+    sent), hypotheses; s_m the distance the car has driven (true path) at each frame;
+    known_residual the known share minus the open loop's mean at the same station (set
+    by ``summarize``)."""
 
     case: str
     controller: str
@@ -113,6 +121,8 @@ class Drive:
     known_share: np.ndarray
     n_hypotheses: np.ndarray
     result: LoopResult | None = None
+    s_m: np.ndarray | None = None
+    known_residual: np.ndarray | None = None
 
 
 def drive_record(case: str, controller: str, seed: int, result: LoopResult, keep: bool) -> Drive:
@@ -146,7 +156,37 @@ def drive_record(case: str, controller: str, seed: int, result: LoopResult, keep
         known,
         f["n_hypotheses"].copy(),
         result if keep else None,
+        driven_distance_m(f["truth_vehicle"][:, :2]),
     )
+
+
+def driven_distance_m(xy_m: np.ndarray) -> np.ndarray:
+    """(N,) distance along the (N, 2) positions from the first one."""
+    step = np.linalg.norm(np.diff(np.asarray(xy_m, float), axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(step)])
+
+
+def known_share_residuals(drives: list[Drive], station_m: float = STATION_M) -> None:
+    """Set each drive's ``known_residual``: its known share minus the mean known share
+    of its controller's open-loop drives at the same station (``s_m`` binned by
+    ``station_m``); NaN where no open-loop frame was sent there (or without ``s_m``)."""
+    for controller in {d.controller for d in drives}:
+        rows = [d for d in drives if d.controller == controller]
+        opened = [d for d in rows if d.case == "open" and d.s_m is not None]
+        if not opened:
+            continue
+        n_bins = 1 + max(int(np.max(d.s_m) / station_m) for d in rows if d.s_m is not None)
+        total, count = np.zeros(n_bins), np.zeros(n_bins)
+        for d in opened:
+            ok = np.isfinite(d.known_share)
+            bins = (d.s_m[ok] / station_m).astype(int)
+            np.add.at(total, bins, d.known_share[ok])
+            np.add.at(count, bins, 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            baseline = np.where(count > 0, total / count, np.nan)
+        for d in rows:
+            if d.s_m is not None:
+                d.known_residual = d.known_share - baseline[(d.s_m / station_m).astype(int)]
 
 
 def count_spikes(drive: Drive, threshold_m: float) -> int:
@@ -225,6 +265,7 @@ def summarize(drives: list[Drive], stats: StatsConfig = StatsConfig(), seed: int
     from monoloc.sim.closed_loop_metrics import SPIKE_FACTOR
 
     rng = np.random.default_rng([seed, 51])
+    known_share_residuals(drives)
     controllers = sorted({d.controller for d in drives}, key=CONTROLLERS.index)
     cases = [c for c in CASES if any(d.case == c for d in drives)]
     out: dict = {
@@ -327,20 +368,30 @@ def _mechanism(drives, controller, rng, stats) -> dict:
     """Per closed-loop case (and the open loop, where steering ignores the estimate): the
     known-feature share against |lateral| and |heading| tracking error and against the
     localization error, pooled over the drives of that case (frames that were sent and
-    had features), with cluster-bootstrap CIs."""
+    had features), with cluster-bootstrap CIs; the same for the known share's residual
+    after its place (``known_resid_vs_*``: minus the open loop's mean at the station),
+    with the slope (share per m of |lateral|, per rad of |heading|, per m of error)."""
     out = {}
     for case in CASES:
         rows = [d for d in drives if d.controller == controller and d.case == case]
         if not rows:
             continue
-        groups = {"lateral": [], "heading": [], "loc_error": []}
-        for d in rows:
-            ok = np.isfinite(d.known_share)
-            groups["lateral"].append((d.known_share[ok], d.lateral_m[ok]))
-            groups["heading"].append((d.known_share[ok], d.heading_rad[ok]))
-            ok2 = ok & np.isfinite(d.loc_error_m)
-            groups["loc_error"].append((d.known_share[ok2], d.loc_error_m[ok2]))
-        out[case] = {
-            f"known_vs_{name}": cluster_correlation(g, rng, stats) for name, g in groups.items()
-        }
+        out[case] = {}
+        for prefix, share_of in (
+            ("known", lambda d: d.known_share),
+            ("known_resid", lambda d: d.known_residual),
+        ):
+            groups = {"lateral": [], "heading": [], "loc_error": []}
+            for d in rows:
+                share = share_of(d)
+                if share is None:
+                    continue
+                ok = np.isfinite(share)
+                groups["lateral"].append((share[ok], d.lateral_m[ok]))
+                groups["heading"].append((share[ok], d.heading_rad[ok]))
+                ok2 = ok & np.isfinite(d.loc_error_m)
+                groups["loc_error"].append((share[ok2], d.loc_error_m[ok2]))
+            for name, g in groups.items():
+                if g:
+                    out[case][f"{prefix}_vs_{name}"] = cluster_correlation(g, rng, stats)
     return out

@@ -94,15 +94,26 @@ def cluster_correlation(
     config: StatsConfig = StatsConfig(),
 ) -> dict:
     """Pearson r of x against y pooled over ``groups`` ((x, y) per drive, (n_i,) each),
-    with a bootstrap interval that resamples whole drives: {"r", "lo", "hi", "frames",
-    "drives"}."""
+    with a bootstrap interval that resamples whole drives, and the least-squares slope of
+    x on y (x per unit of y) with its interval the same way: {"r", "lo", "hi", "slope",
+    "slope_lo", "slope_hi", "frames", "drives"}."""
     groups = [(np.asarray(x, float), np.asarray(y, float)) for x, y in groups if len(x)]
     if not groups:
         return {"r": None, "lo": None, "hi": None, "frames": 0, "drives": 0}
     x_all = np.concatenate([g[0] for g in groups])
     y_all = np.concatenate([g[1] for g in groups])
     r = pearson(x_all, y_all)
-    out = {"r": r, "lo": None, "hi": None, "frames": int(len(x_all)), "drives": len(groups)}
+    slope = None if r is None else float(np.cov(x_all, y_all, bias=True)[0, 1] / np.var(y_all))
+    out = {
+        "r": r,
+        "lo": None,
+        "hi": None,
+        "slope": slope,
+        "slope_lo": None,
+        "slope_hi": None,
+        "frames": int(len(x_all)),
+        "drives": len(groups),
+    }
     if r is None or len(groups) < 2:
         return out
     # Sufficient statistics per drive make each resample a few sums.
@@ -116,7 +127,9 @@ def cluster_correlation(
     vx, vy = sxx / n - (sx / n) ** 2, syy / n - (sy / n) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
         rs = cov / np.sqrt(vx * vy)
-    rs = rs[np.isfinite(rs)]
+        slopes = cov / vy
+    rs, slopes = rs[np.isfinite(rs)], slopes[np.isfinite(slopes)]
     a = (1.0 - config.level) / 2.0
     out["lo"], out["hi"] = (float(v) for v in np.quantile(rs, [a, 1.0 - a]))
+    out["slope_lo"], out["slope_hi"] = (float(v) for v in np.quantile(slopes, [a, 1.0 - a]))
     return out

@@ -100,6 +100,44 @@ def test_summary_tests_the_papers_claims_by_seed():
     assert mech["r"] < -0.3 and mech["hi"] < 0
 
 
+def _placed_drive(case: str, seed: int, offset_effect: float, rng) -> Drive:
+    """A drive whose known share is set by the place (s) and, by ``offset_effect`` per m,
+    by |lateral|; the lateral error is largest where the share is lowest (as after the
+    bare end, closed loop), so the two are correlated through the place alone."""
+    n = 120
+    s_m = np.linspace(0.0, 3.0, n) + rng.normal(0, 0.005, n)
+    place = 0.45 + 0.25 * np.cos(2 * np.pi * s_m / 3.0)
+    if case == "open":  # on the truth: a small offset, the same everywhere
+        lateral = np.abs(rng.normal(0, 0.002, n))
+    else:
+        lateral = 0.01 * (1.5 - np.cos(2 * np.pi * s_m / 3.0)) + np.abs(rng.normal(0, 0.01, n))
+    known = place - offset_effect * lateral + rng.normal(0, 0.01, n)
+    drive = _drive(case, seed, 0.02, rng)
+    drive.lateral_m, drive.known_share, drive.s_m = lateral, known, s_m
+    drive.t_s, drive.loc_error_m = np.arange(n) / 15, np.full(n, 0.02)
+    drive.heading_rad = drive.n_hypotheses = np.zeros(n)
+    return drive
+
+
+@pytest.mark.parametrize("offset_effect", [0.0, 3.0])
+def test_mechanism_at_the_same_place_tells_the_offset_from_the_place(offset_effect):
+    rng = np.random.default_rng(5)
+    drives = [
+        _placed_drive(case, seed, offset_effect, rng)
+        for seed in range(8)
+        for case in ("open", "closed")
+    ]
+    mech = summarize(drives, FAST)["mechanism"]["pid"]["closed"]
+    # pooled over places the share falls with |lateral| either way...
+    assert mech["known_vs_lateral"]["hi"] < -0.3
+    resid = mech["known_resid_vs_lateral"]
+    if offset_effect == 0:  # ...at the same place only when the offset costs features
+        assert resid["lo"] < 0 < resid["hi"] and abs(resid["slope"]) < 0.5
+    else:
+        assert resid["hi"] < 0
+        assert resid["slope_lo"] < -offset_effect < resid["slope_hi"]
+
+
 def test_study_config_refuses_what_it_cannot_drive():
     with pytest.raises(InvalidInputError):
         SeededStudyConfig(seeds=())
@@ -125,3 +163,7 @@ def test_seeded_figures_are_written(tmp_path):
     for p in paths:
         image = cv2.imread(str(p))
         assert image is not None and image.shape[0] > 300 and image.std() > 10
+    # With the drives' stations the share at the same place gets its own row of panels.
+    placed = [_placed_drive(c, seed, 3.0, rng) for seed in range(4) for c in ("open", "closed")]
+    two = plot_seeded(placed, summarize(placed, FAST), tmp_path, "placed")[1]
+    assert cv2.imread(str(two)).shape[0] > 1.8 * cv2.imread(str(paths[1])).shape[0]
