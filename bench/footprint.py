@@ -143,8 +143,9 @@ def index_footprint(n: int, queries: int, baseline: bool) -> dict:
 
 
 # What a product index holds per entry in its arrays: id 8, code 256, 4-bit VLAD 1024,
-# sketch 32, pose 24, VLAD ref 8, sorted id and its row 16.
-ARRAYS_BYTES_PER_ENTRY = 8 + 256 + 1024 + 32 + 24 + 8 + 16
+# sketch 32, pose 24, VLAD ref 8, sorted id and its row 16, the planar grid (cell key and
+# row, monoloc.server.index.grid) 16.
+ARRAYS_BYTES_PER_ENTRY = 8 + 256 + 1024 + 32 + 24 + 8 + 16 + 16
 
 
 def index_summary(rows: list[dict]) -> dict:
