@@ -83,7 +83,9 @@ def test_mpc_converges_on_a_straight_from_an_offset_within_the_limits():
     assert np.all(np.abs(lateral[round(4 / DT_S) :]) < 0.003)  # on the line after 4 s
     assert abs(lateral[-1]) < 0.002
     assert state.speed_mps == pytest.approx(1.0, abs=0.01)  # the reference speed
-    assert all(t < 0.1 for t in controller.solve_times_s)  # loose: the bench measures it
+    # Every re-plan solved (its time is bench/mpc.py's: the wall-time bound that stood
+    # here failed a run at load ~11 and passed the next one).
+    assert controller.solve_times_s and controller.failed_solves == 0
 
 
 def test_mpc_holds_a_tight_curve_better_than_the_pid():
