@@ -67,25 +67,29 @@ def _sequence(root: Path, seq: str):
     return read_kitti_sequence(root, seq)
 
 
-def environments(only: str | None) -> list[Env]:
-    """The environments whose data can be found or generated."""
+def environments(only: str | None, data: Path | None = None) -> list[Env]:
+    """The environments whose data can be found or generated (under ``data``: the project
+    sim in ``bench_sim`` and the transfer bench's in ``transfer``; None: the benches' own
+    folders, out/bench_sim and bench/data/transfer)."""
     from bench.localize import DEFAULT_DATA, ensure_dataset
     from bench.transfer import TEST_ENVS, TRAIN_ENVS, ensure, thinned
 
+    project_root = DEFAULT_DATA if data is None else data / "bench_sim"
+    transfer_root = DATA if data is None else data / "transfer"
     envs = []
     if only in (None, "project"):
-        root = ensure_dataset(DEFAULT_DATA)
+        root = ensure_dataset(project_root)
         envs.append(Env("project sim", _sequence(root, "00"), _sequence(root, "01")))
     if only in (None, "heldout"):
         test = TEST_ENVS["urban 10 Hz, entry every 1 m"]
-        root = DATA / "test_5303_small_100f_x1_stereo"
+        root = transfer_root / "test_5303_small_100f_x1_stereo"
         _ensure(ensure, root, test)
         envs.append(
             Env("held-out city", thinned(_sequence(root, "00"), 1.0), _sequence(root, "01"))
         )
     if only in (None, "dusk"):
         name = "short road, repeated plain facades, coarse texture, dusk, -1 EV, other palette"
-        root = DATA / "train_short_road_4721_100f_x1_stereo"
+        root = transfer_root / "train_short_road_4721_100f_x1_stereo"
         _ensure(ensure, root, TRAIN_ENVS[name])
         run = _sequence(root, "00")
         envs.append(
@@ -347,6 +351,9 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=2)
     parser.add_argument("--only", choices=("project", "heldout", "dusk"), default=None)
     parser.add_argument("--label", default="", help="a note stored with the run")
+    parser.add_argument(
+        "--data", type=Path, default=None, help="where the sim data sets live or are generated"
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "frame_cost.json")
     args = parser.parse_args()
 
@@ -355,7 +362,7 @@ def main() -> None:
     limit_threads()
     load_before = os.getloadavg()
     out = {"environments": {}}
-    for env in environments(args.only):
+    for env in environments(args.only, args.data):
         queries = query_frames(env, args.queries)
         with tempfile.TemporaryDirectory() as tmp:
             data_dir = Path(tmp)

@@ -204,3 +204,50 @@ def refine_rounds(
             for k in range(inliers.shape[0]):
                 inliers[k] = inliers[k] and candidates[k]
     return R, t, 0
+
+
+@njit(cache=True, nogil=True)
+def best_guess_inliers(
+    points_ref,
+    pixels,
+    T_ref_from_query,
+    fx,
+    fy,
+    cx,
+    cy,
+    threshold_px,
+    min_count,
+    errors_px,
+    inliers,
+):
+    """Of G guesses T_ref_from_query (G, 4, 4), the one under which the most points are
+    within ``threshold_px`` and in front of the camera (``count_inliers``' test; the first
+    of equals). Returns (its index, its count); when the count reaches ``min_count``,
+    errors_px and inliers (M,) are filled with its ``inlier_errors`` (one call where the
+    guided PnP of every entry made three: the guesses inverted, counted, then the best
+    one's selection)."""
+    n_guesses = T_ref_from_query.shape[0]
+    R = np.empty((n_guesses, 3, 3))
+    t = np.empty((n_guesses, 3))
+    for g in range(n_guesses):
+        # R_query_from_ref = R_ref_from_query^T, t_query_from_ref = -R^T t_ref_from_query
+        for i in range(3):
+            for j in range(3):
+                R[g, i, j] = T_ref_from_query[g, j, i]
+        for i in range(3):
+            t[g, i] = -(
+                R[g, i, 0] * T_ref_from_query[g, 0, 3]
+                + R[g, i, 1] * T_ref_from_query[g, 1, 3]
+                + R[g, i, 2] * T_ref_from_query[g, 2, 3]
+            )
+    counts = np.empty(n_guesses, dtype=np.int64)
+    count_inliers(points_ref, pixels, R, t, fx, fy, cx, cy, threshold_px, counts)
+    best = 0
+    for g in range(1, n_guesses):
+        if counts[g] > counts[best]:
+            best = g
+    if n_guesses and counts[best] >= min_count:
+        inlier_errors(
+            points_ref, pixels, R[best], t[best], fx, fy, cx, cy, threshold_px, errors_px, inliers
+        )
+    return best, counts[best] if n_guesses else -1

@@ -236,22 +236,38 @@ def _refit(
     (R_query_from_ref (3, 3), t_query_from_ref (3,), final inlier mask, errors_px (M,)); R
     is None if a solver gave nothing finite.
     """
-    from monoloc.server.vision._pnp_kernel import refine_lm
+    from monoloc.server.vision._pnp_kernel import refine_rounds
 
     ok, rvec, tvec = cv2.solvePnP(points[mask], pixels[mask], K, None, flags=cv2.SOLVEPNP_SQPNP)
-    if not ok or not _finite(rvec, tvec):
+    if not ok or not math.isfinite(float(rvec.sum()) + float(tvec.sum())):
         return None, None, mask, np.full(len(mask), np.inf)
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3).astype(np.float64)
-    mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
-    if config.refine and np.count_nonzero(mask) >= _MIN_POINTS_FOR_SOLVER:
-        R, t, _ = refine_lm(
-            points, pixels, mask, _UNIT_WEIGHTS, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-            config.refine_iterations,
-        )  # fmt: skip
-        if not _finite(R, t):
-            return None, None, mask, errors_px
+    if not config.refine:
         mask, errors_px = _inliers(points, pixels, R, t, K, config.reprojection_error_px)
+        return R, t, mask, errors_px
+    # one round of refine_rounds is this refit's tail in one call: the selection, LM on
+    # it when it holds 6 or more (status 1: fewer, the SQPnP pose stays), the last
+    # selection (status 2: LM left the finite numbers)
+    errors_px = np.empty(len(points))
+    mask = np.empty(len(points), dtype=bool)
+    R, t, status = refine_rounds(
+        points, pixels, _NO_CANDIDATES, R, t, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+        config.reprojection_error_px, 1, config.refine_iterations, errors_px, mask,
+    )  # fmt: skip
+    if status == 2:
+        return None, None, mask, errors_px
     return R, t, mask, errors_px
+
+
+def _ref_from_query(R_query_from_ref: np.ndarray, t_query_from_ref: np.ndarray) -> np.ndarray:
+    """(4, 4) T_ref_from_query of the pose (R_query_from_ref (3, 3), t (3,)): the inverse
+    ``invert_rigid`` would give of the assembled T_query_from_ref, without assembling it."""
+    R_t = R_query_from_ref.T
+    T = np.empty((4, 4))
+    T[:3, :3] = R_t
+    T[:3, 3] = -R_t @ t_query_from_ref
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
 
 
 def ransac_iterations(n_points: int, config: PnpConfig) -> int:
@@ -300,10 +316,8 @@ def estimate_relative_pose(
         return _rejected(n_points, f"PnP failed: {str(exc).strip().splitlines()[-1]}")
     if R_query_from_ref is None:
         return _rejected(n_points, "PnP refit on the RANSAC inliers failed")
-    T_query_from_ref = np.eye(4)
-    T_query_from_ref[:3, :3] = R_query_from_ref
-    T_query_from_ref[:3, 3] = t_query_from_ref
-    return _judged(invert_rigid(T_query_from_ref), mask, errors_px, intrinsics, config)
+    T_ref_from_query = _ref_from_query(R_query_from_ref, t_query_from_ref)
+    return _judged(T_ref_from_query, mask, errors_px, intrinsics, config)
 
 
 def _checked_correspondences(
@@ -541,23 +555,12 @@ def refit_relative_pose(
         return _rejected(
             n_points, "the refit left too few inliers or finite numbers", method=method
         )
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return _judged(invert_rigid(T), mask, errors_px, intrinsics, config, method)
+    return _judged(_ref_from_query(R, t), mask, errors_px, intrinsics, config, method)
 
 
 def guided_min_inliers(n_points: int, config: PnpConfig) -> int:
     """The fewest inliers a guided pose must keep to stand without the entry's own RANSAC."""
     return max(config.min_inliers, math.ceil(config.guided_min_inlier_ratio * n_points))
-
-
-def _queries_from_refs(guesses_T_ref_from_query) -> tuple[np.ndarray, np.ndarray]:
-    """(G, 3, 3) R_query_from_ref and (G, 3) t_query_from_ref of G guesses (4, 4)
-    T_ref_from_query (a list or a (G, 4, 4) array), C-contiguous float64."""
-    T = np.asarray(guesses_T_ref_from_query, dtype=np.float64).reshape(-1, 4, 4)
-    R = np.ascontiguousarray(T[:, :3, :3].transpose(0, 2, 1))
-    t = np.ascontiguousarray(-(R @ T[:, :3, 3:])[:, :, 0])
-    return R, t
 
 
 def estimate_relative_pose_guided(
@@ -582,36 +585,32 @@ def estimate_relative_pose_guided(
     (``method`` "guided"). Either way the pose comes from this entry's own
     correspondences only.
     """
-    from monoloc.server.vision._pnp_kernel import count_inliers
+    from monoloc.server.vision._pnp_kernel import best_guess_inliers
 
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
     n_points = len(pixels)
     needed = guided_min_inliers(n_points, config)
     K = intrinsics.K
     best_count = -1
-    n_guesses = len(guesses_T_ref_from_query)
-    if n_guesses and n_points >= needed:
-        R_all, t_all = _queries_from_refs(guesses_T_ref_from_query)
-        counts = np.empty(n_guesses, dtype=np.int64)
-        count_inliers(
-            points, pixels, R_all, t_all, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-            config.reprojection_error_px, counts,
+    min_count = max(_MIN_POINTS_FOR_SOLVER, config.guided_refit_min_fraction * needed)
+    if len(guesses_T_ref_from_query) and n_points >= needed:
+        guesses = np.ascontiguousarray(guesses_T_ref_from_query, dtype=np.float64)
+        errors_px = np.empty(n_points)
+        mask = np.empty(n_points, dtype=bool)
+        _, best_count = best_guess_inliers(
+            points, pixels, guesses.reshape(-1, 4, 4), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+            config.reprojection_error_px, min_count, errors_px, mask,
         )  # fmt: skip
-        g = int(counts.argmax())
-        best_count = int(counts[g])
-    if best_count >= max(_MIN_POINTS_FOR_SOLVER, config.guided_refit_min_fraction * needed):
+    if best_count >= min_count:
         # The guess only chooses the consensus set, as RANSAC's best sample does: the pose
         # is then this entry's own (SQPnP on that set, re-selection, LM), so it does not
         # stay anchored to the guess along directions this entry constrains poorly.
-        mask, _ = _inliers(points, pixels, R_all[g], t_all[g], K, config.reprojection_error_px)
         try:
             R, t, mask, errors_px = _refit(points, pixels, mask, K, config)
         except cv2.error:
             R = None
         if R is not None and np.count_nonzero(mask) >= needed:
-            T_query_from_ref = np.eye(4)
-            T_query_from_ref[:3, :3], T_query_from_ref[:3, 3] = R, t
-            T_ref_from_query = invert_rigid(T_query_from_ref)
+            T_ref_from_query = _ref_from_query(R, t)
             judged = _judged(T_ref_from_query, mask, errors_px, intrinsics, config, "guided")
             if judged.accepted:
                 return judged
