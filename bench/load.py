@@ -16,9 +16,9 @@ are spread over the replicas as a load balancer would. The map is a sim city's m
    Over HTTP twice: vehicles that send every frame whatever the server answered
    (``http``), and vehicles that, like monoloc's client library, do not send the frames
    taken inside the ``Retry-After`` of a shed frame (``http-honours``; those count as
-   *held*, offered but not sent; the library's jitter on the wait included; and, as the
-   library, one request at a time: a frame taken while the previous one is unanswered is
-   not sent, *busy*).
+   *held*, offered but not sent; the library's own rule, ``FrameHold``: the jitter on the
+   wait, then back on the frame nearest it; and, as the library, one request at a time:
+   a frame taken while the previous one is unanswered is not sent, *busy*).
 
 3. **3x and 5x** (``--overloads 3 5``, issue 50): the same open-loop runs at more load
    (named ``http@3x``, ...), for the served share and how fast a shed frame is answered:
@@ -78,7 +78,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monoloc.client.api import jittered_wait_s
+from monoloc.client.localizer import FrameHold
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"
@@ -457,21 +457,22 @@ class VehicleLink:
         self.host, self.port = host, int(port)
         self.pool_timeout_s, self.timeout_s = pool_timeout_s, timeout_s
         # As monoloc's client library (client.localizer.HttpLocalizer): after a shed frame
-        # (503), the frames taken inside its Retry-After-Ms (else Retry-After), lengthened
-        # by the library's jitter (drawn from ``rng``, one per vehicle), are not sent
-        # (status HELD); and, as the library (one request at a time), a frame taken while
-        # the previous one is unanswered is not sent either (status BUSY).
+        # (503), the frames before the one nearest its Retry-After-Ms (else Retry-After),
+        # lengthened by the library's jitter (drawn from ``rng``, one per vehicle), are not
+        # sent (status HELD; the library's own rule, FrameHold); and, as the library (one
+        # request at a time), a frame taken while the previous one is unanswered is not
+        # sent either (status BUSY).
         self.honour_retry_after = honour_retry_after
         self._in_flight = 0
-        self._rng = np.random.default_rng(0) if rng is None else rng
-        self._hold_until = -math.inf
+        self._hold = FrameHold(np.random.default_rng(0) if rng is None else rng)
+        self.waits_s: list[float] = []  # the Retry-After of each shed frame (diagnostic)
         self._free: list[_Connection] = []
         self._slots = asyncio.Semaphore(max_connections)
 
     async def post(self, requests: FrameRequests, i: int) -> tuple[int, float, float]:
         """(status, seconds from the frame's send time to its answer, answer time)."""
         start = time.perf_counter()
-        if self.honour_retry_after and start < self._hold_until:
+        if self.honour_retry_after and not self._hold.send(start):
             return HELD, 0.0, start
         if self.honour_retry_after and self._in_flight:
             return BUSY, 0.0, start
@@ -504,8 +505,8 @@ class VehicleLink:
                     conn = _Connection(*await asyncio.open_connection(self.host, self.port))
                     status = await conn.exchange(requests.requests[i])
             if status == 503 and self.honour_retry_after:
-                wait_s = jittered_wait_s(conn.retry_after_s, self._rng)
-                self._hold_until = max(self._hold_until, start + wait_s)
+                self.waits_s.append(conn.retry_after_s)
+                self._hold.shed(start, conn.retry_after_s)
             if conn.reusable:
                 self._free.append(conn)
         except Exception:  # noqa: BLE001 - a timeout or reset counts as a failure
@@ -597,6 +598,7 @@ async def open_loop_http(
     results: list[tuple[int, float]] = []
     floor: list[tuple[int, float, float]] = []
     write_results: list[tuple[int, float]] = []
+    waits_s: list[float] = []
     period = 1.0 / rate_hz
     t0 = time.perf_counter() + 0.2
     stop_at = t0 + duration_s
@@ -622,6 +624,7 @@ async def open_loop_http(
             tasks.append(asyncio.ensure_future(post))
             k += 1
         results.extend(await asyncio.gather(*tasks))
+        waits_s.extend(link.waits_s)
         link.close()
 
     async def floor_vehicle() -> None:
@@ -644,6 +647,8 @@ async def open_loop_http(
         "answers": results,
         "writes": write_results,
         "floor": floor,
+        "waits_s": waits_s,
+        "period_s": period,
         "start": t0,
         "stop_at": stop_at,
     }
@@ -774,6 +779,26 @@ def burstiness(slices: list[dict]) -> dict:
     }
 
 
+def wait_stats(slices: list[dict]) -> dict:
+    """The waits the server gave honouring vehicles' shed frames (before their jitter),
+    against the frame period: a wait longer than one period holds at least one frame."""
+    waits = [w for sl in slices for w in sl.get("waits_s", ())]
+    if not waits:
+        return {
+            "retry_wait_ms_p50": None,
+            "retry_wait_ms_p90": None,
+            "retry_wait_ms_max": None,
+            "retry_wait_over_period_share": None,
+        }
+    period_s = slices[0]["period_s"]
+    return {
+        "retry_wait_ms_p50": pct(waits, 50) * 1e3,
+        "retry_wait_ms_p90": pct(waits, 90) * 1e3,
+        "retry_wait_ms_max": max(waits) * 1e3,
+        "retry_wait_over_period_share": sum(1 for w in waits if w > period_s) / len(waits),
+    }
+
+
 def summarise(slices: list[dict]) -> dict:
     """Open-loop slices pooled."""
     served = _served(slices)
@@ -810,6 +835,9 @@ def summarise(slices: list[dict]) -> dict:
         "writes_p99_s": pct(write_lat, 99),
         "slices_per_s": [len(_served([sl])) / _window_s([sl]) for sl in slices],
         **burstiness(slices),
+        **wait_stats(slices),
+        # perf_counter (CLOCK_MONOTONIC) windows of the slices, to line up server traces
+        "windows_s": [[sl["start"], sl["stop_at"]] for sl in slices],
     }
 
 
@@ -971,6 +999,13 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
                 f"{run['errors_5xx']}, no answer {run['failed_no_answer']}, memory "
                 f"+{v['memory_growth_mb']:.0f} MB"
                 + (f", writes p99 {run['writes_p99_s']:.2f} s" if run["writes"] else "")
+                + (
+                    f", waits given p50 {run['retry_wait_ms_p50']:.0f} / p90 "
+                    f"{run['retry_wait_ms_p90']:.0f} / max {run['retry_wait_ms_max']:.0f} ms "
+                    f"({100 * run['retry_wait_over_period_share']:.0f} % over a frame period)"
+                    if run["retry_wait_ms_p50"] is not None
+                    else ""
+                )
                 + f"; {cpu_text(run['cpu_cores'])}",
                 flush=True,
             )

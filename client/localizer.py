@@ -51,16 +51,49 @@ class ShedCounts:
     held: int = 0  # not sent: inside the server's Retry-After window after a shed frame
 
 
+class FrameHold:
+    """Which frames a vehicle sends after a shed one: it comes back on the frame nearest
+    the return the server asked for (``Retry-After-Ms`` from the shed frame's send time,
+    lengthened by up to ``RETRY_JITTER`` drawn from ``rng``), not the first one after it.
+
+    Why: a vehicle can only come back on a frame, and waiting for the first frame after
+    the return rounds every wait up to whole frame periods: a drain time a little over
+    one period cost a whole frame more per shed, frames the lane had room for
+    (docs/notebook/fleet-and-load.md, 2026-12-02). The nearest frame is at most half a
+    period early, against a wait that is the server's whole lane draining while a place
+    frees every service slot. The period is the interval between the last two frames."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+        self._return_s = -math.inf
+        self._last_frame_s: float | None = None
+        self._period_s = 0.0
+
+    def send(self, now_s: float) -> bool:
+        """Whether the frame taken at ``now_s`` (s, the vehicle's clock) is sent; call it
+        once per frame, sent or not."""
+        if self._last_frame_s is not None and now_s > self._last_frame_s:
+            self._period_s = now_s - self._last_frame_s
+        self._last_frame_s = now_s
+        # held only if the next frame is nearer the return than this one
+        return now_s >= self._return_s - 0.5 * self._period_s
+
+    def shed(self, sent_s: float, wait_s: float) -> None:
+        """The frame sent at ``sent_s`` was shed with a wait of ``wait_s`` (s)."""
+        self._return_s = max(self._return_s, sent_s + jittered_wait_s(wait_s, self._rng))
+
+
 class HttpLocalizer:
     """One HTTP request per frame against map ``map_id``.
 
     A frame is worth nothing once the next one is taken, so it is sent once (no retry). A
     frame the server sheds (503) comes back as a dropped answer (the filter predicts only),
     and the frames inside the server's ``Retry-After`` window are not sent at all (dropped
-    too): an overloaded server is given the time it asked for, and up to a quarter more
+    too): an overloaded server is given the time it asked for, up to a quarter more
     (``RETRY_JITTER``, drawn from ``rng``; pass one seeded per vehicle for a reproducible
-    drive), so that vehicles told the same wait do not all come back in the same
-    millisecond. ``counts`` keeps the tally. ``deadline_ms`` (X-Request-Deadline-Ms) tells
+    drive) so that vehicles told the same wait do not all come back in the same
+    millisecond, and the vehicle comes back on the frame nearest that time
+    (:class:`FrameHold`). ``counts`` keeps the tally. ``deadline_ms`` (X-Request-Deadline-Ms) tells
     the server when an answer is no longer worth computing; ``intrinsics``: the camera that
     took the frames, or ``camera_id`` its registered id (neither: the map's). Other errors
     raise (ServerError)."""
@@ -82,14 +115,13 @@ class HttpLocalizer:
         self.camera_id = camera_id
         self.counts = ShedCounts()
         self._clock = clock
-        self._rng = np.random.default_rng() if rng is None else rng
-        self._hold_until_s = -math.inf
+        self._hold = FrameHold(np.random.default_rng() if rng is None else rng)
 
     def localize(
         self, image: bytes, prior: RetrievalPrior | None = None, k: int | None = None
     ) -> LocalizeAnswer:
         now_s = self._clock()
-        if now_s < self._hold_until_s:
+        if not self._hold.send(now_s):
             self.counts.held += 1
             return _dropped("held")
         self.counts.sent += 1
@@ -108,7 +140,7 @@ class HttpLocalizer:
             if exc.status_code != 503:
                 raise
             self.counts.shed += 1
-            self._hold_until_s = now_s + jittered_wait_s(exc.retry_after_s or 0.0, self._rng)
+            self._hold.shed(now_s, exc.retry_after_s or 0.0)
             return _dropped("shed")
         self.counts.answered += 1
         return answer

@@ -117,6 +117,11 @@ class LaneConfig:
     # whether the body must be complete by the deadline (False: only the stall timeout
     # bounds the upload, e.g. a run archive that takes longer than any deadline to send)
     body_by_deadline: bool = True
+    # how far past the drain time the returns of shed requests are spread (s; at most
+    # RETURN_SPREAD_SLOTS service slots, math.inf: the slots alone). Half the frame period
+    # of a 10-Hz camera: a vehicle comes back on the frame nearest its wait, so a shed
+    # costs it at most one frame more than the drain time does (Lane.book_retry_ms)
+    return_spread_s: float = 0.05
 
 
 def lane_of(method: str, path: str) -> str | None:
@@ -284,19 +289,25 @@ class Lane:
     def book_retry_ms(self, now_s: float | None = None) -> int:
         """The wait to give one shed request (ms, 1 ms to 60 s), booking its return: the
         drain time for the first, then one service slot (service time / workers) later
-        for each next one shed before that return, up to ``RETURN_SPREAD_SLOTS`` slots
-        past the drain time, where the booking starts again at the drain time.
+        for each next one shed before that return, up to the lane's ``return_spread_s``
+        (at most ``RETURN_SPREAD_SLOTS`` slots) past the drain time, where the booking
+        starts again at the drain time.
 
-        Why: vehicles told the same wait all come back in the same few milliseconds, a
-        burst far above capacity (slow sheds, most of it shed again) and then nothing
-        while they wait (an idle lane). Returns one slot apart arrive at the rate the
-        lane serves. ``now_s``: monotonic time of the shed (default: now)."""
+        Why: clients told the same wait all come back in the same few milliseconds, a
+        burst far above capacity and then nothing while they wait (an idle lane); returns
+        one slot apart arrive at the rate the lane serves. Why bounded, for vehicles: they
+        come back on a frame (the one nearest the wait, ``client.localizer.FrameHold``),
+        so a return booked further out does not spread them more, it holds frames the
+        lane could have taken (booked over 60 slots, 1.2 s, the lane sat idle with places
+        free while the vehicles held, 2026-12-02). ``now_s``: monotonic time of the shed
+        (default: now)."""
         now_s = time.monotonic() if now_s is None else now_s
         slot_s = self._service_s / max(1, self.config.workers)
         first_s = now_s + self.capacity * slot_s
+        spread_s = min(RETURN_SPREAD_SLOTS * slot_s, self.config.return_spread_s)
         with self._return_lock:
             at_s = max(first_s, self._last_return_s + slot_s)
-            if at_s > first_s + (RETURN_SPREAD_SLOTS + 0.5) * slot_s:  # half: float sums
+            if at_s > first_s + spread_s + 0.5 * slot_s:  # half a slot: float sums
                 at_s = first_s
             self._last_return_s = at_s
         # the microsecond's rounding first: a sum of slots is not exact in floats
@@ -421,9 +432,9 @@ class Lane:
 
 
 # How far past the drain time shed requests' returns are spread, in service slots (at
-# capacity, the requests the lane serves in that time): deep enough for 60 vehicles
-# waiting their turn, shallow enough that vehicles honouring the wait are not sent away
-# for long by clients that do not (whose sheds book returns too).
+# capacity, the requests the lane serves in that time), whatever the lane's
+# ``return_spread_s``: clients that never wait keep booking returns, and the wrap keeps
+# the waits of those that do from growing to the 60-s cap.
 RETURN_SPREAD_SLOTS = 60
 
 

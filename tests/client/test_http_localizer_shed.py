@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from monoloc.client.api import RETRY_JITTER, MonolocClient, ServerError
-from monoloc.client.localizer import HttpLocalizer
+from monoloc.client.localizer import FrameHold, HttpLocalizer
 
 HYP = {
     "pose": {"x_m": 1.0, "y_m": 2.0, "yaw_rad": 0.1},
@@ -57,13 +57,14 @@ def test_a_shed_frame_is_dropped_once_and_the_retry_after_window_is_honoured():
         assert len(seen) == 1  # no retry of a stale frame, despite retries=3
         assert seen[0].headers["X-Request-Deadline-Ms"] == "150"
         held_frames = 0
-        while (at_s := 100.0 + 0.01 * (held_frames + 1)) < 100.0 + hold_s:
-            clock.now_s = at_s  # 100 Hz through the window: nothing is sent
+        # 100 Hz through the window: nothing is sent before the frame nearest its end
+        while (at_s := 100.0 + 0.01 * (held_frames + 1)) < 100.0 + hold_s - 0.005:
+            clock.now_s = at_s
             held = localizer.localize(b"png")
             assert held.dropped and held.raw["reason"] == "held"
             held_frames += 1
         assert len(seen) == 1 and held_frames >= 199  # never before the server's 2 s
-        clock.now_s = 100.0 + hold_s
+        clock.now_s = 100.0 + 0.01 * (held_frames + 1)  # within half a frame of the end
         answer = localizer.localize(b"png")
     assert not answer.dropped and len(answer.hypotheses) == 1 and answer.map_version == 4
     counts = localizer.counts
@@ -85,7 +86,7 @@ def test_the_millisecond_retry_after_is_honoured_before_the_whole_seconds():
     with MonolocClient("http://fake", "mlk_t", transport=httpx.MockTransport(handler)) as client:
         localizer = HttpLocalizer(client, 7, clock=clock)
         assert localizer.localize(b"png").raw["reason"] == "shed"
-        clock.now_s = 100.2  # inside the 250 ms
+        clock.now_s = 100.1  # at 10 Hz, inside the 250 ms and not the frame nearest them
         assert localizer.localize(b"png").raw["reason"] == "held"
         clock.now_s = 100.0 + 0.25 * (1 + RETRY_JITTER)  # past them and the jitter, though
         # inside the whole second
@@ -169,3 +170,53 @@ def test_the_client_reports_the_servers_retry_after_when_it_gives_up():
         client.localize(7, b"png", min_map_version=12)
     assert caught.value.status_code == 503 and caught.value.retry_after_s == 2.0
     assert len(seen) == 2 and seen[0].headers["X-Min-Map-Version"] == "12"
+
+
+def _frames_sent_after_a_shed(wait_ms: int, seed: int) -> list[int]:
+    """A 10-Hz vehicle whose first frame (at 100.0 s) is shed with ``wait_ms``: the
+    frames (1, 2, ...) it sends over the next 0.5 s, every one answered."""
+    clock, seen = FakeClock(), []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(clock.now_s)
+        if len(seen) == 1:
+            body = {"error": {"code": "overloaded", "message": "at capacity"}}
+            return httpx.Response(503, json=body, headers={"Retry-After-Ms": str(wait_ms)})
+        return httpx.Response(200, json={"hypotheses": [HYP], "map_version": 4})
+
+    with MonolocClient("http://fake", "mlk_t", transport=httpx.MockTransport(handler)) as client:
+        vehicle = HttpLocalizer(client, 7, clock=clock, rng=np.random.default_rng(seed))
+        sent = []
+        for frame in range(6):
+            clock.now_s = 100.0 + 0.1 * frame
+            if not vehicle.localize(b"png").dropped:
+                sent.append(frame)
+    assert vehicle.counts.shed == 1 and vehicle.counts.held == 5 - len(sent)
+    return sent
+
+
+def test_a_10_hz_vehicle_comes_back_on_the_frame_nearest_the_wait():
+    """Told 110 ms (a lane's drain time a little over one frame period), the vehicle
+    sends its very next frame, 10-38 ms before the wait with its jitter is over, instead
+    of holding it and coming back 90 ms late; told 160 or 260 ms, it holds one or two
+    frames, and the frame it comes back on is never more than half a period early."""
+    for seed in range(8):  # jitter draws across [0, 1)
+        assert _frames_sent_after_a_shed(110, seed) == [1, 2, 3, 4, 5]
+        assert _frames_sent_after_a_shed(160, seed) == [2, 3, 4, 5]
+        assert _frames_sent_after_a_shed(260, seed) == [3, 4, 5]
+
+
+def test_the_frame_hold_takes_the_vehicles_own_frame_period():
+    """FrameHold's rule on its own: a frame is held while the next one is nearer the
+    return (shed at 10.0 s, wait 0.4 s lengthened by the rng's jitter), the period being
+    the last interval between frames: at 20, 10 and 5 Hz the vehicle comes back within
+    half its own period of the return, and sends every frame after."""
+    return_s = 10.0 + 0.4 * (1.0 + RETRY_JITTER * np.random.default_rng(5).random())
+    for period_s in (0.05, 0.1, 0.2):
+        hold = FrameHold(np.random.default_rng(5))
+        assert hold.send(10.0 - period_s) and hold.send(10.0)
+        hold.shed(10.0, 0.4)
+        frames_s = [10.0 + period_s * k for k in range(1, 20)]
+        first_s = next(t for t in frames_s if hold.send(t))
+        assert all(hold.send(t) for t in frames_s if t > first_s)  # the hold is over
+        assert return_s - period_s / 2 <= first_s < return_s + period_s / 2, period_s

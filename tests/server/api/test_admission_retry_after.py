@@ -1,18 +1,39 @@
 """The waits a full lane gives the requests it sheds: not one drain time for all (the
 vehicles would come back together, a burst far above capacity, then leave the lane idle)
-but returns booked one service slot apart, bounded, over the real app too."""
+but returns booked one service slot apart, bounded (by the lane's return_spread_s, at
+most RETURN_SPREAD_SLOTS slots), over the real app too."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 
 from monoloc.server.api.admission import RETURN_SPREAD_SLOTS, Lane, LaneConfig
 
 
-def _lane(workers: int = 2, queue_depth: int = 2) -> Lane:
-    lane = Lane("localize", LaneConfig(workers, queue_depth, default_deadline_ms=1000))
-    lane._service_s = 0.040  # one computation 40 ms: a slot of 20 ms over 2 workers
+def _lane(workers: int = 2, queue_depth: int = 2, return_spread_s: float = math.inf) -> Lane:
+    """A lane with 40-ms computations (a slot of 20 ms over 2 workers); by default its
+    returns spread over the slots alone (RETURN_SPREAD_SLOTS), not a time."""
+    config = LaneConfig(workers, queue_depth, 1000, return_spread_s=return_spread_s)
+    lane = Lane("localize", config)
+    lane._service_s = 0.040
     return lane
+
+
+def test_the_default_spread_is_half_a_10_hz_frame_period():
+    """Vehicles come back on a frame (the nearest to their wait): returns booked past half
+    a frame period would hold frames the lane could take. With 20-ms slots the waits
+    run from the drain time (80 ms) to 50 ms past it, then start again."""
+    lane = Lane("localize", LaneConfig(2, 2, default_deadline_ms=1000))
+    lane._service_s = 0.040
+    assert lane.config.return_spread_s == 0.05
+    waits = [lane.book_retry_ms(now_s=50.0) for _ in range(9)]
+    assert waits == [80, 100, 120, 80, 100, 120, 80, 100, 120]
+    # a slower lane (50-ms slots): the spread holds one slot, never more than 50 ms
+    lane._service_s = 0.100
+    waits = [lane.book_retry_ms(now_s=60.0) for _ in range(4)]
+    assert waits == [200, 250, 200, 250]
 
 
 def test_requests_shed_in_one_moment_are_given_returns_one_slot_apart():
@@ -62,6 +83,8 @@ def test_the_apps_shed_answers_carry_spread_waits(fresh):
     client, keys = fresh
     lane = client.app.state.monoloc.admission.lanes["localize"]
     lane._service_s = 1.0  # a slot of 0.5 s: far longer than a request takes here
+    # slots that long are past the default 50-ms spread: spread over the slots alone
+    lane.config = dataclasses.replace(lane.config, return_spread_s=math.inf)
     for _ in range(lane.capacity):
         assert lane.try_enter()
     try:
