@@ -30,7 +30,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterable, Sequence, Sized
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -74,6 +74,13 @@ from monoloc.server.vision.vocabulary import Vocabulary
 MIN_GOOD_HYPOTHESES = 10
 _NO_COVARIANCE = np.full((3, 3), np.nan)
 ERROR_CONVENTION = "e = truth - hypothesis, (X m, Y m, psi rad), psi wrapped to (-pi, pi]"
+# How a fitted pose-error bias mu1 is kept (docs/notebook/transfer.md, 2026-12-02, h6):
+# "none" as fitted; "james_stein" shrunk toward 0 by positive-part James-Stein on its
+# standard error; "significance_gate" kept whole only beyond the chi-square(3) 95 %
+# quantile, else 0
+BiasShrinkage = Literal["none", "james_stein", "significance_gate"]
+# chi-square(3) quantile at 0.95: a whole-vector bias test at the 5 % level
+CHI2_3_95 = 7.814727903251178
 
 
 @dataclass(frozen=True)
@@ -108,6 +115,9 @@ class CalibrationConfig:
     # fitted; tail_weight 0 stores the paper's single Gaussian
     tail_weight: float = PAPER_TAIL_WEIGHT
     tail_scale: float = PAPER_TAIL_SCALE
+    # the fitted biases (the paper term's and the PnP term's mu1) kept as fitted, or
+    # shrunk toward 0 as far as they are not significant (:func:`shrunk_bias`)
+    bias_shrinkage: BiasShrinkage = "none"
 
     def __post_init__(self) -> None:
         if self.k < 1 or self.map_every < 2:
@@ -389,6 +399,8 @@ def fit_samples(
             f"{MIN_GOOD_HYPOTHESES} hypotheses with a pose covariance (the pose stage must "
             "give them)"
         )
+    if config.bias_shrinkage != "none":
+        paper, pnp = _shrunk_biases(errors[~joint], paper, pnp, config.bias_shrinkage)
     if config.retrieval_frame == "vehicle":
         paper, pnp = _isotropic_pose_spread(paper, pnp)
     relative = np.array(samples.e_vlad)[~joint] - np.array(samples.e_vlad_best)[~joint]
@@ -405,6 +417,57 @@ def fit_samples(
     if len(names) > 1:
         provenance["runs"] = [{"source": n, **c} for n, c in zip(names, per_run, strict=True)]
     return CalibrationResult(model, provenance)
+
+
+def bias_z_squared(mean: np.ndarray, standard_error_cov: np.ndarray) -> float:
+    """mu^T SE^-1 mu: the squared Mahalanobis length of a mean (D,) under its standard
+    error covariance (D, D) (the samples' covariance / n)."""
+    mean = np.asarray(mean, dtype=np.float64)
+    return float(mean @ np.linalg.solve(np.asarray(standard_error_cov, np.float64), mean))
+
+
+def shrunk_bias(
+    mean: np.ndarray, standard_error_cov: np.ndarray, method: BiasShrinkage = "james_stein"
+) -> np.ndarray:
+    """A fitted bias (D,) kept only as far as it is significant, its direction unchanged.
+
+    ``standard_error_cov`` (D, D) is the mean's standard error covariance (the samples'
+    covariance / n). "james_stein": positive-part James-Stein toward 0,
+    max(0, 1 - (D - 2) / z^2) mu with z^2 = mu^T SE^-1 mu (D >= 3); "significance_gate":
+    mu if z^2 > the chi-square(3) 95 % quantile, else 0 (D = 3); "none": mu.
+    """
+    mean = np.asarray(mean, dtype=np.float64)
+    if method == "none":
+        return mean.copy()
+    z2 = bias_z_squared(mean, standard_error_cov)
+    if method == "james_stein":
+        if len(mean) < 3:
+            raise InvalidInputError(f"James-Stein shrinkage needs D >= 3, got {len(mean)}")
+        factor = max(0.0, 1.0 - (len(mean) - 2) / z2) if z2 > 0 else 0.0
+        return factor * mean
+    if method == "significance_gate":
+        if len(mean) != 3:
+            raise InvalidInputError(f"the chi-square(3) gate needs D = 3, got {len(mean)}")
+        return mean.copy() if z2 > CHI2_3_95 else np.zeros_like(mean)
+    raise InvalidInputError(f"unknown bias shrinkage {method!r}")
+
+
+def bias_standard_error(errors: np.ndarray) -> np.ndarray:
+    """The standard error covariance (3, 3) of the mean of pose errors (N, 3): their
+    unbiased covariance / N (the per-entry samples are close to independent here:
+    docs/notebook/transfer.md, 2026-12-02, h5)."""
+    errors = np.asarray(errors, dtype=np.float64)
+    return np.cov(errors, rowvar=False) / len(errors)
+
+
+def _shrunk_biases(errors: np.ndarray, paper: MeasurementModel, pnp, method: BiasShrinkage):
+    """The paper term's and the PnP term's mu1 shrunk by :func:`shrunk_bias`, both on the
+    standard error of the per-entry errors' mean (N, 3) they were fitted on."""
+    se = bias_standard_error(errors)
+    paper = dataclasses.replace(paper, mu1=shrunk_bias(paper.mu1, se, method))
+    if pnp is not None:
+        pnp = dataclasses.replace(pnp, mu1=shrunk_bias(pnp.mu1, se, method))
+    return paper, pnp
 
 
 def _isotropic_position(cov: np.ndarray) -> np.ndarray:
