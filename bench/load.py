@@ -66,6 +66,7 @@ import json
 import math
 import os
 import platform
+import re
 import shutil
 import socket
 import subprocess
@@ -157,6 +158,62 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+NGINX = shutil.which("nginx") or "/usr/sbin/nginx"
+
+
+def front_config(upstreams: list[str], port: int, limit: int, work: Path) -> str:
+    """docker/nginx.conf made to run here: its replicas the ``upstreams``, listening on
+    loopback ``port``, at most ``limit`` frames inside its localize admission
+    (``limit_conn localize``), pid, logs and temp files under ``work``."""
+    text = (ROOT / "docker" / "nginx.conf").read_text()
+    servers = [m for m in re.finditer(r"^( +)server monoloc-\d+:8000[^\n]*\n", text, re.M)]
+    lines = "".join(
+        f"{servers[0].group(1)}server {u.removeprefix('http://')};\n" for u in upstreams
+    )
+    text = text[: servers[0].start()] + lines + text[servers[-1].end() :]
+    text = text.replace("listen 80;", f"listen 127.0.0.1:{port};")
+    text, n = re.subn(r"limit_conn localize \d+;", f"limit_conn localize {limit};", text)
+    if n != 1:
+        raise SystemExit("error: docker/nginx.conf has no `limit_conn localize N;`")
+    text = text.replace("access_log /dev/stdout upstream;", "access_log off;")
+    temp = "\n".join(
+        f"    {kind}_temp_path {work}/{kind};"
+        for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
+    )
+    text = text.replace("http {\n", "http {\n" + temp + "\n", 1)
+    user = "user root;\n" if os.geteuid() == 0 else ""
+    return f"{user}pid {work}/nginx.pid;\nerror_log {work}/error.log;\ndaemon off;\n" + text
+
+
+@contextmanager
+def nginx_front(upstreams: list[str], limit: int, work: Path):
+    """An nginx process in front of the replicas (:func:`front_config`); yields (its url,
+    its pids: master and worker, counted as the server's cores)."""
+    work.mkdir(parents=True, exist_ok=True)
+    port = free_port()
+    conf = work / "nginx.conf"
+    conf.write_text(front_config(upstreams, port, limit, work))
+    proc = subprocess.Popen([NGINX, "-c", str(conf), "-p", str(work)])
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 10.0
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.2).close()
+                break
+            except OSError as exc:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise SystemExit(
+                        f"error: nginx did not start: {(work / 'error.log').read_text()}"
+                    ) from exc
+                time.sleep(0.05)
+        children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        yield url, [proc.pid, *map(int, children)]
+    finally:
+        proc.terminate()
+        proc.wait(10)
 
 
 def rss_mb(pid: int) -> float:
@@ -894,6 +951,16 @@ def cpu_text(cores: dict) -> str:
     )
 
 
+def front(args, urls: list[str], data_dir: Path):
+    """``--front nginx``: docker/nginx.conf before the replicas, its localize admission at
+    ``--front-limit`` frames per replica (default workers + the replicas' queue depth, 2);
+    else nothing (the vehicles talk to the replicas)."""
+    if args.front != "nginx":
+        return nullcontext((None, []))
+    per_replica = args.front_limit or args.workers + 2
+    return nginx_front(urls, per_replica * len(urls), data_dir / "nginx")
+
+
 def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> dict:
     import httpx
 
@@ -908,6 +975,7 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
             pids,
         ),
         floor_server() as floor_url,
+        front(args, urls, data_dir) as (front_url, front_pids),
     ):
         map_id = ingest_map(urls[0], dataset)
         entries = [
@@ -918,6 +986,8 @@ def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> 
                 timeout=30,
             ).json()["items"]
         ]
+        if front_url:  # every frame, write and capacity client through nginx, as many as before
+            urls, pids = [front_url] * n_replicas, [*pids, *front_pids]
         # warm caches and kernels, at full concurrency
         asyncio.run(closed_loop(urls, map_id, frames, 2 * args.workers, 5.0))
         time.sleep(2.0)
@@ -1075,6 +1145,19 @@ def main() -> None:
     )
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument(
+        "--front",
+        default="none",
+        choices=["none", "nginx"],
+        help="nginx (docker/nginx.conf, on loopback) in front of the replicas: its localize "
+        "admission sheds in C",
+    )
+    parser.add_argument(
+        "--front-limit",
+        type=int,
+        default=0,
+        help="frames nginx lets in per replica (0: --workers + 2, the replicas' lane size)",
+    )
+    parser.add_argument(
         "--overloads",
         type=float,
         nargs="+",
@@ -1126,7 +1209,14 @@ def main() -> None:
         "duration_s": args.duration,
         "slices": args.slices,
         "deadline_ms": DEADLINE_MS,
-        "server": {"http": args.http, "loop": args.loop},
+        "server": {
+            "http": args.http,
+            "loop": args.loop,
+            "front": args.front,
+            "front_limit_per_replica": (args.front_limit or args.workers + 2)
+            if args.front == "nginx"
+            else None,
+        },
         "goals": GOALS,
         "results": results,
     }

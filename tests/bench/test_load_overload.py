@@ -65,3 +65,22 @@ def test_an_honouring_vehicle_sends_one_frame_at_a_time_as_the_library_does():
 
     assert asyncio.run(run(True)) == [200, load.BUSY, 200]
     assert asyncio.run(run(False)) == [200, 200, 200]
+
+
+def test_the_nginx_front_runs_docker_nginx_conf_before_the_upstreams(tmp_path):
+    """``--front nginx``: docker/nginx.conf made to run before given upstreams (each named
+    once, the admission's limit set) starts, and the generator's frames pass through it
+    to the floor server (which answers each 503) with no failure; nginx's own shedding is
+    tests/fleet/test_replicas.py's."""
+    with load.floor_server() as floor_url:
+        text = load.front_config([floor_url, floor_url], 8080, 3, tmp_path)
+        assert "limit_conn localize 3;" in text and text.count(floor_url[7:]) == 2
+        assert "monoloc-1" not in text and "listen 127.0.0.1:8080;" in text
+        with load.nginx_front([floor_url], 1, tmp_path / "nginx") as (front_url, pids):
+            assert len(pids) >= 2  # master and worker, counted as the server's
+            phase = load.open_loop_http(
+                [front_url], 1, [b"\x89PNG\r\n\x1a\n" + bytes(100_000)], 8, 20.0, 1.0, False, []
+            )
+            run = load.summarise([asyncio.run(phase)])
+    assert run["failed_no_answer"] == 0 and run["errors_5xx"] == 0
+    assert run["shed"] == run["offered"] > 100

@@ -6,8 +6,11 @@ docker/nginx.conf front (on loopback) spreads frames over both replicas."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import signal
+import socket
 import threading
 import time
 
@@ -189,7 +192,10 @@ def _wait_for_progress(engine, job_id: int, timeout_s: float = 60.0) -> str:
     raise AssertionError("the ingestion made no progress")
 
 
-def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_path):
+@contextlib.contextmanager
+def _nginx_front(fleet, tmp_path, localize_limit: int | None = None):
+    """docker/nginx.conf on loopback before the fleet's replicas (its localize admission
+    at ``localize_limit`` frames when given); yields its url."""
     import subprocess
 
     nginx = find_nginx()
@@ -199,6 +205,12 @@ def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_pat
         (tmp_path / kind).mkdir()
     port = free_port()
     conf = loopback_nginx_conf(tmp_path, [r.port for r in fleet.replicas], port)
+    if localize_limit is not None:
+        text, n = re.subn(
+            r"limit_conn localize \d+;", f"limit_conn localize {localize_limit};", conf.read_text()
+        )
+        assert n == 1
+        conf.write_text(text)
     subprocess.run([nginx, "-p", str(tmp_path), "-c", str(conf)], check=True)
     try:
         front = f"http://127.0.0.1:{port}"
@@ -211,19 +223,71 @@ def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_pat
                 pass
             assert time.monotonic() < deadline, (tmp_path / "error.log").read_text()
             time.sleep(0.05)
-        with httpx.Client(timeout=30) as client:
-            for _ in range(8):
-                r = client.post(
-                    f"{front}/v1/maps/{fleet.map_id}/localize",
-                    files={"image": ("f.png", _frame(street, "01", FRAME), "image/png")},
-                    headers=fleet.headers("localize"),
-                )
-                assert r.status_code == 200, r.text
+        yield front
     finally:
         subprocess.run([nginx, "-p", str(tmp_path), "-c", str(conf), "-s", "quit"], check=False)
+
+
+def test_nginx_in_front_spreads_frames_over_both_replicas(fleet, street, tmp_path):
+    with _nginx_front(fleet, tmp_path) as front, httpx.Client(timeout=30) as client:
+        for _ in range(8):
+            r = client.post(
+                f"{front}/v1/maps/{fleet.map_id}/localize",
+                files={"image": ("f.png", _frame(street, "01", FRAME), "image/png")},
+                headers=fleet.headers("localize"),
+            )
+            assert r.status_code == 200, r.text
     log = (tmp_path / "access.log").read_text()
     for replica in fleet.replicas:
         assert f"upstream=127.0.0.1:{replica.port}" in log, log
+
+
+def test_nginx_sheds_a_frame_beyond_its_localize_admission_before_any_replica(
+    fleet, street, tmp_path
+):
+    """With one frame inside (its body still arriving), the next is answered 503 by nginx
+    itself, in the replicas' error shape with Retry-After / Retry-After-Ms, and never
+    proxied; once the first leaves, frames pass again."""
+    path = f"/v1/maps/{fleet.map_id}/localize"
+    with _nginx_front(fleet, tmp_path, localize_limit=1) as front:
+        port = int(front.rsplit(":", 1)[1])
+        held = socket.create_connection(("127.0.0.1", port), timeout=10)
+        try:
+            key = fleet.headers("localize")["X-API-Key"]
+            held.sendall(
+                f"POST {path} HTTP/1.1\r\nHost: x\r\nX-API-Key: {key}\r\n"
+                "Content-Type: multipart/form-data; boundary=b\r\n"
+                "Content-Length: 100000\r\n\r\n--b\r\n".encode()
+            )
+            time.sleep(0.3)  # nginx has read its header: the slot is taken
+            start = time.perf_counter()
+            r = httpx.post(
+                f"{front}{path}",
+                files={"image": ("f.png", _frame(street, "01", FRAME), "image/png")},
+                headers=fleet.headers("localize"),
+                timeout=10,
+            )
+            elapsed_s = time.perf_counter() - start
+        finally:
+            held.close()
+        assert r.status_code == 503, r.text
+        assert r.json()["error"]["code"] == "overloaded"
+        assert r.headers["retry-after"] == "1" and int(r.headers["retry-after-ms"]) > 0
+        assert elapsed_s < 2.0  # answered at once, not after the held frame
+        deadline = time.monotonic() + 10
+        while True:  # nginx sees the held connection's close and frees its slot
+            r = httpx.post(
+                f"{front}{path}",
+                files={"image": ("f.png", _frame(street, "01", FRAME), "image/png")},
+                headers=fleet.headers("localize"),
+                timeout=30,
+            )
+            if r.status_code == 200 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        assert r.status_code == 200, r.text
+    shed = [line for line in (tmp_path / "access.log").read_text().splitlines() if " 503 " in line]
+    assert len(shed) == 1 and "upstream=-" in shed[0], shed
 
 
 def _vehicles(fleet, replica) -> list[dict]:
