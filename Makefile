@@ -53,7 +53,7 @@ system-deps:
 # 9 minutes instead of 13. `make test TEST_WORKERS=0` runs the suite in one process.
 TEST_WORKERS ?= 2
 test: install lint chromium system-deps
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 # The storage and ingestion suites against PostgreSQL: a fresh database per test on the
 # server of MONOLOC_TEST_POSTGRES_URL (its user must be allowed to create databases).
@@ -80,6 +80,8 @@ bench: install
 	$(PY) -m bench.closed_loop --scenario urban
 	$(PY) -m bench.load --replicas 1 --runs http http-honours --overloads 3 5 \
 	  --duration 12 --slices 2 --out bench/results/load_overload.json
+	$(PY) -m bench.load --replicas 1 --runs http http-honours --overloads 3 5 --front nginx \
+	  --duration 12 --slices 2 --out bench/results/load_overload_nginx.json
 	$(PY) -m bench.report
 
 clean:

@@ -946,6 +946,36 @@ def load_headline(data: dict | None) -> Headline:
     )
 
 
+def overload_headline(data: dict | None, name: str) -> Headline:
+    """Issue 50's overload (bench/load.py --overloads 3 5): the share of the capacity
+    served at the highest and lowest offered multiple and the share of shed frames
+    answered within 50 ms, over every run (vehicles sending every frame or honouring
+    Retry-After); ``name`` the results file (with or without nginx in front)."""
+    front = (data or {}).get("server", {}).get("front") or (
+        "nginx" if name.endswith("_nginx") else "none"
+    )
+    figure = (
+        "Overload at 3x / 5x capacity, share served and shed answered within 50 ms "
+        f"(`python -m bench.load --overloads 3 5{' --front nginx' if front == 'nginx' else ''}`"
+        f"{', nginx in front' if front == 'nginx' else ', one bare replica'})"
+    )
+    if data is None or not data.get("results"):
+        return _not_run(figure, name)
+    served, within, ok = [], [], True
+    for setup in data["results"]:
+        for run in setup["runs"].values():
+            served.append(run["verdicts"]["served_share"])
+            within.append(run["shed_within_50ms"] if run["shed"] else 1.0)
+    ok = min(served) >= 0.9 and min(within) >= 0.99
+    return Headline(
+        figure,
+        f"served {100 * min(served):.0f}-{100 * max(served):.0f} %, shed within 50 ms "
+        f"{100 * min(within):.1f}-{100 * max(within):.1f} %",
+        f">= 90 %, every shed within 50 ms (99 %): {_verdict(ok)}",
+        name,
+    )
+
+
 def fleet_camera_headline(data: dict | None) -> Headline:
     """A fleet car's camera (issue 48) against the mapping camera's lap on the same street
     (bench/accuracy.py --scenario fleet)."""
@@ -996,6 +1026,8 @@ def headline_rows(results: Path = RESULTS) -> list[Headline]:
         retrieval_headline(load("retrieval", results)),
         index_memory_headline(load("footprint", results)),
         load_headline(load("load", results)),
+        overload_headline(load("load_overload", results), "load_overload"),
+        overload_headline(load("load_overload_nginx", results), "load_overload_nginx"),
     ]
 
 

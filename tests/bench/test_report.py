@@ -144,3 +144,20 @@ def test_the_fleet_camera_rows_read_their_results_and_say_a_missed_goal(tmp_path
     assert rows["accuracy_fleet"].goal == "<= 1.5x: **missed**"
     assert rows["lens"].value == "1.020x (20.4 vs 20.0 ms)"
     assert rows["lens"].goal == "<= 1.1x: met"
+
+
+def test_the_overload_row_is_met_only_when_every_run_serves_90_percent_and_sheds_in_time():
+    def result(shares, within, front):
+        runs = {
+            f"http@{k}x": {"verdicts": {"served_share": v}, "shed": 10, "shed_within_50ms": w}
+            for k, (v, w) in enumerate(zip(shares, within, strict=True))
+        }
+        return {"server": {"front": front}, "results": [{"runs": runs}]}
+
+    met = report.overload_headline(result([0.93, 0.97], [1.0, 0.995], "nginx"), "x_nginx")
+    assert "--front nginx" in met.figure and met.goal.endswith(": met")
+    assert met.value == "served 93-97 %, shed within 50 ms 99.5-100.0 %"
+    low = report.overload_headline(result([0.84, 0.97], [1.0, 1.0], "none"), "x")
+    slow = report.overload_headline(result([0.95, 0.97], [1.0, 0.9], "none"), "x")
+    assert "missed" in low.goal and "missed" in slow.goal and "bare replica" in low.figure
+    assert report.overload_headline(None, "load_overload_nginx").value == "not run"
