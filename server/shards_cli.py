@@ -20,15 +20,38 @@ shards_app = typer.Typer(
 TablePath = Annotated[Path, typer.Argument(help="the tile table (JSON, monoloc.core.tiles)")]
 
 
-def render_nginx_config(table: TileTable, listen: str = "80") -> str:
+LOCALIZE_SLOTS_PER_REPLICA = 4  # a replica's localize lane: 2 worker threads + 2 queued
+
+
+def render_nginx_config(
+    table: TileTable, listen: str = "80", localize_slots: int = LOCALIZE_SLOTS_PER_REPLICA
+) -> str:
     """nginx's config routing each request on its ``X-Monoloc-Tile`` header to the
     upstream of the tile's group (``map``), least connections over the group's replicas;
     a localize is retried once on the group's other replica when one is down or sheds it
     (it has no side effects), other requests only when the replica could not be reached.
-    A request naming no served tile gets a 400 with a JSON message."""
+    A request naming no served tile gets a 400 with a JSON message. Each group's frames
+    pass an admission of their own (``limit_conn``: its replicas x ``localize_slots``
+    inside, the next answered 503 by nginx with Retry-After, as docker/nginx.conf)."""
     missing = sorted(name for name, group in table.groups.items() if not group.replicas)
     if missing:
         raise InvalidInputError(f"the router needs the replicas of groups {', '.join(missing)}")
+    if localize_slots < 1:
+        raise InvalidInputError(f"localize slots per replica must be >= 1, not {localize_slots}")
+    groups = sorted(table.groups.items())
+    # one zone per group, keyed by a variable set only for that group's frames (nginx does
+    # not count a request whose key is empty)
+    admission_zones = "\n".join(
+        f"    map $shard_upstream $localize_group_{k} {{\n        shard_{name} 1;\n"
+        f'        default "";\n    }}\n'
+        f"    limit_conn_zone $localize_group_{k} zone=localize_group_{k}:1m;"
+        for k, (name, _) in enumerate(groups)
+    )
+    admission_limits = "\n".join(
+        f"            limit_conn localize_group_{k} {len(group.replicas) * localize_slots};"
+        f"  # {name}"
+        for k, (name, group) in enumerate(groups)
+    )
     tiles = "\n".join(
         f'        "{tile}" shard_{group};' for tile, group in sorted(table.tiles.items())
     )
@@ -47,18 +70,26 @@ def render_nginx_config(table: TileTable, listen: str = "80") -> str:
         upstreams=upstreams,
         listen=listen,
         unknown_tile=_UNKNOWN_TILE,
+        admission_zones=admission_zones,
+        admission_limits=admission_limits,
+        shed=_SHED,
     )
 
 
 _UNKNOWN_TILE = (
     '{"error": {"code": "unknown_tile", "message": "X-Monoloc-Tile names no tile of this map"}}'
 )
+_SHED = (
+    '{"error": {"code": "overloaded", "message": "the localize lane of every replica of the '
+    'group of the tile is full (nginx admission); retry after Retry-After-Ms"}}'
+)
 _NGINX_TEMPLATE = """\
 # nginx in front of the shard groups of map '{map_name}' (tiles of {size} m), written by
 # `monoloc shards nginx-config` from the tile table: each request goes to the group of
 # the tile its X-Monoloc-Tile header names (the vehicle's ShardedLocalizer sends it), least
 # connections over the group's replicas. A localize is free of side effects: it is tried
-# once more on the group's other replica when one is down or sheds it.
+# once more on the group's other replica when one is down or sheds it. Frames beyond what
+# a group's replicas hold are answered 503 here, in C, before any replica sees them.
 worker_processes auto;
 
 events {{
@@ -78,6 +109,11 @@ http {{
 
 {upstreams}
 
+    # localize admission per group: its replicas x their lane (workers + queue depth)
+{admission_zones}
+    limit_conn_status 503;
+    limit_conn_log_level info;
+
     server {{
         listen {listen};
         client_max_body_size 4g;
@@ -96,10 +132,19 @@ http {{
         }}
 
         location ~ ^/v1/maps/[^/]+/localize$ {{
+{admission_limits}
+            error_page 503 = @shed;
             proxy_pass http://$shard_upstream;
             proxy_next_upstream error timeout http_503 non_idempotent;
             proxy_next_upstream_tries 2;
             client_max_body_size 64m;
+            client_body_buffer_size 1m;
+        }}
+
+        location @shed {{
+            add_header Retry-After 1 always;
+            add_header Retry-After-Ms 50 always;
+            return 503 '{shed}';
         }}
 
         location / {{
@@ -122,11 +167,18 @@ def nginx_config(
     table_path: TablePath,
     out: Annotated[Path | None, typer.Option(help="write here (default: print)")] = None,
     listen: Annotated[str, typer.Option(help="nginx's listen address")] = "80",
+    localize_slots: Annotated[
+        int,
+        typer.Option(
+            help="frames a replica holds (its worker threads + localize queue depth): the "
+            "router lets in a group's replicas times this, and answers the next 503"
+        ),
+    ] = LOCALIZE_SLOTS_PER_REPLICA,
 ) -> None:
     """Write the router's nginx config for the tile table's groups and replicas."""
     from monoloc.core.tiles import read_tile_table
 
-    text = render_nginx_config(read_tile_table(table_path), listen)
+    text = render_nginx_config(read_tile_table(table_path), listen, localize_slots)
     if out is None:
         typer.echo(text, nl=False)
     else:

@@ -70,9 +70,12 @@ class SplitStreet:
         return len(frames)
 
 
-def start_router(tmp: Path, table: TileTable, listen_port: int) -> subprocess.Popen:
+def start_router(
+    tmp: Path, table: TileTable, listen_port: int, localize_slots: int = 4
+) -> subprocess.Popen:
     """nginx in the foreground on 127.0.0.1:``listen_port`` with the config
-    `monoloc shards nginx-config` writes for ``table`` (its paths under ``tmp``)."""
+    `monoloc shards nginx-config --localize-slots N` writes for ``table`` (its paths
+    under ``tmp``)."""
     from fleet_helpers import find_nginx
 
     from monoloc.server.shards_cli import render_nginx_config
@@ -80,7 +83,9 @@ def start_router(tmp: Path, table: TileTable, listen_port: int) -> subprocess.Po
     nginx = find_nginx()
     if nginx is None:
         pytest.fail("nginx is not installed (make system-deps installs Debian's nginx-light)")
-    conf = loopback_conf(tmp, render_nginx_config(table, f"127.0.0.1:{listen_port}"))
+    conf = loopback_conf(
+        tmp, render_nginx_config(table, f"127.0.0.1:{listen_port}", localize_slots)
+    )
     process = subprocess.Popen(
         [nginx, "-p", str(tmp), "-c", str(conf), "-g", "daemon off;"],
         stdout=subprocess.DEVNULL,

@@ -9,8 +9,10 @@ accepts it."""
 from __future__ import annotations
 
 import re
+import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +87,51 @@ def test_the_router_sends_a_request_to_its_tiles_group(shards):
         refused = _entries(shards.router_url, tile)
         assert refused.status_code == 400, refused.text
         assert refused.json()["error"]["code"] == "unknown_tile"
+
+
+def test_the_router_sheds_a_full_groups_frames_and_not_the_other_groups(
+    shards, split_street, tmp_path
+):
+    """A router whose groups hold one frame each: with a west frame inside (its body still
+    arriving), the next west frame is answered 503 by nginx (never proxied), an east frame
+    is served, and west frames pass once the first leaves."""
+    port = free_port()
+    router = start_router(tmp_path, shards.table, port, localize_slots=1)
+    url = f"http://127.0.0.1:{port}"
+    map_id = _entries(url, "-1_0").json()["items"][0]["id"]
+    path = f"/v1/maps/{map_id}/localize"
+
+    def localize(tile: str) -> httpx.Response:
+        return httpx.post(
+            f"{url}{path}",
+            files={"image": ("f.png", _frame(split_street, 3), "image/png")},
+            headers={"X-API-Key": ADMIN_KEY, TILE_HEADER: tile},
+            timeout=30,
+        )
+
+    try:
+        held = socket.create_connection(("127.0.0.1", port), timeout=10)
+        try:
+            held.sendall(
+                f"POST {path} HTTP/1.1\r\nHost: x\r\nX-API-Key: {ADMIN_KEY}\r\n"
+                f"{TILE_HEADER}: -1_0\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                "Content-Length: 100000\r\n\r\n--b\r\n".encode()
+            )
+            time.sleep(0.3)  # nginx has read its header: west's one slot is taken
+            west, east = localize("-1_0"), localize("0_0")
+        finally:
+            held.close()
+        assert west.status_code == 503 and west.json()["error"]["code"] == "overloaded"
+        assert int(west.headers["retry-after-ms"]) > 0 and west.headers["retry-after"] == "1"
+        assert east.status_code == 200, east.text
+        deadline = time.monotonic() + 10
+        while (again := localize("-1_0")).status_code != 200 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert again.status_code == 200, again.text
+    finally:
+        stop_process(router)
+    shed = [line for line in (tmp_path / "access.log").read_text().splitlines() if " 503 " in line]
+    assert len(shed) == 1 and "tile=-1_0 upstream=-" in shed[0], shed
 
 
 def _frame(split_street, i: int) -> bytes:
