@@ -452,4 +452,3 @@ def test_a_shed_decision_waits_on_nothing_the_work_holds():
     assert int(headers[b"retry-after"]) >= 1 and int(headers[b"retry-after-ms"]) >= 1
     assert b"overloaded" in body["body"]
     assert admission.metrics.admission_shed.value("localize") == 1
-
