@@ -14,7 +14,9 @@ frame: 5 Hz), urban or at highway speed. Per cell, in the same run:
 
 - the filter's position RMSE with each model of ``VARIANTS``: "calibrated" (the product's
   calibration: absolute e_vlad, offsets along / across the heading, isotropic pose
-  spreads), "default" (the uncalibrated ``MeasurementModel()``), "world axes" (the paper's
+  spreads), "bias shrunk (James-Stein)" / "bias gated (chi2 95 %)" (the same with its
+  biases shrunk: ``CalibrationConfig.bias_shrinkage``), "default" (the uncalibrated
+  ``MeasurementModel()``), "world axes" (the paper's
   fit, the product before 2026-12-02), "no retrieval term" (c_i constant: the pose term
   alone), "relative e_vlad" (e_vlad minus the frame's best), "widened by fit" (the e_vlad
   spread widened by the fit check's shift), and world-axes baselines without the
@@ -79,6 +81,8 @@ class Fitted:
     # what both were fitted on (server.calibrate.collect_samples), for --record-fixture
     samples: object = None
     per_run: list = field(default_factory=list)
+    # the product's fit with its biases shrunk (CalibrationConfig.bias_shrinkage)
+    shrunk: dict = field(default_factory=dict)
 
 
 def widened(model: MeasurementModel, provenance: dict, map_vlad: dict | None) -> MeasurementModel:
@@ -147,6 +151,8 @@ def isotropic_offsets(model: MeasurementModel) -> MeasurementModel:
 Variant = Callable[[Fitted, dict | None], MeasurementModel]
 VARIANTS: dict[str, Variant] = {
     "calibrated": lambda fit, _: fit.vehicle,
+    "bias shrunk (James-Stein)": lambda fit, _: fit.shrunk["james_stein"],
+    "bias gated (chi2 95 %)": lambda fit, _: fit.shrunk["significance_gate"],
     "default": lambda fit, _: MeasurementModel(),
     "world axes": lambda fit, _: fit.world,
     "no retrieval term": lambda fit, _: without_retrieval(fit.vehicle),
@@ -449,8 +455,19 @@ def calibrate_both(train, vocabulary) -> Fitted:
         )
         for frame in ("world", "vehicle")
     }
+    shrunk = {
+        method: fit_samples(
+            samples, per_run, ["train"], replace(config, bias_shrinkage=method), vocabulary
+        ).model
+        for method in ("james_stein", "significance_gate")
+    }
     return Fitted(
-        fits["world"].model, fits["vehicle"].model, fits["world"].provenance, samples, per_run
+        fits["world"].model,
+        fits["vehicle"].model,
+        fits["world"].provenance,
+        samples,
+        per_run,
+        shrunk,
     )
 
 
