@@ -279,8 +279,12 @@ def test_a_client_that_left_is_not_computed_and_a_full_lane_reads_no_body(map_co
         assert not any(line.startswith("monoloc_localize_stage") for line in rendered[2:])
 
 
-def _answer(sock: socket.socket, timeout_s: float) -> tuple[str, float, bool]:
-    """(the server's whole answer, seconds until it came, whether the server then closed)."""
+def _answer(
+    sock: socket.socket, timeout_s: float, await_close: bool = True
+) -> tuple[str, float, bool]:
+    """(the server's whole answer, seconds until it came, whether the server then closed;
+    without ``await_close`` False at once: a kept-alive connection would hold the check for
+    ``timeout_s``)."""
     sock.settimeout(timeout_s)
     start = time.monotonic()
     data = sock.recv(65536)
@@ -302,6 +306,8 @@ def _answer(sock: socket.socket, timeout_s: float) -> tuple[str, float, bool]:
             break
         body += more
     data = head + b"\r\n\r\n" + body
+    if not await_close:
+        return data.decode("latin-1"), waited_s, False
     try:
         closed = sock.recv(65536) == b""
     except (TimeoutError, ConnectionResetError):
@@ -330,7 +336,7 @@ def test_a_stalled_upload_is_answered_408_at_its_deadline_and_frees_the_lane(map
                 time.sleep(0.01)
             with socket.create_connection(("127.0.0.1", port)) as other:
                 other.sendall(request)
-                shed, _, _ = _answer(other, 5)
+                shed, _, _ = _answer(other, 5, await_close=False)
             assert shed.startswith("HTTP/1.1 503")  # its one place is taken meanwhile
             answer, waited_s, closed = _answer(stalled, 10)
         assert answer.startswith("HTTP/1.1 408"), answer
@@ -344,7 +350,7 @@ def test_a_stalled_upload_is_answered_408_at_its_deadline_and_frees_the_lane(map
         assert state.metrics.admission_expired.value("localize", "body_timeout") == 1
         with socket.create_connection(("127.0.0.1", port)) as after:
             after.sendall(request)
-            served, _, _ = _answer(after, 60)
+            served, _, _ = _answer(after, 60, await_close=False)
         assert served.startswith("HTTP/1.1 200"), served[:200]
 
 
@@ -373,7 +379,7 @@ def test_an_upload_that_stops_arriving_is_cut_one_that_trickles_is_not(map_copy)
             for i in range(0, len(body), 4):
                 time.sleep(0.2)
                 slow.sendall(body[i : i + 4])
-            answer, _, _ = _answer(slow, 10)
+            answer, _, _ = _answer(slow, 10, await_close=False)
         assert answer.startswith("HTTP/1.1 200"), answer
         assert '"trickled"' in answer
         # the same write whose client goes silent after a few bytes
