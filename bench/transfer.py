@@ -14,8 +14,9 @@ frame: 5 Hz), urban or at highway speed. Per cell, in the same run:
 
 - the filter's position RMSE with each model of ``VARIANTS``: "calibrated" (the product's
   calibration: absolute e_vlad, offsets along / across the heading, isotropic pose
-  spreads), "bias shrunk (James-Stein)" / "bias gated (chi2 95 %)" (the same with its
-  biases shrunk: ``CalibrationConfig.bias_shrinkage``), "default" (the uncalibrated
+  spreads), "bias shrunk (James-Stein)" / "bias gated (chi2 95 %)", "along-only bias" (the same
+  with its biases shrunk, or their across-heading component zeroed:
+  ``CalibrationConfig.bias_shrinkage``), "default" (the uncalibrated
   ``MeasurementModel()``), "world axes" (the paper's
   fit, the product before 2026-12-02), "no retrieval term" (c_i constant: the pose term
   alone), "relative e_vlad" (e_vlad minus the frame's best), "widened by fit" (the e_vlad
@@ -153,6 +154,7 @@ VARIANTS: dict[str, Variant] = {
     "calibrated": lambda fit, _: fit.vehicle,
     "bias shrunk (James-Stein)": lambda fit, _: fit.shrunk["james_stein"],
     "bias gated (chi2 95 %)": lambda fit, _: fit.shrunk["significance_gate"],
+    "along-only bias": lambda fit, _: fit.shrunk["along_only"],
     "default": lambda fit, _: MeasurementModel(),
     "world axes": lambda fit, _: fit.world,
     "no retrieval term": lambda fit, _: without_retrieval(fit.vehicle),
@@ -459,7 +461,7 @@ def calibrate_both(train, vocabulary) -> Fitted:
         method: fit_samples(
             samples, per_run, ["train"], replace(config, bias_shrinkage=method), vocabulary
         ).model
-        for method in ("james_stein", "significance_gate")
+        for method in ("james_stein", "significance_gate", "along_only")
     }
     return Fitted(
         fits["world"].model,

@@ -77,8 +77,9 @@ ERROR_CONVENTION = "e = truth - hypothesis, (X m, Y m, psi rad), psi wrapped to 
 # How a fitted pose-error bias mu1 is kept (docs/notebook/transfer.md, 2026-12-02, h6):
 # "none" as fitted; "james_stein" shrunk toward 0 by positive-part James-Stein on its
 # standard error; "significance_gate" kept whole only beyond the chi-square(3) 95 %
-# quantile, else 0
-BiasShrinkage = Literal["none", "james_stein", "significance_gate"]
+# quantile, else 0; "along_only" (h7) its across-heading component zeroed, along and
+# heading kept (a model fitted in the vehicle's axes only)
+BiasShrinkage = Literal["none", "james_stein", "significance_gate", "along_only"]
 # chi-square(3) quantile at 0.95: a whole-vector bias test at the 5 % level
 CHI2_3_95 = 7.814727903251178
 
@@ -399,6 +400,11 @@ def fit_samples(
             f"{MIN_GOOD_HYPOTHESES} hypotheses with a pose covariance (the pose stage must "
             "give them)"
         )
+    if config.bias_shrinkage == "along_only" and config.retrieval_frame != "vehicle":
+        raise InvalidInputError(
+            "bias_shrinkage 'along_only' reads mu1 along / across the heading: it needs "
+            f"retrieval_frame 'vehicle', got {config.retrieval_frame!r}"
+        )
     if config.bias_shrinkage != "none":
         paper, pnp = _shrunk_biases(errors[~joint], paper, pnp, config.bias_shrinkage)
     if config.retrieval_frame == "vehicle":
@@ -434,11 +440,18 @@ def shrunk_bias(
     ``standard_error_cov`` (D, D) is the mean's standard error covariance (the samples'
     covariance / n). "james_stein": positive-part James-Stein toward 0,
     max(0, 1 - (D - 2) / z^2) mu with z^2 = mu^T SE^-1 mu (D >= 3); "significance_gate":
-    mu if z^2 > the chi-square(3) 95 % quantile, else 0 (D = 3); "none": mu.
+    mu if z^2 > the chi-square(3) 95 % quantile, else 0 (D = 3); "along_only": mu in the
+    heading axes (along, across, heading) with its across component 0, whatever its
+    significance (an across bias is set by the side the training road's facades stand
+    on; docs/notebook/transfer.md, h6 / h7); "none": mu.
     """
     mean = np.asarray(mean, dtype=np.float64)
     if method == "none":
         return mean.copy()
+    if method == "along_only":
+        if len(mean) != 3:
+            raise InvalidInputError(f"along_only needs (along, across, heading), got {len(mean)}")
+        return mean * np.array([1.0, 0.0, 1.0])
     z2 = bias_z_squared(mean, standard_error_cov)
     if method == "james_stein":
         if len(mean) < 3:

@@ -76,3 +76,85 @@ def test_none_keeps_the_fit_and_unknown_methods_are_refused():
         shrunk_bias(mean, se, "median")  # type: ignore[arg-type]
     with pytest.raises(InvalidInputError):
         shrunk_bias(mean[:2], se[:2, :2], "james_stein")
+
+
+def test_along_only_zeroes_the_across_component_whatever_its_significance():
+    # 20 standard errors across, 0.3 along: across goes, along and heading stay as fitted
+    se = np.diag((ERROR_STD / np.sqrt(N_SAMPLES)) ** 2)
+    mean = np.array([0.3, 20.0, -4.0]) * np.sqrt(np.diag(se))
+    kept = shrunk_bias(mean, se, "along_only")
+    np.testing.assert_array_equal(kept, [mean[0], 0.0, mean[2]])
+    with pytest.raises(InvalidInputError):
+        shrunk_bias(mean[:2], se[:2, :2], "along_only")
+
+
+def _heading_axis_samples(seed: int, n: int = 300):
+    """CalibrationSamples of a road along world Y (heading +90 deg) whose per-entry pose
+    errors carry a bias of 4 cm along and 6 cm across the heading, 3 mrad in heading."""
+    from monoloc.core.measurement import to_heading_axes
+    from monoloc.server.calibrate import CalibrationSamples
+
+    rng = np.random.default_rng(seed)
+    heading_rad = np.pi / 2 + rng.normal(0.0, 0.05, n)
+    truth = np.column_stack([rng.normal(0.0, 2.0, n), np.linspace(0.0, 150.0, n), heading_rad])
+    bias_world = np.array([-0.06, 0.04])  # across (+world -X) and along (+world Y) here
+    error_world = np.column_stack(
+        [
+            bias_world[0] + rng.normal(0.0, 0.03, n),
+            bias_world[1] + rng.normal(0.0, 0.03, n),
+            0.003 + rng.normal(0.0, 0.002, n),
+        ]
+    )
+    hypothesis = truth - error_world
+    covariance = np.diag([0.02**2, 0.02**2, 0.002**2])
+    errors_heading, _ = to_heading_axes(
+        error_world, hypothesis[:, 2], np.repeat(covariance[None], n, 0)
+    )
+    offsets = rng.normal(0.0, 2.0, (n, 2))
+    samples = CalibrationSamples(
+        truth=truth.tolist(),
+        hypothesis=hypothesis.tolist(),
+        e_vlad=rng.normal(1.2, 0.05, n).tolist(),
+        e_vlad_best=rng.normal(1.15, 0.05, n).tolist(),
+        entry_pose=np.column_stack([truth[:, :2] + offsets, truth[:, 2]]).tolist(),
+        n_inliers=rng.integers(20, 200, n).tolist(),
+        error_px=rng.uniform(0.5, 2.0, n).tolist(),
+        joint=[False] * n,
+        pose_covariance=[covariance.ravel().tolist()] * n,
+        query_index=list(range(n)),
+        entry_index=list(range(n)),
+        neighbour_e_vlad=rng.normal(1.1, 0.05, 50).tolist(),
+        n_hypotheses=n,
+        n_queries_with_hypotheses=n,
+        n_queries=n,
+    )
+    return samples, errors_heading.mean(axis=0)
+
+
+def test_the_along_only_fit_drops_the_across_bias_of_both_terms_and_keeps_the_rest():
+    from monoloc.server.calibrate import CalibrationConfig, fit_samples
+    from monoloc.server.vision.vocabulary import load_default_vocabulary
+
+    samples, mean_heading_axes = _heading_axis_samples(0)
+    # the planted bias reads along / across the heading: (0.04, 0.06, 0.003)
+    assert mean_heading_axes[0] == pytest.approx(0.04, abs=0.005)
+    assert mean_heading_axes[2] == pytest.approx(0.003, abs=0.0005)
+    assert abs(mean_heading_axes[1]) == pytest.approx(0.06, abs=0.005)
+    per_run = [{"query_frames": len(samples.truth), "used": len(samples.truth)}]
+    vocabulary = load_default_vocabulary()
+    fitted = fit_samples(samples, per_run, ["road"], CalibrationConfig(), vocabulary).model
+    along = fit_samples(
+        samples, per_run, ["road"], CalibrationConfig(bias_shrinkage="along_only"), vocabulary
+    ).model
+    assert abs(fitted.mu1[1]) > 0.05 and abs(fitted.pnp.mu1[1]) > 0.05
+    for before, after in ((fitted.mu1, along.mu1), (fitted.pnp.mu1, along.pnp.mu1)):
+        np.testing.assert_array_equal(after, before * np.array([1.0, 0.0, 1.0]))
+    np.testing.assert_array_equal(along.Sigma1, fitted.Sigma1)
+    with pytest.raises(InvalidInputError, match="vehicle"):
+        fit_samples(
+            samples,
+            per_run,
+            ["road"],
+            CalibrationConfig(bias_shrinkage="along_only", retrieval_frame="world"),
+            vocabulary,
+        )
