@@ -109,10 +109,50 @@ http {{
 
 {upstreams}
 
-    # localize admission per group: its replicas x their lane (workers + queue depth)
+    # Localize admission per group: its replicas x their lane (workers + queue depth),
+    # counted by the admission server below, which gets each frame whole from the front
+    # (a slow upload holds no slot while it arrives); the next frame of a full group is
+    # answered 503 by @shed, never proxied, while the other groups' frames pass.
 {admission_zones}
     limit_conn_status 503;
     limit_conn_log_level info;
+    log_format admission '$http_x_forwarded_for "$request" $status $request_time '
+                         'tile=$http_x_monoloc_tile upstream=$upstream_addr '
+                         'upstream_status=$upstream_status';
+
+    upstream admission {{
+        server unix:/run/monoloc-localize.sock;
+        keepalive 64;
+    }}
+
+    server {{
+        listen unix:/run/monoloc-localize.sock;
+        access_log /dev/stdout admission;
+        default_type application/json;
+        client_max_body_size 64m;
+        client_body_buffer_size 1m;
+        proxy_http_version 1.1;
+        proxy_set_header Host $host;
+        proxy_set_header X-Forwarded-For $http_x_forwarded_for;
+        proxy_set_header X-Forwarded-Proto $http_x_forwarded_proto;
+        proxy_set_header Connection "";
+        proxy_read_timeout 120s;
+        proxy_ignore_client_abort off;
+
+        location / {{
+{admission_limits}
+            error_page 503 = @shed;
+            proxy_pass http://$shard_upstream;
+            proxy_next_upstream error timeout http_503 non_idempotent;
+            proxy_next_upstream_tries 2;
+        }}
+
+        location @shed {{
+            add_header Retry-After 1 always;
+            add_header Retry-After-Ms 50 always;
+            return 503 '{shed}';
+        }}
+    }}
 
     server {{
         listen {listen};
@@ -131,20 +171,13 @@ http {{
             return 400 '{unknown_tile}\\n';
         }}
 
+        # a frame is read whole (in memory, up to 1 MB), then passed to the admission
+        # server above, which logs it
         location ~ ^/v1/maps/[^/]+/localize$ {{
-{admission_limits}
-            error_page 503 = @shed;
-            proxy_pass http://$shard_upstream;
-            proxy_next_upstream error timeout http_503 non_idempotent;
-            proxy_next_upstream_tries 2;
+            access_log off;
+            proxy_pass http://admission;
             client_max_body_size 64m;
             client_body_buffer_size 1m;
-        }}
-
-        location @shed {{
-            add_header Retry-After 1 always;
-            add_header Retry-After-Ms 50 always;
-            return 503 '{shed}';
         }}
 
         location / {{

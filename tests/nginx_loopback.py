@@ -4,20 +4,26 @@ temporary files under the test's directory (shared by the fleet and shard suites
 from __future__ import annotations
 
 import os
+import re
+import uuid
 from pathlib import Path
 
 
 def loopback_paths(tmp: Path, text: str, access_log: str) -> Path:
     """Write ``text`` (an nginx config whose access log is ``access_log /dev/stdout
     <access_log>;``) to ``tmp/nginx.conf`` with every path it writes under ``tmp``."""
-    text = text.replace(
-        f"access_log /dev/stdout {access_log};", f"access_log {tmp}/access.log {access_log};"
-    )
+    if f"access_log /dev/stdout {access_log};" not in text:
+        raise AssertionError(f"the config has no `access_log /dev/stdout {access_log};`")
+    # every server's log (the front's and its admission server's) into one file
+    text = re.sub(r"access_log /dev/stdout (\w+);", rf"access_log {tmp}/access.log \1;", text)
     temp = "\n".join(
         f"    {kind}_temp_path {tmp}/{kind};"
         for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
     )
     text = text.replace("http {\n", "http {\n" + temp + "\n", 1)
+    # a unix socket's path must stay short (108 bytes): not under a test's long tmp path
+    socket_path = f"/tmp/monoloc-nginx-{uuid.uuid4().hex[:12]}.sock"
+    text = text.replace("unix:/run/monoloc-localize.sock", f"unix:{socket_path}")
     text = f"pid {tmp}/nginx.pid;\nerror_log {tmp}/error.log;\n" + text
     if os.geteuid() == 0:  # workers would run as nobody, who cannot write under tmp
         text = "user root;\n" + text
