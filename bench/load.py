@@ -179,9 +179,7 @@ def front_config(upstreams: list[str], port: int, limit: int, work: Path) -> str
         raise SystemExit("error: docker/nginx.conf has no `limit_conn localize N;`")
     text = text.replace("access_log /dev/stdout upstream;", "access_log off;")
     text = text.replace("access_log /dev/stdout admission;", "access_log off;")
-    text = text.replace(
-        "unix:/run/monoloc-localize.sock", f"unix:/tmp/monoloc-bench-{os.getpid()}.sock"
-    )
+    text = text.replace("127.0.0.1:8081", f"127.0.0.1:{free_port()}")  # the admission server
     temp = "\n".join(
         f"    {kind}_temp_path {work}/{kind};"
         for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")

@@ -969,7 +969,7 @@ def overload_headline(data: dict | None, name: str) -> Headline:
     ok = min(served) >= 0.9 and min(within) >= 0.99
     return Headline(
         figure,
-        f"served {100 * min(served):.0f}-{100 * max(served):.0f} %, shed within 50 ms "
+        f"served {100 * min(served):.1f}-{100 * max(served):.1f} %, shed within 50 ms "
         f"{100 * min(within):.1f}-{100 * max(within):.1f} %",
         f">= 90 %, every shed within 50 ms (99 %): {_verdict(ok)}",
         name,

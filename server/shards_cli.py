@@ -121,12 +121,12 @@ http {{
                          'upstream_status=$upstream_status';
 
     upstream admission {{
-        server unix:/run/monoloc-localize.sock;
+        server 127.0.0.1:8081;
         keepalive 64;
     }}
 
     server {{
-        listen unix:/run/monoloc-localize.sock;
+        listen 127.0.0.1:8081;
         access_log /dev/stdout admission;
         default_type application/json;
         client_max_body_size 64m;

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 import re
-import uuid
+import socket
 from pathlib import Path
 
 
@@ -21,9 +21,11 @@ def loopback_paths(tmp: Path, text: str, access_log: str) -> Path:
         for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
     )
     text = text.replace("http {\n", "http {\n" + temp + "\n", 1)
-    # a unix socket's path must stay short (108 bytes): not under a test's long tmp path
-    socket_path = f"/tmp/monoloc-nginx-{uuid.uuid4().hex[:12]}.sock"
-    text = text.replace("unix:/run/monoloc-localize.sock", f"unix:{socket_path}")
+    # the admission server's loopback port (8081 in docker/): a free one here
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        admission_port = sock.getsockname()[1]
+    text = text.replace("127.0.0.1:8081", f"127.0.0.1:{admission_port}")
     text = f"pid {tmp}/nginx.pid;\nerror_log {tmp}/error.log;\n" + text
     if os.geteuid() == 0:  # workers would run as nobody, who cannot write under tmp
         text = "user root;\n" + text

@@ -156,7 +156,7 @@ def test_the_overload_row_is_met_only_when_every_run_serves_90_percent_and_sheds
 
     met = report.overload_headline(result([0.93, 0.97], [1.0, 0.995], "nginx"), "x_nginx")
     assert "--front nginx" in met.figure and met.goal.endswith(": met")
-    assert met.value == "served 93-97 %, shed within 50 ms 99.5-100.0 %"
+    assert met.value == "served 93.0-97.0 %, shed within 50 ms 99.5-100.0 %"
     low = report.overload_headline(result([0.84, 0.97], [1.0, 1.0], "none"), "x")
     slow = report.overload_headline(result([0.95, 0.97], [1.0, 0.9], "none"), "x")
     assert "missed" in low.goal and "missed" in slow.goal and "bare replica" in low.figure

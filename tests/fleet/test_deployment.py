@@ -50,3 +50,39 @@ def test_nginx_accepts_the_config(tmp_path):
     )
     assert done.returncode == 0, done.stderr
     assert "syntax is ok" in done.stderr
+
+
+def test_nginx_starts_again_after_it_was_killed(tmp_path):
+    """docker/compose.yaml restarts a dead nginx in the same container: nothing a killed
+    nginx leaves behind (its admission server's listener included) may stop the next."""
+    import os
+    import signal
+    import socket
+    import time
+
+    nginx = find_nginx()
+    if nginx is None:
+        pytest.fail("nginx is not installed (make test installs Debian's nginx-light)")
+    for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"):
+        (tmp_path / kind).mkdir()
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    conf = loopback_nginx_conf(tmp_path, [18001, 18002], port)
+    command = [nginx, "-p", str(tmp_path), "-c", str(conf), "-g", "daemon off;"]
+    for _attempt in range(2):
+        master = subprocess.Popen(command, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 10
+        while True:
+            assert master.poll() is None, master.stderr.read().decode()
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.2).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "nginx did not listen"
+                time.sleep(0.05)
+        children = open(f"/proc/{master.pid}/task/{master.pid}/children").read().split()
+        for pid in [master.pid, *map(int, children)]:  # SIGKILL: no clean-up at all
+            os.kill(pid, signal.SIGKILL)
+        master.wait(10)
+        time.sleep(0.2)
