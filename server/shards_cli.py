@@ -142,8 +142,6 @@ http {{
         location / {{
 {admission_limits}
             error_page 503 = @shed;
-            # the frame comes whole and at once from the front: streamed on
-            proxy_request_buffering off;
             proxy_pass http://$shard_upstream;
             proxy_next_upstream error timeout http_503 non_idempotent;
             proxy_next_upstream_tries 2;
