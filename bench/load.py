@@ -163,23 +163,30 @@ def free_port() -> int:
 NGINX = shutil.which("nginx") or "/usr/sbin/nginx"
 
 
-def front_config(upstreams: list[str], port: int, limit: int, work: Path) -> str:
-    """docker/nginx.conf made to run here: its replicas the ``upstreams``, listening on
-    loopback ``port``, at most ``limit`` frames inside its localize admission
-    (``limit_conn localize``), pid, logs and temp files under ``work``."""
+def front_config(upstreams: list[str], port: int, per_replica: int, work: Path) -> str:
+    """docker/nginx.conf made to run here: its replicas the ``upstreams`` (in each of its
+    upstream blocks), listening on loopback ``port``, at most ``per_replica`` frames let in
+    to each replica by its localize admission (``max_conns``), pid, logs and temp files
+    under ``work``."""
     text = (ROOT / "docker" / "nginx.conf").read_text()
-    servers = [m for m in re.finditer(r"^( +)server monoloc-\d+:8000[^\n]*\n", text, re.M)]
-    lines = "".join(
-        f"{servers[0].group(1)}server {u.removeprefix('http://')};\n" for u in upstreams
+
+    def servers(block: re.Match) -> str:
+        indent, params = block[1], block[2]
+        return "".join(f"{indent}server {u.removeprefix('http://')}{params}\n" for u in upstreams)
+
+    # each run of `server monoloc-N:8000 ...;` lines: one line per upstream, the first
+    # line's parameters kept
+    text = re.sub(
+        r"^( +)server monoloc-\d+:8000([^;\n]*;)\n(?:\1server monoloc-\d+:8000[^\n]*\n)*",
+        servers,
+        text,
+        flags=re.M,
     )
-    text = text[: servers[0].start()] + lines + text[servers[-1].end() :]
     text = text.replace("listen 80;", f"listen 127.0.0.1:{port};")
-    text, n = re.subn(r"limit_conn localize \d+;", f"limit_conn localize {limit};", text)
-    if n != 1:
-        raise SystemExit("error: docker/nginx.conf has no `limit_conn localize N;`")
+    text, n = re.subn(r"max_conns=\d+", f"max_conns={per_replica}", text)
+    if n == 0:
+        raise SystemExit("error: docker/nginx.conf has no localize admission (`max_conns=N`)")
     text = text.replace("access_log /dev/stdout upstream;", "access_log off;")
-    text = text.replace("access_log /dev/stdout admission;", "access_log off;")
-    text = text.replace("127.0.0.1:8081", f"127.0.0.1:{free_port()}")  # the admission server
     temp = "\n".join(
         f"    {kind}_temp_path {work}/{kind};"
         for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
@@ -190,13 +197,13 @@ def front_config(upstreams: list[str], port: int, limit: int, work: Path) -> str
 
 
 @contextmanager
-def nginx_front(upstreams: list[str], limit: int, work: Path):
+def nginx_front(upstreams: list[str], per_replica: int, work: Path):
     """An nginx process in front of the replicas (:func:`front_config`); yields (its url,
     its pids: master and worker, counted as the server's cores)."""
     work.mkdir(parents=True, exist_ok=True)
     port = free_port()
     conf = work / "nginx.conf"
-    conf.write_text(front_config(upstreams, port, limit, work))
+    conf.write_text(front_config(upstreams, port, per_replica, work))
     proc = subprocess.Popen([NGINX, "-c", str(conf), "-p", str(work)])
     url = f"http://127.0.0.1:{port}"
     try:
@@ -960,7 +967,7 @@ def front(args, urls: list[str], data_dir: Path):
     if args.front != "nginx":
         return nullcontext((None, []))
     per_replica = args.front_limit or args.workers + 2
-    return nginx_front(urls, per_replica * len(urls), data_dir / "nginx")
+    return nginx_front(urls, per_replica, data_dir / "nginx")
 
 
 def measure(n_replicas, args, dataset, frames, db: str | None, db_name: str) -> dict:

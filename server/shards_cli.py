@@ -31,29 +31,20 @@ def render_nginx_config(
     a localize is retried once on the group's other replica when one is down or sheds it
     (it has no side effects), other requests only when the replica could not be reached.
     A request naming no served tile gets a 400 with a JSON message. Each group's frames
-    pass an admission of their own (``limit_conn``: its replicas x ``localize_slots``
-    inside, the next answered 503 by nginx with Retry-After, as docker/nginx.conf)."""
+    pass an admission of their own (``max_conns``: ``localize_slots`` frames inside each of
+    its replicas; a frame no replica has room for is answered 503 by nginx with
+    Retry-After, never proxied, as docker/nginx.conf)."""
     missing = sorted(name for name, group in table.groups.items() if not group.replicas)
     if missing:
         raise InvalidInputError(f"the router needs the replicas of groups {', '.join(missing)}")
     if localize_slots < 1:
         raise InvalidInputError(f"localize slots per replica must be >= 1, not {localize_slots}")
     groups = sorted(table.groups.items())
-    # one zone per group, keyed by a variable set only for that group's frames (nginx does
-    # not count a request whose key is empty)
-    admission_zones = "\n".join(
-        f"    map $shard_upstream $localize_group_{k} {{\n        shard_{name} 1;\n"
-        f'        default "";\n    }}\n'
-        f"    limit_conn_zone $localize_group_{k} zone=localize_group_{k}:1m;"
-        for k, (name, _) in enumerate(groups)
-    )
-    admission_limits = "\n".join(
-        f"            limit_conn localize_group_{k} {len(group.replicas) * localize_slots};"
-        f"  # {name}"
-        for k, (name, group) in enumerate(groups)
-    )
     tiles = "\n".join(
         f'        "{tile}" shard_{group};' for tile, group in sorted(table.tiles.items())
+    )
+    localize_tiles = "\n".join(
+        f'        "{tile}" shard_{group}_localize;' for tile, group in sorted(table.tiles.items())
     )
     upstreams = "\n\n".join(
         f"    upstream shard_{name} {{\n        least_conn;\n"
@@ -61,18 +52,31 @@ def render_nginx_config(
             f"        server {replica} max_fails=3 fail_timeout=5s;\n" for replica in group.replicas
         )
         + "        keepalive 32;\n    }"
-        for name, group in sorted(table.groups.items())
+        for name, group in groups
+    )
+    # each group's localize admission: at most localize_slots frames let in to each of its
+    # replicas (max_conns, counted across nginx's workers in the zone)
+    localize_upstreams = "\n\n".join(
+        f"    upstream shard_{name}_localize {{\n        zone shard_{name}_localize 64k;\n"
+        "        least_conn;\n"
+        + "".join(
+            f"        server {replica} max_conns={localize_slots} max_fails=3 fail_timeout=5s;\n"
+            for replica in group.replicas
+        )
+        + "        keepalive 32;\n    }"
+        for name, group in groups
     )
     return _NGINX_TEMPLATE.format(
         map_name=table.map_name,
         size=f"{table.scheme.size_m:g}",
         tiles=tiles,
         upstreams=upstreams,
+        localize_tiles=localize_tiles,
+        localize_upstreams=localize_upstreams,
         listen=listen,
         unknown_tile=_UNKNOWN_TILE,
-        admission_zones=admission_zones,
-        admission_limits=admission_limits,
         shed=_SHED,
+        unreachable=_UNREACHABLE,
     )
 
 
@@ -82,6 +86,10 @@ _UNKNOWN_TILE = (
 _SHED = (
     '{"error": {"code": "overloaded", "message": "the localize lane of every replica of the '
     'group of the tile is full (nginx admission); retry after Retry-After-Ms"}}'
+)
+_UNREACHABLE = (
+    '{"error": {"code": "bad_gateway", "message": "no replica of the group of the tile '
+    'could be reached"}}'
 )
 _NGINX_TEMPLATE = """\
 # nginx in front of the shard groups of map '{map_name}' (tiles of {size} m), written by
@@ -109,49 +117,23 @@ http {{
 
 {upstreams}
 
-    # Localize admission per group: its replicas x their lane (workers + queue depth),
-    # counted by the admission server below, which gets each frame whole from the front
-    # (a slow upload holds no slot while it arrives); the next frame of a full group is
-    # answered 503 by @shed, never proxied, while the other groups' frames pass.
-{admission_zones}
-    limit_conn_status 503;
-    limit_conn_log_level info;
-    log_format admission '$http_x_forwarded_for "$request" $status $request_time '
-                         'tile=$http_x_monoloc_tile upstream=$upstream_addr '
-                         'upstream_status=$upstream_status';
-
-    upstream admission {{
-        server 127.0.0.1:8081;
-        keepalive 64;
+    # Localize admission per group: each replica lets in its lane (workers + queue
+    # depth) of frames (max_conns); a frame of a group none of whose replicas has room
+    # finds no upstream to connect to and is answered 503 by @localize_refused, never
+    # proxied, while the other groups' frames pass. nginx reads a frame whole before it
+    # connects upstream, so a slow upload holds no slot while it arrives.
+    map $http_x_monoloc_tile $shard_localize_upstream {{
+        default "";
+{localize_tiles}
     }}
 
-    server {{
-        listen 127.0.0.1:8081;
-        access_log /dev/stdout admission;
-        default_type application/json;
-        client_max_body_size 64m;
-        client_body_buffer_size 1m;
-        proxy_http_version 1.1;
-        proxy_set_header Host $host;
-        proxy_set_header X-Forwarded-For $http_x_forwarded_for;
-        proxy_set_header X-Forwarded-Proto $http_x_forwarded_proto;
-        proxy_set_header Connection "";
-        proxy_read_timeout 120s;
-        proxy_ignore_client_abort off;
+{localize_upstreams}
 
-        location / {{
-{admission_limits}
-            error_page 503 = @shed;
-            proxy_pass http://$shard_upstream;
-            proxy_next_upstream error timeout http_503 non_idempotent;
-            proxy_next_upstream_tries 2;
-        }}
-
-        location @shed {{
-            add_header Retry-After 1 always;
-            add_header Retry-After-Ms 50 always;
-            return 503 '{shed}';
-        }}
+    # no room (nginx found no upstream to connect to: $upstream_addr ends in the
+    # upstream's name) or no replica reachable
+    map $upstream_addr $localize_no_room {{
+        ~_localize$ 1;
+        default 0;
     }}
 
     server {{
@@ -171,13 +153,28 @@ http {{
             return 400 '{unknown_tile}\\n';
         }}
 
-        # a frame is read whole (in memory, up to 1 MB), then passed to the admission
-        # server above, which logs it
+        # a frame is read whole (in memory, up to 1 MB), then sent to a replica of its
+        # tile's group with room for it; tried once more on the group's other replica
+        # when one is down or sheds it (a localize has no side effects)
         location ~ ^/v1/maps/[^/]+/localize$ {{
-            access_log off;
-            proxy_pass http://admission;
+            proxy_pass http://$shard_localize_upstream;
             client_max_body_size 64m;
             client_body_buffer_size 1m;
+            proxy_next_upstream error timeout http_503 non_idempotent;
+            proxy_next_upstream_tries 2;
+            error_page 502 = @localize_refused;
+            # nginx logs each frame refused for want of room as "no live upstreams" (an
+            # error): the access log has every answer, the error log only what is worse
+            error_log /dev/stderr crit;
+        }}
+
+        location @localize_refused {{
+            if ($localize_no_room) {{
+                add_header Retry-After 1 always;
+                add_header Retry-After-Ms 50 always;
+                return 503 '{shed}';
+            }}
+            return 502 '{unreachable}';
         }}
 
         location / {{

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import re
-import socket
 from pathlib import Path
 
 
@@ -14,18 +13,12 @@ def loopback_paths(tmp: Path, text: str, access_log: str) -> Path:
     <access_log>;``) to ``tmp/nginx.conf`` with every path it writes under ``tmp``."""
     if f"access_log /dev/stdout {access_log};" not in text:
         raise AssertionError(f"the config has no `access_log /dev/stdout {access_log};`")
-    # every server's log (the front's and its admission server's) into one file
     text = re.sub(r"access_log /dev/stdout (\w+);", rf"access_log {tmp}/access.log \1;", text)
     temp = "\n".join(
         f"    {kind}_temp_path {tmp}/{kind};"
         for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
     )
     text = text.replace("http {\n", "http {\n" + temp + "\n", 1)
-    # the admission server's loopback port (8081 in docker/): a free one here
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        admission_port = sock.getsockname()[1]
-    text = text.replace("127.0.0.1:8081", f"127.0.0.1:{admission_port}")
     text = f"pid {tmp}/nginx.pid;\nerror_log {tmp}/error.log;\n" + text
     if os.geteuid() == 0:  # workers would run as nobody, who cannot write under tmp
         text = "user root;\n" + text

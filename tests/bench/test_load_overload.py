@@ -68,13 +68,15 @@ def test_an_honouring_vehicle_sends_one_frame_at_a_time_as_the_library_does():
 
 
 def test_the_nginx_front_runs_docker_nginx_conf_before_the_upstreams(tmp_path):
-    """``--front nginx``: docker/nginx.conf made to run before given upstreams (each named
-    once, the admission's limit set) starts, and the generator's frames pass through it
+    """``--front nginx``: docker/nginx.conf made to run before given upstreams (in each
+    upstream block, the admission's per-replica limit set) starts, and the generator's frames pass through it
     to the floor server (which answers each 503) with no failure; nginx's own shedding is
     tests/fleet/test_replicas.py's."""
     with load.floor_server() as floor_url:
         text = load.front_config([floor_url, floor_url], 8080, 3, tmp_path)
-        assert "limit_conn localize 3;" in text and text.count(floor_url[7:]) == 2
+        assert text.count("max_conns=3 ") == 2 and "max_conns=4" not in text
+        # every upstream block (the localize admission's and the other routes') names both
+        assert text.count(floor_url[7:]) == 4
         assert "monoloc-1" not in text and "listen 127.0.0.1:8080;" in text
         with load.nginx_front([floor_url], 1, tmp_path / "nginx") as (front_url, pids):
             assert len(pids) >= 2  # master and worker, counted as the server's

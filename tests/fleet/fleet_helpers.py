@@ -174,7 +174,9 @@ def loopback_nginx_conf(tmp: Path, ports: list[int], listen_port: int) -> Path:
     import re
 
     text = (REPO / "docker" / "nginx.conf").read_text()
-    servers = iter(ports)
-    text = re.sub(r"server monoloc-\d+:8000", lambda _m: f"server 127.0.0.1:{next(servers)}", text)
+    # replica monoloc-N (in every upstream that names it) -> ports[N - 1]
+    text = re.sub(
+        r"server monoloc-(\d+):8000", lambda m: f"server 127.0.0.1:{ports[int(m[1]) - 1]}", text
+    )
     text = text.replace("listen 80;", f"listen 127.0.0.1:{listen_port};")
     return loopback_paths(tmp, text, "upstream")

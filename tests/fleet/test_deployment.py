@@ -86,3 +86,50 @@ def test_nginx_starts_again_after_it_was_killed(tmp_path):
             os.kill(pid, signal.SIGKILL)
         master.wait(10)
         time.sleep(0.2)
+
+
+def test_a_frame_no_replica_can_take_is_a_502_when_none_is_up(tmp_path):
+    """nginx's localize admission answers a frame it cannot place: 503 "overloaded" when
+    no replica has room (tests/fleet/test_replicas.py), and a 502 in the same JSON shape,
+    with no Retry-After promise, when no replica can be reached at all."""
+    import socket
+    import time
+
+    import httpx
+
+    nginx = find_nginx()
+    if nginx is None:
+        pytest.fail("nginx is not installed (make test installs Debian's nginx-light)")
+    for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"):
+        (tmp_path / kind).mkdir()
+    ports = []
+    for _ in range(3):  # nothing listens on the replicas' ports
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            ports.append(sock.getsockname()[1])
+    conf = loopback_nginx_conf(tmp_path, ports[:2], ports[2])
+    master = subprocess.Popen([nginx, "-p", str(tmp_path), "-c", str(conf), "-g", "daemon off;"])
+    try:
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", ports[2]), 0.2).close()
+                break
+            except OSError:
+                assert master.poll() is None and time.monotonic() < deadline, "no nginx"
+                time.sleep(0.05)
+        answer = httpx.post(
+            f"http://127.0.0.1:{ports[2]}/v1/maps/1/localize",
+            files={"image": ("f.png", b"\x89PNG\r\n\x1a\n" + bytes(1000), "image/png")},
+            timeout=10,
+        )
+    finally:
+        master.terminate()
+        master.wait(10)
+    assert answer.status_code == 502, answer.text
+    assert answer.json()["error"]["code"] == "bad_gateway"
+    assert "retry-after" not in answer.headers
+    log = (tmp_path / "access.log").read_text()
+    assert f"upstream=127.0.0.1:{ports[0]}, 127.0.0.1:{ports[1]} " in log or (
+        f"upstream=127.0.0.1:{ports[1]}, 127.0.0.1:{ports[0]} " in log
+    ), log  # both were tried
