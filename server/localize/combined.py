@@ -16,10 +16,9 @@ from monoloc.server.localize.results import PoseHypothesis, ReferenceEntry
 from monoloc.server.vision.joint import (
     EntryInliers,
     JointConfig,
-    best_start,
     consistent_group,
-    estimate_joint_pose,
     estimate_pooled_pose,
+    joint_pose_from_best_start,
 )
 from monoloc.server.vision.pnp import PnpConfig, within_threshold
 from monoloc.server.vision.pose_covariance import planar_pose_covariance, position_spread_m
@@ -50,8 +49,7 @@ def joint_hypothesis(
     anchor = hypotheses[group[0]]
     members = [inliers[g] for g in group]
     starts = [hypotheses[g].T_world_from_cam for g in group]
-    start = best_start(members, starts, intrinsics, pnp)
-    joint = estimate_joint_pose(members, starts[start], intrinsics, pnp, config)
+    joint = joint_pose_from_best_start(members, starts, intrinsics, pnp, config)
     if joint is None:
         return None
     members = [hypotheses[group[m]] for m in joint.members]

@@ -60,12 +60,12 @@ def _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H
     """Gauss-Newton normal equations H (6, 6), g (6,) for a left perturbation
     (rotation vector w, translation v) of the pose, over the masked points, each point's
     squared error weighted by ``weights`` (M,) (its inverse variance; an empty array: all
-    1); returns the weighted squared reprojection error sum at the pose."""
+    1); returns the weighted squared reprojection error sum at the pose. The Jacobian's
+    two rows are scalars (no array per call: this runs up to four times per LM step)."""
     unit = weights.shape[0] == 0
     H[:, :] = 0.0
     g[:] = 0.0
     cost = 0.0
-    J = np.empty((2, 6))
     for k in range(points_ref.shape[0]):
         if not mask[k]:
             continue
@@ -83,22 +83,35 @@ def _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H
         # d(u, v)/d(x, y, z), then d(x, y, z)/d(w, v) = [-[p]_x | I]
         a, b = fx * iz, -fx * x * iz * iz
         c, d = fy * iz, -fy * y * iz * iz
-        J[0, 0] = b * y
-        J[0, 1] = a * z - b * x
-        J[0, 2] = -a * y
-        J[0, 3] = a
-        J[0, 4] = 0.0
-        J[0, 5] = b
-        J[1, 0] = -c * z + d * y
-        J[1, 1] = -d * x
-        J[1, 2] = c * x
-        J[1, 3] = 0.0
-        J[1, 4] = c
-        J[1, 5] = d
-        for i in range(6):
-            g[i] += wk * (J[0, i] * ru + J[1, i] * rv)
-            for j in range(i, 6):
-                H[i, j] += wk * (J[0, i] * J[0, j] + J[1, i] * J[1, j])
+        u0, u1, u2, u3, u4, u5 = b * y, a * z - b * x, -a * y, a, 0.0, b
+        v0, v1, v2, v3, v4, v5 = -c * z + d * y, -d * x, c * x, 0.0, c, d
+        g[0] += wk * (u0 * ru + v0 * rv)
+        g[1] += wk * (u1 * ru + v1 * rv)
+        g[2] += wk * (u2 * ru + v2 * rv)
+        g[3] += wk * (u3 * ru + v3 * rv)
+        g[4] += wk * (u4 * ru + v4 * rv)
+        g[5] += wk * (u5 * ru + v5 * rv)
+        H[0, 0] += wk * (u0 * u0 + v0 * v0)
+        H[0, 1] += wk * (u0 * u1 + v0 * v1)
+        H[0, 2] += wk * (u0 * u2 + v0 * v2)
+        H[0, 3] += wk * (u0 * u3 + v0 * v3)
+        H[0, 4] += wk * (u0 * u4 + v0 * v4)
+        H[0, 5] += wk * (u0 * u5 + v0 * v5)
+        H[1, 1] += wk * (u1 * u1 + v1 * v1)
+        H[1, 2] += wk * (u1 * u2 + v1 * v2)
+        H[1, 3] += wk * (u1 * u3 + v1 * v3)
+        H[1, 4] += wk * (u1 * u4 + v1 * v4)
+        H[1, 5] += wk * (u1 * u5 + v1 * v5)
+        H[2, 2] += wk * (u2 * u2 + v2 * v2)
+        H[2, 3] += wk * (u2 * u3 + v2 * v3)
+        H[2, 4] += wk * (u2 * u4 + v2 * v4)
+        H[2, 5] += wk * (u2 * u5 + v2 * v5)
+        H[3, 3] += wk * (u3 * u3 + v3 * v3)
+        H[3, 4] += wk * (u3 * u4 + v3 * v4)
+        H[3, 5] += wk * (u3 * u5 + v3 * v5)
+        H[4, 4] += wk * (u4 * u4 + v4 * v4)
+        H[4, 5] += wk * (u4 * u5 + v4 * v5)
+        H[5, 5] += wk * (u5 * u5 + v5 * v5)
     for i in range(6):
         for j in range(i):
             H[i, j] = H[j, i]
@@ -106,14 +119,64 @@ def _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H
 
 
 @njit(inline="always")
-def _exp_so3(w):
-    theta = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+def _damped_step(H, g, damping, A, step):
+    """step (6,) = -(H + damping * diag(max(H_ii, 1e-12)))^-1 g, by Gaussian elimination
+    with partial pivoting on the augmented (6, 7) scratch A (LAPACK's gesv on a 6 x 6
+    system costs more in its call than in its arithmetic). A singular system gives
+    non-finite numbers, which the callers' finiteness checks catch."""
+    for i in range(6):
+        for j in range(6):
+            A[i, j] = H[i, j]
+        A[i, i] += damping * max(H[i, i], 1e-12)
+        A[i, 6] = -g[i]
+    for c in range(6):
+        p = c
+        for r in range(c + 1, 6):
+            if abs(A[r, c]) > abs(A[p, c]):
+                p = r
+        if p != c:
+            for j in range(c, 7):
+                A[c, j], A[p, j] = A[p, j], A[c, j]
+        inv = 1.0 / A[c, c]
+        for r in range(c + 1, 6):
+            f = A[r, c] * inv
+            if f != 0.0:
+                for j in range(c + 1, 7):
+                    A[r, j] -= f * A[c, j]
+    for i in range(5, -1, -1):
+        s = A[i, 6]
+        for j in range(i + 1, 6):
+            s -= A[i, j] * step[j]
+        step[i] = s / A[i, i]
+
+
+@njit(inline="always")
+def _left_update(step, R, t, R_out, t_out):
+    """(R_out, t_out) = exp(step[:3]) applied on the left of (R, t), plus step[3:] on t:
+    Rodrigues' formula in scalars ([w]_x^2 = w w^T - |w|^2 I)."""
+    w0, w1, w2 = step[0], step[1], step[2]
+    theta2 = w0 * w0 + w1 * w1 + w2 * w2
+    theta = np.sqrt(theta2)
     if theta < 1e-12:
-        return np.eye(3) + K
-    A = np.sin(theta) / theta
-    B = (1.0 - np.cos(theta)) / (theta * theta)
-    return np.eye(3) + A * K + B * (K @ K)
+        A, B = 1.0, 0.0
+    else:
+        A = np.sin(theta) / theta
+        B = (1.0 - np.cos(theta)) / theta2
+    d00 = 1.0 + B * (w0 * w0 - theta2)
+    d11 = 1.0 + B * (w1 * w1 - theta2)
+    d22 = 1.0 + B * (w2 * w2 - theta2)
+    d01, d10 = B * w0 * w1 - A * w2, B * w0 * w1 + A * w2
+    d02, d20 = B * w0 * w2 + A * w1, B * w0 * w2 - A * w1
+    d12, d21 = B * w1 * w2 - A * w0, B * w1 * w2 + A * w0
+    for j in range(3):
+        r0, r1, r2 = R[0, j], R[1, j], R[2, j]
+        R_out[0, j] = d00 * r0 + d01 * r1 + d02 * r2
+        R_out[1, j] = d10 * r0 + d11 * r1 + d12 * r2
+        R_out[2, j] = d20 * r0 + d21 * r1 + d22 * r2
+    t0, t1, t2 = t[0], t[1], t[2]
+    t_out[0] = d00 * t0 + d01 * t1 + d02 * t2 + step[3]
+    t_out[1] = d10 * t0 + d11 * t1 + d12 * t2 + step[4]
+    t_out[2] = d20 * t0 + d21 * t1 + d22 * t2 + step[5]
 
 
 @njit(cache=True, nogil=True)
@@ -121,36 +184,37 @@ def refine_lm(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, iteration
     """Levenberg-Marquardt on the masked points' reprojection error, each point's squared
     error weighted by ``weights`` (M,) (empty: all 1), starting at (R, t); at most
     ``iterations`` accepted steps (and as many rejected ones). Returns the refined (R, t)
-    and the final weighted squared error sum."""
+    (new arrays) and the final weighted squared error sum."""
     H = np.empty((6, 6))
     g = np.empty(6)
     H_new = np.empty((6, 6))
     g_new = np.empty(6)
-    cost = _normal_equations(points_ref, pixels, mask, weights, R, t, fx, fy, cx, cy, H, g)
+    A = np.empty((6, 7))
+    step = np.empty(6)
+    R_cur, t_cur = R.copy(), t.copy()
+    R_new, t_new = np.empty((3, 3)), np.empty(3)
+    cost = _normal_equations(points_ref, pixels, mask, weights, R_cur, t_cur, fx, fy, cx, cy, H, g)
     damping = 1e-4
     accepted = 0
     for _ in range(2 * iterations):
-        A = H.copy()
-        for i in range(6):
-            A[i, i] += damping * max(H[i, i], 1e-12)
-        step = np.linalg.solve(A, -g)
-        dR = _exp_so3(step[:3])
-        R_new = dR @ R
-        t_new = dR @ t + step[3:]
+        _damped_step(H, g, damping, A, step)
+        _left_update(step, R_cur, t_cur, R_new, t_new)
         cost_new = _normal_equations(
             points_ref, pixels, mask, weights, R_new, t_new, fx, fy, cx, cy, H_new, g_new
         )
         if cost_new < cost:
-            R, t, cost = R_new, t_new, cost_new
-            H[:, :] = H_new
-            g[:] = g_new
+            R_cur, R_new = R_new, R_cur
+            t_cur, t_new = t_new, t_cur
+            cost = cost_new
+            H, H_new = H_new, H
+            g, g_new = g_new, g
             damping = max(damping * 0.1, 1e-10)
             accepted += 1
             if accepted >= iterations:
                 break
         else:
             damping *= 10.0
-    return R, t, cost
+    return R_cur, t_cur, cost
 
 
 @njit(cache=True, nogil=True)

@@ -148,13 +148,18 @@ def best_start(
 ) -> int:
     """Index of the pose (4, 4 each) under which the most of the union's correspondences
     reproject within ``pnp.reprojection_error_px`` (ties: the first)."""
-    from monoloc.server.vision._pnp_kernel import count_inliers
-
     starts = [np.asarray(T, dtype=np.float64) for T in starts_T_world_from_cam]
     if len(starts) <= 1:
         return 0
     origin_world = starts[0][:3, 3].copy()
     points_local, pixels, _, _ = _union_local(entries, origin_world)
+    return _best_start(points_local, pixels, origin_world, starts, intrinsics, pnp)
+
+
+def _best_start(points_local, pixels, origin_world, starts, intrinsics, pnp) -> int:
+    """:func:`best_start` on the union (points (M, 3) translated to ``origin_world``)."""
+    from monoloc.server.vision._pnp_kernel import count_inliers
+
     R = np.empty((len(starts), 3, 3))
     t = np.empty((len(starts), 3))
     for g, T in enumerate(starts):
@@ -185,7 +190,40 @@ def estimate_joint_pose(
         return None
     init = np.asarray(T_world_from_cam_init, dtype=np.float64)
     origin_world = init[:3, 3].copy()
-    points_local, pixels_all, scales_all, bounds = _union_local(entries, origin_world)
+    union = _union_local(entries, origin_world)
+    return _joint_pose(union, origin_world, init, entries, intrinsics, pnp, config)
+
+
+def joint_pose_from_best_start(
+    entries: Sequence[EntryInliers],
+    starts_T_world_from_cam: Sequence[np.ndarray],
+    intrinsics: CameraIntrinsics,
+    pnp: PnpConfig,
+    config: JointConfig,
+) -> JointPose | None:
+    """:func:`estimate_joint_pose` from the :func:`best_start` of ``starts`` (4, 4 each),
+    the union built once for both (it was built twice, a quarter of the joint pose's
+    time)."""
+    if len(entries) < config.min_entries:
+        return None
+    starts = [np.asarray(T, dtype=np.float64) for T in starts_T_world_from_cam]
+    origin_world = starts[0][:3, 3].copy()
+    points_local, pixels, scales, bounds = _union_local(entries, origin_world)
+    start = 0
+    if len(starts) > 1:
+        start = _best_start(points_local, pixels, origin_world, starts, intrinsics, pnp)
+    if start:  # LM works about its start: the union translated to that camera
+        shifted = starts[start][:3, 3].copy()
+        points_local = points_local - (shifted - origin_world)
+        origin_world = shifted
+    union = (points_local, pixels, scales, bounds)
+    return _joint_pose(union, origin_world, starts[start], entries, intrinsics, pnp, config)
+
+
+def _joint_pose(union, origin_world, init, entries, intrinsics, pnp, config) -> JointPose | None:
+    """The joint pose refined from ``init`` (4, 4) on ``union`` (``_union_local``'s points
+    translated to ``origin_world``, pixels, scales, bounds)."""
+    points_local, pixels_all, scales_all, bounds = union
     T_local_from_cam = init.copy()
     T_local_from_cam[:3, 3] -= origin_world
     T_cam_from_local = invert_rigid(T_local_from_cam)

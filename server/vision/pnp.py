@@ -544,13 +544,30 @@ def refit_relative_pose(
     ``rounds`` times (:func:`refine_from_pose`), then the usual checks; ``method`` is
     kept. Rejected when LM fails or fewer than ``min_inliers`` remain."""
     pixels, points = _checked_correspondences(points_query_px, points_ref_cam)
+    T_query_from_ref = invert_rigid(np.asarray(T_ref_from_query, dtype=np.float64))
+    return refit_checked(pixels, points, T_query_from_ref, intrinsics, config, method, rounds)
+
+
+def refit_checked(
+    pixels: np.ndarray,
+    points: np.ndarray,
+    T_query_from_ref: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    config: PnpConfig,
+    method: str,
+    rounds: int = 2,
+) -> RelativePose:
+    """:func:`refit_relative_pose` on correspondences already checked (float64 pixels
+    (M, 2) and points (M, 3), finite) from the pose (4, 4) T_query_from_ref: the refit of
+    every accepted entry on its matches by projection, which pays no checks or inversion
+    twice."""
     n_points = len(pixels)
     if n_points < _MIN_POINTS_FOR_SOLVER:
         return _rejected(n_points, f"{n_points} correspondences to refit on", method=method)
-    T_query_from_ref = invert_rigid(np.asarray(T_ref_from_query, dtype=np.float64))
-    R0 = np.ascontiguousarray(T_query_from_ref[:3, :3])
-    t0 = np.ascontiguousarray(T_query_from_ref[:3, 3])
-    R, t, mask, errors_px = refine_from_pose(points, pixels, R0, t0, intrinsics.K, config, rounds)
+    R, t, mask, errors_px = refine_from_pose(
+        points, pixels, T_query_from_ref[:3, :3], T_query_from_ref[:3, 3], intrinsics.K,
+        config, rounds,
+    )  # fmt: skip
     if R is None:
         return _rejected(
             n_points, "the refit left too few inliers or finite numbers", method=method

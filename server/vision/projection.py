@@ -31,7 +31,7 @@ import numpy as np
 from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import invert_rigid
-from monoloc.server.vision.pnp import PnpConfig, RelativePose, refit_relative_pose
+from monoloc.server.vision.pnp import PnpConfig, RelativePose, refit_checked
 
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int32)
 
@@ -165,15 +165,16 @@ def refine_by_projection(
     """An accepted entry pose ``rel`` refit on the entry's points (M, 3) matched by
     projection from it: (the (K, 2) matches, the refit pose), or None when the matches
     or the refit keep no more inliers than ``rel`` or the refit fails its checks."""
-    pairs = match_by_projection(
-        grid, ref_descriptors, points_ref_cam, invert_rigid(rel.T_ref_from_query), config
-    )
+    T_query_from_ref = invert_rigid(rel.T_ref_from_query)
+    points = np.ascontiguousarray(points_ref_cam, dtype=np.float64).reshape(-1, 3)  # once
+    pairs = match_by_projection(grid, ref_descriptors, points, T_query_from_ref, config)
     if len(pairs) <= rel.n_inliers:
         return None
-    refit = refit_relative_pose(
+    # the matched points are finite: the kernel projected each to a pixel in the window
+    refit = refit_checked(
         grid.keypoints_px[pairs[:, 0]],
-        np.asarray(points_ref_cam)[pairs[:, 1]],
-        rel.T_ref_from_query,
+        points[pairs[:, 1]],
+        T_query_from_ref,
         grid.intrinsics,
         pnp,
         rel.method,
