@@ -79,9 +79,9 @@ bench: install
 	$(PY) -m bench.closed_loop --scenario indoor
 	$(PY) -m bench.closed_loop --scenario urban
 	$(PY) -m bench.load --replicas 1 --runs http http-honours --overloads 3 5 \
-	  --duration 12 --slices 2 --out bench/results/load_overload.json
+	  --duration 12 --slices 4 --out bench/results/load_overload.json
 	$(PY) -m bench.load --replicas 1 --runs http http-honours --overloads 3 5 --front nginx \
-	  --duration 12 --slices 2 --out bench/results/load_overload_nginx.json
+	  --duration 12 --slices 4 --out bench/results/load_overload_nginx.json
 	$(PY) -m bench.report
 
 clean:

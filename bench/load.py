@@ -54,7 +54,7 @@ Writes bench/results/load.json (``--out``; the 3x/5x run: load_overload.json). U
     python -m bench.load [--duration 20] [--slices 4] [--replicas 1 2] [--rate-hz 10]
                          [--database auto] [--overloads 2] [--runs http ...]
     python -m bench.load --replicas 1 --runs http http-honours --overloads 3 5 \
-                         --duration 12 --slices 2 --out bench/results/load_overload.json
+                         --duration 12 --slices 4 --out bench/results/load_overload.json
 """
 
 from __future__ import annotations
