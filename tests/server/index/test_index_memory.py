@@ -210,3 +210,30 @@ def test_id_lookup_follows_random_adds_and_removes():
         row = entry_id // 7
         assert entry_id in index and entry_id + 1 not in index
         assert index.search(vlads[row], codes[row], k=1).entry_ids[0] == entry_id
+
+
+def test_the_float_file_reads_rows_in_any_order_repeated_and_in_long_runs(tmp_path):
+    """VladFile.take reads file rows adjacent to each other in one call: whatever the order
+    asked, rows asked twice, runs longer than one call's buffers, each row lands in its
+    place."""
+    rng = np.random.default_rng(7)
+    vlads = rng.normal(size=(700, 2048)).astype(np.float32)
+    path = tmp_path / "vlads.npy"
+    np.save(path, vlads)
+    with open(path, "rb") as f:
+        np.lib.format.read_magic(f)
+        np.lib.format.read_array_header_1_0(f)
+        offset = f.tell()
+    store = VladFile(path, len(vlads), offset)
+    for rows in (
+        rng.permutation(700)[:30],
+        np.array([5, 6, 7, 7, 8, 3, 4, 699, 0]),
+        np.arange(700),  # one run longer than a call's buffers
+        np.arange(700)[::-1],
+        np.array([], dtype=np.int64),
+    ):
+        out = np.empty((len(rows), 2048), dtype=np.float32)
+        store.take(rows, out)
+        assert np.array_equal(out, vlads[rows])
+    with pytest.raises(IndexError):
+        store.take(np.array([3, 700]), np.empty((2, 2048), dtype=np.float32))
