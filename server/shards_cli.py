@@ -1,9 +1,11 @@
 """`monoloc shards ...`: the operator's side of a map split into shard groups by tile
-(monoloc.core.tiles): the nginx router's config written from the tile table, and a check
-of which tiles a group's database covers."""
+(monoloc.core.tiles): the nginx router's config written from the tile table, a check of
+which tiles a group's database covers, and the copy of a group's tiles of a map from the
+map's database into the group's (server/ingest/split.py)."""
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
 
@@ -13,7 +15,7 @@ from monoloc.core.errors import InvalidInputError
 from monoloc.core.tiles import TileTable
 
 shards_app = typer.Typer(
-    help="A map in shard groups by geographic tile: router config, coverage.",
+    help="A map in shard groups by geographic tile: router config, coverage, split.",
     no_args_is_help=True,
 )
 
@@ -251,3 +253,64 @@ def coverage(
     if misplaced:
         typer.echo(f"{misplaced} entries outside group {group}'s tiles", err=True)
         raise typer.Exit(1)
+
+
+_SPLIT_HELP = (
+    "Copy the entries of a group's tiles of the table's map from the map's database into "
+    "the group's database."
+    "\n\n"
+    "The destination is migrated first and gets the map if absent: its camera, corner rule, "
+    "geo-reference and calibration, the vocabularies and the run records its entries need, "
+    "and each entry whose position lies in one of the group's tiles (the tile rule of "
+    "`monoloc shards coverage`) with its tags and console image. Entries are written "
+    "--batch-rows per transaction, one map version and one change-log row each."
+    "\n\n"
+    "NOT copied: API keys (create the vehicles' keys in each group's database), the "
+    "vehicles' registered cameras (a vehicle registers with each group), jobs, and the "
+    "entries of other tiles."
+    "\n\n"
+    "Idempotent: a rerun after an interruption copies only the entries missing (by source "
+    "image hash); a rerun on a complete copy copies nothing. Refuses (one line, exit 1) an "
+    "unknown group, a source without the map, a destination map of that name with another "
+    "vocabulary, camera or corner rule, and the same database as source and destination."
+)
+
+
+@shards_app.command("split", help=_SPLIT_HELP)
+def split(
+    table_path: TablePath,
+    group: Annotated[str, typer.Option(help="the group whose tiles' entries to copy")],
+    from_database: Annotated[
+        str, typer.Option(help="the database holding the whole map (SQLAlchemy URL)")
+    ],
+    to_database: Annotated[
+        str, typer.Option(help="the group's database (migrated first; SQLAlchemy URL)")
+    ],
+    batch_rows: Annotated[int, typer.Option(help="entries per transaction")] = 1000,
+) -> None:
+    from monoloc.core.tiles import read_tile_table
+    from monoloc.server.ingest.report import progress_bar
+    from monoloc.server.ingest.split import split_map
+
+    table = read_tile_table(table_path)
+    if group not in table.groups:
+        raise InvalidInputError(f"group {group!r} is not in {table_path}")
+    with ExitStack() as stack:
+        bar: list = []
+
+        def update(done: int, total: int) -> None:
+            if not bar:  # opened at the first batch: a refusal before it prints one line
+                bar.append(stack.enter_context(progress_bar(f"copying {group}")))
+            bar[0](done, total)
+
+        summary = split_map(
+            table, group, from_database, to_database, batch_rows=batch_rows, progress=update
+        )
+    verb = "created" if summary.created else "found"
+    typer.echo(
+        f"map {summary.map_name!r} ({verb} as id {summary.map_id}, version {summary.version}): "
+        f"{summary.in_group} entries in group {group}'s tiles, copied {summary.copied}, "
+        f"already there {summary.already_there}, skipped outside {summary.outside}; "
+        f"runs copied {summary.runs_copied}, vocabularies copied {summary.vocabularies_copied}, "
+        f"calibration {summary.calibration}; {summary.seconds:.1f} s"
+    )
