@@ -10,6 +10,7 @@ holds its tile, served by ``create_app`` from the copy."""
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -299,3 +300,78 @@ def test_refusals_are_one_line_and_write_nothing(tmp_path, monkeypatch, capsys):
 
 def _renamed(table: TileTable, name: str) -> TileTable:
     return TileTable(table.scheme, name, table.groups, table.tiles, table.router)
+
+
+ADMIN_KEY = "mlk_" + "S" * 43
+
+
+def test_a_frame_localizes_on_the_group_copy_served_by_create_app(tmp_path):
+    """A 6-frame sim street (half-size images, LiDAR) ingested whole, split at x = 2.6 m;
+    the east copy, served by create_app, localizes one of its frames at its pose."""
+    from monoloc.core.geometry import planar_from_T_world_from_cam
+    from monoloc.server.api.app import create_app
+    from monoloc.server.ingest.manage import create_map, ingest_source
+    from monoloc.server.ingest.sources import read_kitti_sequence
+    from monoloc.server.settings import Settings
+    from monoloc.sim.generate import GenerateConfig, generate_dataset
+    from monoloc.sim.lidar import LidarConfig
+    from monoloc.sim.recording import RecordingErrors
+
+    root = tmp_path / "street"
+    generate_dataset(
+        GenerateConfig(
+            seed=3,
+            runs=("map",),
+            max_frames=6,
+            image_scale=0.5,
+            write_depth=False,
+            errors=RecordingErrors.none(),
+            lidar=LidarConfig(azimuth_steps=1000),
+        ),
+        root,
+    )
+    run = read_kitti_sequence(root, "00")
+    source = _url(tmp_path / "all.db")
+    upgrade_database(source)
+    engine = create_engine_for_url(source)
+    factory = make_session_factory(engine)
+    create_map(factory, MAP, run.intrinsics)
+    ingest_source(factory, MAP, run)
+    engine.dispose()
+    table = TileTable(
+        TileScheme(100.0, origin_x_m=2.6, origin_y_m=-50.0),
+        MAP,
+        _table().groups,
+        {"-1_0": "west", "0_0": "east"},
+        "http://router:8080",
+    )
+    east = _url(tmp_path / "east.db")
+    summary = split_map(table, "east", source, east)
+    xs = [f.T_world_from_cam[0, 3] for f in run.frames]
+    assert summary.copied == summary.in_group == sum(x >= 2.6 for x in xs) > 0
+    assert summary.outside == len(xs) - summary.in_group
+
+    frame = run.frames[4]
+    expected = planar_from_T_world_from_cam(frame.T_world_from_cam)
+    settings = Settings(
+        data_dir=tmp_path / "data", database_url=east, bootstrap_admin_key=ADMIN_KEY
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from fastapi.testclient import TestClient
+    with TestClient(create_app(settings)) as client:
+        r = client.post(
+            f"/v1/maps/{summary.map_id}/localize",
+            files={"image": ("frame.png", frame.image_path.read_bytes(), "image/png")},
+            data={
+                "prior_x_m": repr(float(expected[0])),
+                "prior_y_m": repr(float(expected[1])),
+                "prior_radius_m": "8.0",
+                "seed": "1",
+            },
+            headers={"X-API-Key": ADMIN_KEY},
+        )
+    assert r.status_code == 200, r.text
+    best = max(r.json()["hypotheses"], key=lambda h: h["n_inliers"])
+    found = np.array([best["pose"]["x_m"], best["pose"]["y_m"]])
+    assert np.linalg.norm(found - expected[:2]) < 0.2, (found, expected)
