@@ -16,8 +16,9 @@ frame: 5 Hz), urban or at highway speed. Per cell, in the same run:
   calibration: absolute e_vlad, offsets along / across the heading, isotropic pose
   spreads), "bias shrunk (James-Stein)" / "bias gated (chi2 95 %)", "along-only bias" (the same
   with its biases shrunk, or their across-heading component zeroed:
-  ``CalibrationConfig.bias_shrinkage``), "default" (the uncalibrated
-  ``MeasurementModel()``), "world axes" (the paper's
+  ``CalibrationConfig.bias_shrinkage``), "isotropic PnP floor (ML)" (the same with the PnP
+  term refitted with one position floor: ``CalibrationConfig.pnp_floor_fit``), "default"
+  (the uncalibrated ``MeasurementModel()``), "world axes" (the paper's
   fit, the product before 2026-12-02), "no retrieval term" (c_i constant: the pose term
   alone), "relative e_vlad" (e_vlad minus the frame's best), "widened by fit" (the e_vlad
   spread widened by the fit check's shift), and world-axes baselines without the
@@ -84,6 +85,8 @@ class Fitted:
     per_run: list = field(default_factory=list)
     # the product's fit with its biases shrunk (CalibrationConfig.bias_shrinkage)
     shrunk: dict = field(default_factory=dict)
+    # the product's fit with its PnP floor fitted otherwise (CalibrationConfig.pnp_floor_fit)
+    floor_fits: dict = field(default_factory=dict)
 
 
 def widened(model: MeasurementModel, provenance: dict, map_vlad: dict | None) -> MeasurementModel:
@@ -155,6 +158,7 @@ VARIANTS: dict[str, Variant] = {
     "bias shrunk (James-Stein)": lambda fit, _: fit.shrunk["james_stein"],
     "bias gated (chi2 95 %)": lambda fit, _: fit.shrunk["significance_gate"],
     "along-only bias": lambda fit, _: fit.shrunk["along_only"],
+    "isotropic PnP floor (ML)": lambda fit, _: fit.floor_fits["isotropic_ml"],
     "default": lambda fit, _: MeasurementModel(),
     "world axes": lambda fit, _: fit.world,
     "no retrieval term": lambda fit, _: without_retrieval(fit.vehicle),
@@ -463,6 +467,12 @@ def calibrate_both(train, vocabulary) -> Fitted:
         ).model
         for method in ("james_stein", "significance_gate", "along_only")
     }
+    floor_fits = {
+        method: fit_samples(
+            samples, per_run, ["train"], replace(config, pnp_floor_fit=method), vocabulary
+        ).model
+        for method in ("isotropic_ml",)
+    }
     return Fitted(
         fits["world"].model,
         fits["vehicle"].model,
@@ -470,6 +480,7 @@ def calibrate_both(train, vocabulary) -> Fitted:
         samples,
         per_run,
         shrunk,
+        floor_fits,
     )
 
 

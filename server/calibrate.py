@@ -37,6 +37,8 @@ import numpy as np
 from monoloc.core.calibration import (
     PAPER_TAIL_SCALE,
     PAPER_TAIL_WEIGHT,
+    PNP_FLOOR_STD_BOUNDS,
+    PNP_PIXEL_STD_BOUNDS,
     fit_measurement_model,
     fit_pnp_covariance_model,
     fit_quality_model,
@@ -53,6 +55,7 @@ from monoloc.core.measurement import (
     DEFAULT_VLAD_EVIDENCE,
     CovarianceModel,
     MeasurementModel,
+    PnpCovarianceModel,
     RetrievalFrame,
     VladEvidence,
     to_heading_axes,
@@ -80,6 +83,12 @@ ERROR_CONVENTION = "e = truth - hypothesis, (X m, Y m, psi rad), psi wrapped to 
 # quantile, else 0; "along_only" (h7) its across-heading component zeroed, along and
 # heading kept (a model fitted in the vehicle's axes only)
 BiasShrinkage = Literal["none", "james_stein", "significance_gate", "along_only"]
+# How the PnP term's floor is fitted in the product's frame (docs/notebook/transfer.md,
+# 2026-12-02, h8): "half_trace" fits it along / across / heading, then gives both position
+# axes half its trace (the third entry's isotropic floor); "isotropic_ml" fits mu1, the
+# pixel std, one position floor and the heading floor by maximum likelihood in the form
+# the model applies them (:func:`fit_isotropic_pnp`)
+PnpFloorFit = Literal["half_trace", "isotropic_ml"]
 # chi-square(3) quantile at 0.95: a whole-vector bias test at the 5 % level
 CHI2_3_95 = 7.814727903251178
 
@@ -119,6 +128,8 @@ class CalibrationConfig:
     # the fitted biases (the paper term's and the PnP term's mu1) kept as fitted, or
     # shrunk toward 0 as far as they are not significant (:func:`shrunk_bias`)
     bias_shrinkage: BiasShrinkage = "none"
+    # how the PnP floor's position part is made isotropic (PnpFloorFit)
+    pnp_floor_fit: PnpFloorFit = "half_trace"
 
     def __post_init__(self) -> None:
         if self.k < 1 or self.map_every < 2:
@@ -128,6 +139,11 @@ class CalibrationConfig:
             )
         if not (self.gate_position_m > 0 and self.gate_yaw_rad > 0):
             raise InvalidInputError(f"calibration gates must be positive, got {self}")
+        if self.pnp_floor_fit == "isotropic_ml" and self.retrieval_frame != "vehicle":
+            raise InvalidInputError(
+                "pnp_floor_fit 'isotropic_ml' fits the vehicle frame's isotropic floor: it "
+                f"needs retrieval_frame 'vehicle', got {self.retrieval_frame!r}"
+            )
 
     @property
     def min_frames(self) -> int:
@@ -394,6 +410,8 @@ def fit_samples(
         errors, np.array(samples.n_inliers), np.array(samples.error_px), joint
     )
     pnp = _fit_pnp(errors[~joint], covariances[~joint], paper, config)
+    if pnp is not None and config.pnp_floor_fit == "isotropic_ml":
+        pnp = fit_isotropic_pnp(errors[~joint], covariances[~joint], paper, pnp)
     if config.covariance == "pnp" and pnp is None:
         raise InvalidInputError(
             f"calibration of {what} cannot fit the pnp covariance model: fewer than "
@@ -501,6 +519,77 @@ def _isotropic_pose_spread(paper: MeasurementModel, pnp):
     if pnp is not None:
         pnp = dataclasses.replace(pnp, floor=_isotropic_position(pnp.floor))
     return paper, pnp
+
+
+def fit_isotropic_pnp(
+    errors: np.ndarray,
+    covariances: np.ndarray,
+    outliers: MeasurementModel,
+    start: PnpCovarianceModel,
+) -> PnpCovarianceModel:
+    """The PnP term refitted by maximum likelihood with its floor in the form the vehicle
+    frame applies it: diag(f^2, f^2, h^2), one position floor f on both axes and the
+    heading floor h, together with mu1 and the pixel std (errors (N, 3) and covariances
+    (N, 3, 3) along / across / heading, NaN covariances left out; ``outliers`` the paper
+    term, mixed in with ``start.outlier_weight`` as in the fit of ``start``).
+
+    Why not half the trace of the along / across fit: on a straight road the across and
+    heading errors are two readings of one ambiguity, and that fit may put all of it into
+    the across floor, which the average then carries onto both axes
+    (docs/notebook/transfer.md, 2026-12-02, h8). Started from ``start`` and from a few
+    floors; the likeliest is kept."""
+    from scipy.optimize import minimize
+
+    e = np.asarray(errors, dtype=np.float64)
+    C = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
+    known = np.isfinite(C).all(axis=(1, 2)) & np.isfinite(e).all(axis=1)
+    e, C = e[known], C[known]
+    w = start.outlier_weight
+    r = e - outliers.mu1
+    r[:, 2] = wrap_angle(r[:, 2])
+    maha = np.einsum("ij,ij->i", r @ np.linalg.inv(outliers.Sigma1), r)
+    outlier = outliers.paper_log_density(maha) + math.log(w) if w > 0 else None
+
+    def nll(theta: np.ndarray) -> float:
+        f2, h2 = math.exp(2.0 * theta[4]), math.exp(2.0 * theta[5])
+        L = np.linalg.cholesky(math.exp(2.0 * theta[3]) * C + np.diag([f2, f2, h2]))
+        y = np.linalg.solve(L, (e - theta[:3])[:, :, None])[:, :, 0]
+        own = (
+            -np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
+            - 1.5 * math.log(2.0 * math.pi)
+            - 0.5 * np.einsum("ij,ij->i", y, y)
+        )
+        if outlier is None:
+            return -float(own.sum())
+        return -float(np.logaddexp(own + math.log1p(-w), outlier).sum())
+
+    (f_lo, f_hi), _, (h_lo, h_hi) = PNP_FLOOR_STD_BOUNDS
+    bounds = [(None, None)] * 3 + [
+        tuple(np.log(PNP_PIXEL_STD_BOUNDS)),
+        (math.log(f_lo), math.log(f_hi)),
+        (math.log(h_lo), math.log(h_hi)),
+    ]
+    half_trace = math.sqrt(0.5 * (start.floor[0, 0] + start.floor[1, 1]))
+    heading = math.sqrt(start.floor[2, 2])
+    starts = [(half_trace, heading)] + [(f, h) for f in (1e-3, 1e-2) for h in (1e-4, 1e-3)]
+    best = None
+    for f0, h0 in starts:
+        theta0 = np.concatenate(
+            [start.mu1, [math.log(start.pixel_std_px)], np.log(np.clip([f0, h0], 1e-5, 1.0))]
+        )
+        theta0[4] = float(np.clip(theta0[4], *bounds[4]))
+        theta0[5] = float(np.clip(theta0[5], *bounds[5]))
+        result = minimize(nll, theta0, method="L-BFGS-B", bounds=bounds)
+        if best is None or result.fun < best.fun:
+            best = result
+    theta = best.x
+    f2, h2 = math.exp(2.0 * theta[4]), math.exp(2.0 * theta[5])
+    return dataclasses.replace(
+        start,
+        mu1=theta[:3].copy(),
+        pixel_std_px=math.exp(theta[3]),
+        floor=np.diag([f2, f2, h2]),
+    )
 
 
 def _fit_pnp(errors: np.ndarray, covariances: np.ndarray, paper, config: CalibrationConfig):
