@@ -312,5 +312,5 @@ def split(
         f"{summary.in_group} entries in group {group}'s tiles, copied {summary.copied}, "
         f"already there {summary.already_there}, skipped outside {summary.outside}; "
         f"runs copied {summary.runs_copied}, vocabularies copied {summary.vocabularies_copied}, "
-        f"calibration {summary.calibration}; {summary.seconds:.1f} s"
+        f"calibration {summary.calibration}; elapsed {summary.seconds:.1f} s"
     )
