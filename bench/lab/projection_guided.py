@@ -10,10 +10,11 @@ those matches (:func:`guided_by_projection`: the guess's inliers among the windo
 matches refit with SQPnP + LM, the guided inlier rules). Its global matches are read only
 for its own RANSAC, the pooled pose and the alternative pose.
 
-Measured: matching 3.3 -> 0.3 ms of CPU a frame on the held-out city, the pose stage
-about as before; but the window finds enough inliers for about one more entry a frame
-that global matching rejects (about 20 inliers, a median error twice the others'),
-and on bench.accuracy's seed 4721 one more day frame ended beyond 0.25 m. Use:
+Measured (bench.lab.pose_replay): matching 3.2 -> 0.3 ms of CPU a frame on the held-out
+city, the pose stage 0.4-1.2 ms more; but the window finds enough inliers for about one
+more entry a frame that global matching rejects (about 20 inliers, a median error twice
+the others'), the dusk road's joint pose comes out 0.020 -> 0.025 m (median), and on
+bench.accuracy's seed 4721 one more day frame ended beyond 0.25 m. Use:
 ``FrameStages(match=match_on_demand, poses=projection_guided_pose_hypotheses)``
 (``PROJECTION_GUIDED_STAGES``).
 """
