@@ -69,9 +69,9 @@ def test_an_honouring_vehicle_sends_one_frame_at_a_time_as_the_library_does():
 
 def test_the_nginx_front_runs_docker_nginx_conf_before_the_upstreams(tmp_path):
     """``--front nginx``: docker/nginx.conf made to run before given upstreams (in each
-    upstream block, the admission's per-replica limit set) starts, and the generator's frames pass through it
-    to the floor server (which answers each 503) with no failure; nginx's own shedding is
-    tests/fleet/test_replicas.py's."""
+    upstream block, the admission's per-replica limit set) starts, and the generator's
+    frames pass through it to the floor server (which answers each 503) with no failure;
+    nginx's own shedding is tests/fleet/test_replicas.py's."""
     with load.floor_server() as floor_url:
         text = load.front_config([floor_url, floor_url], 8080, 3, tmp_path)
         assert text.count("max_conns=3 ") == 2 and "max_conns=4" not in text

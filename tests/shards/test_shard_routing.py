@@ -126,9 +126,7 @@ def test_the_router_sheds_a_full_groups_frames_and_not_the_other_groups(
     shed_lines = [line for line in log if " 503 " in line]
     assert len(shed_lines) == codes.count(503), log
     # never proxied: nginx found no replica of the group with room (no address tried)
-    assert all("tile=-1_0 upstream=shard_west_localize " in line for line in shed_lines), (
-        shed_lines
-    )
+    assert all("tile=-1_0 upstream=shard_west_localize " in line for line in shed_lines), shed_lines
 
 
 def _frame(split_street, i: int) -> bytes:
