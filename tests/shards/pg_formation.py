@@ -120,9 +120,17 @@ class AutoFailoverFormation:
         self.root.mkdir(parents=True, exist_ok=True)
         for sub in ("config", "share", "run"):
             (self.root / sub).mkdir(exist_ok=True)
+        # pg_autoctl keeps each node's state under XDG_{CONFIG,DATA}_HOME/pg_autoctl/<its
+        # PGDATA path>; two of its processes making those directories at once (a node
+        # starting while `show` polls the monitor) race, and the loser exits "File exists":
+        # make them all first
+        for sub in ("config", "share"):
+            for pgdata in ["monitor", *(f"node{i}" for i in range(1, len(self.ports)))]:
+                state = self.root / sub / "pg_autoctl" / str(self.root / pgdata).lstrip("/")
+                state.mkdir(parents=True, exist_ok=True)
         if os.geteuid() == 0:
             user = pwd.getpwnam("postgres")
-            for path in [self.root, *self.root.iterdir()]:
+            for path in [self.root, *self.root.rglob("*")]:
                 os.chown(path, user.pw_uid, user.pw_gid)
         common = ["--hostname", "127.0.0.1", "--listen", "127.0.0.1", "--auth", "trust"]
         common += ["--no-ssl"]
