@@ -43,6 +43,8 @@ from monoloc.core.calibration import (
     fit_pnp_covariance_model,
     fit_quality_model,
     fit_relative_vlad,
+    gaussian_log_densities,
+    paper_log_densities,
     pose_errors,
     retrieval_vectors,
 )
@@ -545,19 +547,12 @@ def fit_isotropic_pnp(
     known = np.isfinite(C).all(axis=(1, 2)) & np.isfinite(e).all(axis=1)
     e, C = e[known], C[known]
     w = start.outlier_weight
-    r = e - outliers.mu1
-    r[:, 2] = wrap_angle(r[:, 2])
-    maha = np.einsum("ij,ij->i", r @ np.linalg.inv(outliers.Sigma1), r)
-    outlier = outliers.paper_log_density(maha) + math.log(w) if w > 0 else None
+    outlier = paper_log_densities(e, outliers) + math.log(w) if w > 0 else None
 
     def nll(theta: np.ndarray) -> float:
         f2, h2 = math.exp(2.0 * theta[4]), math.exp(2.0 * theta[5])
-        L = np.linalg.cholesky(math.exp(2.0 * theta[3]) * C + np.diag([f2, f2, h2]))
-        y = np.linalg.solve(L, (e - theta[:3])[:, :, None])[:, :, 0]
-        own = (
-            -np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
-            - 1.5 * math.log(2.0 * math.pi)
-            - 0.5 * np.einsum("ij,ij->i", y, y)
+        own = gaussian_log_densities(
+            e - theta[:3], math.exp(2.0 * theta[3]) * C + np.diag([f2, f2, h2])
         )
         if outlier is None:
             return -float(own.sum())

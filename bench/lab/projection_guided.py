@@ -30,16 +30,16 @@ from monoloc.core.camera import CameraIntrinsics
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.geometry import invert_rigid, planar_from_T_world_from_cam, wrap_angle
 from monoloc.core.prior import RetrievalPrior
-from monoloc.server.localize.combined import (
-    alternative_hypothesis,
-    joint_hypothesis,
-    pooled_hypothesis,
-)
 from monoloc.server.localize.config import PoseConfig
 from monoloc.server.localize.frame import FrameStages
-from monoloc.server.localize.poses import _Confirmation, _prior_guess, entry_hypothesis
+from monoloc.server.localize.poses import (
+    _Confirmation,
+    _prior_guess,
+    checked_pose_inputs,
+    hypotheses_from_solved,
+)
 from monoloc.server.localize.results import PoseHypothesis, ReferenceEntry
-from monoloc.server.vision.joint import EntryInliers, JointConfig
+from monoloc.server.vision.joint import JointConfig
 from monoloc.server.vision.matching import MatchConfig, _check, _match_words, _Scratch
 from monoloc.server.vision.pnp import (
     PnpConfig,
@@ -167,14 +167,7 @@ def projection_guided_pose_hypotheses(
     ``descriptors`` (N, 32) uint8: the keypoints' descriptors, for the refit by projection
     (``config.refine``; InvalidInputError without them). Returns the hypotheses in the
     references' order and (entry id, reason) of the rejected references."""
-    keypoints_px = np.asarray(keypoints_px, dtype=np.float64)  # once, not per entry
-    scales = None if keypoint_scales is None else np.asarray(keypoint_scales, dtype=np.float64)
-    if scales is not None and scales.shape != (len(keypoints_px),):
-        raise InvalidInputError(
-            f"{len(keypoints_px)} keypoints but keypoint scales of shape {scales.shape}"
-        )
-    if config.refine is not None and descriptors is None:
-        raise InvalidInputError("refining by projection needs the query's descriptors")
+    keypoints_px, scales = checked_pose_inputs(keypoints_px, keypoint_scales, descriptors, config)
     grid = _LazyGrid(keypoints_px, descriptors, intrinsics, config.refine)
     solved, pairs_used = _solve_entries(
         keypoints_px, refs, matches, intrinsics, config, rng, prior, grid
@@ -184,40 +177,19 @@ def projection_guided_pose_hypotheses(
         pairs_used, solved = _refined_by_projection(
             grid, refs, pairs_used, solved, config, skip_guided=by_projection
         )
-    hypotheses: list[PoseHypothesis] = []
-    rejected: list[tuple[int, str]] = []
-    inliers: list[EntryInliers] = []
-    for ref, pairs, rel in zip(refs, pairs_used, solved, strict=True):
-        if not rel.accepted:
-            rejected.append((ref.entry_id, rel.reject_reason or "rejected"))
-            continue
-        kept = pairs[rel.inlier_mask]
-        hypotheses.append(entry_hypothesis(ref, rel, kept, len(pairs), e_vlad, intrinsics, scales))
-        inliers.append(
-            EntryInliers(
-                ref.T_world_from_cam,
-                keypoints_px[kept[:, 0]],
-                ref.points_cam[kept[:, 1]],
-                None if scales is None else scales[kept[:, 0]],
-            )
-        )
-    if config.joint is not None:
-        joint = joint_hypothesis(hypotheses, inliers, intrinsics, config.pnp, config.joint)
-        if joint is not None:
-            hypotheses.append(joint)
-    if config.pooled is not None and not hypotheses and refs:
-        pooled = pooled_hypothesis(
-            keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, scales, descriptors
-        )
-        if pooled is not None:
-            hypotheses.append(pooled)
-    if config.alternative is not None:
-        found = alternative_hypothesis(
-            hypotheses, keypoints_px, refs, matches, e_vlad, intrinsics, config, rng, scales
-        )
-        if found is not None:
-            hypotheses.append(found)
-    return hypotheses, rejected
+    return hypotheses_from_solved(
+        keypoints_px,
+        refs,
+        matches,
+        pairs_used,
+        solved,
+        e_vlad,
+        intrinsics,
+        config,
+        rng,
+        scales,
+        descriptors,
+    )
 
 
 class _LazyGrid:

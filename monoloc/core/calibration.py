@@ -340,6 +340,27 @@ PNP_PIXEL_STD_BOUNDS = (0.05, 100.0)
 PNP_FLOOR_STD_BOUNDS = ((1e-4, 1.0), (1e-4, 1.0), (1e-5, 0.1))
 
 
+def gaussian_log_densities(residuals: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """log N(r_i; 0, S_i) of each row: residuals (N, 3), covariances (N, 3, 3) (or one
+    (3, 3) for every row), by Cholesky factors."""
+    L = np.linalg.cholesky(covariances)
+    y = np.linalg.solve(L, residuals[:, :, None])[:, :, 0]
+    return (
+        -np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
+        - 1.5 * np.log(2.0 * np.pi)
+        - 0.5 * np.einsum("ij,ij->i", y, y)
+    )
+
+
+def paper_log_densities(errors: np.ndarray, model: MeasurementModel) -> np.ndarray:
+    """The paper pose term's log density (its mu1, Sigma1 and tail) of each pose error
+    (N, 3) (x, y, heading in rad; the heading residual wrapped)."""
+    r = errors - model.mu1
+    r[:, 2] = wrap_angle(r[:, 2])
+    maha = np.einsum("ij,ij->i", r @ np.linalg.inv(model.Sigma1), r)
+    return model.paper_log_density(maha)
+
+
 def fit_pnp_covariance_model(
     pose_error_samples: np.ndarray,
     pose_covariances: np.ndarray,
@@ -375,10 +396,7 @@ def fit_pnp_covariance_model(
     if outliers is None or outlier_weight <= 0.0:
         outlier_weight, outlier_term = 0.0, None
     else:
-        r = e - outliers.mu1
-        r[:, 2] = wrap_angle(r[:, 2])
-        maha = np.einsum("ij,ij->i", r @ np.linalg.inv(outliers.Sigma1), r)
-        outlier_term = outliers.paper_log_density(maha) + np.log(outlier_weight)
+        outlier_term = paper_log_densities(e, outliers) + np.log(outlier_weight)
     log_core = np.log1p(-outlier_weight)
 
     def unpack(theta):
@@ -386,14 +404,7 @@ def fit_pnp_covariance_model(
 
     def nll(theta):
         mu1, sigma, floor_var = unpack(theta)
-        L = np.linalg.cholesky(sigma**2 * C + np.diag(floor_var))
-        r = e - mu1
-        y = np.linalg.solve(L, r[:, :, None])[:, :, 0]
-        own = (
-            -np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
-            - 1.5 * np.log(2.0 * np.pi)
-            - 0.5 * np.einsum("ij,ij->i", y, y)
-        )
+        own = gaussian_log_densities(e - mu1, sigma**2 * C + np.diag(floor_var))
         if outlier_term is None:
             return -float(own.sum())
         return -float(np.logaddexp(own + log_core, outlier_term).sum())

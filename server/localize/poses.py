@@ -62,7 +62,38 @@ def pose_hypotheses(
     ``descriptors`` (N, 32) uint8: the keypoints' descriptors, for the refit by projection
     (``config.refine``; InvalidInputError without them). Returns the hypotheses in the
     references' order and (entry id, reason) of the rejected references."""
-    keypoints_px = np.asarray(keypoints_px, dtype=np.float64)  # once, not per entry
+    keypoints_px, scales = checked_pose_inputs(keypoints_px, keypoint_scales, descriptors, config)
+    solved = _solve_entries(keypoints_px, refs, matches, intrinsics, config, rng, prior)
+    pairs_used = matches
+    if config.refine is not None:
+        pairs_used, solved = _refined_by_projection(
+            keypoints_px, descriptors, refs, matches, solved, intrinsics, config
+        )
+    return hypotheses_from_solved(
+        keypoints_px,
+        refs,
+        matches,
+        pairs_used,
+        solved,
+        e_vlad,
+        intrinsics,
+        config,
+        rng,
+        scales,
+        descriptors,
+    )
+
+
+def checked_pose_inputs(
+    keypoints_px: np.ndarray,
+    keypoint_scales: np.ndarray | None,
+    descriptors: np.ndarray | None,
+    config: PoseConfig,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The pose stage's query arrays as float64, once a frame: keypoints (N, 2) and their
+    scales (N,) or None; InvalidInputError for scales of another length, or no
+    descriptors when ``config.refine`` needs them."""
+    keypoints_px = np.asarray(keypoints_px, dtype=np.float64)
     scales = None if keypoint_scales is None else np.asarray(keypoint_scales, dtype=np.float64)
     if scales is not None and scales.shape != (len(keypoints_px),):
         raise InvalidInputError(
@@ -70,12 +101,26 @@ def pose_hypotheses(
         )
     if config.refine is not None and descriptors is None:
         raise InvalidInputError("refining by projection needs the query's descriptors")
-    solved = _solve_entries(keypoints_px, refs, matches, intrinsics, config, rng, prior)
-    pairs_used = matches
-    if config.refine is not None:
-        pairs_used, solved = _refined_by_projection(
-            keypoints_px, descriptors, refs, matches, solved, intrinsics, config
-        )
+    return keypoints_px, scales
+
+
+def hypotheses_from_solved(
+    keypoints_px: np.ndarray,
+    refs: Sequence[ReferenceEntry],
+    matches: Sequence[np.ndarray],
+    pairs_used: Sequence[np.ndarray],
+    solved: Sequence[RelativePose],
+    e_vlad: dict[int, float],
+    intrinsics: CameraIntrinsics,
+    config: PoseConfig,
+    rng: np.random.Generator,
+    scales: np.ndarray | None,
+    descriptors: np.ndarray | None,
+) -> tuple[list[PoseHypothesis], list[tuple[int, str]]]:
+    """The hypotheses of the entries' solved poses (``pairs_used``: each entry's pairs the
+    pose was solved on), in the references' order, then the poses of several entries
+    (joint, pooled, alternative, as ``config`` asks), and (entry id, reason) of the
+    rejected references."""
     hypotheses: list[PoseHypothesis] = []
     rejected: list[tuple[int, str]] = []
     inliers: list[EntryInliers] = []

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from calibration_samples import synthetic_samples
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.server.calibrate import (
@@ -92,7 +93,6 @@ def _heading_axis_samples(seed: int, n: int = 300):
     """CalibrationSamples of a road along world Y (heading +90 deg) whose per-entry pose
     errors carry a bias of 4 cm along and 6 cm across the heading, 3 mrad in heading."""
     from monoloc.core.measurement import to_heading_axes
-    from monoloc.server.calibrate import CalibrationSamples
 
     rng = np.random.default_rng(seed)
     heading_rad = np.pi / 2 + rng.normal(0.0, 0.05, n)
@@ -111,23 +111,7 @@ def _heading_axis_samples(seed: int, n: int = 300):
         error_world, hypothesis[:, 2], np.repeat(covariance[None], n, 0)
     )
     offsets = rng.normal(0.0, 2.0, (n, 2))
-    samples = CalibrationSamples(
-        truth=truth.tolist(),
-        hypothesis=hypothesis.tolist(),
-        e_vlad=rng.normal(1.2, 0.05, n).tolist(),
-        e_vlad_best=rng.normal(1.15, 0.05, n).tolist(),
-        entry_pose=np.column_stack([truth[:, :2] + offsets, truth[:, 2]]).tolist(),
-        n_inliers=rng.integers(20, 200, n).tolist(),
-        error_px=rng.uniform(0.5, 2.0, n).tolist(),
-        joint=[False] * n,
-        pose_covariance=[covariance.ravel().tolist()] * n,
-        query_index=list(range(n)),
-        entry_index=list(range(n)),
-        neighbour_e_vlad=rng.normal(1.1, 0.05, 50).tolist(),
-        n_hypotheses=n,
-        n_queries_with_hypotheses=n,
-        n_queries=n,
-    )
+    samples = synthetic_samples(rng, truth, hypothesis, offsets, np.repeat(covariance[None], n, 0))
     return samples, errors_heading.mean(axis=0)
 
 

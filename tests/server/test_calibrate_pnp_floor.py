@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from calibration_samples import synthetic_samples
 
 from monoloc.core.errors import InvalidInputError
 from monoloc.core.measurement import MeasurementModel, PnpCovarianceModel
@@ -93,8 +94,6 @@ def test_the_fit_beats_half_the_trace_of_an_along_across_fit_on_the_model_it_is_
 def _straight_road_samples(seed: int, n: int = 300):
     """CalibrationSamples of a straight road along world X whose per-entry errors follow
     a PnP term with no floor along and 2 cm across."""
-    from monoloc.server.calibrate import CalibrationSamples
-
     rng = np.random.default_rng(seed)
     truth = np.column_stack(
         [np.linspace(0.0, 120.0, n), rng.normal(0.0, 0.05, n), rng.normal(0.0, 0.01, n)]
@@ -102,23 +101,7 @@ def _straight_road_samples(seed: int, n: int = 300):
     C = _covariances(rng, n)  # along / across the heading (about world X here)
     error = _draw(rng, C, 1.5, [1e-4, 0.02, 1e-5])
     offsets = np.column_stack([rng.normal(2.0, 6.0, n), rng.normal(0.0, 0.3, n)])
-    samples = CalibrationSamples(
-        truth=truth.tolist(),
-        hypothesis=(truth - error).tolist(),
-        e_vlad=rng.normal(1.2, 0.05, n).tolist(),
-        e_vlad_best=rng.normal(1.15, 0.05, n).tolist(),
-        entry_pose=np.column_stack([truth[:, :2] + offsets, truth[:, 2]]).tolist(),
-        n_inliers=rng.integers(20, 200, n).tolist(),
-        error_px=rng.uniform(0.5, 2.0, n).tolist(),
-        joint=[False] * n,
-        pose_covariance=C.reshape(n, 9).tolist(),
-        query_index=list(range(n)),
-        entry_index=list(range(n)),
-        neighbour_e_vlad=rng.normal(1.1, 0.05, 50).tolist(),
-        n_hypotheses=n,
-        n_queries_with_hypotheses=n,
-        n_queries=n,
-    )
+    samples = synthetic_samples(rng, truth, truth - error, offsets, C)
     return samples
 
 
